@@ -1,0 +1,67 @@
+# shocktwin — one Makefile; `make help` lists the targets.
+# `make demo` and `make test` set everything up on a fresh machine first.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := help
+
+PY_SYS   ?= python3
+VENV     := .venv
+PY       := $(VENV)/bin/python
+CARGO    ?= cargo
+# Tests, binaries and the Python extension all use the release profile, so
+# the dependencies are compiled once (2-core CI).
+CARGO_PROFILE := --release
+BIN      := target/release/shocktwin
+OUT      ?= out
+CAMPAIGN ?= $(OUT)/campaign
+
+RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) Cargo.toml
+PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
+
+.PHONY: help setup build demo test test-rust test-python lint bench study clean
+
+help: ## list the targets
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
+
+$(VENV)/.deps: requirements.txt
+	$(PY_SYS) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements.txt
+	touch $@
+
+$(VENV)/.shocktwin: $(VENV)/.deps $(PY_EXT_SRC)
+	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH \
+	  $(VENV)/bin/maturin develop -q --release -m crates/dt-py/Cargo.toml
+	touch $@
+
+$(BIN): $(RUST_SRC) Cargo.lock
+	$(CARGO) build $(CARGO_PROFILE) -p dt-server --bin shocktwin
+
+setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python package
+
+build: $(BIN) ## build the shocktwin CLI (release)
+
+demo: setup ## simulate the quick campaign and inspect it (simulated data)
+	rm -rf $(CAMPAIGN)
+	$(BIN) simulate --quick --out $(CAMPAIGN)
+	$(BIN) inspect $$(ls $(CAMPAIGN)/*.mcap | head -n 1)
+	@echo "demo: campaign of simulated dyno runs in $(CAMPAIGN)"
+
+test-rust: ## Rust unit and integration tests
+	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py
+
+test-python: setup ## pytest: the Python contract and references
+	$(PY) -m pytest -q tests/python
+
+test: setup test-rust test-python ## set up, then run every test
+
+lint: ## rustfmt and clippy (pedantic, workspace allow-list)
+	$(CARGO) fmt --all -- --check
+	$(CARGO) clippy $(CARGO_PROFILE) --workspace --all-targets -- -D warnings
+
+bench: ## criterion benches (see README for the figures)
+	$(CARGO) bench -p dt-bench
+
+clean: ## remove build outputs, the venv and out/
+	rm -rf target $(VENV) $(OUT)
