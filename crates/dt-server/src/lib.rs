@@ -1,2 +1,8 @@
 //! `dt-server` owns the `shocktwin` command line and the fleet-gateway
-//! daemon; every model and format lives in `dt-core`.
+//! daemon; every model and format lives in `dt-core`, the simulator in
+//! `dt-sim`. Each subcommand has its own module; `src/bin/shocktwin.rs` only
+//! parses arguments and dispatches.
+
+pub mod cli;
+pub mod cmd_inspect;
+pub mod cmd_simulate;
