@@ -5,4 +5,5 @@
 //! It knows nothing of pyo3, tokio or sockets: `dt-py` and `dt-server` are
 //! thin shells around it.
 
+pub mod estimate;
 pub mod log;
