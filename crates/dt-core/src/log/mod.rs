@@ -6,6 +6,12 @@
 
 use std::collections::BTreeMap;
 
+mod error;
+mod writer;
+
+pub use error::LogError;
+pub use writer::{Compression, LogWriter, WriteOptions};
+
 /// Topic names of SPEC §2.
 pub mod topic {
     /// Potentiometer, field `position_m`, 100 Hz.
@@ -50,17 +56,49 @@ pub struct RunMetadata {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Sample {
     /// `/position`.
-    Position { t_ns: i64, position_m: f64 },
+    Position {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Extension relative to mid-stroke, m.
+        position_m: f64,
+    },
     /// `/acceleration`; `a1` on the rod end, `a2` on the body end.
-    Acceleration { t_ns: i64, a1_mps2: f64, a2_mps2: f64 },
+    Acceleration {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Rod-end acceleration, m/s².
+        a1_mps2: f64,
+        /// Body-end acceleration, m/s².
+        a2_mps2: f64,
+    },
     /// `/force`, positive in tension.
-    Force { t_ns: i64, force_n: f64 },
+    Force {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Axial force, N, positive in tension.
+        force_n: f64,
+    },
     /// `/temperature/shock`.
-    TempShock { t_ns: i64, temperature_c: f64 },
+    TempShock {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Temperature, °C.
+        temperature_c: f64,
+    },
     /// `/temperature/ambient`.
-    TempAmbient { t_ns: i64, temperature_c: f64 },
+    TempAmbient {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Temperature, °C.
+        temperature_c: f64,
+    },
     /// `/truth/gas_pressure`: instantaneous static gas pressure, bar gauge.
-    TruthPressure { t_ns: i64, static_bar: f64 },
+    TruthPressure {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Static gas pressure, bar gauge.
+        static_bar: f64,
+    },
 }
 
 impl Sample {
@@ -74,6 +112,21 @@ impl Sample {
             | Sample::TempShock { t_ns, .. }
             | Sample::TempAmbient { t_ns, .. }
             | Sample::TruthPressure { t_ns, .. } => t_ns,
+        }
+    }
+
+    /// Rank of the sample's topic for ordering samples with equal `t_ns`:
+    /// acceleration (0), position, force, shock temperature, ambient
+    /// temperature, truth (5). The accelerometer comes first (SPEC §3.1).
+    #[must_use]
+    pub fn topic_rank(&self) -> u8 {
+        match self {
+            Sample::Acceleration { .. } => 0,
+            Sample::Position { .. } => 1,
+            Sample::Force { .. } => 2,
+            Sample::TempShock { .. } => 3,
+            Sample::TempAmbient { .. } => 4,
+            Sample::TruthPressure { .. } => 5,
         }
     }
 
@@ -97,18 +150,188 @@ impl Sample {
 pub struct RunLog {
     /// The run's metadata (`shocktwin.run`).
     pub metadata: RunMetadata,
-    /// `/position`: (t_ns, position_m).
+    /// `/position`: `(t_ns, position_m)`.
     pub position: Vec<(i64, f64)>,
-    /// `/acceleration`: (t_ns, a1_mps2, a2_mps2).
+    /// `/acceleration`: `(t_ns, a1_mps2, a2_mps2)`.
     pub acceleration: Vec<(i64, f64, f64)>,
-    /// `/force`: (t_ns, force_n).
+    /// `/force`: `(t_ns, force_n)`.
     pub force: Vec<(i64, f64)>,
-    /// `/temperature/shock`: (t_ns, temperature_c).
+    /// `/temperature/shock`: `(t_ns, temperature_c)`.
     pub temp_shock: Vec<(i64, f64)>,
-    /// `/temperature/ambient`: (t_ns, temperature_c).
+    /// `/temperature/ambient`: `(t_ns, temperature_c)`.
     pub temp_ambient: Vec<(i64, f64)>,
-    /// `/truth/gas_pressure`: (t_ns, static_bar).
+    /// `/truth/gas_pressure`: `(t_ns, static_bar)`.
     pub truth_pressure: Vec<(i64, f64)>,
     /// Messages on topics this format does not know, by topic (counted, not kept).
     pub unknown_topics: BTreeMap<String, u64>,
+}
+
+/// A SPEC §2 sensor topic: its name and the JSON fields of its messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TopicSpec {
+    /// Topic name, e.g. `/acceleration`.
+    pub topic: &'static str,
+    /// Required numeric fields of each message, in the order they are written.
+    pub fields: &'static [&'static str],
+    /// Name of the JSON schema record.
+    pub schema_name: &'static str,
+    /// One-line description used in the schema.
+    pub description: &'static str,
+}
+
+/// The six sensor topics of SPEC §2, in topic-rank order (see [`Sample::topic_rank`]).
+pub const TOPICS: [TopicSpec; 6] = [
+    TopicSpec {
+        topic: topic::ACCELERATION,
+        fields: &["a1_mps2", "a2_mps2"],
+        schema_name: "shocktwin.Acceleration",
+        description: "Accelerometer pair: a1 on the rod end, a2 on the body end, m/s^2",
+    },
+    TopicSpec {
+        topic: topic::POSITION,
+        fields: &["position_m"],
+        schema_name: "shocktwin.Position",
+        description: "Potentiometer: shock extension relative to mid-stroke, m",
+    },
+    TopicSpec {
+        topic: topic::FORCE,
+        fields: &["force_n"],
+        schema_name: "shocktwin.Force",
+        description: "Loadcell: axial force, positive in tension, N",
+    },
+    TopicSpec {
+        topic: topic::TEMP_SHOCK,
+        fields: &["temperature_c"],
+        schema_name: "shocktwin.Temperature",
+        description: "Thermocouple on the shock body, degC",
+    },
+    TopicSpec {
+        topic: topic::TEMP_AMBIENT,
+        fields: &["temperature_c"],
+        schema_name: "shocktwin.Temperature",
+        description: "Ambient thermocouple, degC",
+    },
+    TopicSpec {
+        topic: topic::TRUTH_PRESSURE,
+        fields: &["static_bar"],
+        schema_name: "shocktwin.TruthGasPressure",
+        description: "Simulator truth: instantaneous static gas pressure, bar gauge",
+    },
+];
+
+/// The spec of a known sensor topic, with its rank, or `None`.
+#[must_use]
+pub fn topic_spec(topic: &str) -> Option<(u8, &'static TopicSpec)> {
+    TOPICS
+        .iter()
+        .enumerate()
+        .find(|(_, spec)| spec.topic == topic)
+        .map(|(rank, spec)| (rank as u8, spec))
+}
+
+/// The JSON schema (encoding `jsonschema`) the writer uses for a sensor topic:
+/// an object whose fields are numbers (or `null` for a missing value).
+#[must_use]
+pub fn json_schema(spec: &TopicSpec) -> String {
+    let props = spec
+        .fields
+        .iter()
+        .map(|field| format!("\"{field}\":{{\"type\":[\"number\",\"null\"]}}"))
+        .collect::<Vec<_>>()
+        .join(",");
+    let required = spec
+        .fields
+        .iter()
+        .map(|f| format!("\"{f}\""))
+        .collect::<Vec<_>>()
+        .join(",");
+    format!(
+        "{{\"$schema\":\"https://json-schema.org/draft/2020-12/schema\",\"title\":\"{}\",\"description\":\"{}\",\"type\":\"object\",\"properties\":{{{props}}},\"required\":[{required}]}}",
+        spec.schema_name, spec.description
+    )
+}
+
+/// Whether `s` is a valid `asset_id` / `run_id`: `[A-Za-z0-9._-]{1,64}`.
+#[must_use]
+pub fn is_valid_id(s: &str) -> bool {
+    (1..=64).contains(&s.len())
+        && s.bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
+impl RunMetadata {
+    /// The `shocktwin.run` string map of this metadata (floats in Rust's
+    /// shortest round-trip form).
+    #[must_use]
+    pub fn to_map(&self) -> BTreeMap<String, String> {
+        let mut map = self.extra.clone();
+        map.insert("asset_id".into(), self.asset_id.clone());
+        map.insert("run_id".into(), self.run_id.clone());
+        if let Some(v) = self.charge_pressure_bar {
+            map.insert("charge_pressure_bar".into(), v.to_string());
+        }
+        if let Some(v) = &self.excitation {
+            map.insert("excitation".into(), v.clone());
+        }
+        if let Some(v) = self.frequency_hz {
+            map.insert("frequency_hz".into(), v.to_string());
+        }
+        if let Some(v) = self.stroke_pp_m {
+            map.insert("stroke_pp_m".into(), v.to_string());
+        }
+        map
+    }
+
+    /// Parses and validates a `shocktwin.run` string map. `file` names the
+    /// source in errors.
+    pub fn from_map(file: &str, map: &BTreeMap<String, String>) -> Result<Self, LogError> {
+        let invalid = |key: &str, reason: String| LogError::InvalidMetadata {
+            file: file.to_owned(),
+            key: key.to_owned(),
+            reason,
+        };
+        let id = |key: &str| -> Result<String, LogError> {
+            let value = map
+                .get(key)
+                .ok_or_else(|| invalid(key, "is missing".into()))?;
+            if is_valid_id(value) {
+                Ok(value.clone())
+            } else {
+                Err(invalid(
+                    key,
+                    format!("value {value:?} is not [A-Za-z0-9._-]{{1,64}}"),
+                ))
+            }
+        };
+        let number = |key: &str| -> Result<Option<f64>, LogError> {
+            map.get(key)
+                .map(|v| {
+                    v.trim()
+                        .parse::<f64>()
+                        .map_err(|_| invalid(key, format!("value {v:?} is not a number")))
+                })
+                .transpose()
+        };
+        let known = [
+            "asset_id",
+            "run_id",
+            "charge_pressure_bar",
+            "excitation",
+            "frequency_hz",
+            "stroke_pp_m",
+        ];
+        Ok(RunMetadata {
+            asset_id: id("asset_id")?,
+            run_id: id("run_id")?,
+            charge_pressure_bar: number("charge_pressure_bar")?,
+            excitation: map.get("excitation").cloned(),
+            frequency_hz: number("frequency_hz")?,
+            stroke_pp_m: number("stroke_pp_m")?,
+            extra: map
+                .iter()
+                .filter(|(k, _)| !known.contains(&k.as_str()))
+                .map(|(k, v)| (k.clone(), v.clone()))
+                .collect(),
+        })
+    }
 }

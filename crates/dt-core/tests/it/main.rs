@@ -1,0 +1,3 @@
+//! dt-core integration tests (one binary, modules per area).
+
+mod log_writer;
