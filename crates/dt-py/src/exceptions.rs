@@ -1,0 +1,46 @@
+//! All error mapping of the bindings, in one place (polars' `exceptions.rs`).
+//!
+//! The exception classes are defined in Python (`shocktwin/exceptions.py`)
+//! so that each can also derive from the builtin a caller expects
+//! (`ValueError`, `OSError`, `ArithmeticError`); this file maps each dt-core
+//! error kind to exactly one of them. The message is always the core's
+//! message, which names the file, topic, field or parameter at fault.
+
+use dt_core::log::LogError;
+use pyo3::PyErr;
+
+/// The Python-defined exception classes (imported from
+/// `shocktwin.exceptions` on first use).
+#[allow(missing_docs, clippy::pedantic)]
+mod py {
+    pyo3::import_exception!(shocktwin.exceptions, LogError);
+    pyo3::import_exception!(shocktwin.exceptions, LogReadError);
+    pyo3::import_exception!(shocktwin.exceptions, MissingTopicsError);
+    pyo3::import_exception!(shocktwin.exceptions, ParamsError);
+    pyo3::import_exception!(shocktwin.exceptions, PhysicsError);
+    pyo3::import_exception!(shocktwin.exceptions, BundleError);
+}
+
+/// A dt-core error on its way to Python. Bindings return
+/// `Result<_, CoreError>` (or `?` it into a `PyResult`).
+pub(crate) enum CoreError {
+    /// Reading or decoding a run log.
+    Log(LogError),
+}
+
+impl From<LogError> for CoreError {
+    fn from(err: LogError) -> Self {
+        CoreError::Log(err)
+    }
+}
+
+impl From<CoreError> for PyErr {
+    fn from(err: CoreError) -> PyErr {
+        match err {
+            // The file cannot be opened or read: an OSError subclass.
+            CoreError::Log(err @ LogError::Io { .. }) => py::LogReadError::new_err(err.to_string()),
+            // Every other log problem is a property of the file's contents.
+            CoreError::Log(err) => py::LogError::new_err(err.to_string()),
+        }
+    }
+}

@@ -1,0 +1,125 @@
+"""Shared pytest helpers for the Python contract tests."""
+
+from __future__ import annotations
+
+# --- run logs written with the Python `mcap` package (independent of the Rust writer) ---
+
+import json
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+import pytest
+
+SENSOR_FIELDS: dict[str, tuple[str, ...]] = {
+    "/position": ("position_m",),
+    "/acceleration": ("a1_mps2", "a2_mps2"),
+    "/force": ("force_n",),
+    "/temperature/shock": ("temperature_c",),
+    "/temperature/ambient": ("temperature_c",),
+    "/truth/gas_pressure": ("static_bar",),
+}
+
+
+def write_mcap_log(
+    path: Path,
+    metadata: Mapping[str, str],
+    topics: Mapping[str, tuple[Sequence[int], Mapping[str, Sequence[float]]]],
+    *,
+    chunked: bool = True,
+) -> Path:
+    """Writes a shocktwin log v1 with the Python ``mcap`` writer.
+
+    ``topics`` maps a topic to ``(t_ns, {field: values})``; messages of all
+    topics are written in time order after the ``shocktwin.run`` metadata.
+    """
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as stream:
+        writer = Writer(
+            stream,
+            compression=CompressionType.ZSTD if chunked else CompressionType.NONE,
+            use_chunking=chunked,
+        )
+        writer.start(profile="", library="shocktwin-tests")
+        writer.add_metadata("shocktwin.run", dict(metadata))
+        events: list[tuple[int, int, bytes]] = []
+        for topic, (t_ns, fields) in topics.items():
+            schema = {
+                "type": "object",
+                "properties": {f: {"type": "number"} for f in fields},
+                "required": list(fields),
+            }
+            schema_id = writer.register_schema(
+                name=topic.strip("/").replace("/", "."),
+                encoding="jsonschema",
+                data=json.dumps(schema).encode(),
+            )
+            channel_id = writer.register_channel(topic, "json", schema_id)
+            for i, t in enumerate(t_ns):
+                message = {f: float(values[i]) for f, values in fields.items()}
+                events.append((int(t), channel_id, json.dumps(message).encode()))
+        events.sort(key=lambda e: (e[0], e[1]))
+        for t, channel_id, data in events:
+            writer.add_message(channel_id, log_time=t, data=data, publish_time=t)
+        writer.finish()
+    return path
+
+
+def synthetic_run(
+    *,
+    duration_s: float = 6.0,
+    frequency_hz: float = 2.0,
+    stroke_pp_m: float = 0.08,
+    t0_ns: int = 1_700_000_000_000_000_000,
+    topics: Sequence[str] = tuple(SENSOR_FIELDS)[:5],
+    seed: int = 0,
+) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """A sine dyno run at the SPEC §2 nominal rates (small sensor noise)."""
+    rng = np.random.default_rng(seed)
+    w = 2 * np.pi * frequency_hz
+    amp = stroke_pp_m / 2
+
+    def times(rate_hz: float) -> np.ndarray:
+        n = int(duration_s * rate_hz)
+        return t0_ns + np.round(np.arange(n) * 1e9 / rate_hz).astype(np.int64)
+
+    def secs(t_ns: np.ndarray) -> np.ndarray:
+        return (t_ns - t0_ns) * 1e-9
+
+    out: dict[str, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+    t = times(100)
+    out["/position"] = (t, {"position_m": amp * np.sin(w * secs(t)) + rng.normal(0, 1e-5, t.size)})
+    t = times(1000)
+    a = -amp * w**2 * np.sin(w * secs(t))
+    out["/acceleration"] = (
+        t,
+        {"a1_mps2": a + 0.05 + rng.normal(0, 0.06, t.size), "a2_mps2": rng.normal(0, 0.06, t.size)},
+    )
+    t = times(50)
+    v = amp * w * np.cos(w * secs(t))
+    out["/force"] = (t, {"force_n": 2000 * v - 130 + rng.normal(0, 5, t.size)})
+    t = times(1)
+    out["/temperature/shock"] = (t, {"temperature_c": 25 + 0.5 * secs(t)})
+    out["/temperature/ambient"] = (t, {"temperature_c": np.full(t.size, 22.0)})
+    out["/truth/gas_pressure"] = (t, {"static_bar": np.full(t.size, 12.3)})
+    return {k: v for k, v in out.items() if k in topics}
+
+
+@pytest.fixture
+def make_log(tmp_path: Path) -> Callable[..., Path]:
+    """Factory: ``make_log(name, topics=..., metadata=..., **synthetic_run kwargs)``."""
+
+    def make(
+        name: str = "run.mcap",
+        *,
+        metadata: Mapping[str, str] | None = None,
+        chunked: bool = True,
+        **kwargs: object,
+    ) -> Path:
+        meta = {"asset_id": "unit-1", "run_id": "run-1", "charge_pressure_bar": "12"}
+        if metadata is not None:
+            meta = dict(metadata)
+        return write_mcap_log(tmp_path / name, meta, synthetic_run(**kwargs), chunked=chunked)  # type: ignore[arg-type]
+
+    return make
