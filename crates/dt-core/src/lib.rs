@@ -5,5 +5,8 @@
 //! It knows nothing of pyo3, tokio or sockets: `dt-py` and `dt-server` are
 //! thin shells around it.
 
+pub mod error;
 pub mod estimate;
+pub mod kalman;
 pub mod log;
+pub mod params;
