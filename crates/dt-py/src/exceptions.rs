@@ -6,6 +6,7 @@
 //! error kind to exactly one of them. The message is always the core's
 //! message, which names the file, topic, field or parameter at fault.
 
+use dt_core::error::PhysicsError;
 use dt_core::log::LogError;
 use pyo3::PyErr;
 
@@ -19,6 +20,7 @@ mod py {
     pyo3::import_exception!(shocktwin.exceptions, ParamsError);
     pyo3::import_exception!(shocktwin.exceptions, PhysicsError);
     pyo3::import_exception!(shocktwin.exceptions, BundleError);
+    pyo3::import_exception!(shocktwin.exceptions, InputError);
 }
 
 /// A dt-core error on its way to Python. Bindings return
@@ -26,6 +28,14 @@ mod py {
 pub(crate) enum CoreError {
     /// Reading or decoding a run log.
     Log(LogError),
+    /// The physics models and the feature pipeline.
+    Physics(PhysicsError),
+}
+
+impl From<PhysicsError> for CoreError {
+    fn from(err: PhysicsError) -> Self {
+        CoreError::Physics(err)
+    }
 }
 
 impl From<LogError> for CoreError {
@@ -41,6 +51,23 @@ impl From<CoreError> for PyErr {
             CoreError::Log(err @ LogError::Io { .. }) => py::LogReadError::new_err(err.to_string()),
             // Every other log problem is a property of the file's contents.
             CoreError::Log(err) => py::LogError::new_err(err.to_string()),
+            CoreError::Physics(err) => physics_error(&err),
         }
+    }
+}
+
+fn physics_error(err: &PhysicsError) -> PyErr {
+    let message = err.to_string();
+    match err {
+        PhysicsError::InvalidParameter { .. } => py::ParamsError::new_err(message),
+        PhysicsError::Numerical { .. } => py::PhysicsError::new_err(message),
+        PhysicsError::MissingTopics { missing, .. } => {
+            py::MissingTopicsError::new_err((message, missing.clone()))
+        }
+        PhysicsError::OutOfOrder { .. }
+        | PhysicsError::LengthMismatch { .. }
+        | PhysicsError::NotMonotonic { .. }
+        | PhysicsError::UnknownGroup(_)
+        | PhysicsError::WrongMode(_) => py::InputError::new_err(message),
     }
 }

@@ -7,6 +7,7 @@
 mod convert;
 mod exceptions;
 mod gil;
+mod kalman;
 
 use pyo3::prelude::*;
 
@@ -14,5 +15,6 @@ use pyo3::prelude::*;
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<kalman::PyKalmanFilter>()?;
     Ok(())
 }

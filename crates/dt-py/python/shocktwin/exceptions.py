@@ -22,6 +22,7 @@ __all__ = [
     "ParamsError",
     "PhysicsError",
     "BundleError",
+    "InputError",
 ]
 
 
@@ -60,3 +61,8 @@ class PhysicsError(ShocktwinError, ArithmeticError):
 
 class BundleError(ShocktwinError, ValueError):
     """A model bundle is incomplete or inconsistent."""
+
+
+class InputError(ShocktwinError, ValueError):
+    """An input array or argument is inconsistent (lengths differ, times not
+    sorted, an unknown feature group)."""
