@@ -7,6 +7,8 @@
 
 pub mod error;
 pub mod estimate;
+pub mod force;
 pub mod kalman;
 pub mod log;
 pub mod params;
+pub mod thermal;
