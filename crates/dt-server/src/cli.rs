@@ -20,6 +20,9 @@ pub enum Command {
     Simulate(SimulateArgs),
     /// Print channels, rates, duration, metadata and problems of an MCAP file.
     Inspect(InspectArgs),
+    /// Run the fleet-gateway daemon (MCAP over TCP and an inbox in, HTTP API
+    /// and recorded estimates out); flags override the file and environment.
+    Serve(ServeArgs),
 }
 
 /// `shocktwin simulate`.
@@ -51,4 +54,39 @@ pub struct SimulateArgs {
 pub struct InspectArgs {
     /// The MCAP file to inspect.
     pub file: PathBuf,
+}
+
+/// `shocktwin serve`.
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// TOML configuration file (see crates/dt-server/shocktwin.example.toml).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Address accepting MCAP streams (default 127.0.0.1:7410).
+    #[arg(long)]
+    pub listen: Option<std::net::SocketAddr>,
+    /// HTTP API address (default 127.0.0.1:7411).
+    #[arg(long)]
+    pub http: Option<std::net::SocketAddr>,
+    /// Model bundle directory (twin.json + mlp.onnx).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Watched inbox directory of MCAP files.
+    #[arg(long)]
+    pub inbox: Option<PathBuf>,
+    /// Directory for the recorded /estimate MCAP files.
+    #[arg(long)]
+    pub record_dir: Option<PathBuf>,
+    /// Log format (also SHOCKTWIN_LOG_FORMAT=json).
+    #[arg(long, value_enum)]
+    pub log_format: Option<LogFormat>,
+}
+
+/// Format of the log lines on stderr.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line (structured logs for a log collector).
+    Json,
 }

@@ -5,4 +5,6 @@
 
 pub mod cli;
 pub mod cmd_inspect;
+pub mod cmd_serve;
 pub mod cmd_simulate;
+pub mod server;

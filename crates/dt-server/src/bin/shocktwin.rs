@@ -6,17 +6,32 @@ use clap::Parser;
 use dt_server::cli::{Cli, Command};
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    // Structured (JSON) logs: `serve --log-format json` or SHOCKTWIN_LOG_FORMAT=json.
+    let json_logs = match &cli.command {
+        Command::Serve(args) if args.log_format.is_some() => {
+            args.log_format == Some(dt_server::cli::LogFormat::Json)
+        }
+        _ => std::env::var("SHOCKTWIN_LOG_FORMAT").is_ok_and(|v| v == "json"),
+    };
+    if json_logs {
+        tracing_subscriber::fmt()
+            .json()
+            .with_env_filter(filter)
+            .with_writer(std::io::stderr)
+            .init();
+    } else {
+        tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_writer(std::io::stderr)
+            .init();
+    }
     let result = match &cli.command {
         Command::Simulate(args) => dt_server::cmd_simulate::run(args).map(|()| ExitCode::SUCCESS),
         Command::Inspect(args) => dt_server::cmd_inspect::run(args),
+        Command::Serve(args) => dt_server::cmd_serve::run(args).map(|()| ExitCode::SUCCESS),
     };
     match result {
         Ok(code) => code,

@@ -1,0 +1,87 @@
+//! `shocktwin serve`: resolves the configuration (defaults < TOML file <
+//! `SHOCKTWIN_*` environment < flags), binds the listeners and runs
+//! [`crate::server::run`] until SIGTERM or Ctrl-C, then drains and flushes.
+
+use std::sync::Arc;
+
+use anyhow::Context;
+
+use crate::cli::ServeArgs;
+use crate::server::{self, Config, ConfigOverrides, Listeners, TickCounterFactory, TwinFactory};
+
+/// Runs `shocktwin serve`.
+pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
+    let overrides = ConfigOverrides {
+        listen: args.listen,
+        http: args.http,
+        model: args.model.clone(),
+        inbox: args.inbox.clone(),
+        record_dir: args.record_dir.clone(),
+    };
+    let config = Config::load(
+        args.config.as_deref(),
+        &|var| std::env::var(var).ok(),
+        &overrides,
+    )?;
+    let twins = twin_factory(&config);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("shocktwin-serve")
+        .build()
+        .context("cannot start the tokio runtime")?;
+    runtime.block_on(async move {
+        let listeners = Listeners::bind(&config).await?;
+        tracing::info!(
+            listen = %listeners.ingest.local_addr()?,
+            http = %listeners.http.local_addr()?,
+            "listening"
+        );
+        server::run(config, listeners, twins, shutdown_signal()).await?;
+        Ok(())
+    })
+}
+
+/// The estimator behind the daemon.
+fn twin_factory(config: &Config) -> Arc<dyn TwinFactory> {
+    // The incremental estimator (dt_core::estimator) is not written yet; the
+    // daemon runs with the placeholder, which keeps the 50 Hz clock and
+    // reports no pressure. Say so loudly rather than pretend.
+    if let Some(bundle) = &config.model.bundle {
+        tracing::warn!(
+            bundle = %bundle.display(),
+            "the estimator is not available in this build: the model bundle is not used"
+        );
+    }
+    tracing::warn!(
+        "serving with the placeholder twin: estimates carry NaN pressure and health `unknown`"
+    );
+    Arc::new(TickCounterFactory)
+}
+
+/// Resolves on SIGTERM or Ctrl-C.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!("cannot listen for Ctrl-C: {e}");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!("cannot listen for SIGTERM: {e}");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => tracing::info!("Ctrl-C received"),
+        () = term => tracing::info!("SIGTERM received"),
+    }
+}

@@ -1,0 +1,440 @@
+//! Daemon configuration: built-in defaults, then a TOML file, then
+//! environment variables (`SHOCKTWIN_*`), then command-line flags; each layer
+//! overrides the one before. `crates/dt-server/shocktwin.example.toml`
+//! documents every key.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use super::ServeError;
+
+/// The whole daemon configuration (the TOML file's shape).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// `[server]`: addresses and directories.
+    pub server: ServerConfig,
+    /// `[model]`: the model bundle.
+    pub model: ModelConfig,
+    /// `[limits]`: connection, record and queue limits.
+    pub limits: Limits,
+    /// `[record]`: rotation of the recorded `/estimate` files.
+    pub record: RecordConfig,
+    /// `[defaults]`: health thresholds of assets not listed in `[assets]`.
+    pub defaults: AssetConfig,
+    /// `[assets.<id>]`: per-asset overrides of `[defaults]`.
+    pub assets: BTreeMap<String, AssetOverrides>,
+}
+
+/// `[server]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// TCP address accepting MCAP byte streams (one run of one asset per connection).
+    pub listen: SocketAddr,
+    /// HTTP API address.
+    pub http: SocketAddr,
+    /// Watched inbox directory of MCAP files; none: no inbox.
+    pub inbox: Option<PathBuf>,
+    /// Directory of recorded `/estimate` MCAP files; none: not recorded.
+    pub record_dir: Option<PathBuf>,
+    /// Seconds between inbox rescans (a fallback to file-system events).
+    pub inbox_rescan_s: f64,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 7410)),
+            http: SocketAddr::from(([127, 0, 0, 1], 7411)),
+            inbox: None,
+            record_dir: None,
+            inbox_rescan_s: 2.0,
+        }
+    }
+}
+
+/// `[model]`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// Model bundle directory (`twin.json` + `mlp.onnx`, SPEC §5).
+    pub bundle: Option<PathBuf>,
+}
+
+/// `[limits]`: every queue and resource the daemon holds is bounded.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Limits {
+    /// Concurrent ingest connections; further clients wait in the accept backlog.
+    pub max_connections: usize,
+    /// Largest MCAP record (e.g. a chunk) a stream may declare, bytes.
+    pub max_record_bytes: u64,
+    /// Depth of the queue from the ingest tasks to the sinks (batches) and of
+    /// the live event stream (events); a full queue slows the readers down.
+    pub queue_depth: usize,
+    /// An ingest connection that sends nothing for this long is closed, s.
+    pub idle_timeout_s: f64,
+    /// Estimates kept per asset for `GET /v1/assets/{id}`.
+    pub history_len: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_connections: 64,
+            max_record_bytes: 64 << 20,
+            queue_depth: 1024,
+            idle_timeout_s: 120.0,
+            history_len: 500,
+        }
+    }
+}
+
+/// `[record]`: recorded estimate files rotate when either limit is reached.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RecordConfig {
+    /// Rotate after this many bytes.
+    pub max_file_bytes: u64,
+    /// Rotate after this span of estimate time, s.
+    pub max_file_s: f64,
+}
+
+impl Default for RecordConfig {
+    fn default() -> Self {
+        Self {
+            max_file_bytes: 64 << 20,
+            max_file_s: 3600.0,
+        }
+    }
+}
+
+/// Health settings of one asset (SPEC §6), bar gauge.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AssetConfig {
+    /// Nominal charge pressure (`expected_bar`).
+    pub nominal_bar: f64,
+    /// Below this the asset is `low`.
+    pub warn_bar: f64,
+    /// Below this the asset is `leak`.
+    pub fault_bar: f64,
+}
+
+impl Default for AssetConfig {
+    fn default() -> Self {
+        Self {
+            nominal_bar: 12.0,
+            warn_bar: 9.0,
+            fault_bar: 5.0,
+        }
+    }
+}
+
+/// `[assets.<id>]`: any key left out comes from `[defaults]`.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AssetOverrides {
+    /// Nominal charge pressure.
+    pub nominal_bar: Option<f64>,
+    /// Warn threshold.
+    pub warn_bar: Option<f64>,
+    /// Fault threshold.
+    pub fault_bar: Option<f64>,
+}
+
+/// Command-line flags of `shocktwin serve` that override the file and the
+/// environment (kept free of clap so the server does not depend on it).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ConfigOverrides {
+    /// `--listen`.
+    pub listen: Option<SocketAddr>,
+    /// `--http`.
+    pub http: Option<SocketAddr>,
+    /// `--model`.
+    pub model: Option<PathBuf>,
+    /// `--inbox`.
+    pub inbox: Option<PathBuf>,
+    /// `--record-dir`.
+    pub record_dir: Option<PathBuf>,
+}
+
+/// Environment variables read by [`Config::load`], with the key each sets.
+pub const ENV_VARS: &[(&str, &str)] = &[
+    ("SHOCKTWIN_LISTEN", "server.listen"),
+    ("SHOCKTWIN_HTTP", "server.http"),
+    ("SHOCKTWIN_INBOX", "server.inbox"),
+    ("SHOCKTWIN_RECORD_DIR", "server.record_dir"),
+    ("SHOCKTWIN_MODEL", "model.bundle"),
+    ("SHOCKTWIN_MAX_CONNECTIONS", "limits.max_connections"),
+    ("SHOCKTWIN_MAX_RECORD_BYTES", "limits.max_record_bytes"),
+    ("SHOCKTWIN_QUEUE_DEPTH", "limits.queue_depth"),
+];
+
+impl Config {
+    /// Builds the configuration: defaults, then `file` (TOML) if given, then
+    /// the variables of [`ENV_VARS`] as `env` returns them, then `cli`.
+    /// The result is validated.
+    pub fn load(
+        file: Option<&Path>,
+        env: &dyn Fn(&str) -> Option<String>,
+        cli: &ConfigOverrides,
+    ) -> Result<Config, ServeError> {
+        let mut config = match file {
+            Some(path) => Self::from_file(path)?,
+            None => Config::default(),
+        };
+        config.apply_env(env)?;
+        config.apply_overrides(cli);
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Parses a TOML file (no environment, no validation).
+    pub fn from_file(path: &Path) -> Result<Config, ServeError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ServeError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::from_toml(&text).map_err(|reason| ServeError::Config {
+            file: path.to_owned(),
+            reason,
+        })
+    }
+
+    /// Parses TOML text; the error is toml's message (names key and line).
+    pub fn from_toml(text: &str) -> Result<Config, String> {
+        toml::from_str(text).map_err(|e| e.to_string())
+    }
+
+    fn apply_env(&mut self, env: &dyn Fn(&str) -> Option<String>) -> Result<(), ServeError> {
+        for &(var, _) in ENV_VARS {
+            let Some(value) = env(var) else { continue };
+            let bad = |reason: String| ServeError::Env {
+                var: var.to_owned(),
+                value: value.clone(),
+                reason,
+            };
+            match var {
+                "SHOCKTWIN_LISTEN" => self.server.listen = parse(&value).map_err(bad)?,
+                "SHOCKTWIN_HTTP" => self.server.http = parse(&value).map_err(bad)?,
+                "SHOCKTWIN_INBOX" => self.server.inbox = Some(PathBuf::from(&value)),
+                "SHOCKTWIN_RECORD_DIR" => self.server.record_dir = Some(PathBuf::from(&value)),
+                "SHOCKTWIN_MODEL" => self.model.bundle = Some(PathBuf::from(&value)),
+                "SHOCKTWIN_MAX_CONNECTIONS" => {
+                    self.limits.max_connections = parse(&value).map_err(bad)?;
+                }
+                "SHOCKTWIN_MAX_RECORD_BYTES" => {
+                    self.limits.max_record_bytes = parse(&value).map_err(bad)?;
+                }
+                "SHOCKTWIN_QUEUE_DEPTH" => self.limits.queue_depth = parse(&value).map_err(bad)?,
+                _ => unreachable!("ENV_VARS and apply_env list the same variables"),
+            }
+        }
+        Ok(())
+    }
+
+    fn apply_overrides(&mut self, cli: &ConfigOverrides) {
+        if let Some(a) = cli.listen {
+            self.server.listen = a;
+        }
+        if let Some(a) = cli.http {
+            self.server.http = a;
+        }
+        if let Some(p) = &cli.model {
+            self.model.bundle = Some(p.clone());
+        }
+        if let Some(p) = &cli.inbox {
+            self.server.inbox = Some(p.clone());
+        }
+        if let Some(p) = &cli.record_dir {
+            self.server.record_dir = Some(p.clone());
+        }
+    }
+
+    /// Checks limits and thresholds; the error names the key.
+    pub fn validate(&self) -> Result<(), ServeError> {
+        let invalid = |key: &str, reason: &str| ServeError::Invalid {
+            key: key.to_owned(),
+            reason: reason.to_owned(),
+        };
+        let l = &self.limits;
+        if l.max_connections == 0 {
+            return Err(invalid("limits.max_connections", "must be at least 1"));
+        }
+        if l.queue_depth == 0 {
+            return Err(invalid("limits.queue_depth", "must be at least 1"));
+        }
+        if l.max_record_bytes < 1024 {
+            return Err(invalid("limits.max_record_bytes", "must be at least 1024"));
+        }
+        if !(l.idle_timeout_s.is_finite() && l.idle_timeout_s > 0.0) {
+            return Err(invalid(
+                "limits.idle_timeout_s",
+                "must be a positive number",
+            ));
+        }
+        if l.history_len == 0 {
+            return Err(invalid("limits.history_len", "must be at least 1"));
+        }
+        if !(self.server.inbox_rescan_s.is_finite() && self.server.inbox_rescan_s > 0.0) {
+            return Err(invalid(
+                "server.inbox_rescan_s",
+                "must be a positive number",
+            ));
+        }
+        if self.record.max_file_bytes == 0 {
+            return Err(invalid("record.max_file_bytes", "must be at least 1"));
+        }
+        if !(self.record.max_file_s.is_finite() && self.record.max_file_s > 0.0) {
+            return Err(invalid("record.max_file_s", "must be a positive number"));
+        }
+        check_asset("defaults", &self.defaults)?;
+        for id in self.assets.keys() {
+            if !valid_id(id) {
+                return Err(invalid(
+                    &format!("assets.{id}"),
+                    "asset id must match [A-Za-z0-9._-]{1,64}",
+                ));
+            }
+            check_asset(&format!("assets.{id}"), &self.asset(id))?;
+        }
+        Ok(())
+    }
+
+    /// The health settings of `asset_id`: `[assets.<id>]` over `[defaults]`.
+    #[must_use]
+    pub fn asset(&self, asset_id: &str) -> AssetConfig {
+        let d = self.defaults;
+        match self.assets.get(asset_id) {
+            None => d,
+            Some(o) => AssetConfig {
+                nominal_bar: o.nominal_bar.unwrap_or(d.nominal_bar),
+                warn_bar: o.warn_bar.unwrap_or(d.warn_bar),
+                fault_bar: o.fault_bar.unwrap_or(d.fault_bar),
+            },
+        }
+    }
+}
+
+fn parse<T: std::str::FromStr>(value: &str) -> Result<T, String>
+where
+    T::Err: std::fmt::Display,
+{
+    value.trim().parse().map_err(|e: T::Err| e.to_string())
+}
+
+fn check_asset(key: &str, a: &AssetConfig) -> Result<(), ServeError> {
+    let all_finite = [a.nominal_bar, a.warn_bar, a.fault_bar]
+        .iter()
+        .all(|v| v.is_finite());
+    if !all_finite || a.fault_bar > a.warn_bar || a.warn_bar > a.nominal_bar {
+        return Err(ServeError::Invalid {
+            key: key.to_owned(),
+            reason: format!(
+                "need fault_bar <= warn_bar <= nominal_bar (finite), got {} / {} / {}",
+                a.fault_bar, a.warn_bar, a.nominal_bar
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// SPEC §2 identifier charset `[A-Za-z0-9._-]{1,64}`.
+#[must_use]
+pub fn valid_id(id: &str) -> bool {
+    (1..=64).contains(&id.len())
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn no_env(_: &str) -> Option<String> {
+        None
+    }
+
+    #[test]
+    fn layers_override_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("c.toml");
+        std::fs::write(
+            &file,
+            r#"
+[server]
+listen = "127.0.0.1:9000"
+http = "127.0.0.1:9001"
+[limits]
+max_connections = 3
+[defaults]
+nominal_bar = 10.0
+[assets.shock-7]
+warn_bar = 8.0
+"#,
+        )
+        .unwrap();
+        let env = |k: &str| match k {
+            "SHOCKTWIN_HTTP" => Some("127.0.0.1:9100".to_owned()),
+            "SHOCKTWIN_LISTEN" => Some("127.0.0.1:9200".to_owned()),
+            "SHOCKTWIN_QUEUE_DEPTH" => Some("7".to_owned()),
+            _ => None,
+        };
+        let cli = ConfigOverrides {
+            listen: Some("127.0.0.1:9300".parse().unwrap()),
+            ..ConfigOverrides::default()
+        };
+        let c = Config::load(Some(&file), &env, &cli).unwrap();
+        assert_eq!(c.server.listen.port(), 9300, "flag beats env and file");
+        assert_eq!(c.server.http.port(), 9100, "env beats file");
+        assert_eq!(c.limits.max_connections, 3, "file beats default");
+        assert_eq!(c.limits.queue_depth, 7);
+        let a = c.asset("shock-7");
+        assert_eq!((a.nominal_bar, a.warn_bar, a.fault_bar), (10.0, 8.0, 5.0));
+        assert_eq!(c.asset("other").warn_bar, 9.0);
+    }
+
+    #[test]
+    fn defaults_bind_loopback() {
+        let c = Config::load(None, &no_env, &ConfigOverrides::default()).unwrap();
+        assert!(c.server.listen.ip().is_loopback());
+        assert!(c.server.http.ip().is_loopback());
+    }
+
+    #[test]
+    fn errors_name_the_key_or_variable() {
+        let env = |k: &str| (k == "SHOCKTWIN_MAX_CONNECTIONS").then(|| "many".to_owned());
+        let err = Config::load(None, &env, &ConfigOverrides::default()).unwrap_err();
+        assert!(
+            err.to_string().contains("SHOCKTWIN_MAX_CONNECTIONS"),
+            "{err}"
+        );
+
+        let mut c = Config::default();
+        c.assets.insert(
+            "a1".into(),
+            AssetOverrides {
+                warn_bar: Some(4.0),
+                ..AssetOverrides::default()
+            },
+        );
+        let err = c.validate().unwrap_err();
+        assert!(err.to_string().contains("assets.a1"), "{err}");
+
+        let err = Config::from_toml("[limits]\nmax_conections = 3\n").unwrap_err();
+        assert!(err.contains("max_conections"), "{err}");
+    }
+
+    #[test]
+    fn example_config_parses_and_validates() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("shocktwin.example.toml");
+        let c = Config::from_file(&path).unwrap();
+        c.validate().unwrap();
+    }
+}

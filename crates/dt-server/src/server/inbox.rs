@@ -1,0 +1,199 @@
+//! The inbox: a watched directory of MCAP files, each processed once as one
+//! run, then moved to `done/` or to `failed/` (beside it,
+//! `<name>.reason.txt` says why).
+//!
+//! Nothing is lost across a restart: a file is moved only after its estimates
+//! are flushed by every sink, so a file still in the inbox at start (a crash,
+//! a shutdown mid-file) is simply processed again; the recorder's file names
+//! are deterministic, so that rewrites the same recordings.
+//!
+//! Only `*.mcap` files not starting with `.` are taken: write a file under
+//! another name (e.g. `run.mcap.tmp`) and rename it when complete. The
+//! directory is rescanned on every file-system event (`notify`) and every
+//! `inbox_rescan_s` seconds, in case an event is missed.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use futures_util::future::BoxFuture;
+use tokio::sync::Notify;
+
+use super::ingest::RunReport;
+use super::sink::SourceKind;
+use super::source::{Source, SourceContext};
+use super::ServeError;
+
+/// Sub-directory of processed files.
+pub const DONE_DIR: &str = "done";
+/// Sub-directory of files that could not be processed completely.
+pub const FAILED_DIR: &str = "failed";
+
+/// The inbox source.
+#[derive(Debug)]
+pub struct InboxSource {
+    dir: PathBuf,
+    rescan: Duration,
+}
+
+impl InboxSource {
+    /// Watches `dir` (created with `done/` and `failed/` if missing).
+    pub fn new(dir: &Path, rescan: Duration) -> Result<Self, ServeError> {
+        for d in [dir.to_owned(), dir.join(DONE_DIR), dir.join(FAILED_DIR)] {
+            std::fs::create_dir_all(&d).map_err(|source| ServeError::Io { path: d, source })?;
+        }
+        Ok(Self {
+            dir: dir.to_owned(),
+            rescan,
+        })
+    }
+}
+
+impl Source for InboxSource {
+    fn name(&self) -> String {
+        format!("inbox {}", self.dir.display())
+    }
+
+    fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
+        Box::pin(watch_loop(*self, ctx))
+    }
+}
+
+/// `*.mcap` files of `dir`, by name.
+fn pending_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir)? {
+        let entry = entry?;
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        let is_mcap = Path::new(name.as_ref())
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        if is_mcap && !name.starts_with('.') && entry.file_type()?.is_file() {
+            files.push(entry.path());
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeError> {
+    // A file-system event only wakes the loop; `Notify` keeps at most one
+    // wake-up, so the watcher's thread can never queue without bound.
+    let wake = Arc::new(Notify::new());
+    let waker = Arc::clone(&wake);
+    let watcher = notify::recommended_watcher(move |_event: notify::Result<notify::Event>| {
+        waker.notify_one();
+    })
+    .and_then(|mut w| {
+        notify::Watcher::watch(&mut w, &src.dir, notify::RecursiveMode::NonRecursive)?;
+        Ok(w)
+    });
+    let _watcher = match watcher {
+        Ok(w) => Some(w),
+        Err(e) => {
+            tracing::warn!(
+                dir = %src.dir.display(),
+                "no file-system events ({e}); rescanning every {:?}",
+                src.rescan
+            );
+            None
+        }
+    };
+    // Files that could not be moved are not retried until restart.
+    let mut stuck: HashSet<PathBuf> = HashSet::new();
+    loop {
+        let files = match pending_files(&src.dir) {
+            Ok(f) => f,
+            Err(e) => {
+                ctx.ingest.metrics().error("inbox");
+                tracing::error!(dir = %src.dir.display(), "cannot list the inbox: {e}");
+                Vec::new()
+            }
+        };
+        for path in files {
+            if ctx.cancel.is_cancelled() {
+                return Ok(());
+            }
+            if stuck.contains(&path) {
+                continue;
+            }
+            if !process_file(&ctx, &src.dir, &path).await {
+                stuck.insert(path);
+            }
+        }
+        tokio::select! {
+            () = ctx.cancel.cancelled() => return Ok(()),
+            () = wake.notified() => {}
+            () = tokio::time::sleep(src.rescan) => {}
+        }
+    }
+}
+
+/// Processes one file and moves it; false if it could not be moved.
+async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
+    let Some(name) = path.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return true;
+    };
+    let source = format!("inbox {name}");
+    let report = match tokio::fs::File::open(path).await {
+        Ok(file) => {
+            ctx.ingest
+                .ingest_stream(SourceKind::Inbox, source.clone(), file, &ctx.cancel, None)
+                .await
+        }
+        // Gone since the listing (someone else took it): nothing to do.
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return true,
+        Err(e) => RunReport {
+            status: "failed",
+            kind: Some("io"),
+            reason: Some(format!("{source}: cannot open: {e}")),
+            asset_id: None,
+            run_id: None,
+            samples: 0,
+            ticks: 0,
+            flushed: true,
+        },
+    };
+    if report.status == "interrupted" {
+        // Shutdown mid-file: leave it for the next start.
+        return true;
+    }
+    let m = ctx.ingest.metrics();
+    let moved = if report.ok() {
+        move_to(path, &dir.join(DONE_DIR).join(&name)).await
+    } else {
+        let reason_path = dir.join(FAILED_DIR).join(format!("{name}.reason.txt"));
+        let text = format!(
+            "{}\nkind: {}\nsamples: {}\nestimates: {}\n",
+            report.reason.as_deref().unwrap_or("failed"),
+            report.kind.unwrap_or("unknown"),
+            report.samples,
+            report.ticks
+        );
+        match tokio::fs::write(&reason_path, text).await {
+            Ok(()) => move_to(path, &dir.join(FAILED_DIR).join(&name)).await,
+            Err(e) => Err(format!("cannot write {}: {e}", reason_path.display())),
+        }
+    };
+    match moved {
+        Ok(()) => {
+            let to = if report.ok() { DONE_DIR } else { FAILED_DIR };
+            super::metrics::Metrics::add(&m.files, to, 1);
+            tracing::info!(file = %path.display(), to, "inbox file processed");
+            true
+        }
+        Err(e) => {
+            m.error("inbox");
+            tracing::error!(file = %path.display(), "{e}; not retried until restart");
+            false
+        }
+    }
+}
+
+async fn move_to(from: &Path, to: &Path) -> Result<(), String> {
+    tokio::fs::rename(from, to)
+        .await
+        .map_err(|e| format!("cannot move {} to {}: {e}", from.display(), to.display()))
+}

@@ -1,0 +1,479 @@
+//! The common path of every source: an MCAP byte stream (a socket, a file)
+//! is decoded incrementally with `dt_core::log::LogDecoder`, its samples are
+//! fed to the run's [`AssetTwin`] and its estimates go to the sinks through
+//! the bounded sink queue.
+//!
+//! Sources that do not carry MCAP (a message bus partitioned by asset) use
+//! [`Ingest::open_run`] and [`RunHandle`] directly.
+
+use std::collections::HashSet;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, SystemTime};
+
+use dt_core::estimate::Estimate;
+use dt_core::log::{LogDecoder, LogError, LogEvent, ReadLimits, RunMetadata, Sample};
+use serde::Serialize;
+use tokio::io::{AsyncRead, AsyncReadExt};
+use tokio::sync::{mpsc, oneshot};
+use tokio_util::sync::CancellationToken;
+
+use super::config::Config;
+use super::metrics::{AssetLabel, Metrics, SourceLabel};
+use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
+use super::twin::{AssetTwin, TwinFactory};
+
+/// Bytes read from a stream at a time.
+const READ_BUF_BYTES: usize = 64 << 10;
+
+/// The metric label of a decoding error.
+#[must_use]
+pub fn error_kind(e: &LogError) -> &'static str {
+    match e {
+        LogError::Io { .. } => "io",
+        LogError::Mcap { .. } => "invalid_mcap",
+        LogError::Truncated { .. } => "truncated",
+        LogError::TooLarge { .. } => "too_large",
+        LogError::MissingMetadata { .. } | LogError::InvalidMetadata { .. } => "metadata",
+        LogError::Encoding { .. } | LogError::Schema { .. } => "schema",
+        LogError::Message { .. } => "message",
+        _ => "log",
+    }
+}
+
+/// What became of one byte stream.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    /// `completed`, `failed` or `interrupted`.
+    pub status: &'static str,
+    /// Error kind, when failed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kind: Option<&'static str>,
+    /// Why it failed (or why the sinks could not keep it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// Asset, once the metadata was read.
+    pub asset_id: Option<String>,
+    /// Run, once the metadata was read.
+    pub run_id: Option<String>,
+    /// Sensor samples decoded.
+    pub samples: u64,
+    /// Estimates emitted.
+    pub ticks: u64,
+    /// Whether every estimate reached every sink (and is durable).
+    pub flushed: bool,
+}
+
+impl RunReport {
+    /// True when the stream was complete and everything was flushed.
+    #[must_use]
+    pub fn ok(&self) -> bool {
+        self.status == "completed" && self.flushed
+    }
+}
+
+/// The sinks are gone (the daemon is stopping abnormally).
+#[derive(Debug, Clone, Copy, thiserror::Error)]
+#[error("the sink queue is closed")]
+pub struct SinkClosed;
+
+struct Inner {
+    config: Arc<Config>,
+    twins: Arc<dyn TwinFactory>,
+    sink_tx: mpsc::Sender<SinkMsg>,
+    metrics: Arc<Metrics>,
+    next_seq: AtomicU64,
+}
+
+/// Handle shared by the sources; cheap to clone. The daemon's sinks stop
+/// once every clone is dropped.
+#[derive(Clone)]
+pub struct Ingest {
+    inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Ingest {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Ingest")
+            .field("twins", &self.inner.twins.describe())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Ingest {
+    pub(crate) fn new(
+        config: Arc<Config>,
+        twins: Arc<dyn TwinFactory>,
+        sink_tx: mpsc::Sender<SinkMsg>,
+        metrics: Arc<Metrics>,
+    ) -> Self {
+        Self {
+            inner: Arc::new(Inner {
+                config,
+                twins,
+                sink_tx,
+                metrics,
+                next_seq: AtomicU64::new(1),
+            }),
+        }
+    }
+
+    /// The daemon's metrics.
+    #[must_use]
+    pub fn metrics(&self) -> &Metrics {
+        &self.inner.metrics
+    }
+
+    /// The daemon's configuration.
+    #[must_use]
+    pub fn config(&self) -> &Config {
+        &self.inner.config
+    }
+
+    /// Starts a run: creates its twin and tells the sinks.
+    pub async fn open_run(
+        &self,
+        kind: SourceKind,
+        source: String,
+        meta: RunMetadata,
+    ) -> Result<RunHandle, RunOutcome> {
+        let asset = self.inner.config.asset(&meta.asset_id);
+        let twin = self
+            .inner
+            .twins
+            .create(&meta, &asset)
+            .map_err(|e| RunOutcome::Failed {
+                kind: "twin",
+                reason: format!(
+                    "{source}: cannot start the twin for asset `{}` run `{}`: {e}",
+                    meta.asset_id, meta.run_id
+                ),
+            })?;
+        let info = Arc::new(RunInfo {
+            seq: self.inner.next_seq.fetch_add(1, Ordering::Relaxed),
+            kind,
+            source,
+            meta,
+            asset,
+            started: SystemTime::now(),
+        });
+        self.inner
+            .sink_tx
+            .send(SinkMsg::Started(Arc::clone(&info)))
+            .await
+            .map_err(|_| sink_closed_outcome())?;
+        tracing::info!(
+            source = %info.source,
+            asset = %info.meta.asset_id,
+            run = %info.meta.run_id,
+            "run started"
+        );
+        Ok(RunHandle {
+            ingest: self.clone(),
+            asset_label: AssetLabel {
+                asset: info.meta.asset_id.clone(),
+            },
+            info,
+            twin,
+            out: Vec::new(),
+            samples: 0,
+            samples_reported: 0,
+            ticks: 0,
+            last_t_ns: None,
+        })
+    }
+
+    /// Reads one MCAP stream to its end (or error, idle timeout, or `cancel`)
+    /// and processes it as one run. Every outcome is logged once here and
+    /// counted in the metrics.
+    pub async fn ingest_stream<R: AsyncRead + Unpin>(
+        &self,
+        kind: SourceKind,
+        source: String,
+        mut reader: R,
+        cancel: &CancellationToken,
+        idle: Option<Duration>,
+    ) -> RunReport {
+        let limits = ReadLimits {
+            max_record_bytes: self.inner.config.limits.max_record_bytes,
+            max_chunk_uncompressed_bytes: self
+                .inner
+                .config
+                .limits
+                .max_record_bytes
+                .saturating_mul(4),
+        };
+        let mut decoder = LogDecoder::with_limits(&source, limits);
+        let mut buf = vec![0u8; READ_BUF_BYTES];
+        let mut run: Option<RunHandle> = None;
+        let mut unknown_topics = HashSet::new();
+        // `None`: the stream ended; `finish` judges how.
+        let outcome = loop {
+            let read = async {
+                match idle {
+                    Some(d) => tokio::time::timeout(d, reader.read(&mut buf)).await.ok(),
+                    None => Some(reader.read(&mut buf).await),
+                }
+            };
+            let n = tokio::select! {
+                biased;
+                () = cancel.cancelled() => break Some(RunOutcome::Interrupted),
+                r = read => match r {
+                    None => break Some(RunOutcome::Failed {
+                        kind: "idle_timeout",
+                        reason: format!(
+                            "{source}: no data for {:.0} s",
+                            idle.unwrap_or_default().as_secs_f64()
+                        ),
+                    }),
+                    Some(Err(e)) => break Some(RunOutcome::Failed {
+                        kind: "io",
+                        reason: format!("{source}: read failed: {e}"),
+                    }),
+                    Some(Ok(n)) => n,
+                },
+            };
+            if n == 0 {
+                break None;
+            }
+            decoder.feed(&buf[..n]);
+            if let Err(outcome) = self
+                .handle_events(kind, &source, &mut decoder, &mut run, &mut unknown_topics)
+                .await
+            {
+                break Some(outcome);
+            }
+            if let Some(r) = &mut run {
+                if r.flush().await.is_err() {
+                    break Some(sink_closed_outcome());
+                }
+            }
+        };
+        let outcome = match outcome {
+            Some(o) => o,
+            None => match decoder.finish() {
+                Err(e) => failed(&e),
+                Ok(()) if run.is_none() => RunOutcome::Failed {
+                    kind: "metadata",
+                    reason: format!("{source}: stream ended before the `shocktwin.run` metadata"),
+                },
+                Ok(()) => RunOutcome::Completed,
+            },
+        };
+        self.end(source, run, outcome).await
+    }
+
+    async fn handle_events(
+        &self,
+        kind: SourceKind,
+        source: &str,
+        decoder: &mut LogDecoder,
+        run: &mut Option<RunHandle>,
+        unknown_topics: &mut HashSet<String>,
+    ) -> Result<(), RunOutcome> {
+        while let Some(event) = decoder.next_event() {
+            match event {
+                Ok(LogEvent::Metadata(meta)) => {
+                    if let Some(r) = run.as_ref() {
+                        if r.info.meta.asset_id != meta.asset_id {
+                            return Err(RunOutcome::Failed {
+                                kind: "metadata",
+                                reason: format!(
+                                    "{source}: a second `shocktwin.run` names asset `{}`, the stream is asset `{}` (one asset per stream)",
+                                    meta.asset_id, r.info.meta.asset_id
+                                ),
+                            });
+                        }
+                    } else {
+                        *run = Some(self.open_run(kind, source.to_owned(), meta).await?);
+                    }
+                }
+                Ok(LogEvent::Sample(sample)) => match run.as_mut() {
+                    Some(r) => r.push(&sample),
+                    None => {
+                        return Err(RunOutcome::Failed {
+                            kind: "metadata",
+                            reason: format!(
+                                "{source}: message before the `shocktwin.run` metadata record"
+                            ),
+                        })
+                    }
+                },
+                Ok(LogEvent::Unknown { topic, .. }) => {
+                    self.inner.metrics.unknown_messages.inc();
+                    if unknown_topics.len() < 64 && unknown_topics.insert(topic.clone()) {
+                        tracing::warn!(source, topic, "ignoring unknown topic");
+                    }
+                }
+                Ok(LogEvent::End) => {}
+                Err(e) if !e.is_fatal() => {
+                    // One undecodable message: skipped, the stream goes on.
+                    self.inner.metrics.error("message");
+                    tracing::warn!(source, "skipped message: {e}");
+                }
+                Err(e) => return Err(failed(&e)),
+            }
+        }
+        Ok(())
+    }
+
+    async fn end(&self, source: String, run: Option<RunHandle>, outcome: RunOutcome) -> RunReport {
+        let m = &self.inner.metrics;
+        if let RunOutcome::Failed { kind, reason } = &outcome {
+            m.error(kind);
+            tracing::warn!(source, kind, "stream closed: {reason}");
+        }
+        Metrics::add(&m.runs, outcome.status(), 1);
+        let (asset_id, run_id, samples, ticks, sink_result) = match run {
+            Some(r) => {
+                let ids = (r.info.meta.asset_id.clone(), r.info.meta.run_id.clone());
+                let (samples, ticks, result) = r.end(&outcome).await;
+                (Some(ids.0), Some(ids.1), samples, ticks, result)
+            }
+            None => (None, None, 0, 0, Ok(())),
+        };
+        if matches!(outcome, RunOutcome::Completed) {
+            tracing::info!(source, samples, ticks, "run completed");
+        }
+        let (kind, reason) = match &outcome {
+            RunOutcome::Failed { kind, reason } => (Some(*kind), Some(reason.clone())),
+            _ => (None, None),
+        };
+        let flushed = sink_result.is_ok();
+        RunReport {
+            status: outcome.status(),
+            kind: kind.or(if flushed { None } else { Some("sink") }),
+            reason: reason.or(sink_result.err()),
+            asset_id,
+            run_id,
+            samples,
+            ticks,
+            flushed,
+        }
+    }
+}
+
+fn failed(e: &LogError) -> RunOutcome {
+    RunOutcome::Failed {
+        kind: error_kind(e),
+        reason: e.to_string(),
+    }
+}
+
+fn sink_closed_outcome() -> RunOutcome {
+    RunOutcome::Failed {
+        kind: "sink",
+        reason: SinkClosed.to_string(),
+    }
+}
+
+/// One run in progress: feeds its twin and forwards its estimates.
+pub struct RunHandle {
+    ingest: Ingest,
+    info: Arc<RunInfo>,
+    asset_label: AssetLabel,
+    twin: Box<dyn AssetTwin>,
+    out: Vec<Estimate>,
+    samples: u64,
+    samples_reported: u64,
+    ticks: u64,
+    last_t_ns: Option<i64>,
+}
+
+impl std::fmt::Debug for RunHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RunHandle")
+            .field("info", &self.info)
+            .field("samples", &self.samples)
+            .finish_non_exhaustive()
+    }
+}
+
+impl RunHandle {
+    /// The run.
+    #[must_use]
+    pub fn info(&self) -> &RunInfo {
+        &self.info
+    }
+
+    /// Feeds one sample to the twin (no I/O; call [`RunHandle::flush`] after a batch).
+    pub fn push(&mut self, sample: &Sample) {
+        self.twin.push(sample);
+        self.samples += 1;
+        let t = sample.t_ns();
+        self.last_t_ns = Some(self.last_t_ns.map_or(t, |l| l.max(t)));
+    }
+
+    /// Sends the estimates completed so far; waits while the sink queue is full.
+    pub async fn flush(&mut self) -> Result<(), SinkClosed> {
+        self.twin.drain(&mut self.out);
+        self.send_out().await
+    }
+
+    async fn send_out(&mut self) -> Result<(), SinkClosed> {
+        let m = &self.ingest.inner.metrics;
+        let new_samples = self.samples - self.samples_reported;
+        if new_samples > 0 {
+            m.messages
+                .get_or_create(&SourceLabel {
+                    source: self.info.kind.as_str().to_owned(),
+                })
+                .inc_by(new_samples);
+            self.samples_reported = self.samples;
+        }
+        if let Some(t) = self.last_t_ns {
+            m.set_last_sample(&self.info.meta.asset_id, t);
+        }
+        if self.out.is_empty() {
+            return Ok(());
+        }
+        let batch = std::mem::take(&mut self.out);
+        let n = batch.len() as u64;
+        self.ingest
+            .inner
+            .sink_tx
+            .send(SinkMsg::Estimates(Arc::clone(&self.info), batch))
+            .await
+            .map_err(|_| SinkClosed)?;
+        self.ticks += n;
+        m.ticks.get_or_create(&self.asset_label).inc_by(n);
+        Ok(())
+    }
+
+    /// Ends the run: the twin's last estimates are sent, and this waits until
+    /// the sinks have made everything of the run durable. Returns samples,
+    /// ticks and the sinks' verdict.
+    pub async fn end(mut self, outcome: &RunOutcome) -> (u64, u64, Result<(), String>) {
+        self.twin.finish(&mut self.out);
+        let mut result = self.send_out().await.map_err(|e| e.to_string());
+        let counters = self.twin.counters();
+        self.ingest.inner.metrics.add_twin_counters(&counters);
+        if counters.nan_samples + counters.out_of_order > 0 {
+            tracing::info!(
+                source = %self.info.source,
+                nan_samples = counters.nan_samples,
+                out_of_order = counters.out_of_order,
+                dropped_late = counters.dropped_late,
+                "input anomalies"
+            );
+        }
+        if result.is_ok() {
+            let (ack_tx, ack_rx) = oneshot::channel();
+            let sent = self
+                .ingest
+                .inner
+                .sink_tx
+                .send(SinkMsg::Ended(
+                    Arc::clone(&self.info),
+                    outcome.clone(),
+                    ack_tx,
+                ))
+                .await;
+            result = match sent {
+                Err(_) => Err(SinkClosed.to_string()),
+                Ok(()) => ack_rx.await.unwrap_or_else(|_| Err(SinkClosed.to_string())),
+            };
+        }
+        (self.samples, self.ticks, result)
+    }
+}

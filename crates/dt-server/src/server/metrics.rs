@@ -1,0 +1,188 @@
+//! Prometheus metrics (`GET /metrics`, OpenMetrics text), kept with the
+//! `prometheus-client` crate.
+
+use std::collections::HashMap;
+use std::sync::atomic::AtomicU64;
+use std::sync::Mutex;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::registry::Registry;
+
+use super::twin::TwinCounters;
+
+/// Label set `{kind="..."}`.
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct KindLabel {
+    /// The kind (error kind, run outcome, ...).
+    pub kind: String,
+}
+
+/// Label set `{source="tcp"|"inbox"}`.
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct SourceLabel {
+    /// Source kind.
+    pub source: String,
+}
+
+/// Label set `{asset="..."}`.
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct AssetLabel {
+    /// Asset id.
+    pub asset: String,
+}
+
+/// Every metric the daemon exports (names get the `shocktwin_` prefix;
+/// counters also get `_total`).
+#[derive(Debug)]
+pub struct Metrics {
+    registry: Registry,
+    /// Sensor samples decoded, by source.
+    pub messages: Family<SourceLabel, Counter>,
+    /// Messages on topics the format does not know (ignored).
+    pub unknown_messages: Counter,
+    /// Estimates (50 Hz ticks) emitted.
+    pub ticks: Family<AssetLabel, Counter>,
+    /// Errors, by kind (`not_mcap`, `truncated`, `too_large`, `schema`, ...).
+    pub errors: Family<KindLabel, Counter>,
+    /// Ingest connections open now.
+    pub connections_active: Gauge,
+    /// Ingest connections accepted.
+    pub connections: Counter,
+    /// Runs ended, by outcome (`completed`, `failed`, `interrupted`).
+    pub runs: Family<KindLabel, Counter>,
+    /// Inbox files moved, by destination (`done`, `failed`).
+    pub files: Family<KindLabel, Counter>,
+    /// Input anomalies the twins counted (`nan_samples`, `out_of_order`, `dropped_late`).
+    pub input: Family<KindLabel, Counter>,
+    /// Per asset: now − time of the last sample processed, s.
+    pub asset_lag_seconds: Family<AssetLabel, Gauge<f64, AtomicU64>>,
+    last_sample_ns: Mutex<HashMap<String, i64>>,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    /// Registers every metric.
+    #[must_use]
+    pub fn new() -> Self {
+        let mut registry = Registry::with_prefix("shocktwin");
+        let m = Self {
+            registry: Registry::default(),
+            messages: Family::default(),
+            unknown_messages: Counter::default(),
+            ticks: Family::default(),
+            errors: Family::default(),
+            connections_active: Gauge::default(),
+            connections: Counter::default(),
+            runs: Family::default(),
+            files: Family::default(),
+            input: Family::default(),
+            asset_lag_seconds: Family::default(),
+            last_sample_ns: Mutex::new(HashMap::new()),
+        };
+        registry.register("messages", "Sensor samples decoded", m.messages.clone());
+        registry.register(
+            "unknown_messages",
+            "Messages on unknown topics (ignored)",
+            m.unknown_messages.clone(),
+        );
+        registry.register("ticks", "Estimates emitted (50 Hz ticks)", m.ticks.clone());
+        registry.register("errors", "Errors by kind", m.errors.clone());
+        registry.register(
+            "connections_active",
+            "Ingest connections open",
+            m.connections_active.clone(),
+        );
+        registry.register(
+            "connections",
+            "Ingest connections accepted",
+            m.connections.clone(),
+        );
+        registry.register("runs", "Runs ended, by outcome", m.runs.clone());
+        registry.register(
+            "inbox_files",
+            "Inbox files moved, by destination",
+            m.files.clone(),
+        );
+        registry.register(
+            "input_anomalies",
+            "Input anomalies counted by the twins",
+            m.input.clone(),
+        );
+        registry.register(
+            "asset_lag_seconds",
+            "Wall-clock now minus the time of the last sample processed, per asset",
+            m.asset_lag_seconds.clone(),
+        );
+        Self { registry, ..m }
+    }
+
+    /// Counts one error of `kind`.
+    pub fn error(&self, kind: &str) {
+        self.errors
+            .get_or_create(&KindLabel {
+                kind: kind.to_owned(),
+            })
+            .inc();
+    }
+
+    /// Adds `n` to a `{kind}` family.
+    pub fn add(family: &Family<KindLabel, Counter>, kind: &str, n: u64) {
+        if n > 0 {
+            family
+                .get_or_create(&KindLabel {
+                    kind: kind.to_owned(),
+                })
+                .inc_by(n);
+        }
+    }
+
+    /// Adds a finished run's twin counters.
+    pub fn add_twin_counters(&self, c: &TwinCounters) {
+        Self::add(&self.input, "nan_samples", c.nan_samples);
+        Self::add(&self.input, "out_of_order", c.out_of_order);
+        Self::add(&self.input, "dropped_late", c.dropped_late);
+    }
+
+    /// Records the time of the last sample processed for `asset`.
+    pub fn set_last_sample(&self, asset: &str, t_ns: i64) {
+        let mut map = self.last_sample_ns.lock().expect("metrics lock poisoned");
+        match map.get_mut(asset) {
+            Some(v) => *v = t_ns,
+            None => {
+                map.insert(asset.to_owned(), t_ns);
+            }
+        }
+    }
+
+    /// OpenMetrics text of every metric, lags computed against `now`.
+    #[must_use]
+    pub fn encode(&self, now: SystemTime) -> String {
+        let now_ns = now
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
+        {
+            let map = self.last_sample_ns.lock().expect("metrics lock poisoned");
+            for (asset, &t_ns) in map.iter() {
+                let lag_s = now_ns.saturating_sub(t_ns) as f64 * 1e-9;
+                self.asset_lag_seconds
+                    .get_or_create(&AssetLabel {
+                        asset: asset.clone(),
+                    })
+                    .set(lag_s);
+            }
+        }
+        let mut text = String::new();
+        prometheus_client::encoding::text::encode(&mut text, &self.registry)
+            .expect("writing to a String cannot fail");
+        text
+    }
+}

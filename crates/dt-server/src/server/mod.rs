@@ -1,0 +1,222 @@
+//! The fleet-gateway daemon (`shocktwin serve`), shaped like tokio's
+//! mini-redis: the binary parses arguments, sets up tracing, binds the
+//! listeners and calls [`run`] with a shutdown future.
+//!
+//! ```text
+//!  sources ──────────────► Ingest ──► AssetTwin per run ──► bounded queue ──► sink thread
+//!  (TcpSource: MCAP per    (LogDecoder,                     (backpressure)     ├─ LiveSink ─► HTTP API, SSE
+//!   connection; InboxSource) metadata → run)                                    └─ McapRecorder (rotating)
+//! ```
+//!
+//! Shutdown: the future resolves → `/readyz` turns 503, the sources'
+//! [`CancellationToken`] is cancelled (stop accepting; each run in progress
+//! ends with its estimates so far), a [`TaskTracker`] says when every
+//! connection task is done, then the sink queue closes and every sink flushes
+//! (finishes its MCAP files), then the HTTP server stops. Every queue is
+//! bounded; a semaphore caps connections; record sizes are limited.
+
+pub mod config;
+pub mod http;
+pub mod inbox;
+pub mod ingest;
+pub mod metrics;
+pub mod record;
+pub mod sink;
+pub mod source;
+pub mod state;
+pub mod tcp;
+pub mod twin;
+
+use std::future::{Future, IntoFuture};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::net::TcpListener;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+pub use config::{AssetConfig, Config, ConfigOverrides};
+pub use twin::{AssetTwin, TickCounterFactory, TickCounterTwin, TwinCounters, TwinFactory};
+
+use self::http::AppState;
+use self::ingest::Ingest;
+use self::metrics::Metrics;
+use self::record::McapRecorder;
+use self::sink::Sink;
+use self::source::{Source, SourceContext};
+use self::state::{LiveSink, LiveState};
+
+/// The daemon's one error type (configuration and start-up; a bad input
+/// stream is not an error of the daemon, it closes that stream).
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The configuration file cannot be parsed.
+    #[error("{}: {reason}", file.display())]
+    Config {
+        /// The file.
+        file: PathBuf,
+        /// toml's message (names key and line).
+        reason: String,
+    },
+    /// An environment variable has an invalid value.
+    #[error("environment variable {var}={value:?}: {reason}")]
+    Env {
+        /// The variable.
+        var: String,
+        /// Its value.
+        value: String,
+        /// Why it is invalid.
+        reason: String,
+    },
+    /// A configuration value is invalid.
+    #[error("configuration `{key}`: {reason}")]
+    Invalid {
+        /// The key (`limits.queue_depth`, `assets.<id>`, ...).
+        key: String,
+        /// Why.
+        reason: String,
+    },
+    /// A listener cannot be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A file or directory operation failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A sink cannot be set up.
+    #[error(transparent)]
+    Sink(#[from] sink::SinkError),
+}
+
+/// The daemon's two listeners, bound by the caller (tests bind `127.0.0.1:0`).
+#[derive(Debug)]
+pub struct Listeners {
+    /// MCAP ingest.
+    pub ingest: TcpListener,
+    /// HTTP API.
+    pub http: TcpListener,
+}
+
+impl Listeners {
+    /// Binds the configured addresses.
+    pub async fn bind(config: &Config) -> Result<Self, ServeError> {
+        let bind = |addr: SocketAddr| async move {
+            TcpListener::bind(addr)
+                .await
+                .map_err(|source| ServeError::Bind { addr, source })
+        };
+        Ok(Self {
+            ingest: bind(config.server.listen).await?,
+            http: bind(config.server.http).await?,
+        })
+    }
+}
+
+/// Runs the daemon until `shutdown` resolves, then drains and flushes.
+/// `twins` makes the estimator of each run.
+pub async fn run(
+    config: Config,
+    listeners: Listeners,
+    twins: Arc<dyn TwinFactory>,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
+    config.validate()?;
+    let config = Arc::new(config);
+    let limits = &config.limits;
+    let metrics = Arc::new(Metrics::new());
+    let live = Arc::new(LiveState::new(limits.history_len, limits.queue_depth));
+
+    let mut sinks: Vec<Box<dyn Sink>> = vec![Box::new(LiveSink(Arc::clone(&live)))];
+    if let Some(dir) = &config.server.record_dir {
+        sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
+    }
+    let mut sources: Vec<Box<dyn Source>> = vec![Box::new(tcp::TcpSource::new(
+        listeners.ingest,
+        limits.max_connections,
+        Duration::from_secs_f64(limits.idle_timeout_s),
+    ))];
+    if let Some(dir) = &config.server.inbox {
+        sources.push(Box::new(inbox::InboxSource::new(
+            dir,
+            Duration::from_secs_f64(config.server.inbox_rescan_s),
+        )?));
+    }
+
+    let (sink_tx, sink_rx) = mpsc::channel(limits.queue_depth);
+    let sink_metrics = Arc::clone(&metrics);
+    let sink_thread =
+        tokio::task::spawn_blocking(move || sink::dispatch(sink_rx, sinks, &sink_metrics));
+    let ingest = Ingest::new(
+        Arc::clone(&config),
+        Arc::clone(&twins),
+        sink_tx,
+        Arc::clone(&metrics),
+    );
+
+    let cancel = CancellationToken::new();
+    let tracker = TaskTracker::new();
+    for source in sources {
+        let name = source.name();
+        tracing::info!(source = %name, "source started");
+        let ctx = SourceContext {
+            ingest: ingest.clone(),
+            cancel: cancel.clone(),
+            tracker: tracker.clone(),
+        };
+        tracker.spawn(async move {
+            if let Err(e) = source.run(ctx).await {
+                tracing::error!(source = %name, "source stopped: {e}");
+            }
+        });
+    }
+
+    let ready = Arc::new(AtomicBool::new(false));
+    let http_stop = CancellationToken::new();
+    let app = http::router(AppState {
+        live,
+        metrics,
+        ready: Arc::clone(&ready),
+        stop: http_stop.clone(),
+    });
+    let http_addr = listeners.http.local_addr().ok();
+    let http_task = tokio::spawn(
+        axum::serve(listeners.http, app)
+            .with_graceful_shutdown(http_stop.clone().cancelled_owned())
+            .into_future(),
+    );
+    ready.store(true, Ordering::Relaxed);
+    tracing::info!(http = ?http_addr, twin = %twins.describe(), "serving");
+
+    shutdown.await;
+    tracing::info!("shutting down: ending runs in progress");
+    ready.store(false, Ordering::Relaxed);
+    cancel.cancel();
+    tracker.close();
+    tracker.wait().await;
+    // The last sender goes: the sink thread drains the queue and flushes.
+    drop(ingest);
+    if let Err(e) = sink_thread.await {
+        tracing::error!("sink thread failed: {e}");
+    }
+    http_stop.cancel();
+    match http_task.await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::error!("HTTP server failed: {e}"),
+        Err(e) => tracing::error!("HTTP task failed: {e}"),
+    }
+    tracing::info!("stopped");
+    Ok(())
+}

@@ -1,0 +1,242 @@
+//! Records every run's estimates as MCAP (topic `/estimate`, SPEC §2),
+//! written with `dt_core::log::LogWriter`, rotating by size or by span of
+//! estimate time.
+//!
+//! Files are `<record_dir>/<asset_id>/<run_id>.<part>.mcap` (part 0, 1, …).
+//! A file is written as `….mcap.part` and renamed when finished (on rotation,
+//! at the end of its run, or at shutdown), so a `.mcap` file is always
+//! complete. Names are deterministic: processing the same run again (an inbox
+//! file after a crash) rewrites the same files.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
+use dt_core::log::{topic, Compression, LogWriter, WriteOptions};
+
+use super::config::RecordConfig;
+use super::sink::{RunInfo, RunOutcome, Sink, SinkError};
+
+/// A writer that knows how far it has written (for rotation by size).
+#[derive(Debug)]
+struct CountingWriter<W> {
+    inner: W,
+    pos: u64,
+    /// Furthest position written, shared with the [`Recording`].
+    len: Arc<AtomicU64>,
+}
+
+impl<W> CountingWriter<W> {
+    fn advance(&mut self, pos: u64) {
+        self.pos = pos;
+        self.len.fetch_max(pos, Ordering::Relaxed);
+    }
+}
+
+impl<W: Write> Write for CountingWriter<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.advance(self.pos + n as u64);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+impl<W: Seek> Seek for CountingWriter<W> {
+    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
+        let pos = self.inner.seek(to)?;
+        self.advance(pos);
+        Ok(pos)
+    }
+}
+
+type Writer = LogWriter<CountingWriter<BufWriter<File>>>;
+
+struct Recording {
+    writer: Writer,
+    part_path: PathBuf,
+    final_path: PathBuf,
+    part: u32,
+    first_t_ns: i64,
+    bytes: Arc<AtomicU64>,
+}
+
+/// The recording [`Sink`].
+pub struct McapRecorder {
+    dir: PathBuf,
+    config: RecordConfig,
+    open: HashMap<u64, Recording>,
+}
+
+impl std::fmt::Debug for McapRecorder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("McapRecorder")
+            .field("dir", &self.dir)
+            .field("open_runs", &self.open.len())
+            .finish_non_exhaustive()
+    }
+}
+
+fn err(reason: String) -> SinkError {
+    SinkError {
+        sink: "record",
+        reason,
+    }
+}
+
+impl McapRecorder {
+    /// Records under `dir` (created if needed).
+    pub fn new(dir: &Path, config: RecordConfig) -> Result<Self, SinkError> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| err(format!("cannot create {}: {e}", dir.display())))?;
+        Ok(Self {
+            dir: dir.to_owned(),
+            config,
+            open: HashMap::new(),
+        })
+    }
+
+    /// Path of part `part` of a run's recording.
+    #[must_use]
+    pub fn path_of(dir: &Path, asset_id: &str, run_id: &str, part: u32) -> PathBuf {
+        dir.join(asset_id).join(format!("{run_id}.{part:04}.mcap"))
+    }
+
+    fn start(&self, run: &RunInfo, part: u32, first_t_ns: i64) -> Result<Recording, SinkError> {
+        let final_path = Self::path_of(&self.dir, &run.meta.asset_id, &run.meta.run_id, part);
+        let part_path = final_path.with_extension("mcap.part");
+        if let Some(parent) = final_path.parent() {
+            std::fs::create_dir_all(parent)
+                .map_err(|e| err(format!("cannot create {}: {e}", parent.display())))?;
+        }
+        let file = File::create(&part_path)
+            .map_err(|e| err(format!("cannot create {}: {e}", part_path.display())))?;
+        let bytes = Arc::new(AtomicU64::new(0));
+        let counting = CountingWriter {
+            inner: BufWriter::with_capacity(1 << 16, file),
+            pos: 0,
+            len: Arc::clone(&bytes),
+        };
+        let mut meta = run.meta.clone();
+        meta.extra
+            .insert("shocktwin.content".into(), "estimates".into());
+        meta.extra
+            .insert("shocktwin.recording_part".into(), part.to_string());
+        meta.extra
+            .insert("shocktwin.source".into(), run.source.clone());
+        // Chunks small enough that rotation by size sees the bytes soon.
+        let options = WriteOptions {
+            compression: Compression::Zstd,
+            chunk_size: Some((self.config.max_file_bytes / 4).clamp(4096, 256 << 10)),
+        };
+        let writer = LogWriter::new(counting, &meta, options)
+            .map_err(|e| err(format!("{}: {e}", part_path.display())))?;
+        Ok(Recording {
+            writer,
+            part_path,
+            final_path,
+            part,
+            first_t_ns,
+            bytes,
+        })
+    }
+
+    fn finish(rec: Recording) -> Result<PathBuf, SinkError> {
+        let Recording {
+            writer,
+            part_path,
+            final_path,
+            ..
+        } = rec;
+        let counting = writer
+            .finish()
+            .map_err(|e| err(format!("{}: {e}", part_path.display())))?;
+        let file = counting
+            .inner
+            .into_inner()
+            .map_err(|e| err(format!("{}: {}", part_path.display(), e.error())))?;
+        file.sync_all()
+            .map_err(|e| err(format!("{}: {e}", part_path.display())))?;
+        std::fs::rename(&part_path, &final_path).map_err(|e| {
+            err(format!(
+                "cannot rename {} to {}: {e}",
+                part_path.display(),
+                final_path.display()
+            ))
+        })?;
+        tracing::debug!(file = %final_path.display(), "recording finished");
+        Ok(final_path)
+    }
+
+    fn max_span_ns(&self) -> i64 {
+        (self.config.max_file_s * 1e9) as i64
+    }
+}
+
+impl Sink for McapRecorder {
+    fn name(&self) -> &'static str {
+        "record"
+    }
+
+    fn run_started(&mut self, _run: &RunInfo) -> Result<(), SinkError> {
+        // The file is opened at the first estimate (a run may have none).
+        Ok(())
+    }
+
+    fn estimates(&mut self, run: &RunInfo, batch: &[Estimate]) -> Result<(), SinkError> {
+        for e in batch {
+            let rotate = match self.open.get(&run.seq) {
+                None => None,
+                Some(r) => {
+                    let over_size = r.writer_len() >= self.config.max_file_bytes;
+                    let over_span = e.t_ns.saturating_sub(r.first_t_ns) >= self.max_span_ns();
+                    (over_size || over_span).then_some(r.part + 1)
+                }
+            };
+            if let Some(next) = rotate {
+                let old = self.open.remove(&run.seq).expect("checked above");
+                Self::finish(old)?;
+                self.open.insert(run.seq, self.start(run, next, e.t_ns)?);
+            } else if !self.open.contains_key(&run.seq) {
+                self.open.insert(run.seq, self.start(run, 0, e.t_ns)?);
+            }
+            let rec = self.open.get_mut(&run.seq).expect("opened above");
+            rec.writer
+                .write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, e)
+                .map_err(|x| err(format!("{}: {x}", rec.part_path.display())))?;
+        }
+        Ok(())
+    }
+
+    fn run_ended(&mut self, run: &RunInfo, _outcome: &RunOutcome) -> Result<(), SinkError> {
+        match self.open.remove(&run.seq) {
+            Some(rec) => Self::finish(rec).map(|_| ()),
+            None => Ok(()),
+        }
+    }
+
+    fn close(&mut self) -> Result<(), SinkError> {
+        let mut first = Ok(());
+        for (_, rec) in self.open.drain() {
+            if let Err(e) = Self::finish(rec) {
+                if first.is_ok() {
+                    first = Err(e);
+                }
+            }
+        }
+        first
+    }
+}
+
+impl Recording {
+    fn writer_len(&self) -> u64 {
+        self.bytes.load(Ordering::Relaxed)
+    }
+}

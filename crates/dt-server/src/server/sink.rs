@@ -1,0 +1,181 @@
+//! Outputs behind one small [`Sink`] interface, driven from one blocking
+//! thread that drains a bounded queue of [`SinkMsg`]s: the live state of the
+//! HTTP API ([`super::state::LiveSink`]) and the rotating MCAP recorder
+//! ([`super::record::McapRecorder`]). A full queue makes the ingest tasks
+//! wait, which stops them reading their sockets (backpressure).
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::SystemTime;
+
+use dt_core::estimate::Estimate;
+use dt_core::log::RunMetadata;
+use tokio::sync::{mpsc, oneshot};
+
+use super::config::AssetConfig;
+use super::metrics::Metrics;
+
+/// Where a run's bytes come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceKind {
+    /// A TCP ingest connection.
+    Tcp,
+    /// A file of the inbox directory.
+    Inbox,
+}
+
+impl SourceKind {
+    /// `tcp` or `inbox` (metric label).
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SourceKind::Tcp => "tcp",
+            SourceKind::Inbox => "inbox",
+        }
+    }
+}
+
+/// One run being processed (one connection, one inbox file).
+#[derive(Debug, Clone)]
+pub struct RunInfo {
+    /// Unique within this daemon's lifetime.
+    pub seq: u64,
+    /// Source kind.
+    pub kind: SourceKind,
+    /// Source name for logs (`tcp 127.0.0.1:50432`, `inbox run.mcap`).
+    pub source: String,
+    /// The run's `shocktwin.run` metadata.
+    pub meta: RunMetadata,
+    /// The asset's health settings.
+    pub asset: AssetConfig,
+    /// When processing started.
+    pub started: SystemTime,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RunOutcome {
+    /// The stream ended cleanly; every estimate was emitted.
+    Completed,
+    /// The stream was bad or broke; the estimates of the good data before the
+    /// error were emitted. `kind` is the metric label.
+    Failed {
+        /// Error kind (`truncated`, `schema`, ...).
+        kind: &'static str,
+        /// Human-readable reason (names the source, topic, field).
+        reason: String,
+    },
+    /// The daemon is shutting down; the estimates so far were emitted.
+    Interrupted,
+}
+
+impl RunOutcome {
+    /// `completed`, `failed` or `interrupted`.
+    #[must_use]
+    pub fn status(&self) -> &'static str {
+        match self {
+            RunOutcome::Completed => "completed",
+            RunOutcome::Failed { .. } => "failed",
+            RunOutcome::Interrupted => "interrupted",
+        }
+    }
+
+    /// The failure reason, if any.
+    #[must_use]
+    pub fn reason(&self) -> Option<&str> {
+        match self {
+            RunOutcome::Failed { reason, .. } => Some(reason),
+            _ => None,
+        }
+    }
+}
+
+/// A sink failed to take or keep a run's estimates.
+#[derive(Debug, thiserror::Error)]
+#[error("sink `{sink}`: {reason}")]
+pub struct SinkError {
+    /// The sink's name.
+    pub sink: &'static str,
+    /// What failed (names the file).
+    pub reason: String,
+}
+
+/// An output of the daemon. Called from one thread, in order, per run:
+/// `run_started`, any number of `estimates`, `run_ended`; runs interleave.
+pub trait Sink: Send {
+    /// Name for logs and errors.
+    fn name(&self) -> &'static str;
+    /// A run starts.
+    fn run_started(&mut self, run: &RunInfo) -> Result<(), SinkError>;
+    /// The next estimates of a run, in time order.
+    fn estimates(&mut self, run: &RunInfo, batch: &[Estimate]) -> Result<(), SinkError>;
+    /// The run ended: everything of it must be durable when this returns.
+    fn run_ended(&mut self, run: &RunInfo, outcome: &RunOutcome) -> Result<(), SinkError>;
+    /// The daemon stops: flush and close everything.
+    fn close(&mut self) -> Result<(), SinkError>;
+}
+
+/// Messages from the ingest tasks to the sink thread.
+#[derive(Debug)]
+pub(crate) enum SinkMsg {
+    Started(Arc<RunInfo>),
+    Estimates(Arc<RunInfo>, Vec<Estimate>),
+    /// The sender gets `Err(reason)` if a sink failed for this run.
+    Ended(
+        Arc<RunInfo>,
+        RunOutcome,
+        oneshot::Sender<Result<(), String>>,
+    ),
+}
+
+/// Drains `rx` into `sinks` until every sender is gone, then closes them.
+/// Runs on a blocking thread.
+pub(crate) fn dispatch(
+    mut rx: mpsc::Receiver<SinkMsg>,
+    mut sinks: Vec<Box<dyn Sink>>,
+    metrics: &Metrics,
+) {
+    // First failure per run (reported in its `Ended` acknowledgement).
+    let mut failed: HashMap<u64, String> = HashMap::new();
+    let note = |failed: &mut HashMap<u64, String>, seq: u64, err: SinkError| {
+        metrics.error("sink");
+        failed.entry(seq).or_insert_with(|| {
+            tracing::error!(run = seq, "{err}");
+            err.to_string()
+        });
+    };
+    while let Some(msg) = rx.blocking_recv() {
+        match msg {
+            SinkMsg::Started(run) => {
+                for sink in &mut sinks {
+                    if let Err(e) = sink.run_started(&run) {
+                        note(&mut failed, run.seq, e);
+                    }
+                }
+            }
+            SinkMsg::Estimates(run, batch) => {
+                for sink in &mut sinks {
+                    if let Err(e) = sink.estimates(&run, &batch) {
+                        note(&mut failed, run.seq, e);
+                    }
+                }
+            }
+            SinkMsg::Ended(run, outcome, ack) => {
+                for sink in &mut sinks {
+                    if let Err(e) = sink.run_ended(&run, &outcome) {
+                        note(&mut failed, run.seq, e);
+                    }
+                }
+                let result = failed.remove(&run.seq).map_or(Ok(()), Err);
+                // The ingest task may be gone (shutdown): nothing to tell.
+                let _ = ack.send(result);
+            }
+        }
+    }
+    for sink in &mut sinks {
+        if let Err(e) = sink.close() {
+            metrics.error("sink");
+            tracing::error!("{e}");
+        }
+    }
+}

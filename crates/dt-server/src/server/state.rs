@@ -1,0 +1,303 @@
+//! The live view of the fleet served by the HTTP API: per asset the latest
+//! estimate, a bounded history and the health; and the live event stream
+//! (`GET /v1/events`), a bounded broadcast whose slow readers skip ahead.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::{Arc, RwLock};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use dt_core::estimate::{Estimate, Health};
+use serde::Serialize;
+use tokio::sync::broadcast;
+
+use super::sink::{RunInfo, RunOutcome, Sink, SinkError};
+
+/// One event of the live stream; the SSE event name is [`LiveEvent::name`].
+#[derive(Debug, Clone, Serialize)]
+#[serde(untagged)]
+pub enum LiveEvent {
+    /// A new estimate.
+    Estimate {
+        /// Asset.
+        asset_id: String,
+        /// Run.
+        run_id: String,
+        /// The estimate (its fields inline).
+        #[serde(flatten)]
+        estimate: Estimate,
+    },
+    /// An asset's health changed.
+    Health {
+        /// Asset.
+        asset_id: String,
+        /// Run.
+        run_id: String,
+        /// Tick of the change.
+        t_ns: i64,
+        /// Previous health.
+        from: Health,
+        /// New health.
+        to: Health,
+    },
+    /// A run started or ended.
+    Run {
+        /// Asset.
+        asset_id: String,
+        /// Run.
+        run_id: String,
+        /// Source (`tcp ADDR`, `inbox FILE`).
+        source: String,
+        /// `started`, `completed`, `failed`, `interrupted`.
+        status: &'static str,
+        /// Why it failed.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        reason: Option<String>,
+    },
+}
+
+impl LiveEvent {
+    /// SSE event name: `estimate`, `health` or `run`.
+    #[must_use]
+    pub fn name(&self) -> &'static str {
+        match self {
+            LiveEvent::Estimate { .. } => "estimate",
+            LiveEvent::Health { .. } => "health",
+            LiveEvent::Run { .. } => "run",
+        }
+    }
+}
+
+/// What the API tells about one asset.
+#[derive(Debug, Clone, Serialize)]
+pub struct AssetSummary {
+    /// Asset.
+    pub asset_id: String,
+    /// Run of the latest estimate.
+    pub run_id: String,
+    /// Latest instantaneous pressure, bar (null: no estimate yet / NaN).
+    pub pressure_bar: Option<f64>,
+    /// Latest 1 s average pressure, bar.
+    pub pressure_avg_bar: Option<f64>,
+    /// Nominal pressure, bar.
+    pub expected_bar: f64,
+    /// Latest health.
+    pub health: Health,
+    /// Tick time of the latest estimate, ns (run clock).
+    pub last_t_ns: Option<i64>,
+    /// Wall-clock time of the latest update, ms since the Unix epoch.
+    pub last_update_unix_ms: u64,
+    /// Estimates received.
+    pub ticks: u64,
+    /// Runs of this asset being processed now.
+    pub active_runs: u32,
+    /// How its last run ended (`completed`, `failed`, `interrupted`), if any.
+    pub last_run_status: Option<&'static str>,
+    /// Why its last run failed, if it did.
+    pub last_run_reason: Option<String>,
+}
+
+/// [`AssetSummary`] with the recent estimates, oldest first.
+#[derive(Debug, Clone, Serialize)]
+pub struct AssetDetail {
+    /// Summary.
+    #[serde(flatten)]
+    pub summary: AssetSummary,
+    /// Recent estimates (bounded ring buffer).
+    pub history: Vec<Estimate>,
+}
+
+#[derive(Debug)]
+struct AssetView {
+    summary: AssetSummary,
+    history: VecDeque<Estimate>,
+}
+
+/// The live state shared by the sink thread (writer) and the HTTP handlers.
+#[derive(Debug)]
+pub struct LiveState {
+    assets: RwLock<BTreeMap<String, AssetView>>,
+    events: broadcast::Sender<Arc<LiveEvent>>,
+    history_len: usize,
+}
+
+fn unix_ms(t: SystemTime) -> u64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+impl LiveState {
+    /// Keeps `history_len` estimates per asset; the event stream buffers
+    /// `event_capacity` events per reader.
+    #[must_use]
+    pub fn new(history_len: usize, event_capacity: usize) -> Self {
+        Self {
+            assets: RwLock::new(BTreeMap::new()),
+            events: broadcast::channel(event_capacity.max(1)).0,
+            history_len,
+        }
+    }
+
+    /// A new reader of the live events.
+    #[must_use]
+    pub fn subscribe(&self) -> broadcast::Receiver<Arc<LiveEvent>> {
+        self.events.subscribe()
+    }
+
+    /// Every asset, by id.
+    #[must_use]
+    pub fn summaries(&self) -> Vec<AssetSummary> {
+        let assets = self.assets.read().expect("state lock poisoned");
+        assets.values().map(|a| a.summary.clone()).collect()
+    }
+
+    /// One asset with its last `history` estimates (all kept if `None`).
+    #[must_use]
+    pub fn detail(&self, asset_id: &str, history: Option<usize>) -> Option<AssetDetail> {
+        let assets = self.assets.read().expect("state lock poisoned");
+        let a = assets.get(asset_id)?;
+        let n = history.unwrap_or(a.history.len()).min(a.history.len());
+        Some(AssetDetail {
+            summary: a.summary.clone(),
+            history: a
+                .history
+                .iter()
+                .skip(a.history.len() - n)
+                .copied()
+                .collect(),
+        })
+    }
+
+    fn publish(&self, event: LiveEvent) {
+        // No reader is not an error.
+        let _ = self.events.send(Arc::new(event));
+    }
+
+    fn with_asset<R>(&self, run: &RunInfo, f: impl FnOnce(&mut AssetView) -> R) -> R {
+        let mut assets = self.assets.write().expect("state lock poisoned");
+        let view = assets
+            .entry(run.meta.asset_id.clone())
+            .or_insert_with(|| AssetView {
+                summary: AssetSummary {
+                    asset_id: run.meta.asset_id.clone(),
+                    run_id: run.meta.run_id.clone(),
+                    pressure_bar: None,
+                    pressure_avg_bar: None,
+                    expected_bar: run.asset.nominal_bar,
+                    health: Health::Unknown,
+                    last_t_ns: None,
+                    last_update_unix_ms: unix_ms(SystemTime::now()),
+                    ticks: 0,
+                    active_runs: 0,
+                    last_run_status: None,
+                    last_run_reason: None,
+                },
+                history: VecDeque::with_capacity(self.history_len.min(4096)),
+            });
+        f(view)
+    }
+
+    fn run_event(run: &RunInfo, status: &'static str, reason: Option<String>) -> LiveEvent {
+        LiveEvent::Run {
+            asset_id: run.meta.asset_id.clone(),
+            run_id: run.meta.run_id.clone(),
+            source: run.source.clone(),
+            status,
+            reason,
+        }
+    }
+}
+
+/// The [`Sink`] that keeps [`LiveState`] up to date.
+#[derive(Debug, Clone)]
+pub struct LiveSink(pub Arc<LiveState>);
+
+impl Sink for LiveSink {
+    fn name(&self) -> &'static str {
+        "live"
+    }
+
+    fn run_started(&mut self, run: &RunInfo) -> Result<(), SinkError> {
+        self.0.with_asset(run, |v| {
+            v.summary.active_runs += 1;
+            v.summary.run_id.clone_from(&run.meta.run_id);
+            v.summary.expected_bar = run.asset.nominal_bar;
+        });
+        self.0.publish(LiveState::run_event(run, "started", None));
+        Ok(())
+    }
+
+    fn estimates(&mut self, run: &RunInfo, batch: &[Estimate]) -> Result<(), SinkError> {
+        let Some(last) = batch.last() else {
+            return Ok(());
+        };
+        let state = &self.0;
+        let mut changes = Vec::new();
+        state.with_asset(run, |v| {
+            let mut health = v.summary.health;
+            for e in batch {
+                if e.health != health {
+                    changes.push((e.t_ns, health, e.health));
+                    health = e.health;
+                }
+                if v.history.len() == state.history_len {
+                    v.history.pop_front();
+                }
+                v.history.push_back(*e);
+            }
+            let s = &mut v.summary;
+            s.run_id.clone_from(&run.meta.run_id);
+            s.pressure_bar = finite(last.pressure_bar);
+            s.pressure_avg_bar = finite(last.pressure_avg_bar);
+            s.expected_bar = last.expected_bar;
+            s.health = health;
+            s.last_t_ns = Some(last.t_ns);
+            s.last_update_unix_ms = unix_ms(SystemTime::now());
+            s.ticks += batch.len() as u64;
+        });
+        // Events are published outside the lock, in order.
+        let mut changes = changes.into_iter().peekable();
+        for e in batch {
+            while let Some(&(t_ns, from, to)) = changes.peek() {
+                if t_ns > e.t_ns {
+                    break;
+                }
+                changes.next();
+                state.publish(LiveEvent::Health {
+                    asset_id: run.meta.asset_id.clone(),
+                    run_id: run.meta.run_id.clone(),
+                    t_ns,
+                    from,
+                    to,
+                });
+            }
+            state.publish(LiveEvent::Estimate {
+                asset_id: run.meta.asset_id.clone(),
+                run_id: run.meta.run_id.clone(),
+                estimate: *e,
+            });
+        }
+        Ok(())
+    }
+
+    fn run_ended(&mut self, run: &RunInfo, outcome: &RunOutcome) -> Result<(), SinkError> {
+        self.0.with_asset(run, |v| {
+            v.summary.active_runs = v.summary.active_runs.saturating_sub(1);
+            v.summary.last_run_status = Some(outcome.status());
+            v.summary.last_run_reason = outcome.reason().map(str::to_owned);
+        });
+        self.0.publish(LiveState::run_event(
+            run,
+            outcome.status(),
+            outcome.reason().map(str::to_owned),
+        ));
+        Ok(())
+    }
+
+    fn close(&mut self) -> Result<(), SinkError> {
+        Ok(())
+    }
+}

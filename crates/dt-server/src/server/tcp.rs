@@ -1,0 +1,119 @@
+//! TCP ingest: each connection carries one MCAP byte stream, one run of one
+//! asset (named by its `shocktwin.run` metadata), written incrementally by
+//! any MCAP writer. A semaphore caps concurrent connections (others wait in
+//! the accept backlog). When the run is processed and flushed the daemon
+//! writes one JSON line (a [`super::ingest::RunReport`]) back and closes.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use futures_util::future::BoxFuture;
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::Semaphore;
+
+use super::sink::SourceKind;
+use super::source::{Source, SourceContext};
+use super::ServeError;
+
+/// The TCP ingest listener.
+#[derive(Debug)]
+pub struct TcpSource {
+    listener: TcpListener,
+    max_connections: usize,
+    idle: Duration,
+}
+
+impl TcpSource {
+    /// Serves `listener` with at most `max_connections` at once; a connection
+    /// silent for `idle` is closed.
+    #[must_use]
+    pub fn new(listener: TcpListener, max_connections: usize, idle: Duration) -> Self {
+        Self {
+            listener,
+            max_connections,
+            idle,
+        }
+    }
+}
+
+impl Source for TcpSource {
+    fn name(&self) -> String {
+        match self.listener.local_addr() {
+            Ok(a) => format!("tcp {a}"),
+            Err(_) => "tcp".to_owned(),
+        }
+    }
+
+    fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
+        Box::pin(accept_loop(*self, ctx))
+    }
+}
+
+async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeError> {
+    let permits = Arc::new(Semaphore::new(src.max_connections));
+    let mut backoff = Duration::from_millis(10);
+    loop {
+        let permit = tokio::select! {
+            () = ctx.cancel.cancelled() => return Ok(()),
+            p = Arc::clone(&permits).acquire_owned() => p.expect("the semaphore is never closed"),
+        };
+        let accepted = tokio::select! {
+            () = ctx.cancel.cancelled() => return Ok(()),
+            a = src.listener.accept() => a,
+        };
+        let (socket, peer) = match accepted {
+            Ok(x) => {
+                backoff = Duration::from_millis(10);
+                x
+            }
+            Err(e) => {
+                // E.g. out of file descriptors: wait, then retry.
+                ctx.ingest.metrics().error("accept");
+                tracing::warn!("accept failed: {e}; retrying in {backoff:?}");
+                tokio::select! {
+                    () = ctx.cancel.cancelled() => return Ok(()),
+                    () = tokio::time::sleep(backoff) => {}
+                }
+                backoff = (backoff * 2).min(Duration::from_secs(1));
+                continue;
+            }
+        };
+        let m = ctx.ingest.metrics();
+        m.connections.inc();
+        m.connections_active.inc();
+        let ingest = ctx.ingest.clone();
+        let cancel = ctx.cancel.clone();
+        let idle = src.idle;
+        ctx.tracker.spawn(async move {
+            serve_connection(&ingest, socket, peer, &cancel, idle).await;
+            ingest.metrics().connections_active.dec();
+            drop(permit);
+        });
+    }
+}
+
+async fn serve_connection(
+    ingest: &super::ingest::Ingest,
+    mut socket: TcpStream,
+    peer: SocketAddr,
+    cancel: &tokio_util::sync::CancellationToken,
+    idle: Duration,
+) {
+    let (reader, mut writer) = socket.split();
+    let report = ingest
+        .ingest_stream(
+            SourceKind::Tcp,
+            format!("tcp {peer}"),
+            reader,
+            cancel,
+            Some(idle),
+        )
+        .await;
+    let mut line = serde_json::to_vec(&report).unwrap_or_default();
+    line.push(b'\n');
+    // Best effort: the client may be gone already.
+    let _ = writer.write_all(&line).await;
+    let _ = writer.shutdown().await;
+}
