@@ -8,6 +8,7 @@
 
 use dt_core::error::PhysicsError;
 use dt_core::log::LogError;
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError};
 use pyo3::PyErr;
 
 /// The Python-defined exception classes (imported from
@@ -30,6 +31,23 @@ pub(crate) enum CoreError {
     Log(LogError),
     /// The physics models and the feature pipeline.
     Physics(PhysicsError),
+    /// Physics parameters given as a dict or JSON that do not parse (a key
+    /// missing or unknown, a value not a number); the message names it.
+    Params(String),
+    /// A file other than a run log (physics.json, a bundle file) cannot be read.
+    Io {
+        /// The path.
+        file: String,
+        /// The OS error.
+        source: std::io::Error,
+    },
+}
+
+impl CoreError {
+    /// A parameter set `what` (a path or `parameters`) that does not parse.
+    pub(crate) fn params(what: &str, err: &serde_json::Error) -> Self {
+        CoreError::Params(format!("{what}: invalid physics parameters: {err}"))
+    }
 }
 
 impl From<PhysicsError> for CoreError {
@@ -52,6 +70,15 @@ impl From<CoreError> for PyErr {
             // Every other log problem is a property of the file's contents.
             CoreError::Log(err) => py::LogError::new_err(err.to_string()),
             CoreError::Physics(err) => physics_error(&err),
+            CoreError::Params(message) => py::ParamsError::new_err(message),
+            CoreError::Io { file, source } => {
+                let message = format!("{file}: {source}");
+                if source.kind() == std::io::ErrorKind::NotFound {
+                    PyFileNotFoundError::new_err(message)
+                } else {
+                    PyOSError::new_err(message)
+                }
+            }
         }
     }
 }

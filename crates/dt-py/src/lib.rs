@@ -6,8 +6,11 @@
 
 mod convert;
 mod exceptions;
+mod force;
 mod gil;
 mod kalman;
+mod params;
+mod thermal;
 
 use pyo3::prelude::*;
 
@@ -16,5 +19,8 @@ use pyo3::prelude::*;
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<kalman::PyKalmanFilter>()?;
+    m.add_class::<thermal::PyThermalModel>()?;
+    m.add_class::<force::PyForceModel>()?;
+    m.add_function(wrap_pyfunction!(params::default_params, m)?)?;
     Ok(())
 }

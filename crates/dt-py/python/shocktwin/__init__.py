@@ -8,7 +8,7 @@ Times on the Python side are in seconds (float64); the core works in
 integer nanoseconds, so times are rounded to the nanosecond on the way in.
 """
 
-from shocktwin._native import KalmanFilter, __version__
+from shocktwin._native import ForceModel, KalmanFilter, ThermalModel, __version__, default_params
 from shocktwin.exceptions import (
     BundleError,
     InputError,
@@ -23,6 +23,9 @@ from shocktwin.exceptions import (
 __all__ = [
     "__version__",
     "KalmanFilter",
+    "ThermalModel",
+    "ForceModel",
+    "default_params",
     "ShocktwinError",
     "LogError",
     "LogReadError",
