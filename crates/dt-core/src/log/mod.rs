@@ -6,10 +6,17 @@
 
 use std::collections::BTreeMap;
 
+mod decode;
 mod error;
+pub mod inspect;
+pub mod raw;
+pub mod reader;
 mod writer;
 
 pub use error::LogError;
+pub use inspect::{inspect, inspect_bytes, InspectReport};
+pub use raw::ReadLimits;
+pub use reader::{read_log, read_log_bytes, LogDecoder, LogEvent};
 pub use writer::{Compression, LogWriter, WriteOptions};
 
 /// Topic names of SPEC §2.
@@ -164,6 +171,9 @@ pub struct RunLog {
     pub truth_pressure: Vec<(i64, f64)>,
     /// Messages on topics this format does not know, by topic (counted, not kept).
     pub unknown_topics: BTreeMap<String, u64>,
+    /// Non-fatal findings (skipped messages with topic and field, ignored
+    /// topics, ...); see [`reader`] for what is fatal.
+    pub problems: Vec<String>,
 }
 
 /// A SPEC §2 sensor topic: its name and the JSON fields of its messages.

@@ -1,3 +1,5 @@
 //! dt-core integration tests (one binary, modules per area).
 
+mod log_conformance;
+mod log_reader;
 mod log_writer;

@@ -1,0 +1,385 @@
+//! The one decoding path from MCAP channels and messages to [`Sample`]s,
+//! shared by the whole-file reader, the incremental decoder and `inspect`.
+
+use std::collections::BTreeMap;
+
+use super::raw::RawChannel;
+use super::{topic_spec, LogError, Sample, TopicSpec};
+
+/// What a channel carries, once checked.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum ChannelKind {
+    /// A SPEC §2 sensor topic with its rank.
+    Sample(u8),
+    /// Any other topic.
+    Unknown,
+}
+
+/// Classifies channels and decodes their messages.
+#[derive(Debug, Default)]
+pub(crate) struct SampleDecoder {
+    /// By channel id (a channel id re-used by a later record is re-checked).
+    kinds: BTreeMap<u16, ChannelKind>,
+}
+
+impl SampleDecoder {
+    /// Checks a channel record. A known topic must use the `json` message
+    /// encoding and, if its schema is `jsonschema`, declare every field.
+    pub(crate) fn on_channel(&mut self, file: &str, channel: &RawChannel) -> Result<(), LogError> {
+        let kind = match topic_spec(&channel.topic) {
+            None => ChannelKind::Unknown,
+            Some((rank, spec)) => {
+                // Mark unknown until checked, so a bad channel's messages are not decoded.
+                self.kinds.insert(channel.id, ChannelKind::Unknown);
+                check_channel(file, channel, spec)?;
+                ChannelKind::Sample(rank)
+            }
+        };
+        self.kinds.insert(channel.id, kind);
+        Ok(())
+    }
+
+    /// Decodes one message: `Ok(None)` for a topic this format does not know.
+    pub(crate) fn decode(
+        &self,
+        file: &str,
+        channel: &RawChannel,
+        log_time: u64,
+        data: &[u8],
+    ) -> Result<Option<Sample>, LogError> {
+        let Some(ChannelKind::Sample(rank)) = self.kinds.get(&channel.id).copied() else {
+            return Ok(None);
+        };
+        let spec = &super::TOPICS[rank as usize];
+        let message_error = |t_ns: i64, field: &str, reason: String| LogError::Message {
+            file: file.to_owned(),
+            topic: spec.topic.to_owned(),
+            t_ns,
+            field: field.to_owned(),
+            reason,
+        };
+        let Ok(t_ns) = i64::try_from(log_time) else {
+            return Err(message_error(
+                i64::MAX,
+                "log_time",
+                format!("{log_time} does not fit in i64 nanoseconds"),
+            ));
+        };
+        let mut values = [f64::NAN; 2];
+        let mut found = [false; 2];
+        parse_flat_object(data, |key, value| {
+            if let Some(i) = spec.fields.iter().position(|f| *f == key) {
+                values[i] = value.map_err(|reason| (key.to_owned(), reason))?;
+                found[i] = true;
+            }
+            Ok(())
+        })
+        .map_err(|(field, reason)| message_error(t_ns, &field, reason))?;
+        for (i, field) in spec.fields.iter().enumerate() {
+            if !found[i] {
+                return Err(message_error(t_ns, field, "missing".into()));
+            }
+        }
+        let [v0, v1] = values;
+        Ok(Some(match rank {
+            0 => Sample::Acceleration {
+                t_ns,
+                a1_mps2: v0,
+                a2_mps2: v1,
+            },
+            1 => Sample::Position {
+                t_ns,
+                position_m: v0,
+            },
+            2 => Sample::Force { t_ns, force_n: v0 },
+            3 => Sample::TempShock {
+                t_ns,
+                temperature_c: v0,
+            },
+            4 => Sample::TempAmbient {
+                t_ns,
+                temperature_c: v0,
+            },
+            _ => Sample::TruthPressure {
+                t_ns,
+                static_bar: v0,
+            },
+        }))
+    }
+}
+
+fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(), LogError> {
+    if channel.message_encoding != "json" {
+        return Err(LogError::Encoding {
+            file: file.to_owned(),
+            topic: spec.topic.to_owned(),
+            encoding: channel.message_encoding.clone(),
+        });
+    }
+    let Some(schema) = &channel.schema else {
+        return Ok(());
+    };
+    if schema.encoding != "jsonschema" || schema.data.is_empty() {
+        return Ok(());
+    }
+    let schema_error = |field: &str, detail: String| LogError::Schema {
+        file: file.to_owned(),
+        topic: spec.topic.to_owned(),
+        field: field.to_owned(),
+        detail,
+    };
+    let parsed: serde_json::Value = serde_json::from_slice(&schema.data).map_err(|e| {
+        schema_error(
+            spec.fields[0],
+            format!(" (schema `{}` is not valid JSON: {e})", schema.name),
+        )
+    })?;
+    let properties = parsed
+        .get("properties")
+        .and_then(serde_json::Value::as_object);
+    for field in spec.fields {
+        let declared = properties.is_some_and(|p| p.contains_key(*field));
+        if !declared {
+            return Err(schema_error(
+                field,
+                format!(" (schema `{}` has no property `{field}`)", schema.name),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Parses a flat JSON object, calling `f(key, value)` for each member whose
+/// value is a number (or `null`, `NaN`, `Infinity`, `-Infinity`, all read as
+/// NaN: a missing sample); for other values `f` gets `Err(reason)`.
+/// Members of other types are passed too, so that a required field with a
+/// wrong type is reported; unknown ones are ignored by `f`.
+/// The error is `(field, reason)`.
+fn parse_flat_object(
+    data: &[u8],
+    mut f: impl FnMut(&str, Result<f64, String>) -> Result<(), (String, String)>,
+) -> Result<(), (String, String)> {
+    let mut p = Parser { data, pos: 0 };
+    let whole = |reason: String| {
+        (
+            "(whole message)".to_owned(),
+            format!("malformed JSON: {reason}"),
+        )
+    };
+    p.ws();
+    if !p.eat(b'{') {
+        return Err(whole("not a JSON object".into()));
+    }
+    p.ws();
+    if p.eat(b'}') {
+        return p.end().map_err(whole);
+    }
+    loop {
+        p.ws();
+        let key = p.string().map_err(whole)?;
+        p.ws();
+        if !p.eat(b':') {
+            return Err(whole(format!("expected `:` after key {key:?}")));
+        }
+        p.ws();
+        let value = p.value().map_err(|reason| (key.clone(), reason))?;
+        f(&key, value)?;
+        p.ws();
+        if p.eat(b',') {
+            continue;
+        }
+        if p.eat(b'}') {
+            return p.end().map_err(whole);
+        }
+        return Err(whole("expected `,` or `}` after a member".into()));
+    }
+}
+
+struct Parser<'a> {
+    data: &'a [u8],
+    pos: usize,
+}
+
+impl Parser<'_> {
+    fn ws(&mut self) {
+        while let Some(b' ' | b'\t' | b'\n' | b'\r') = self.data.get(self.pos) {
+            self.pos += 1;
+        }
+    }
+
+    fn eat(&mut self, b: u8) -> bool {
+        if self.data.get(self.pos) == Some(&b) {
+            self.pos += 1;
+            true
+        } else {
+            false
+        }
+    }
+
+    fn end(&mut self) -> Result<(), String> {
+        self.ws();
+        if self.pos == self.data.len() {
+            Ok(())
+        } else {
+            Err("trailing bytes after the object".into())
+        }
+    }
+
+    fn eat_word(&mut self, word: &[u8]) -> bool {
+        if self.data[self.pos..].starts_with(word) {
+            self.pos += word.len();
+            true
+        } else {
+            false
+        }
+    }
+
+    /// A JSON string (the opening quote not yet eaten), unescaped.
+    fn string(&mut self) -> Result<String, String> {
+        let start = self.pos;
+        if !self.eat(b'"') {
+            return Err("expected a string".into());
+        }
+        let mut escaped = false;
+        loop {
+            match self.data.get(self.pos) {
+                None => return Err("unterminated string".into()),
+                Some(b'\\') => {
+                    escaped = true;
+                    self.pos += 2;
+                }
+                Some(b'"') => {
+                    self.pos += 1;
+                    break;
+                }
+                Some(_) => self.pos += 1,
+            }
+        }
+        let raw = self
+            .data
+            .get(start..self.pos)
+            .ok_or_else(|| "unterminated string".to_owned())?;
+        if escaped {
+            serde_json::from_slice(raw).map_err(|e| format!("bad string: {e}"))
+        } else {
+            std::str::from_utf8(&raw[1..raw.len() - 1])
+                .map(str::to_owned)
+                .map_err(|e| format!("bad string: {e}"))
+        }
+    }
+
+    /// A member value: `Ok(Ok(number))` for numbers and the NaN spellings,
+    /// `Ok(Err(reason))` for a well-formed value of another type,
+    /// `Err(reason)` for malformed JSON.
+    fn value(&mut self) -> Result<Result<f64, String>, String> {
+        let Some(&c) = self.data.get(self.pos) else {
+            return Err("missing value".into());
+        };
+        match c {
+            b'n' if self.eat_word(b"null") => Ok(Ok(f64::NAN)),
+            b'N' if self.eat_word(b"NaN") => Ok(Ok(f64::NAN)),
+            b'I' if self.eat_word(b"Infinity") => Ok(Ok(f64::NAN)),
+            b'-' if self.eat_word(b"-Infinity") => Ok(Ok(f64::NAN)),
+            b'-' | b'0'..=b'9' => {
+                let start = self.pos;
+                while let Some(b'0'..=b'9' | b'-' | b'+' | b'.' | b'e' | b'E') =
+                    self.data.get(self.pos)
+                {
+                    self.pos += 1;
+                }
+                let text = std::str::from_utf8(&self.data[start..self.pos]).unwrap_or("");
+                text.parse::<f64>()
+                    .map(Ok)
+                    .map_err(|_| format!("malformed number `{text}`"))
+            }
+            b'"' => {
+                self.string()?;
+                Ok(Err("is a string, not a number".into()))
+            }
+            b't' if self.eat_word(b"true") => Ok(Err("is a boolean, not a number".into())),
+            b'f' if self.eat_word(b"false") => Ok(Err("is a boolean, not a number".into())),
+            b'{' | b'[' => {
+                self.skip_nested()?;
+                Ok(Err("is an object or array, not a number".into()))
+            }
+            _ => Err(format!("unexpected character `{}`", c.escape_ascii())),
+        }
+    }
+
+    /// Skips a nested object or array, strings included.
+    fn skip_nested(&mut self) -> Result<(), String> {
+        let mut depth = 0_usize;
+        while let Some(&c) = self.data.get(self.pos) {
+            match c {
+                b'"' => {
+                    self.string()?;
+                    continue;
+                }
+                b'{' | b'[' => depth += 1,
+                b'}' | b']' => {
+                    depth -= 1;
+                    if depth == 0 {
+                        self.pos += 1;
+                        return Ok(());
+                    }
+                }
+                _ => {}
+            }
+            self.pos += 1;
+        }
+        Err("unterminated object or array".into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_flat_object;
+
+    fn fields(json: &str) -> Result<Vec<(String, Result<f64, String>)>, (String, String)> {
+        let mut out = Vec::new();
+        parse_flat_object(json.as_bytes(), |k, v| {
+            out.push((k.to_owned(), v));
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    #[test]
+    fn numbers_and_nan_spellings() {
+        let got = fields(
+            r#" {"a": 1.5e-3, "b":-2, "c": null, "d": NaN, "e": -Infinity, "f": Infinity} "#,
+        )
+        .unwrap();
+        assert_eq!(got[0], ("a".into(), Ok(1.5e-3)));
+        assert_eq!(got[1], ("b".into(), Ok(-2.0)));
+        for (_, v) in &got[2..] {
+            assert!(v.as_ref().unwrap().is_nan());
+        }
+    }
+
+    #[test]
+    fn other_types_and_nesting_are_reported_not_fatal() {
+        let got = fields(r#"{"s":"x\"}","o":{"k":[1,{"z":"]"}]},"t":true,"n":3}"#).unwrap();
+        assert!(got[0].1.is_err());
+        assert!(got[1].1.is_err());
+        assert!(got[2].1.is_err());
+        assert_eq!(got[3], ("n".into(), Ok(3.0)));
+        let esc = fields(r#"{"a\u0062":1}"#).unwrap();
+        assert_eq!(esc[0].0, "ab");
+    }
+
+    #[test]
+    fn malformed_json_is_an_error() {
+        for bad in [
+            r#"{"a":1"#,
+            r#"{"a" 1}"#,
+            "[1]",
+            r#"{"a":1}x"#,
+            r#"{"a":1.2.3}"#,
+            r#"{"a":"#,
+            "",
+        ] {
+            assert!(fields(bad).is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,312 @@
+//! `shocktwin inspect`: what an MCAP file holds and what it lacks to be a
+//! shocktwin log. Any valid MCAP inspects without error; only a broken or
+//! non-MCAP file is an `Err`.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::path::Path;
+
+use super::decode::SampleDecoder;
+use super::raw::{RawDecoder, RawEvent, ReadLimits};
+use super::reader::Problems;
+use super::{topic, LogError, RunMetadata, RUN_METADATA_NAME, TOPICS};
+
+/// One channel of an inspected file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChannelReport {
+    /// Channel id.
+    pub id: u16,
+    /// Topic.
+    pub topic: String,
+    /// Message encoding.
+    pub message_encoding: String,
+    /// Schema name, empty without a schema.
+    pub schema_name: String,
+    /// Schema encoding, empty without a schema.
+    pub schema_encoding: String,
+    /// Messages on the channel.
+    pub message_count: u64,
+    /// First and last `log_time`, ns.
+    pub log_time_range_ns: Option<(u64, u64)>,
+}
+
+impl ChannelReport {
+    /// Mean message rate in Hz: `(count - 1) / (last - first)` (intervals
+    /// over the span), `None` with fewer than two messages or a zero span.
+    #[must_use]
+    pub fn rate_hz(&self) -> Option<f64> {
+        let (first, last) = self.log_time_range_ns?;
+        (self.message_count >= 2 && last > first)
+            .then(|| (self.message_count - 1) as f64 / ((last - first) as f64 * 1e-9))
+    }
+}
+
+/// What [`inspect`] found.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct InspectReport {
+    /// The file.
+    pub file: String,
+    /// File size, bytes.
+    pub size_bytes: u64,
+    /// Header profile.
+    pub profile: String,
+    /// Header library.
+    pub library: String,
+    /// Channels by id.
+    pub channels: Vec<ChannelReport>,
+    /// Messages over all channels.
+    pub message_count: u64,
+    /// First and last `log_time` over all messages, ns.
+    pub log_time_range_ns: Option<(u64, u64)>,
+    /// Metadata records in file order.
+    pub metadata: Vec<(String, BTreeMap<String, String>)>,
+    /// The parsed `shocktwin.run` record, if present and valid.
+    pub run: Option<RunMetadata>,
+    /// Chunks by compression (`none` for uncompressed).
+    pub chunks: BTreeMap<String, u64>,
+    /// Attachment records.
+    pub attachments: u64,
+    /// Whether the file has a summary section (a footer pointing to one).
+    pub has_summary: bool,
+    /// What the file lacks to be a shocktwin log, and other non-fatal findings.
+    pub problems: Vec<String>,
+}
+
+impl InspectReport {
+    /// Span of all messages in seconds (0 without messages).
+    #[must_use]
+    pub fn duration_s(&self) -> f64 {
+        self.log_time_range_ns
+            .map_or(0.0, |(a, b)| (b - a) as f64 * 1e-9)
+    }
+
+    /// Messages on `topic` over all its channels.
+    #[must_use]
+    pub fn count(&self, topic: &str) -> u64 {
+        self.channels
+            .iter()
+            .filter(|c| c.topic == topic)
+            .map(|c| c.message_count)
+            .sum()
+    }
+}
+
+/// Inspects a file (see the module docs).
+pub fn inspect(path: impl AsRef<Path>) -> Result<InspectReport, LogError> {
+    let path = path.as_ref();
+    let file = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|source| LogError::Io {
+        file: file.clone(),
+        source,
+    })?;
+    inspect_bytes(&file, &bytes)
+}
+
+/// Inspects a file held in memory; `source_name` names it.
+pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, LogError> {
+    let mut report = InspectReport {
+        file: source_name.to_owned(),
+        size_bytes: bytes.len() as u64,
+        ..InspectReport::default()
+    };
+    let mut raw = RawDecoder::new(source_name, ReadLimits::default());
+    raw.end_of_input();
+    let mut decoder = SampleDecoder::default();
+    let mut problems = Problems::default();
+    let mut channels: BTreeMap<u16, ChannelReport> = BTreeMap::new();
+    let mut run_records = 0;
+    let mut input = bytes;
+    while let Some(event) = raw.next_event(&mut input) {
+        match event? {
+            RawEvent::Header { profile, library } => {
+                report.profile = profile;
+                report.library = library;
+            }
+            RawEvent::Channel(channel) => {
+                if let Err(err) = decoder.on_channel(source_name, &channel) {
+                    problems.note(err.to_string());
+                }
+                channels.entry(channel.id).or_insert_with(|| ChannelReport {
+                    id: channel.id,
+                    topic: channel.topic.clone(),
+                    message_encoding: channel.message_encoding.clone(),
+                    schema_name: channel
+                        .schema
+                        .as_ref()
+                        .map(|s| s.name.clone())
+                        .unwrap_or_default(),
+                    schema_encoding: channel
+                        .schema
+                        .as_ref()
+                        .map(|s| s.encoding.clone())
+                        .unwrap_or_default(),
+                    message_count: 0,
+                    log_time_range_ns: None,
+                });
+            }
+            RawEvent::Message {
+                channel,
+                log_time,
+                data,
+                ..
+            } => {
+                report.message_count += 1;
+                report.log_time_range_ns = Some(widen(report.log_time_range_ns, log_time));
+                if let Some(c) = channels.get_mut(&channel.id) {
+                    c.message_count += 1;
+                    c.log_time_range_ns = Some(widen(c.log_time_range_ns, log_time));
+                }
+                if let Err(err) = decoder.decode(source_name, &channel, log_time, data) {
+                    problems.message(&err);
+                }
+            }
+            RawEvent::Metadata { name, metadata } => {
+                if name == RUN_METADATA_NAME {
+                    run_records += 1;
+                    if report.run.is_none() {
+                        match RunMetadata::from_map(source_name, &metadata) {
+                            Ok(run) => report.run = Some(run),
+                            Err(err) => problems.note(err.to_string()),
+                        }
+                    }
+                }
+                report.metadata.push((name, metadata));
+            }
+            RawEvent::Other { opcode } => match opcode {
+                mcap::records::op::ATTACHMENT => report.attachments += 1,
+                mcap::records::op::STATISTICS
+                | mcap::records::op::CHUNK_INDEX
+                | mcap::records::op::SUMMARY_OFFSET
+                | mcap::records::op::METADATA_INDEX
+                | mcap::records::op::ATTACHMENT_INDEX => report.has_summary = true,
+                _ => {}
+            },
+            RawEvent::Schema(_) => {}
+        }
+    }
+    report.chunks = raw
+        .chunks()
+        .iter()
+        .map(|(k, v)| {
+            (
+                if k.is_empty() {
+                    "none".into()
+                } else {
+                    k.clone()
+                },
+                *v,
+            )
+        })
+        .collect();
+    report.channels = channels.into_values().collect();
+
+    // What it lacks to be a shocktwin log.
+    if run_records == 0 {
+        problems.note(format!(
+            "no `{RUN_METADATA_NAME}` metadata record: not a shocktwin log"
+        ));
+    } else if run_records > 1 {
+        problems.note(format!(
+            "{run_records} `{RUN_METADATA_NAME}` records; the first is used"
+        ));
+    }
+    for spec in &TOPICS {
+        if spec.topic != topic::TRUTH_PRESSURE && report.count(spec.topic) == 0 {
+            problems.note(format!("no messages on {} (sensor missing)", spec.topic));
+        }
+    }
+    let mut unknown: BTreeMap<&str, u64> = BTreeMap::new();
+    for c in &report.channels {
+        if super::topic_spec(&c.topic).is_none() && c.message_count > 0 {
+            *unknown.entry(c.topic.as_str()).or_default() += c.message_count;
+        }
+    }
+    for (topic, n) in unknown {
+        problems.note(format!("ignored topic {topic} ({n} messages)"));
+    }
+    report.problems = problems.into_strings();
+    Ok(report)
+}
+
+fn widen(range: Option<(u64, u64)>, t: u64) -> (u64, u64) {
+    match range {
+        None => (t, t),
+        Some((a, b)) => (a.min(t), b.max(t)),
+    }
+}
+
+impl fmt::Display for InspectReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "file:      {} ({} bytes)", self.file, self.size_bytes)?;
+        writeln!(
+            f,
+            "library:   {}{}",
+            if self.library.is_empty() {
+                "(none)"
+            } else {
+                &self.library
+            },
+            if self.profile.is_empty() {
+                String::new()
+            } else {
+                format!("  profile: {}", self.profile)
+            }
+        )?;
+        let chunks = if self.chunks.is_empty() {
+            "none (unchunked)".to_owned()
+        } else {
+            self.chunks
+                .iter()
+                .map(|(k, v)| format!("{v} {k}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        writeln!(
+            f,
+            "chunks:    {chunks}; summary: {}; attachments: {}",
+            if self.has_summary { "yes" } else { "no" },
+            self.attachments
+        )?;
+        writeln!(f, "messages:  {}", self.message_count)?;
+        match self.log_time_range_ns {
+            Some((a, b)) => writeln!(
+                f,
+                "duration:  {:.3} s (log_time {a} .. {b} ns)",
+                self.duration_s()
+            )?,
+            None => writeln!(f, "duration:  0 s (no messages)")?,
+        }
+        writeln!(f, "channels:  {}", self.channels.len())?;
+        for c in &self.channels {
+            let rate = c
+                .rate_hz()
+                .map_or_else(|| "-".to_owned(), |r| format!("{r:.3} Hz"));
+            let schema = if c.schema_name.is_empty() && c.schema_encoding.is_empty() {
+                "(no schema)".to_owned()
+            } else {
+                format!("{} [{}]", c.schema_name, c.schema_encoding)
+            };
+            writeln!(
+                f,
+                "  {:>3} {:<24} {:>10} msgs {:>14}  {} / {}",
+                c.id, c.topic, c.message_count, rate, c.message_encoding, schema
+            )?;
+        }
+        writeln!(f, "metadata:  {}", self.metadata.len())?;
+        for (name, map) in &self.metadata {
+            writeln!(f, "  {name}")?;
+            for (k, v) in map {
+                writeln!(f, "    {k} = {v}")?;
+            }
+        }
+        if self.problems.is_empty() {
+            writeln!(f, "problems:  none (a complete shocktwin log)")?;
+        } else {
+            writeln!(f, "problems:  {}", self.problems.len())?;
+            for p in &self.problems {
+                writeln!(f, "  - {p}")?;
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,429 @@
+//! The shocktwin readers: whole file ([`read_log`]) and incremental
+//! ([`LogDecoder`]). Both go through the same raw layer and the same
+//! message → [`Sample`] decoding, so they cannot disagree.
+//!
+//! # What is fatal
+//!
+//! | finding | [`read_log`] | [`LogDecoder`] |
+//! | --- | --- | --- |
+//! | not MCAP, bad CRC, truncated, record over a size limit | error | error, decoder stops |
+//! | `shocktwin.run` missing | error | error if a message comes first |
+//! | `asset_id` / `run_id` missing or not `[A-Za-z0-9._-]{1,64}` | error | error |
+//! | known topic not `json`, or its JSON schema lacks a field | error | error |
+//! | one message missing a field / not a number / bad JSON | problem: skipped, counted | `Err` item, decoding goes on |
+//! | unknown topic | counted, problem | `LogEvent::Unknown` |
+//! | second `shocktwin.run` record | problem, first one used | ignored |
+//!
+//! A field that is `null`, `NaN`, `Infinity` or `-Infinity` (Python's `json`
+//! writes the last three) is read as NaN: a missing sample, kept in its place.
+
+use std::path::Path;
+
+use super::decode::SampleDecoder;
+use super::raw::{RawDecoder, RawEvent, ReadLimits};
+use super::{LogError, RunLog, RunMetadata, Sample, RUN_METADATA_NAME};
+
+/// Reads a whole run log file. See the module docs for what is fatal.
+pub fn read_log(path: impl AsRef<Path>) -> Result<RunLog, LogError> {
+    let path = path.as_ref();
+    let file = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|source| LogError::Io {
+        file: file.clone(),
+        source,
+    })?;
+    read_log_bytes(&file, &bytes)
+}
+
+/// Reads a whole run log held in memory; `source_name` names it in errors.
+pub fn read_log_bytes(source_name: &str, bytes: &[u8]) -> Result<RunLog, LogError> {
+    let mut raw = RawDecoder::new(source_name, ReadLimits::default());
+    raw.end_of_input();
+    let mut decoder = SampleDecoder::default();
+    let mut log = RunLog::default();
+    let mut metadata: Option<RunMetadata> = None;
+    let mut problems = Problems::default();
+    let mut seen_message = false;
+    let mut input = bytes;
+    while let Some(event) = raw.next_event(&mut input) {
+        match event? {
+            RawEvent::Channel(channel) => decoder.on_channel(source_name, &channel)?,
+            RawEvent::Metadata {
+                name,
+                metadata: map,
+            } if name == RUN_METADATA_NAME => {
+                if metadata.is_some() {
+                    problems.note(format!(
+                        "more than one `{RUN_METADATA_NAME}` metadata record; the first is used"
+                    ));
+                } else {
+                    metadata = Some(RunMetadata::from_map(source_name, &map)?);
+                    if seen_message {
+                        problems.note(format!(
+                            "metadata `{RUN_METADATA_NAME}` comes after the first message (a stream reader would refuse it)"
+                        ));
+                    }
+                }
+            }
+            RawEvent::Message {
+                channel,
+                log_time,
+                data,
+                ..
+            } => {
+                seen_message = true;
+                match decoder.decode(source_name, &channel, log_time, data) {
+                    Ok(Some(sample)) => log.push(sample),
+                    Ok(None) => *log.unknown_topics.entry(channel.topic.clone()).or_default() += 1,
+                    Err(err) => problems.message(&err),
+                }
+            }
+            _ => {}
+        }
+    }
+    log.metadata = metadata.ok_or_else(|| LogError::MissingMetadata {
+        file: source_name.to_owned(),
+        reason: "is missing".into(),
+    })?;
+    for (topic, n) in &log.unknown_topics {
+        problems.note(format!("ignored topic {topic} ({n} messages)"));
+    }
+    log.problems = problems.into_strings();
+    Ok(log)
+}
+
+impl RunLog {
+    /// Appends a sample to its topic's column.
+    pub fn push(&mut self, sample: Sample) {
+        match sample {
+            Sample::Position { t_ns, position_m } => self.position.push((t_ns, position_m)),
+            Sample::Acceleration {
+                t_ns,
+                a1_mps2,
+                a2_mps2,
+            } => self.acceleration.push((t_ns, a1_mps2, a2_mps2)),
+            Sample::Force { t_ns, force_n } => self.force.push((t_ns, force_n)),
+            Sample::TempShock {
+                t_ns,
+                temperature_c,
+            } => self.temp_shock.push((t_ns, temperature_c)),
+            Sample::TempAmbient {
+                t_ns,
+                temperature_c,
+            } => self.temp_ambient.push((t_ns, temperature_c)),
+            Sample::TruthPressure { t_ns, static_bar } => {
+                self.truth_pressure.push((t_ns, static_bar));
+            }
+        }
+    }
+
+    /// Number of samples over all topics.
+    #[must_use]
+    pub fn sample_count(&self) -> usize {
+        self.position.len()
+            + self.acceleration.len()
+            + self.force.len()
+            + self.temp_shock.len()
+            + self.temp_ambient.len()
+            + self.truth_pressure.len()
+    }
+
+    /// All samples in time order; at equal `t_ns` by topic rank
+    /// ([`Sample::topic_rank`]: acceleration first), then in file order.
+    #[must_use]
+    pub fn samples_sorted(&self) -> Vec<Sample> {
+        let mut out = Vec::with_capacity(self.sample_count());
+        out.extend(self.acceleration.iter().map(|&(t_ns, a1_mps2, a2_mps2)| {
+            Sample::Acceleration {
+                t_ns,
+                a1_mps2,
+                a2_mps2,
+            }
+        }));
+        out.extend(
+            self.position
+                .iter()
+                .map(|&(t_ns, position_m)| Sample::Position { t_ns, position_m }),
+        );
+        out.extend(
+            self.force
+                .iter()
+                .map(|&(t_ns, force_n)| Sample::Force { t_ns, force_n }),
+        );
+        out.extend(
+            self.temp_shock
+                .iter()
+                .map(|&(t_ns, temperature_c)| Sample::TempShock {
+                    t_ns,
+                    temperature_c,
+                }),
+        );
+        out.extend(
+            self.temp_ambient
+                .iter()
+                .map(|&(t_ns, temperature_c)| Sample::TempAmbient {
+                    t_ns,
+                    temperature_c,
+                }),
+        );
+        out.extend(
+            self.truth_pressure
+                .iter()
+                .map(|&(t_ns, static_bar)| Sample::TruthPressure { t_ns, static_bar }),
+        );
+        // stable: equal keys keep file order within a topic
+        out.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
+        out
+    }
+
+    /// Time of the first message over all sensor topics, ns.
+    #[must_use]
+    pub fn t0_ns(&self) -> Option<i64> {
+        let firsts = [
+            self.position.iter().map(|s| s.0).min(),
+            self.acceleration.iter().map(|s| s.0).min(),
+            self.force.iter().map(|s| s.0).min(),
+            self.temp_shock.iter().map(|s| s.0).min(),
+            self.temp_ambient.iter().map(|s| s.0).min(),
+            self.truth_pressure.iter().map(|s| s.0).min(),
+        ];
+        firsts.into_iter().flatten().min()
+    }
+}
+
+/// Non-fatal findings, grouped: one line per (topic, field) of skipped
+/// messages with a count and the first error, plus free notes.
+#[derive(Debug, Default)]
+pub(crate) struct Problems {
+    notes: Vec<String>,
+    /// (topic, field, reason) → (count, first error), in order of first occurrence.
+    skipped: Vec<((String, String, String), u64, String)>,
+}
+
+impl Problems {
+    pub(crate) fn note(&mut self, text: String) {
+        self.notes.push(text);
+    }
+
+    pub(crate) fn message(&mut self, err: &LogError) {
+        let key = match err {
+            LogError::Message {
+                topic,
+                field,
+                reason,
+                ..
+            } => (topic.clone(), field.clone(), reason.clone()),
+            other => (String::new(), String::new(), other.to_string()),
+        };
+        if let Some(entry) = self.skipped.iter_mut().find(|e| e.0 == key) {
+            entry.1 += 1;
+        } else {
+            self.skipped.push((key, 1, err.to_string()));
+        }
+    }
+
+    pub(crate) fn into_strings(self) -> Vec<String> {
+        let mut out: Vec<String> = self
+            .skipped
+            .into_iter()
+            .map(|((topic, field, reason), n, first)| {
+                format!("topic {topic} field `{field}` {reason}: {n} message(s) skipped; first: {first}")
+            })
+            .collect();
+        out.extend(self.notes);
+        out
+    }
+}
+
+/// What a [`LogDecoder`] yields.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LogEvent {
+    /// The `shocktwin.run` metadata (validated); comes before any sample.
+    Metadata(RunMetadata),
+    /// A sensor sample.
+    Sample(Sample),
+    /// A message on a topic this format does not know (e.g. `/estimate`).
+    Unknown {
+        /// Its topic.
+        topic: String,
+        /// Its `log_time`, ns (saturated to `i64::MAX`).
+        t_ns: i64,
+    },
+    /// The MCAP footer: the sender finished the file.
+    End,
+}
+
+/// Incremental shocktwin log reader for bytes arriving in pieces (a socket).
+///
+/// ```
+/// # use dt_core::log::{LogDecoder, LogEvent};
+/// # fn demo(pieces: &[&[u8]]) -> Result<(), dt_core::log::LogError> {
+/// let mut decoder = LogDecoder::new("tcp://10.0.0.7:4000");
+/// for piece in pieces {
+///     decoder.feed(piece);
+///     while let Some(event) = decoder.next_event() {
+///         match event {
+///             Ok(LogEvent::Sample(sample)) => { /* process */ }
+///             Ok(_) => {}
+///             // one bad message: reported, decoding goes on
+///             Err(err) if !err.is_fatal() => eprintln!("{err}"),
+///             Err(err) => return Err(err),
+///         }
+///     }
+/// }
+/// decoder.finish()
+/// # }
+/// ```
+///
+/// See the module docs for what is fatal; after a fatal error
+/// `next_event` returns `None`.
+pub struct LogDecoder {
+    raw: RawDecoder,
+    samples: SampleDecoder,
+    pending: Vec<u8>,
+    pos: usize,
+    metadata_seen: bool,
+    /// The fatal error that stopped decoding, as text.
+    failed: Option<String>,
+}
+
+impl LogDecoder {
+    /// A decoder for a stream called `source_name` (used in errors), with
+    /// the default [`ReadLimits`].
+    #[must_use]
+    pub fn new(source_name: &str) -> Self {
+        Self::with_limits(source_name, ReadLimits::default())
+    }
+
+    /// A decoder with explicit size limits.
+    #[must_use]
+    pub fn with_limits(source_name: &str, limits: ReadLimits) -> Self {
+        LogDecoder {
+            raw: RawDecoder::new(source_name, limits),
+            samples: SampleDecoder::default(),
+            pending: Vec::new(),
+            pos: 0,
+            metadata_seen: false,
+            failed: None,
+        }
+    }
+
+    /// Hands over the next bytes of the stream.
+    pub fn feed(&mut self, bytes: &[u8]) {
+        if self.pos > 0 && self.pos * 2 >= self.pending.len() {
+            self.pending.drain(..self.pos);
+            self.pos = 0;
+        }
+        self.pending.extend_from_slice(bytes);
+    }
+
+    /// The next event, or `None` when more bytes are needed (or after the
+    /// end of the file, or a fatal error).
+    pub fn next_event(&mut self) -> Option<Result<LogEvent, LogError>> {
+        if self.failed.is_some() {
+            return None;
+        }
+        let out = self.next_inner();
+        if let Some(Err(err)) = &out {
+            if err.is_fatal() {
+                self.failed = Some(err.to_string());
+            }
+        }
+        out
+    }
+
+    fn next_inner(&mut self) -> Option<Result<LogEvent, LogError>> {
+        let file = self.raw.source_name().to_owned();
+        loop {
+            let mut input = &self.pending[self.pos..];
+            let before = input.len();
+            let event = self.raw.next_event(&mut input);
+            self.pos += before - input.len();
+            let event = match event? {
+                Ok(event) => event,
+                Err(err) => return Some(Err(err)),
+            };
+            match event {
+                RawEvent::Channel(channel) => {
+                    if let Err(err) = self.samples.on_channel(&file, &channel) {
+                        return Some(Err(err));
+                    }
+                }
+                RawEvent::Metadata { name, metadata } if name == RUN_METADATA_NAME => {
+                    if !self.metadata_seen {
+                        self.metadata_seen = true;
+                        return Some(
+                            RunMetadata::from_map(&file, &metadata).map(LogEvent::Metadata),
+                        );
+                    }
+                }
+                RawEvent::Message {
+                    channel,
+                    log_time,
+                    data,
+                    ..
+                } => {
+                    if !self.metadata_seen {
+                        return Some(Err(LogError::MissingMetadata {
+                            file,
+                            reason: format!(
+                                "does not come before the first message (topic `{}`)",
+                                channel.topic
+                            ),
+                        }));
+                    }
+                    return Some(match self.samples.decode(&file, &channel, log_time, data) {
+                        Ok(Some(sample)) => Ok(LogEvent::Sample(sample)),
+                        Ok(None) => Ok(LogEvent::Unknown {
+                            topic: channel.topic.clone(),
+                            t_ns: i64::try_from(log_time).unwrap_or(i64::MAX),
+                        }),
+                        Err(err) => Err(err),
+                    });
+                }
+                RawEvent::Other {
+                    opcode: mcap::records::op::FOOTER,
+                } => return Some(Ok(LogEvent::End)),
+                _ => {}
+            }
+        }
+    }
+
+    /// Ends the stream: drains what is left (discarding events the caller
+    /// did not take) and fails if the stream stopped in the middle of a
+    /// record, or on a fatal error found in what was left. A stream that
+    /// stops between records (no footer yet) is not an error.
+    pub fn finish(mut self) -> Result<(), LogError> {
+        while let Some(event) = self.next_event() {
+            if let Err(err) = event {
+                if err.is_fatal() {
+                    return Err(err);
+                }
+            }
+        }
+        if let Some(reason) = self.failed {
+            return Err(LogError::Mcap {
+                file: self.raw.source_name().to_owned(),
+                reason: format!("decoding had stopped at an earlier error: {reason}"),
+            });
+        }
+        if self.pos < self.pending.len() || !self.raw.at_record_boundary() {
+            return Err(LogError::Truncated {
+                file: self.raw.source_name().to_owned(),
+                reason: format!(
+                    "the stream ended in the middle of a record ({} bytes read)",
+                    self.raw.bytes_consumed()
+                ),
+            });
+        }
+        Ok(())
+    }
+}
+
+impl LogError {
+    /// Whether reading cannot go on after this error. Only an undecodable
+    /// message ([`LogError::Message`]) is not fatal.
+    #[must_use]
+    pub fn is_fatal(&self) -> bool {
+        !matches!(self, LogError::Message { .. })
+    }
+}

@@ -1,0 +1,471 @@
+//! The whole-file reader and the incremental decoder: round trips, NaN,
+//! validation (fatal errors and problems), truncation and absurd lengths.
+
+use std::collections::BTreeMap;
+use std::io::Cursor;
+use std::time::Instant;
+
+use dt_core::log::{
+    read_log, read_log_bytes, Compression, LogDecoder, LogError, LogEvent, LogWriter, RunLog,
+    Sample, WriteOptions, RUN_METADATA_NAME,
+};
+
+use crate::log_writer::{meta, samples, write_bytes};
+
+/// Decodes `bytes` fed in pieces of `piece` bytes; returns the samples, the
+/// non-fatal errors and `finish()`'s result.
+fn decode_pieces(
+    bytes: &[u8],
+    piece: usize,
+) -> (Vec<LogEvent>, Vec<LogError>, Result<(), LogError>) {
+    let mut decoder = LogDecoder::new("stream");
+    let mut events = Vec::new();
+    let mut errors = Vec::new();
+    for chunk in bytes.chunks(piece) {
+        decoder.feed(chunk);
+        while let Some(e) = decoder.next_event() {
+            match e {
+                Ok(e) => events.push(e),
+                Err(e) => errors.push(e),
+            }
+        }
+    }
+    (events, errors, decoder.finish())
+}
+
+fn samples_of(events: &[LogEvent]) -> Vec<Sample> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            LogEvent::Sample(s) => Some(*s),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn whole_file_and_stream_readers_round_trip_every_layout() {
+    let written = samples();
+    for compression in [Compression::Zstd, Compression::Lz4, Compression::None] {
+        for chunk_size in [Some(1 << 20), Some(300), None] {
+            let options = WriteOptions {
+                compression,
+                chunk_size,
+            };
+            let bytes = write_bytes(&written, options);
+            let log = read_log_bytes("mem", &bytes).unwrap();
+            assert_eq!(log.metadata, meta(), "{options:?}");
+            assert!(log.problems.is_empty(), "{:?}", log.problems);
+            // written in time order with acceleration first: the sort is the identity
+            assert_eq!(log.samples_sorted(), written, "{options:?}");
+            assert_eq!(log.t0_ns(), Some(0));
+
+            for piece in [1, 7, 4096, bytes.len()] {
+                let (events, errors, end) = decode_pieces(&bytes, piece);
+                assert!(errors.is_empty(), "{errors:?}");
+                end.unwrap();
+                assert_eq!(events.first(), Some(&LogEvent::Metadata(meta())));
+                assert_eq!(events.last(), Some(&LogEvent::End));
+                assert_eq!(samples_of(&events), written, "{options:?} piece {piece}");
+            }
+        }
+    }
+}
+
+#[test]
+fn read_log_reads_a_file_and_names_a_missing_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.mcap");
+    let mut w = LogWriter::create(&path, &meta(), WriteOptions::default()).unwrap();
+    for s in samples() {
+        w.write_sample(&s).unwrap();
+    }
+    w.finish().unwrap();
+    let log = read_log(&path).unwrap();
+    assert_eq!(log.samples_sorted(), samples());
+    let missing = dir.path().join("nope.mcap");
+    let err = read_log(&missing).unwrap_err();
+    assert!(err.to_string().contains("nope.mcap"), "{err}");
+}
+
+#[test]
+fn samples_sorted_orders_equal_times_by_topic_rank() {
+    let mut log = RunLog::default();
+    log.push(Sample::TempAmbient {
+        t_ns: 10,
+        temperature_c: 20.0,
+    });
+    log.push(Sample::Position {
+        t_ns: 10,
+        position_m: 0.1,
+    });
+    log.push(Sample::Position {
+        t_ns: 5,
+        position_m: 0.0,
+    });
+    log.push(Sample::Acceleration {
+        t_ns: 10,
+        a1_mps2: 1.0,
+        a2_mps2: 0.0,
+    });
+    log.push(Sample::Force {
+        t_ns: 10,
+        force_n: 3.0,
+    });
+    log.push(Sample::TruthPressure {
+        t_ns: 7,
+        static_bar: 12.0,
+    });
+    let topics: Vec<(i64, &str)> = log
+        .samples_sorted()
+        .iter()
+        .map(|s| (s.t_ns(), s.topic()))
+        .collect();
+    assert_eq!(
+        topics,
+        [
+            (5, "/position"),
+            (7, "/truth/gas_pressure"),
+            (10, "/acceleration"),
+            (10, "/position"),
+            (10, "/force"),
+            (10, "/temperature/ambient"),
+        ]
+    );
+    assert_eq!(log.t0_ns(), Some(5));
+    assert_eq!(RunLog::default().t0_ns(), None);
+}
+
+/// Writes a file with the `mcap` crate directly, for content our writer refuses.
+struct Raw {
+    w: mcap::Writer<Cursor<Vec<u8>>>,
+}
+
+impl Raw {
+    fn new(options: mcap::WriteOptions) -> Self {
+        Raw {
+            w: options.create(Cursor::new(Vec::new())).unwrap(),
+        }
+    }
+    fn metadata(&mut self, map: &[(&str, &str)]) -> &mut Self {
+        let metadata = map
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        self.w
+            .write_metadata(&mcap::records::Metadata {
+                name: RUN_METADATA_NAME.into(),
+                metadata,
+            })
+            .unwrap();
+        self
+    }
+    fn channel(&mut self, topic: &str, encoding: &str, schema: Option<&str>) -> u16 {
+        let schema_id = match schema {
+            Some(s) => self.w.add_schema("s", "jsonschema", s.as_bytes()).unwrap(),
+            None => 0,
+        };
+        self.w
+            .add_channel(schema_id, topic, encoding, &BTreeMap::new())
+            .unwrap()
+    }
+    fn message(&mut self, channel_id: u16, t_ns: u64, data: &str) -> &mut Self {
+        let header = mcap::records::MessageHeader {
+            channel_id,
+            sequence: 0,
+            log_time: t_ns,
+            publish_time: t_ns,
+        };
+        self.w
+            .write_to_known_channel(&header, data.as_bytes())
+            .unwrap();
+        self
+    }
+    fn finish(mut self) -> Vec<u8> {
+        self.w.finish().unwrap();
+        self.w.into_inner().into_inner()
+    }
+}
+
+const IDS: [(&str, &str); 2] = [("asset_id", "A1"), ("run_id", "r1")];
+
+#[test]
+fn python_nan_tokens_and_null_read_as_nan() {
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&IDS);
+    let acc = raw.channel("/acceleration", "json", None);
+    raw.message(acc, 1, r#"{"a1_mps2": NaN, "a2_mps2": Infinity}"#);
+    raw.message(acc, 2, r#"{"a1_mps2": null, "a2_mps2": -Infinity}"#);
+    raw.message(
+        acc,
+        3,
+        r#"{"a1_mps2": 1.25, "a2_mps2": -0.5, "extra": "ignored"}"#,
+    );
+    let log = read_log_bytes("py.mcap", &raw.finish()).unwrap();
+    assert!(log.problems.is_empty(), "{:?}", log.problems);
+    assert_eq!(log.acceleration.len(), 3);
+    for &(_, a1, a2) in &log.acceleration[..2] {
+        assert!(a1.is_nan() && a2.is_nan());
+    }
+    assert_eq!(log.acceleration[2], (3, 1.25, -0.5));
+}
+
+#[test]
+fn a_bad_message_is_skipped_and_named_and_its_neighbours_kept() {
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&IDS);
+    let force = raw.channel("/force", "json", None);
+    let est = raw.channel("/estimate", "json", None);
+    raw.message(force, 1, r#"{"force_n": 1.0}"#);
+    raw.message(force, 2, r#"{"force": 2.0}"#); // wrong field name
+    raw.message(force, 3, r#"{"force_n": "3"}"#); // a string
+    raw.message(force, 4, r#"{"force_n": 4.0"#); // broken JSON
+    raw.message(force, 5, r#"{"force_n": 5.0}"#);
+    raw.message(est, 5, r#"{"pressure_bar": 5.0}"#);
+    raw.message(est, 6, r#"{"pressure_bar": 5.0}"#);
+    let bytes = raw.finish();
+    let log = read_log_bytes("bad.mcap", &bytes).unwrap();
+    assert_eq!(log.force, [(1, 1.0), (5, 5.0)]);
+    assert_eq!(log.unknown_topics["/estimate"], 2);
+    let text = log.problems.join("\n");
+    assert!(
+        text.contains("/force") && text.contains("`force_n`") && text.contains("missing"),
+        "{text}"
+    );
+    assert!(text.contains("not a number"), "{text}");
+    assert!(
+        text.contains("ignored topic /estimate (2 messages)"),
+        "{text}"
+    );
+
+    // the decoder reports the same three messages and goes on
+    let (events, errors, end) = decode_pieces(&bytes, 5);
+    end.unwrap();
+    assert_eq!(errors.len(), 3, "{errors:?}");
+    assert!(errors
+        .iter()
+        .all(|e| !e.is_fatal() && e.to_string().contains("bad.mcap") == false));
+    assert!(
+        errors[0]
+            .to_string()
+            .contains("stream: topic `/force` message at t_ns=2: field `force_n`"),
+        "{}",
+        errors[0]
+    );
+    assert_eq!(samples_of(&events).len(), 2);
+    assert_eq!(
+        events
+            .iter()
+            .filter(|e| matches!(e, LogEvent::Unknown { topic, .. } if topic == "/estimate"))
+            .count(),
+        2
+    );
+}
+
+#[test]
+fn fatal_validation_errors_name_file_topic_and_field() {
+    // no metadata
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    let c = raw.channel("/position", "json", None);
+    raw.message(c, 1, r#"{"position_m": 1}"#);
+    let bytes = raw.finish();
+    let err = read_log_bytes("f1.mcap", &bytes).unwrap_err();
+    assert!(matches!(err, LogError::MissingMetadata { .. }), "{err}");
+    assert!(err.to_string().contains("f1.mcap") && err.to_string().contains("shocktwin.run"));
+    let (_, errors, _) = decode_pieces(&bytes, 64);
+    assert!(
+        matches!(errors[0], LogError::MissingMetadata { .. }),
+        "{errors:?}"
+    );
+
+    // bad run_id charset
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&[("asset_id", "A1"), ("run_id", "run/1")]);
+    let err = read_log_bytes("f2.mcap", &raw.finish()).unwrap_err();
+    assert!(
+        err.to_string().contains("f2.mcap") && err.to_string().contains("run_id"),
+        "{err}"
+    );
+
+    // missing asset_id
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&[("run_id", "r")]);
+    let err = read_log_bytes("f3.mcap", &raw.finish()).unwrap_err();
+    assert!(err.to_string().contains("asset_id"), "{err}");
+
+    // a known topic in another encoding
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&IDS);
+    raw.channel("/force", "cbor", None);
+    let err = read_log_bytes("f4.mcap", &raw.finish()).unwrap_err();
+    assert!(
+        matches!(err, LogError::Encoding { ref topic, .. } if topic == "/force"),
+        "{err}"
+    );
+
+    // a schema lacking a field
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&IDS);
+    raw.channel(
+        "/acceleration",
+        "json",
+        Some(r#"{"type":"object","properties":{"a1_mps2":{"type":"number"}}}"#),
+    );
+    let bytes = raw.finish();
+    let err = read_log_bytes("f5.mcap", &bytes).unwrap_err();
+    let text = err.to_string();
+    assert!(
+        text.contains("f5.mcap") && text.contains("/acceleration") && text.contains("a2_mps2"),
+        "{text}"
+    );
+    let (_, errors, end) = decode_pieces(&bytes, 3);
+    assert!(matches!(errors[0], LogError::Schema { .. }), "{errors:?}");
+    assert!(end.is_err());
+}
+
+#[test]
+fn truncated_files_and_streams_are_errors() {
+    let bytes = write_bytes(&samples(), WriteOptions::default());
+    for cut in [0, 5, 8, 20, bytes.len() / 2, bytes.len() - 1] {
+        let err = read_log_bytes("cut.mcap", &bytes[..cut]).unwrap_err();
+        assert!(err.to_string().contains("cut.mcap"), "{err}");
+    }
+    // a stream stopping in the middle of a record
+    let (_, _, end) = decode_pieces(&bytes[..bytes.len() / 2], 100);
+    let err = end.unwrap_err();
+    assert!(matches!(err, LogError::Truncated { .. }), "{err}");
+    // a stream stopping between records (no footer yet) is fine
+    let unchunked = write_bytes(
+        &samples(),
+        WriteOptions {
+            compression: Compression::None,
+            chunk_size: None,
+        },
+    );
+    let full = read_raw_boundaries(&unchunked);
+    let (events, errors, end) = decode_pieces(&unchunked[..full], 10);
+    assert!(errors.is_empty());
+    end.unwrap();
+    assert!(!samples_of(&events).is_empty());
+}
+
+/// Offset of the start of the last message record of an unchunked file.
+fn read_raw_boundaries(bytes: &[u8]) -> usize {
+    let mut pos = 8;
+    let mut last_message_end = 0;
+    while pos + 9 <= bytes.len() {
+        let opcode = bytes[pos];
+        let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+        pos += 9 + len;
+        if opcode == 0x05 {
+            last_message_end = pos;
+        }
+        if opcode == 0x0F {
+            break;
+        }
+    }
+    last_message_end
+}
+
+/// A file whose record declares `len` bytes; the rest of the file is short.
+fn absurd_record(opcode: u8, len: u64) -> Vec<u8> {
+    let mut bytes = write_bytes(
+        &[],
+        WriteOptions {
+            compression: Compression::None,
+            chunk_size: None,
+        },
+    );
+    // keep magic + header + metadata, then the absurd record
+    let cut = read_until_data_end(&bytes);
+    bytes.truncate(cut);
+    bytes.push(opcode);
+    bytes.extend_from_slice(&len.to_le_bytes());
+    bytes.extend_from_slice(&[0_u8; 64]);
+    bytes
+}
+
+fn read_until_data_end(bytes: &[u8]) -> usize {
+    let mut pos = 8;
+    loop {
+        let opcode = bytes[pos];
+        let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+        if opcode == 0x0F {
+            return pos;
+        }
+        pos += 9 + len;
+    }
+}
+
+#[test]
+fn an_absurd_declared_length_is_refused_quickly_without_allocating_it() {
+    let huge = 1_u64 << 62;
+    for opcode in [0x05_u8, 0x06, 0x0C, 0x03, 0x80] {
+        let bytes = absurd_record(opcode, huge);
+        let start = Instant::now();
+        let err = read_log_bytes("huge.mcap", &bytes).unwrap_err();
+        assert!(start.elapsed().as_secs_f64() < 1.0);
+        match &err {
+            LogError::TooLarge { file, len, .. } => {
+                assert_eq!(file, "huge.mcap");
+                assert_eq!(*len, huge);
+            }
+            other => panic!("opcode {opcode:#x}: {other}"),
+        }
+        let (_, errors, _) = decode_pieces(&bytes, 3);
+        assert!(
+            matches!(errors.last(), Some(LogError::TooLarge { .. })),
+            "{errors:?}"
+        );
+    }
+    // a chunk whose header declares an absurd uncompressed size
+    let mut bytes = absurd_record(0x06, 200);
+    let at = bytes.len() - 64;
+    bytes[at + 16..at + 24].copy_from_slice(&huge.to_le_bytes());
+    let err = read_log_bytes("bomb.mcap", &bytes).unwrap_err();
+    assert!(
+        matches!(err, LogError::TooLarge { ref what, .. } if what.contains("uncompressed")),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_record_inside_a_chunk_with_an_absurd_length_is_refused() {
+    // an uncompressed chunk holding one record that declares 2^62 bytes
+    let mut inner = vec![0x05_u8];
+    inner.extend_from_slice(&(1_u64 << 62).to_le_bytes());
+    inner.extend_from_slice(&[0; 30]);
+    let mut chunk = Vec::new();
+    chunk.extend_from_slice(&0_u64.to_le_bytes()); // start
+    chunk.extend_from_slice(&0_u64.to_le_bytes()); // end
+    chunk.extend_from_slice(&(inner.len() as u64).to_le_bytes()); // uncompressed size
+    chunk.extend_from_slice(&0_u32.to_le_bytes()); // crc (0: not checked)
+    chunk.extend_from_slice(&0_u32.to_le_bytes()); // compression ""
+    chunk.extend_from_slice(&(inner.len() as u64).to_le_bytes()); // compressed size
+    chunk.extend_from_slice(&inner);
+    let mut bytes = absurd_record(0x06, chunk.len() as u64);
+    bytes.truncate(bytes.len() - 64);
+    bytes.extend_from_slice(&chunk);
+    let err = read_log_bytes("inner.mcap", &bytes).unwrap_err();
+    assert!(
+        matches!(err, LogError::TooLarge { len, .. } if len == 1 << 62),
+        "{err}"
+    );
+}
+
+#[test]
+fn not_mcap_is_an_error_naming_the_file() {
+    let err = read_log_bytes("notes.txt", b"hello, this is not an MCAP file at all").unwrap_err();
+    assert!(err.to_string().starts_with("notes.txt: "), "{err}");
+    // a flipped byte in a chunk fails its CRC
+    let mut bytes = write_bytes(
+        &samples(),
+        WriteOptions {
+            compression: Compression::None,
+            chunk_size: Some(1 << 20),
+        },
+    );
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x55;
+    assert!(read_log_bytes("flip.mcap", &bytes).is_err());
+}
