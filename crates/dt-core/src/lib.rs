@@ -7,6 +7,7 @@
 
 pub mod error;
 pub mod estimate;
+pub mod features;
 pub mod force;
 pub mod kalman;
 pub mod log;
