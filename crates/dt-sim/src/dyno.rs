@@ -1,0 +1,109 @@
+//! The dyno: a displacement-controlled actuator on the rod end and a
+//! compliant mount under the body end.
+//!
+//! Axis: along the extension, from the body end toward the rod end (the rod
+//! end is on the actuator below, the body on the crosshead above, so this
+//! axis points down). Extension `y = x_rod − x_body` (SPEC §1).
+//!
+//! **Actuator** (imposed): `x_rod(t) = A e(τ) [sin ωτ + h₃ sin 3ωτ]`,
+//! `τ = t − t_start`, `A` = half the peak-to-peak stroke, `h₃` the servo's
+//! third-harmonic distortion and `e(τ)` a raised-cosine amplitude ramp over
+//! `actuator_ramp_s`; velocity and acceleration are its exact derivatives.
+//! Before `t_start` the rod rests at mid-stroke.
+//!
+//! **Mount** (body end): `m ẍ_b = F − k x_b − c ẋ_b`, `F` the damper force
+//! (tension pulls the body toward the rod). Integrated by semi-implicit
+//! (symplectic) Euler at the plant sub-step (ω_n dt ≈ 0.16, stable and
+//! non-dissipative). The loadcell in series with the mount reads
+//! `k x_b + c ẋ_b = F − m ẍ_b`.
+
+use std::f64::consts::PI;
+
+/// Imposed rod-end motion.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Actuator {
+    /// Half stroke, m.
+    pub amp_m: f64,
+    /// Angular frequency, rad/s.
+    pub omega: f64,
+    /// Third-harmonic fraction.
+    pub h3: f64,
+    /// Ramp duration, s.
+    pub ramp_s: f64,
+    /// Start of the excitation, s.
+    pub start_s: f64,
+}
+
+impl Actuator {
+    /// Position, velocity, acceleration of the rod end at `t_s`.
+    #[must_use]
+    pub fn kinematics(&self, t_s: f64) -> (f64, f64, f64) {
+        let tau = t_s - self.start_s;
+        if tau <= 0.0 || self.amp_m == 0.0 || self.omega == 0.0 {
+            return (0.0, 0.0, 0.0);
+        }
+        let (e, de, dde) = if tau < self.ramp_s {
+            let k = PI / self.ramp_s;
+            (
+                0.5 * (1.0 - (k * tau).cos()),
+                0.5 * k * (k * tau).sin(),
+                0.5 * k * k * (k * tau).cos(),
+            )
+        } else {
+            (1.0, 0.0, 0.0)
+        };
+        let w = self.omega;
+        let th = w * tau;
+        let s = th.sin() + self.h3 * (3.0 * th).sin();
+        let ds = w * (th.cos() + 3.0 * self.h3 * (3.0 * th).cos());
+        let dds = -w * w * (th.sin() + 9.0 * self.h3 * (3.0 * th).sin());
+        let a = self.amp_m;
+        (
+            a * e * s,
+            a * (de * s + e * ds),
+            a * (dde * s + 2.0 * de * ds + e * dds),
+        )
+    }
+}
+
+/// State of the compliant body-end mount.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Mount {
+    /// Body-end displacement along the axis, m.
+    pub x_m: f64,
+    /// Body-end velocity, m/s.
+    pub v_mps: f64,
+    /// Body-end acceleration of the last step, m/s².
+    pub a_mps2: f64,
+    mass_kg: f64,
+    k_n_per_m: f64,
+    c_ns_per_m: f64,
+}
+
+impl Mount {
+    /// A mount at static equilibrium under the force `force_n`.
+    #[must_use]
+    pub fn new(mass_kg: f64, k_n_per_m: f64, c_ns_per_m: f64, force_n: f64) -> Self {
+        Mount {
+            x_m: force_n / k_n_per_m,
+            v_mps: 0.0,
+            a_mps2: 0.0,
+            mass_kg,
+            k_n_per_m,
+            c_ns_per_m,
+        }
+    }
+
+    /// Force the mount passes to the frame (what the loadcell carries), N.
+    #[must_use]
+    pub fn frame_force_n(&self) -> f64 {
+        self.k_n_per_m * self.x_m + self.c_ns_per_m * self.v_mps
+    }
+
+    /// One semi-implicit Euler step under the damper force `force_n`.
+    pub fn step(&mut self, force_n: f64, dt_s: f64) {
+        self.a_mps2 = (force_n - self.frame_force_n()) / self.mass_kg;
+        self.v_mps += dt_s * self.a_mps2;
+        self.x_m += dt_s * self.v_mps;
+    }
+}

@@ -1,0 +1,474 @@
+//! Runs and campaigns: the dyno procedure of paper §4, the sensors'
+//! sampling schedule and the log files.
+//!
+//! A run: `rest_s` at rest (the paper records from one minute before the
+//! excitation), then the sine until the shock thermocouple reads
+//! `stop_temp_c` (80 °C), or until thermal equilibrium — the 30 s mean of
+//! that thermocouple rose less than `equilibrium_rise_c` (0.5 °C) over the
+//! last `equilibrium_window_s` (5 min), tested after `equilibrium_min_s` of
+//! excitation — or the safety cap `max_excitation_s`. `quick` runs rest 10 s
+//! and excite at most 60 s.
+//!
+//! Sampling (SPEC §2): acceleration every 1 ms, position 10 ms, force 20 ms,
+//! truth gas pressure 100 ms, temperatures 1 s, all on one clock from
+//! `T0_NS`; at equal times samples come in topic-rank order (acceleration
+//! first). Every run draws its randomness from ChaCha8 streams seeded by
+//! `(seed, charge, frequency, unit)` (room, sensors) and by `seed` alone (the
+//! rig's sensor errors), so runs are independent of each other and of the
+//! thread count.
+
+use std::path::{Path, PathBuf};
+
+use dt_core::log::{LogWriter, RunMetadata, Sample, WriteOptions};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+
+use crate::params::PlantParams;
+use crate::plant::{Plant, PlantConfig};
+use crate::sensors::{RigErrors, Sensors};
+use crate::{mix_seed, SimError};
+
+/// `log_time` of the first sample of every run, ns (2023-11-14T22:13:20Z).
+pub const T0_NS: i64 = 1_700_000_000_000_000_000;
+/// Version of the simulator, written to each run's metadata.
+pub const SIM_VERSION: &str = concat!("dt-sim ", env!("CARGO_PKG_VERSION"));
+/// The paper's stroke: 80 mm peak to peak.
+pub const PAPER_STROKE_PP_M: f64 = 0.080;
+/// The paper's charge pressures, bar gauge.
+pub const PAPER_PRESSURES_BAR: [f64; 5] = [0.5, 4.0, 7.0, 10.0, 12.0];
+/// The paper's frequencies, Hz.
+pub const PAPER_FREQUENCIES_HZ: [f64; 3] = [1.0, 2.0, 4.0];
+
+/// One dyno run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RunSpec {
+    /// Charge pressure, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// Sine frequency, Hz.
+    pub frequency_hz: f64,
+    /// Stroke, peak to peak, m.
+    pub stroke_pp_m: f64,
+    /// Campaign seed.
+    pub seed: u64,
+    /// `None`: the nominal unit; `Some(n)`: unit `n` (parameters varied).
+    pub unit: Option<u64>,
+    /// Shortened run (10 s rest, at most 60 s excitation).
+    pub quick: bool,
+}
+
+/// Why a run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopReason {
+    /// The shock thermocouple read `stop_temp_c`.
+    Temperature,
+    /// Thermal equilibrium.
+    Equilibrium,
+    /// The safety cap on the excitation time.
+    SafetyCap,
+    /// The excitation limit of a quick run.
+    QuickLimit,
+}
+
+impl std::fmt::Display for StopReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            StopReason::Temperature => "stop temperature",
+            StopReason::Equilibrium => "thermal equilibrium",
+            StopReason::SafetyCap => "safety cap",
+            StopReason::QuickLimit => "quick limit",
+        })
+    }
+}
+
+/// What a run did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunSummary {
+    /// Run id (also the file stem).
+    pub run_id: String,
+    /// Asset id.
+    pub asset_id: String,
+    /// File written, if any.
+    pub path: Option<PathBuf>,
+    /// Logged duration, s.
+    pub duration_s: f64,
+    /// Excitation time, s.
+    pub excitation_s: f64,
+    /// Why it ended.
+    pub stop: StopReason,
+    /// Last shock thermocouple reading, °C.
+    pub final_shock_reading_c: f64,
+    /// Final true oil temperature, °C.
+    pub final_oil_c: f64,
+    /// Final true outer-tube temperature, °C.
+    pub final_outer_c: f64,
+    /// Final true static gas pressure, bar gauge.
+    pub final_static_bar: f64,
+    /// Heat dissipated in the damper (valves and friction), J.
+    pub energy_dissipated_j: f64,
+    /// Heat lost to the room, J.
+    pub heat_to_room_j: f64,
+    /// Messages produced.
+    pub messages: u64,
+    /// Time with the compression chamber cavitating or a void present, s.
+    pub cavitation_s: f64,
+    /// Largest void, m³.
+    pub max_void_m3: f64,
+}
+
+fn fmt_num(x: f64) -> String {
+    format!("{x:.1}")
+}
+
+impl RunSpec {
+    /// The paper's excitation at `charge_bar`, `frequency_hz`.
+    #[must_use]
+    pub fn paper(charge_bar: f64, frequency_hz: f64, seed: u64) -> Self {
+        RunSpec {
+            charge_bar,
+            frequency_hz,
+            stroke_pp_m: PAPER_STROKE_PP_M,
+            seed,
+            unit: None,
+            quick: false,
+        }
+    }
+
+    /// `dyno-unit-A` for the nominal unit, `dyno-unit-U<n>` for unit `n`.
+    #[must_use]
+    pub fn asset_id(&self) -> String {
+        match self.unit {
+            None => "dyno-unit-A".to_owned(),
+            Some(n) => format!("dyno-unit-U{n}"),
+        }
+    }
+
+    /// E.g. `p12.0-f2.0-s1` (`-u<n>` appended for a varied unit).
+    #[must_use]
+    pub fn run_id(&self) -> String {
+        let mut id = format!(
+            "p{}-f{}-s{}",
+            fmt_num(self.charge_bar),
+            fmt_num(self.frequency_hz),
+            self.seed
+        );
+        if let Some(n) = self.unit {
+            id.push_str(&format!("-u{n}"));
+        }
+        id
+    }
+
+    /// The run's `shocktwin.run` metadata.
+    #[must_use]
+    pub fn metadata(&self) -> RunMetadata {
+        let mut meta = RunMetadata {
+            asset_id: self.asset_id(),
+            run_id: self.run_id(),
+            charge_pressure_bar: Some(self.charge_bar),
+            excitation: Some(format!(
+                "sine {} Hz {} mm p-p",
+                self.frequency_hz,
+                self.stroke_pp_m * 1e3
+            )),
+            frequency_hz: Some(self.frequency_hz),
+            stroke_pp_m: Some(self.stroke_pp_m),
+            ..RunMetadata::default()
+        };
+        meta.extra.insert("simulated".into(), "true".into());
+        meta.extra.insert("simulator".into(), SIM_VERSION.into());
+        meta.extra.insert("seed".into(), self.seed.to_string());
+        meta.extra.insert("quick".into(), self.quick.to_string());
+        if let Some(n) = self.unit {
+            meta.extra.insert("unit_seed".into(), n.to_string());
+        }
+        meta
+    }
+
+    fn run_seed(&self) -> u64 {
+        mix_seed(&[
+            self.seed,
+            self.charge_bar.to_bits(),
+            self.frequency_hz.to_bits(),
+            self.unit.map_or(u64::MAX, |n| n),
+        ])
+    }
+
+    /// The plant parameters of this run's unit.
+    #[must_use]
+    pub fn params(&self) -> PlantParams {
+        let p = PlantParams::nominal();
+        match self.unit {
+            None => p,
+            Some(n) => p.varied(n),
+        }
+    }
+}
+
+/// Seconds of rest and maximum excitation for `spec` under `p`.
+fn schedule(spec: &RunSpec, p: &PlantParams) -> (f64, f64) {
+    if spec.quick {
+        (p.rest_s.min(10.0), p.max_excitation_s.min(60.0))
+    } else {
+        (p.rest_s, p.max_excitation_s)
+    }
+}
+
+/// Simulates one run of `spec` with the plant `params`, handing every
+/// sample, in time order, to `sink`.
+pub fn simulate_run_with<F>(
+    spec: &RunSpec,
+    params: &PlantParams,
+    mut sink: F,
+) -> Result<RunSummary, SimError>
+where
+    F: FnMut(&Sample) -> Result<(), SimError>,
+{
+    let (rest_s, max_exc_s) = schedule(spec, params);
+    let config = PlantConfig {
+        charge_bar: spec.charge_bar,
+        frequency_hz: spec.frequency_hz,
+        stroke_pp_m: spec.stroke_pp_m,
+        excitation_start_s: rest_s,
+    };
+    let run_seed = spec.run_seed();
+    let room_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 1]));
+    let sensor_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 2]));
+    let mut rig_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[spec.seed, 0x7269_67]));
+    let rig = RigErrors::draw(params, &mut rig_rng);
+
+    let mut plant = Plant::new(params, &config, room_rng)?;
+    let n_sub = plant.substeps_per_ms();
+    let dt = plant.dt_s();
+    let mut truth = plant.step()?;
+    let mut sensors = Sensors::new(params, rig, sensor_rng, &truth, dt);
+    let rest_ms = (rest_s * 1000.0).round() as u64;
+    let max_ms = rest_ms + (max_exc_s * 1000.0).round() as u64;
+    let eq_window_s = params.equilibrium_window_s.round() as usize;
+    let eq_min_s = params.equilibrium_min_s.round() as usize;
+
+    let mut summary = RunSummary {
+        run_id: spec.run_id(),
+        asset_id: spec.asset_id(),
+        path: None,
+        duration_s: 0.0,
+        excitation_s: 0.0,
+        stop: StopReason::SafetyCap,
+        final_shock_reading_c: f64::NAN,
+        final_oil_c: f64::NAN,
+        final_outer_c: f64::NAN,
+        final_static_bar: f64::NAN,
+        energy_dissipated_j: 0.0,
+        heat_to_room_j: 0.0,
+        messages: 0,
+        cavitation_s: 0.0,
+        max_void_m3: 0.0,
+    };
+    // Shock thermocouple readings since the excitation started (1 Hz).
+    let mut shock_history: Vec<f64> = Vec::new();
+    let mut i: u64 = 0;
+    loop {
+        sensors.update(&truth);
+        summary.energy_dissipated_j += (truth.valve_power_w + truth.friction_power_w) * dt;
+        if truth.cavitating || truth.void_m3 > 0.0 {
+            summary.cavitation_s += dt;
+        }
+        summary.max_void_m3 = summary.max_void_m3.max(truth.void_m3);
+        if i % n_sub == 0 {
+            let ms = i / n_sub;
+            let t_ns = T0_NS + (ms as i64) * 1_000_000;
+            let mut emit = |s: Sample| -> Result<(), SimError> {
+                summary.messages += 1;
+                sink(&s)
+            };
+            let (a1, a2) = sensors.sample_acceleration();
+            emit(Sample::Acceleration {
+                t_ns,
+                a1_mps2: a1,
+                a2_mps2: a2,
+            })?;
+            if ms % 10 == 0 {
+                let position_m = sensors.sample_position();
+                emit(Sample::Position { t_ns, position_m })?;
+            }
+            if ms % 20 == 0 {
+                let force_n = sensors.sample_force();
+                emit(Sample::Force { t_ns, force_n })?;
+            }
+            let mut stop = None;
+            if ms % 1000 == 0 {
+                let shock_c = sensors.sample_temp_shock();
+                emit(Sample::TempShock {
+                    t_ns,
+                    temperature_c: shock_c,
+                })?;
+                let temperature_c = sensors.sample_temp_ambient();
+                emit(Sample::TempAmbient { t_ns, temperature_c })?;
+                summary.final_shock_reading_c = shock_c;
+                if ms > rest_ms {
+                    shock_history.push(shock_c);
+                    stop = check_stop(
+                        spec,
+                        params,
+                        &shock_history,
+                        eq_window_s,
+                        eq_min_s,
+                        ms >= max_ms,
+                    );
+                }
+            }
+            if ms % 100 == 0 {
+                emit(Sample::TruthPressure {
+                    t_ns,
+                    static_bar: truth.static_gas_bar,
+                })?;
+            }
+            if let Some(reason) = stop {
+                summary.stop = reason;
+                summary.duration_s = ms as f64 * 1e-3;
+                summary.excitation_s = (ms - rest_ms) as f64 * 1e-3;
+                break;
+            }
+        }
+        truth = plant.step()?;
+        i += 1;
+    }
+    let nodes = plant.nodes();
+    summary.final_oil_c = nodes.oil_c;
+    summary.final_outer_c = nodes.outer_c;
+    summary.final_static_bar = truth.static_gas_bar;
+    summary.heat_to_room_j = plant.heat_to_room_j();
+    Ok(summary)
+}
+
+fn check_stop(
+    spec: &RunSpec,
+    p: &PlantParams,
+    history: &[f64],
+    window_s: usize,
+    min_s: usize,
+    at_cap: bool,
+) -> Option<StopReason> {
+    let last = *history.last()?;
+    if last >= p.stop_temp_c {
+        return Some(StopReason::Temperature);
+    }
+    let n = history.len();
+    let avg = 30usize;
+    if n >= min_s.max(window_s + avg) {
+        let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
+        let now = mean(&history[n - avg..]);
+        let before = mean(&history[n - avg - window_s..n - window_s]);
+        if now - before < p.equilibrium_rise_c {
+            return Some(StopReason::Equilibrium);
+        }
+    }
+    if at_cap {
+        return Some(if spec.quick {
+            StopReason::QuickLimit
+        } else {
+            StopReason::SafetyCap
+        });
+    }
+    None
+}
+
+/// Simulates one run into the MCAP file `out_path` (shocktwin log v1).
+pub fn simulate_run(
+    spec: &RunSpec,
+    params: &PlantParams,
+    out_path: &Path,
+) -> Result<RunSummary, SimError> {
+    let run_id = spec.run_id();
+    let log_err = |source| SimError::Log {
+        run_id: run_id.clone(),
+        source,
+    };
+    let mut writer = LogWriter::create(out_path, &spec.metadata(), WriteOptions::default())
+        .map_err(log_err)?;
+    let mut summary = simulate_run_with(spec, params, |s| {
+        writer.write_sample(s).map_err(|source| SimError::Log {
+            run_id: spec.run_id(),
+            source,
+        })
+    })?;
+    writer.finish().map_err(log_err)?;
+    summary.path = Some(out_path.to_path_buf());
+    Ok(summary)
+}
+
+/// A campaign: every pressure × every frequency.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CampaignSpec {
+    /// Charge pressures, bar gauge.
+    pub pressures_bar: Vec<f64>,
+    /// Frequencies, Hz.
+    pub frequencies_hz: Vec<f64>,
+    /// Stroke, peak to peak, m.
+    pub stroke_pp_m: f64,
+    /// Seed.
+    pub seed: u64,
+    /// Quick runs.
+    pub quick: bool,
+    /// Unit (`None` = nominal).
+    pub unit: Option<u64>,
+}
+
+impl CampaignSpec {
+    /// The paper's campaign: 5 pressures × 3 frequencies, 80 mm p-p.
+    #[must_use]
+    pub fn paper(seed: u64) -> Self {
+        CampaignSpec {
+            pressures_bar: PAPER_PRESSURES_BAR.to_vec(),
+            frequencies_hz: PAPER_FREQUENCIES_HZ.to_vec(),
+            stroke_pp_m: PAPER_STROKE_PP_M,
+            seed,
+            quick: false,
+            unit: None,
+        }
+    }
+
+    /// The runs, pressure-major.
+    #[must_use]
+    pub fn runs(&self) -> Vec<RunSpec> {
+        let mut out = Vec::new();
+        for &charge_bar in &self.pressures_bar {
+            for &frequency_hz in &self.frequencies_hz {
+                out.push(RunSpec {
+                    charge_bar,
+                    frequency_hz,
+                    stroke_pp_m: self.stroke_pp_m,
+                    seed: self.seed,
+                    unit: self.unit,
+                    quick: self.quick,
+                });
+            }
+        }
+        out
+    }
+}
+
+/// Simulates every run of `spec` in parallel (rayon) into `out_dir`
+/// (created if missing), one `<run_id>.mcap` per run. The summaries come in
+/// the order of [`CampaignSpec::runs`]; the files do not depend on the
+/// number of threads.
+pub fn simulate_campaign(spec: &CampaignSpec, out_dir: &Path) -> Result<Vec<RunSummary>, SimError> {
+    std::fs::create_dir_all(out_dir).map_err(|source| SimError::Io {
+        path: out_dir.display().to_string(),
+        source,
+    })?;
+    let runs = spec.runs();
+    let mut ids: Vec<String> = runs.iter().map(RunSpec::run_id).collect();
+    ids.sort();
+    ids.dedup();
+    if ids.len() != runs.len() {
+        return Err(SimError::InvalidSpec {
+            field: "pressures/frequencies",
+            value: f64::NAN,
+            reason: "two runs share a run id (duplicate values, or equal to 0.1)",
+        });
+    }
+    let params = runs.first().map(RunSpec::params).unwrap_or_else(PlantParams::nominal);
+    runs.par_iter()
+        .map(|run| simulate_run(run, &params, &out_dir.join(format!("{}.mcap", run.run_id()))))
+        .collect()
+}
