@@ -462,6 +462,7 @@ pub fn paper_rmse_bar(id: u32) -> Option<f64> {
 /// Which topics a pipeline gets (decides the Kalman mode and which groups'
 /// columns are filled).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[allow(clippy::struct_excessive_bools)] // a set of independent flags, one per topic
 pub struct TopicSet {
     /// `/position`.
     pub position: bool,
@@ -1158,6 +1159,8 @@ pub fn compute_features(
 }
 
 #[cfg(test)]
+// Exact float equality is intended in these tests: same arithmetic, same result.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use crate::kalman::run_kalman;

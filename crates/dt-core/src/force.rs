@@ -70,6 +70,7 @@ pub fn smin(a: f64, b: f64, k: f64) -> f64 {
     }
     let m = a.max(b);
     let (ra, rb) = (a / m, b / m);
+    #[allow(clippy::float_cmp)] // exact: the fast path for the common k_tr = 2
     let norm = if k == 2.0 {
         (ra * ra + rb * rb).sqrt()
     } else {
@@ -194,6 +195,8 @@ impl ForceModel {
 }
 
 #[cfg(test)]
+// Exact float equality is intended in these tests: same arithmetic, same result.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
@@ -261,9 +264,11 @@ mod tests {
 
     #[test]
     fn direction_sets_are_used() {
-        let mut p = ForceParams::default();
-        p.k_leak_com = 0.0;
-        p.k_main_com = 0.0;
+        let mut p = ForceParams {
+            k_leak_com: 0.0,
+            k_main_com: 0.0,
+            ..ForceParams::default()
+        };
         let m = ForceModel::new(p);
         // Compression: no leak (smin → 0) and no main: only gas and hysteresis.
         let f = m.force(-0.5, 0.0, 0.0, 40.0);

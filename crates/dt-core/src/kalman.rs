@@ -466,6 +466,8 @@ fn check_sorted(name: &'static str, t: &[i64]) -> Result<(), PhysicsError> {
 }
 
 #[cfg(test)]
+// Exact float equality is intended in these tests: same arithmetic, same result.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
@@ -473,7 +475,9 @@ mod tests {
     const MS: i64 = 1_000_000;
 
     /// Exact zero-order-hold kinematics: `u` held over each 1 ms step.
-    fn zoh_trajectory(n: usize, accel: impl Fn(f64) -> f64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    type Trajectory = (Vec<f64>, Vec<f64>, Vec<f64>);
+
+    fn zoh_trajectory(n: usize, accel: impl Fn(f64) -> f64) -> Trajectory {
         let dt = 1.0e-3;
         let (mut y, mut v) = (0.01, 0.3);
         let (mut ys, mut vs, mut us) = (Vec::new(), Vec::new(), Vec::new());
@@ -729,6 +733,7 @@ mod tests {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // textbook index loops on purpose
 mod reference_tests {
     //! Against a textbook KF written out with plain arrays (standard-form
     //! covariance update, explicit F, B, Q of SPEC §3.1).

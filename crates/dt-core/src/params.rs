@@ -29,21 +29,21 @@ pub const CHARGE_REF_TEMP_C: f64 = 20.0;
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct KalmanParams {
-    /// σ_a, m/s²: standard deviation of the relative acceleration `u = a1 − a2`
+    /// `σ_a`, m/s²: standard deviation of the relative acceleration `u = a1 − a2`
     /// held over one propagation step (enters `Q = σ_a² G Gᵀ`).
     ///
     /// Prior 0.2 m/s²: an ADXL345-class pair has ≈ 6.5 mg ≈ 0.064 m/s² rms
     /// noise each at 1 kHz, ≈ 0.09 m/s² for the difference; doubled for
     /// quantisation (3.9 mg/LSB) and non-linearity (±0.5 % FS).
     pub sigma_accel: f64,
-    /// σ_b, m/s²/√s: random-walk density of the accelerometer-pair bias
+    /// `σ_b`, m/s²/√s: random-walk density of the accelerometer-pair bias
     /// (enters `Q[2][2] = σ_b² dt`).
     ///
     /// Prior 0.005 m/s²/√s: the 0 g offset (±50 mg typical) is constant up to
     /// a thermal drift of ±0.17 mg/°C, i.e. slow; the random walk lets the
     /// filter follow that drift over minutes.
     pub sigma_bias: f64,
-    /// σ_z, m: potentiometer measurement noise (`R = σ_z²`).
+    /// `σ_z`, m: potentiometer measurement noise (`R = σ_z²`).
     ///
     /// Prior 1 mm: a conductive-plastic 150 mm potentiometer is linear to
     /// ±0.05–0.1 % FS (0.08–0.15 mm) and repeatable to ≈ 0.01 mm; 1 mm also

@@ -115,7 +115,7 @@ impl ThermalModel {
         check_len("ambient_c", ambient_c.len(), t_s.len(), "t_s")?;
         if let Some(i) = t_s
             .windows(2)
-            .position(|w| !(w[1] >= w[0]) || !w[0].is_finite() || !w[1].is_finite())
+            .position(|w| !w[0].is_finite() || !w[1].is_finite() || w[1] < w[0])
         {
             return Err(PhysicsError::NotMonotonic {
                 name: "t_s",
@@ -143,6 +143,8 @@ impl ThermalModel {
 }
 
 #[cfg(test)]
+// Exact float equality is intended in these tests: same arithmetic, same result.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
@@ -157,8 +159,9 @@ mod tests {
         }
     }
 
-    /// Closed form of the linear case (eps_sigma_a = 0, constant P and T_amb):
-    /// x' = A x + b, x(t) = x_ss + V e^{Λt} V⁻¹ (x0 − x_ss) for the 2×2 A.
+    /// Closed form of the linear case (`eps_sigma_a = 0`, constant `P` and
+    /// `T_amb`): `x' = A x + b`, `x(t) = x_ss + V e^{Λt} V⁻¹ (x0 − x_ss)` for
+    /// the 2×2 `A`.
     fn closed_form(p: &ThermalParams, x0: [f64; 2], power: f64, amb: f64, t: f64) -> [f64; 2] {
         let a = [
             [-p.ha_in / p.c_oil, p.ha_in / p.c_oil],
