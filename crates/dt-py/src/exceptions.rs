@@ -34,6 +34,8 @@ pub(crate) enum CoreError {
     /// Physics parameters given as a dict or JSON that do not parse (a key
     /// missing or unknown, a value not a number); the message names it.
     Params(String),
+    /// A model bundle that is incomplete or inconsistent.
+    Bundle(String),
     /// A file other than a run log (physics.json, a bundle file) cannot be read.
     Io {
         /// The path.
@@ -71,6 +73,7 @@ impl From<CoreError> for PyErr {
             CoreError::Log(err) => py::LogError::new_err(err.to_string()),
             CoreError::Physics(err) => physics_error(&err),
             CoreError::Params(message) => py::ParamsError::new_err(message),
+            CoreError::Bundle(message) => py::BundleError::new_err(message),
             CoreError::Io { file, source } => {
                 let message = format!("{file}: {source}");
                 if source.kind() == std::io::ErrorKind::NotFound {

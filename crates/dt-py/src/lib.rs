@@ -4,11 +4,19 @@
 //! The public Python API is re-exported by `python/shocktwin/__init__.py`;
 //! the stubs are `python/shocktwin/_native.pyi`.
 
+// The `///` comments of #[pyfunction]s and #[pymethods] are the Python
+// docstrings (with doctests), not rustdoc.
+#![allow(clippy::doc_markdown, clippy::doc_link_with_quotes)]
+// pyo3 extracts every argument by value.
+#![allow(clippy::needless_pass_by_value)]
+
 mod convert;
 mod exceptions;
+mod features;
 mod force;
 mod gil;
 mod kalman;
+mod log;
 mod params;
 mod thermal;
 
@@ -22,5 +30,13 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<thermal::PyThermalModel>()?;
     m.add_class::<force::PyForceModel>()?;
     m.add_function(wrap_pyfunction!(params::default_params, m)?)?;
+    m.add_class::<log::PyLog>()?;
+    m.add_function(wrap_pyfunction!(log::read_log, m)?)?;
+    m.add_function(wrap_pyfunction!(features::features, m)?)?;
+    m.add_function(wrap_pyfunction!(features::group_columns, m)?)?;
+    m.add_function(wrap_pyfunction!(features::group_topics, m)?)?;
+    m.add_function(wrap_pyfunction!(features::suite, m)?)?;
+    m.add_function(wrap_pyfunction!(features::permutations, m)?)?;
+    features::add_constants(m)?;
     Ok(())
 }

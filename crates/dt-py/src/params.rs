@@ -46,22 +46,49 @@ fn to_dict<'py, T: serde::Serialize>(py: Python<'py>, value: &T) -> PyResult<Bou
 /// Parses and validates physics parameters from a dict of the physics.json
 /// structure; `what` names the source in errors.
 pub(crate) fn physics_from_dict(what: &str, obj: &Bound<'_, PyAny>) -> PyResult<PhysicsParams> {
-    let value = py_to_json(obj, what)?;
-    let params: PhysicsParams =
-        serde_json::from_value(value).map_err(|err| CoreError::params(what, &err))?;
-    params.validate().map_err(CoreError::from)?;
-    Ok(params)
+    physics_from_value(what, py_to_json(obj, what)?)
 }
 
-/// Reads and validates a physics.json file.
-pub(crate) fn physics_from_file(path: &Path) -> PyResult<PhysicsParams> {
-    let what = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|source| CoreError::Io {
+/// Reads and validates the physics parameters of a physics.json file, or of
+/// a model bundle directory (the `physics` object of its `twin.json`).
+pub(crate) fn physics_from_path(path: &Path) -> PyResult<PhysicsParams> {
+    let file = if path.is_dir() {
+        path.join("twin.json")
+    } else {
+        path.to_path_buf()
+    };
+    let what = file.display().to_string();
+    let text = std::fs::read_to_string(&file).map_err(|source| CoreError::Io {
         file: what.clone(),
         source,
     })?;
-    let params: PhysicsParams =
-        serde_json::from_str(&text).map_err(|err| CoreError::params(&what, &err))?;
+    let value: Value = serde_json::from_str(&text).map_err(|err| CoreError::params(&what, &err))?;
+    let value = if path.is_dir() {
+        match value {
+            Value::Object(mut map) => map.remove("physics").ok_or_else(|| {
+                CoreError::Bundle(format!("{what}: no `physics` object (SPEC §5)"))
+            })?,
+            _ => return Err(CoreError::Bundle(format!("{what}: not a JSON object")).into()),
+        }
+    } else {
+        value
+    };
+    physics_from_value(&what, value)
+}
+
+/// The `kalman`, `thermal` and `force` parts of a physics.json value (other
+/// top-level keys, such as `format` or `fit`, are ignored; inside each part
+/// every SPEC parameter is required and no other is allowed), validated.
+fn physics_from_value(what: &str, value: Value) -> PyResult<PhysicsParams> {
+    let Value::Object(mut map) = value else {
+        return Err(CoreError::Params(format!("{what}: expected a JSON object / dict")).into());
+    };
+    let parts: Map<String, Value> = ["kalman", "thermal", "force"]
+        .into_iter()
+        .filter_map(|k| map.remove(k).map(|v| (k.to_owned(), v)))
+        .collect();
+    let params: PhysicsParams = serde_json::from_value(Value::Object(parts))
+        .map_err(|err| CoreError::params(what, &err))?;
     params.validate().map_err(CoreError::from)?;
     Ok(params)
 }

@@ -4,11 +4,48 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
 (float64) in and out, the GIL released during long calls. The native module
 ``shocktwin._native`` is private; everything public is re-exported here.
 
+- ``read_log(path) -> Log``: a run log (SPEC §2) as numpy columns.
+- ``KalmanFilter``, ``ThermalModel``, ``ForceModel``: the twin's models
+  (SPEC §3.1–3.3); ``default_params()`` their priors as a physics.json dict.
+- ``features(log, bundle_or_params, groups)``: the 50 Hz feature table
+  (SPEC §4) that training and the streaming estimator share.
+- ``GROUPS``, ``COLUMNS``, ``group_columns``, ``group_topics``, ``suite``,
+  ``SENSOR_COSTS_AUD``, ``PERMUTATIONS`` / ``permutations()``: the input
+  groups, sensor costs and the paper's 13 permutations, as data.
+
 Times on the Python side are in seconds (float64); the core works in
-integer nanoseconds, so times are rounded to the nanosecond on the way in.
+integer nanoseconds, so input times are rounded to the nanosecond.
+Errors are the classes of :mod:`shocktwin.exceptions`, all derived from
+``ShocktwinError``.
+
+>>> import shocktwin
+>>> shocktwin.GROUPS
+('force', 'position', 'acceleration', 'velocity', 'mechanical', 'thermal')
+>>> [p["cost_aud"] for p in shocktwin.PERMUTATIONS if p["id"] in (12, 13)]
+[297, 4292]
 """
 
-from shocktwin._native import ForceModel, KalmanFilter, ThermalModel, __version__, default_params
+from __future__ import annotations
+
+from typing import Any
+
+from shocktwin._native import (
+    COLUMNS,
+    GROUPS,
+    SENSOR_COSTS_AUD,
+    ForceModel,
+    KalmanFilter,
+    Log,
+    ThermalModel,
+    __version__,
+    default_params,
+    features,
+    group_columns,
+    group_topics,
+    permutations,
+    read_log,
+    suite,
+)
 from shocktwin.exceptions import (
     BundleError,
     InputError,
@@ -20,12 +57,32 @@ from shocktwin.exceptions import (
     ShocktwinError,
 )
 
+#: The paper's 13 input permutations (SPEC §4), as data: a tuple of dicts
+#: with ``id``, ``name``, ``groups``, ``columns``, ``sensors``, ``cost_aud``,
+#: ``paper_rmse_bar``. ``permutations()`` returns a fresh, mutable copy.
+PERMUTATIONS: tuple[dict[str, Any], ...] = tuple(permutations())
+
 __all__ = [
     "__version__",
+    # run logs
+    "read_log",
+    "Log",
+    # models
     "KalmanFilter",
     "ThermalModel",
     "ForceModel",
     "default_params",
+    # features and suites
+    "features",
+    "GROUPS",
+    "COLUMNS",
+    "group_columns",
+    "group_topics",
+    "suite",
+    "SENSOR_COSTS_AUD",
+    "PERMUTATIONS",
+    "permutations",
+    # errors
     "ShocktwinError",
     "LogError",
     "LogReadError",

@@ -1,1 +1,136 @@
+"""Stubs of the private native module; import from ``shocktwin`` instead."""
+
+from os import PathLike
+from typing import Any, Sequence, final
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "__version__",
+    "KalmanFilter",
+    "ThermalModel",
+    "ForceModel",
+    "default_params",
+    "Log",
+    "read_log",
+    "features",
+    "group_columns",
+    "group_topics",
+    "suite",
+    "permutations",
+    "GROUPS",
+    "COLUMNS",
+    "SENSOR_COSTS_AUD",
+]
+
 __version__: str
+
+_F64 = npt.NDArray[np.float64]
+_ArrayLike = npt.ArrayLike
+_Path = str | PathLike[str]
+
+GROUPS: tuple[str, ...]
+COLUMNS: tuple[str, ...]
+SENSOR_COSTS_AUD: dict[str, int]
+
+@final
+class Log:
+    """One run of one asset, read by ``read_log``. Immutable."""
+
+    @property
+    def path(self) -> str: ...
+    @property
+    def metadata(self) -> dict[str, str | float]: ...
+    @property
+    def label(self) -> float | None: ...
+    @property
+    def topics(self) -> list[str]: ...
+    @property
+    def problems(self) -> list[str]: ...
+    @property
+    def unknown_topics(self) -> dict[str, int]: ...
+    @property
+    def t0_ns(self) -> int: ...
+    def topic(self, name: str) -> dict[str, _F64]: ...
+
+def read_log(path: _Path) -> Log: ...
+
+@final
+class KalmanFilter:
+    def __new__(
+        cls, sigma_accel: float = ..., sigma_bias: float = ..., sigma_position: float = ...
+    ) -> KalmanFilter: ...
+    def run(self, t_acc: _ArrayLike, a_rel: _ArrayLike, t_pos: _ArrayLike, pos: _ArrayLike) -> dict[str, _F64]: ...
+    @property
+    def params(self) -> dict[str, float]: ...
+
+@final
+class ThermalModel:
+    def __new__(
+        cls,
+        *,
+        c_oil: float = ...,
+        c_cyl: float = ...,
+        ha_in: float = ...,
+        ha_out: float = ...,
+        eps_sigma_a: float = ...,
+    ) -> ThermalModel: ...
+    def simulate(
+        self, t_s: _ArrayLike, power_w: _ArrayLike, ambient_c: _ArrayLike, oil0_c: float, cyl0_c: float
+    ) -> tuple[_F64, _F64]: ...
+    @property
+    def params(self) -> dict[str, float]: ...
+
+@final
+class ForceModel:
+    def __new__(
+        cls,
+        *,
+        k_leak_reb: float = ...,
+        k_leak_com: float = ...,
+        f_preload_reb: float = ...,
+        f_preload_com: float = ...,
+        k_spring_reb: float = ...,
+        k_spring_com: float = ...,
+        k_main_reb: float = ...,
+        k_main_com: float = ...,
+        k_tr: float = ...,
+        k_hys: float = ...,
+        nu_40: float = ...,
+        beta: float = ...,
+        charge_bar: float = ...,
+        a_rod: float = ...,
+        v_gas: float = ...,
+    ) -> ForceModel: ...
+    def force(
+        self,
+        velocity: _ArrayLike,
+        accel: _ArrayLike,
+        position: _ArrayLike,
+        oil_c: _ArrayLike,
+        *,
+        charge_bar: float | None = None,
+    ) -> _F64: ...
+    def components(
+        self,
+        velocity: _ArrayLike,
+        accel: _ArrayLike,
+        position: _ArrayLike,
+        oil_c: _ArrayLike,
+        *,
+        charge_bar: float | None = None,
+    ) -> dict[str, _F64]: ...
+    @property
+    def params(self) -> dict[str, float]: ...
+
+def default_params() -> dict[str, dict[str, float]]: ...
+def features(
+    log: Log | _Path,
+    bundle_or_params: dict[str, Any] | _Path,
+    groups: Sequence[str],
+) -> tuple[npt.NDArray[np.float64], list[str], _F64]: ...
+def group_columns(name: str) -> list[str]: ...
+def group_topics(name: str) -> list[str]: ...
+def suite(groups: Sequence[str]) -> tuple[list[str], int]: ...
+def permutations() -> list[dict[str, Any]]: ...

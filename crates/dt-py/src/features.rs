@@ -1,0 +1,178 @@
+//! `shocktwin.features` and the input-group tables of SPEC §4 (groups,
+//! columns, topics, sensors and their costs, the paper's permutations).
+
+use std::path::PathBuf;
+
+use dt_core::features::{
+    compute_features, paper_permutations, paper_rmse_bar, suite_cost_aud, suite_sensors, Group,
+    Sensor, COLUMNS,
+};
+use dt_core::params::PhysicsParams;
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2};
+use pyo3::exceptions::PyTypeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyString};
+
+use crate::convert::{ns_to_seconds, to_numpy};
+use crate::exceptions::CoreError;
+use crate::gil::without_gil;
+use crate::log::{read_log, PyLog};
+use crate::params::{physics_from_dict, physics_from_path};
+
+fn groups_from_names(names: &[String]) -> PyResult<Vec<Group>> {
+    names
+        .iter()
+        .map(|n| Group::from_name(n).map_err(|e| CoreError::from(e).into()))
+        .collect()
+}
+
+fn group(name: &str) -> PyResult<Group> {
+    Group::from_name(name).map_err(|e| CoreError::from(e).into())
+}
+
+/// Physics parameters from a dict (the physics.json structure), or a path
+/// to a physics.json file or to a model bundle directory (its `twin.json`).
+fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<PhysicsParams> {
+    if obj.is_instance_of::<PyDict>() {
+        return physics_from_dict("parameters", obj);
+    }
+    if obj.is_instance_of::<PyString>() || obj.hasattr("__fspath__")? {
+        let path: PathBuf = obj.extract()?;
+        return physics_from_path(&path);
+    }
+    Err(PyTypeError::new_err(format!(
+        "bundle_or_params: expected a dict of physics parameters or a path, got {}",
+        obj.get_type().name()?
+    )))
+}
+
+/// The 50 Hz feature table of a run (SPEC §4), computed by the same
+/// pipeline the streaming estimator runs; the GIL is released meanwhile.
+///
+/// ``log`` is a ``Log`` (from ``read_log``) or a path to a run log.
+/// ``bundle_or_params`` is a dict of the physics.json structure
+/// (``{"kalman": {...}, "thermal": {...}, "force": {...}}``; other top-level
+/// keys are ignored), a path to a physics.json, or a model bundle directory.
+/// ``groups`` is a list of input group names (see ``GROUPS``).
+///
+/// Returns ``(X, columns, t_s)``: ``X`` float64 of shape
+/// ``(n_ticks, len(columns))``, the columns of ``groups`` in the order
+/// given (see ``group_columns``), and the tick times, seconds since the
+/// run's first message (20 ms apart). Raises ``MissingTopicsError``
+/// (its ``.topics`` lists them) when the log lacks a topic a group needs.
+///
+/// >>> import shocktwin
+/// >>> shocktwin.group_columns("mechanical")
+/// ['force_model_n', 'force_damping_model_n', 'force_gas_model_n']
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+pub(crate) fn features<'py>(
+    py: Python<'py>,
+    log: &Bound<'py, PyAny>,
+    bundle_or_params: &Bound<'py, PyAny>,
+    groups: Vec<String>,
+) -> PyResult<(
+    Bound<'py, PyArray2<f64>>,
+    Vec<String>,
+    Bound<'py, PyArray1<f64>>,
+)> {
+    let groups = groups_from_names(&groups)?;
+    let params = physics_from(bundle_or_params)?;
+    let run = if let Ok(log) = log.downcast::<PyLog>() {
+        log.get().run_log()
+    } else if log.is_instance_of::<PyString>() || log.hasattr("__fspath__")? {
+        read_log(py, log.extract()?)?.run_log()
+    } else {
+        return Err(PyTypeError::new_err(format!(
+            "log: expected a shocktwin.Log or a path, got {}",
+            log.get_type().name()?
+        )));
+    };
+    let table = without_gil(py, move || compute_features(&run, &params, &groups))
+        .map_err(CoreError::from)?;
+    let shape = (table.n_rows(), table.columns.len());
+    let x = Array2::from_shape_vec(shape, table.values)
+        .expect("dt-core returns n_rows × n_columns values");
+    let t_s = ns_to_seconds(&table.t_ns, table.t_origin_ns);
+    Ok((x.into_pyarray(py), table.columns, to_numpy(py, t_s)))
+}
+
+/// The feature columns of one input group, in order.
+///
+/// >>> import shocktwin
+/// >>> shocktwin.group_columns("velocity")
+/// ['velocity_mps']
+#[pyfunction]
+pub(crate) fn group_columns(name: &str) -> PyResult<Vec<&'static str>> {
+    Ok(group(name)?.columns().to_vec())
+}
+
+/// The log topics one input group needs (SPEC §4).
+///
+/// >>> import shocktwin
+/// >>> shocktwin.group_topics("velocity")
+/// ['/position', '/acceleration']
+#[pyfunction]
+pub(crate) fn group_topics(name: &str) -> PyResult<Vec<&'static str>> {
+    Ok(group(name)?.required_topics().to_vec())
+}
+
+/// The sensors a set of input groups needs, and their cost (AUD, paper
+/// Table 3), as ``(sensors, cost_aud)``.
+///
+/// >>> import shocktwin
+/// >>> shocktwin.suite(["position", "acceleration", "velocity", "mechanical", "thermal"])
+/// (['potentiometer', 'accelerometers', 'thermocouples'], 297)
+#[pyfunction]
+pub(crate) fn suite(groups: Vec<String>) -> PyResult<(Vec<&'static str>, u32)> {
+    let groups = groups_from_names(&groups)?;
+    let sensors = suite_sensors(&groups)
+        .into_iter()
+        .map(Sensor::name)
+        .collect();
+    Ok((sensors, suite_cost_aud(&groups)))
+}
+
+/// The paper's 13 input permutations (SPEC §4) as a fresh list of dicts:
+/// ``id``, ``name``, ``groups``, ``columns``, ``sensors``, ``cost_aud`` and
+/// ``paper_rmse_bar``. They are data: any list of groups is a permutation.
+#[pyfunction]
+pub(crate) fn permutations(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
+    paper_permutations()
+        .iter()
+        .map(|p| {
+            let d = PyDict::new(py);
+            d.set_item("id", p.id)?;
+            d.set_item("name", p.name.as_ref())?;
+            d.set_item(
+                "groups",
+                p.groups.iter().map(|g| g.name()).collect::<Vec<_>>(),
+            )?;
+            d.set_item("columns", p.columns())?;
+            let sensors: Vec<&str> = suite_sensors(&p.groups)
+                .into_iter()
+                .map(Sensor::name)
+                .collect();
+            d.set_item("sensors", sensors)?;
+            d.set_item("cost_aud", p.cost_aud())?;
+            d.set_item("paper_rmse_bar", paper_rmse_bar(p.id))?;
+            Ok(d)
+        })
+        .collect()
+}
+
+/// Adds the constant tables to the module: `GROUPS`, `COLUMNS`,
+/// `SENSOR_COSTS_AUD`.
+pub(crate) fn add_constants(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    let groups: Vec<&str> = Group::ALL.iter().map(|g| g.name()).collect();
+    m.add("GROUPS", pyo3::types::PyTuple::new(py, groups)?)?;
+    m.add("COLUMNS", pyo3::types::PyTuple::new(py, COLUMNS)?)?;
+    let costs = PyDict::new(py);
+    for s in Sensor::ALL {
+        costs.set_item(s.name(), s.cost_aud())?;
+    }
+    m.add("SENSOR_COSTS_AUD", costs)?;
+    Ok(())
+}
