@@ -30,6 +30,8 @@
 //!
 //! # Algorithm (what a transcription must reproduce)
 //!
+//! 0. **Suite.** The pipeline takes the values of the topics in its
+//!    [`TopicSet`] only; samples of other topics still advance the clock.
 //! 1. **Order.** Samples arrive in time order; at equal times acceleration,
 //!    position, force, shock temperature, ambient temperature, truth
 //!    ([`sorted_samples`]). A sample earlier than the previous one is an error.
@@ -527,6 +529,31 @@ impl TopicSet {
         }
     }
 
+    /// The topics that `groups` need (the sensors of their suite).
+    #[must_use]
+    pub fn for_groups(groups: &[Group]) -> Self {
+        let needs = |name: &str| groups.iter().any(|g| g.required_topics().contains(&name));
+        Self {
+            position: needs(topic::POSITION),
+            acceleration: needs(topic::ACCELERATION),
+            force: needs(topic::FORCE),
+            temp_shock: needs(topic::TEMP_SHOCK),
+            temp_ambient: needs(topic::TEMP_AMBIENT),
+        }
+    }
+
+    /// The topics in both sets.
+    #[must_use]
+    pub fn intersect(self, other: Self) -> Self {
+        Self {
+            position: self.position && other.position,
+            acceleration: self.acceleration && other.acceleration,
+            force: self.force && other.force,
+            temp_shock: self.temp_shock && other.temp_shock,
+            temp_ambient: self.temp_ambient && other.temp_ambient,
+        }
+    }
+
     /// The topics `groups` need that are not in the set, each once, in the
     /// order the groups name them.
     #[must_use]
@@ -652,6 +679,7 @@ impl Boxcar {
 /// [`finish`](Self::finish) at the end of the stream.
 #[derive(Debug, Clone)]
 pub struct FeaturePipeline {
+    available: TopicSet,
     force_model: ForceModel,
     thermal_model: ThermalModel,
     kf: KalmanFilter,
@@ -712,6 +740,7 @@ impl FeaturePipeline {
             }
         }
         Ok(Self {
+            available,
             force_model: ForceModel::new(params.force),
             thermal_model: ThermalModel::new(params.thermal),
             kf,
@@ -786,6 +815,12 @@ impl FeaturePipeline {
             self.complete_tick();
         }
         self.last_t_ns = t;
+        // A topic outside the pipeline's set drives the clock but not the
+        // twin: a model uses only the sensors of its suite.
+        let topic_name = sample.topic();
+        if topic_name != topic::TRUTH_PRESSURE && !self.available.contains(topic_name) {
+            return Ok(());
+        }
         // A sample at the origin belongs to (t_-1, t_0], whose tick is not
         // emitted: it feeds the filter and the held values, not a boxcar.
         let in_tick = t > self.next_tick_ns - TICK_NS;
@@ -1040,78 +1075,23 @@ impl FeatureTable {
     }
 }
 
-/// Rank of a sample's topic at equal times: acceleration, position, force,
-/// shock temperature, ambient temperature, truth.
-fn rank(s: &Sample) -> u8 {
-    match s {
-        Sample::Acceleration { .. } => 0,
-        Sample::Position { .. } => 1,
-        Sample::Force { .. } => 2,
-        Sample::TempShock { .. } => 3,
-        Sample::TempAmbient { .. } => 4,
-        Sample::TruthPressure { .. } => 5,
-    }
-}
-
 /// All samples of `log` in processing order: stable sort by
-/// `(t_ns, topic rank)` (ARCHITECTURE.md "Event order").
+/// `(t_ns, topic rank)` (ARCHITECTURE.md "Event order"); the same as
+/// [`RunLog::samples_sorted`], which it calls.
 #[must_use]
 pub fn sorted_samples(log: &RunLog) -> Vec<Sample> {
-    let n = log.acceleration.len()
-        + log.position.len()
-        + log.force.len()
-        + log.temp_shock.len()
-        + log.temp_ambient.len()
-        + log.truth_pressure.len();
-    let mut out = Vec::with_capacity(n);
-    out.extend(
-        log.acceleration
-            .iter()
-            .map(|&(t_ns, a1_mps2, a2_mps2)| Sample::Acceleration {
-                t_ns,
-                a1_mps2,
-                a2_mps2,
-            }),
-    );
-    out.extend(
-        log.position
-            .iter()
-            .map(|&(t_ns, position_m)| Sample::Position { t_ns, position_m }),
-    );
-    out.extend(
-        log.force
-            .iter()
-            .map(|&(t_ns, force_n)| Sample::Force { t_ns, force_n }),
-    );
-    out.extend(
-        log.temp_shock
-            .iter()
-            .map(|&(t_ns, temperature_c)| Sample::TempShock {
-                t_ns,
-                temperature_c,
-            }),
-    );
-    out.extend(
-        log.temp_ambient
-            .iter()
-            .map(|&(t_ns, temperature_c)| Sample::TempAmbient {
-                t_ns,
-                temperature_c,
-            }),
-    );
-    out.extend(
-        log.truth_pressure
-            .iter()
-            .map(|&(t_ns, static_bar)| Sample::TruthPressure { t_ns, static_bar }),
-    );
-    out.sort_by_key(|s| (s.t_ns(), rank(s)));
-    out
+    log.samples_sorted()
 }
 
 /// Batch features of one run: checks that the log has every topic `groups`
 /// need (an error names the run and the missing topics), then runs the
 /// [`FeaturePipeline`] over the log's samples in order and keeps the columns
-/// of `groups` (in [`column_indices`] order).
+/// of `groups` (in [`column_indices`] order). The pipeline is given only the
+/// topics of the groups' suite ([`TopicSet::for_groups`]): a model uses only
+/// its own sensors (e.g. `mechanical` without `thermal` holds the first shock
+/// temperature as ambient even when the log has an ambient thermocouple), and
+/// the streaming estimator, which knows only its bundle's groups, computes the
+/// same features.
 pub fn compute_features(
     log: &RunLog,
     params: &PhysicsParams,
@@ -1126,7 +1106,8 @@ pub fn compute_features(
             groups: groups.iter().map(|g| g.name().to_owned()).collect(),
         });
     }
-    let mut pipe = FeaturePipeline::new(params, available)?;
+    let suite = available.intersect(TopicSet::for_groups(groups));
+    let mut pipe = FeaturePipeline::new(params, suite)?;
     let idx = column_indices(groups);
     let samples = sorted_samples(log);
     let n_ticks = samples.last().map_or(0, |last| {

@@ -5,8 +5,10 @@
 //! It knows nothing of pyo3, tokio or sockets: `dt-py` and `dt-server` are
 //! thin shells around it.
 
+pub mod bundle;
 pub mod error;
 pub mod estimate;
+pub mod estimator;
 pub mod features;
 pub mod force;
 pub mod kalman;
