@@ -1,0 +1,269 @@
+"""shocktwin.features and the SPEC §4 tables (groups, columns, sensors, costs,
+permutations), and a closed-loop check of the 50 Hz pipeline against the
+separately bound models (KalmanFilter, ForceModel, ThermalModel)."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import synthetic_run, write_mcap_log
+
+import shocktwin
+
+ALL_TOPICS = ["/position", "/acceleration", "/force", "/temperature/shock", "/temperature/ambient"]
+META = {"asset_id": "unit-1", "run_id": "run-1", "charge_pressure_bar": "12"}
+TICK_NS = 20_000_000
+
+
+@pytest.fixture(scope="module")
+def full_log(tmp_path_factory) -> shocktwin.Log:
+    path = tmp_path_factory.mktemp("logs") / "full.mcap"
+    return shocktwin.read_log(write_mcap_log(path, META, synthetic_run(duration_s=6.0)))
+
+
+@pytest.fixture(scope="module")
+def cheap_log(tmp_path_factory) -> shocktwin.Log:
+    """The cheap suite of model 12: no loadcell."""
+    path = tmp_path_factory.mktemp("logs") / "cheap.mcap"
+    topics = [t for t in ALL_TOPICS if t != "/force"]
+    return shocktwin.read_log(write_mcap_log(path, META, synthetic_run(duration_s=3.0, topics=topics)))
+
+
+# --- tables -------------------------------------------------------------------------------
+
+
+def test_groups_columns_topics():
+    assert shocktwin.GROUPS == ("force", "position", "acceleration", "velocity", "mechanical", "thermal")
+    assert [c for g in shocktwin.GROUPS for c in shocktwin.group_columns(g)] == list(shocktwin.COLUMNS)
+    assert shocktwin.group_topics("force") == ["/force"]
+    assert shocktwin.group_topics("velocity") == ["/position", "/acceleration"]
+    assert set(shocktwin.group_topics("thermal")) == set(ALL_TOPICS) - {"/force"}
+    with pytest.raises(shocktwin.InputError, match="torque"):
+        shocktwin.group_columns("torque")
+
+
+def test_permutations_are_the_papers_table():
+    perms = shocktwin.permutations()
+    assert [p["id"] for p in perms] == list(range(1, 14))
+    by_id = {p["id"]: p for p in perms}
+    # the ones the paper's text fixes (SPEC §4)
+    assert by_id[3]["groups"] == ["force", "position"]
+    assert by_id[7]["groups"] == ["force", "position", "acceleration"]
+    assert by_id[12]["groups"] == ["position", "acceleration", "velocity", "mechanical", "thermal"]
+    assert by_id[13]["groups"] == list(shocktwin.GROUPS)
+    assert by_id[12]["paper_rmse_bar"] == 1.40 and by_id[13]["paper_rmse_bar"] == 0.85
+    # paper abstract: suites cost A$297 to A$4,292
+    assert by_id[12]["cost_aud"] == 297 and by_id[13]["cost_aud"] == 4292
+    assert min(p["cost_aud"] for p in perms) == 11  # accelerometers alone (model 4)
+    for p in perms:
+        assert p["columns"] == [c for g in p["groups"] for c in shocktwin.group_columns(g)]
+        assert p["cost_aud"] == sum(shocktwin.SENSOR_COSTS_AUD[s] for s in p["sensors"])
+    assert shocktwin.PERMUTATIONS == tuple(perms)
+    perms[0]["groups"].append("thermal")  # a fresh copy each call
+    assert shocktwin.permutations()[0]["groups"] == ["force"]
+
+
+def test_suite_costs():
+    assert shocktwin.SENSOR_COSTS_AUD == {"loadcell": 3995, "potentiometer": 275, "accelerometers": 11, "thermocouples": 11}
+    assert shocktwin.suite(["velocity"]) == (["potentiometer", "accelerometers"], 286)
+    assert shocktwin.suite(["force", "force"]) == (["loadcell"], 3995)
+
+
+# --- features: shapes, inputs, errors -----------------------------------------------------
+
+
+@pytest.mark.parametrize("groups", [[g] for g in shocktwin.GROUPS] + [p["groups"] for p in shocktwin.PERMUTATIONS])
+def test_shapes_and_columns_per_group(full_log, groups):
+    x, columns, t_s = shocktwin.features(full_log, shocktwin.default_params(), groups)
+    assert columns == [c for g in groups for c in shocktwin.group_columns(g)]
+    assert x.dtype == np.float64 and x.flags.c_contiguous
+    assert x.shape == (len(t_s), len(columns)) == (300, len(columns))  # 6 s at 50 Hz
+    np.testing.assert_allclose(t_s, 0.02 * np.arange(1, 301), rtol=0, atol=1e-12)
+    # after the first second every column is filled
+    assert np.isfinite(x[50:]).all()
+
+
+def test_group_order_is_kept(full_log):
+    params = shocktwin.default_params()
+    x_a, cols_a, _ = shocktwin.features(full_log, params, ["thermal", "force"])
+    x_b, cols_b, _ = shocktwin.features(full_log, params, ["force", "thermal"])
+    assert cols_a == cols_b[1:] + cols_b[:1]
+    np.testing.assert_array_equal(x_a, np.roll(x_b, -1, axis=1))
+
+
+def test_missing_sensor_names_the_topics(cheap_log):
+    params = shocktwin.default_params()
+    with pytest.raises(shocktwin.MissingTopicsError, match="/force") as info:
+        shocktwin.features(cheap_log, params, ["position", "force"])
+    assert info.value.topics == ["/force"]
+    assert isinstance(info.value, shocktwin.LogError) and isinstance(info.value, ValueError)
+    # the cheap suite's own permutation works on it
+    x, cols, _ = shocktwin.features(cheap_log, params, shocktwin.PERMUTATIONS[11]["groups"])
+    assert x.shape[1] == len(cols) == 11
+
+
+def test_missing_several_topics(tmp_path: Path):
+    log = shocktwin.read_log(write_mcap_log(tmp_path / "p.mcap", META, synthetic_run(duration_s=1.0, topics=["/position"])))
+    with pytest.raises(shocktwin.MissingTopicsError) as info:
+        shocktwin.features(log, shocktwin.default_params(), ["velocity", "thermal"])
+    assert set(info.value.topics) == {"/acceleration", "/temperature/shock", "/temperature/ambient"}
+    for topic in info.value.topics:
+        assert topic in str(info.value)
+    # position alone needs only the potentiometer
+    x, _, _ = shocktwin.features(log, shocktwin.default_params(), ["position"])
+    assert x.shape == (50, 1)
+
+
+def test_unknown_group_is_named(full_log):
+    with pytest.raises(shocktwin.InputError, match="gas"):
+        shocktwin.features(full_log, shocktwin.default_params(), ["position", "gas"])
+    with pytest.raises(TypeError):
+        shocktwin.features(full_log, shocktwin.default_params(), "position")  # a str is not a list
+
+
+def test_params_from_dict_file_and_bundle(full_log, tmp_path: Path):
+    params = shocktwin.default_params()
+    params["force"]["charge_bar"] = 7.0
+    groups = ["mechanical"]
+    want, _, _ = shocktwin.features(full_log, params, groups)
+    # physics.json as train.fit_physics writes it: extra top-level keys are ignored
+    physics = tmp_path / "physics.json"
+    physics.write_text(json.dumps({"format": "shocktwin-physics/1", **params, "fit": {"runs": []}}))
+    got_file, _, _ = shocktwin.features(full_log, physics, groups)
+    got_str, _, _ = shocktwin.features(full_log.path, str(physics), groups)  # the log as a path too
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "twin.json").write_text(json.dumps({"format": "shocktwin-bundle/1", "physics": params}))
+    got_bundle, _, _ = shocktwin.features(full_log, bundle, groups)
+    for got in (got_file, got_str, got_bundle):
+        np.testing.assert_array_equal(got, want)
+    # and the parameters matter: the nominal charge changes the gas force column
+    nominal, _, _ = shocktwin.features(full_log, shocktwin.default_params(), groups)
+    assert np.nanmax(np.abs(nominal[:, 2] - want[:, 2])) > 10.0
+
+
+def test_bad_params_are_named(full_log, tmp_path: Path):
+    params = shocktwin.default_params()
+    del params["thermal"]["ha_out"]
+    with pytest.raises(shocktwin.ParamsError, match="ha_out"):
+        shocktwin.features(full_log, params, ["position"])
+    params = shocktwin.default_params()
+    params["force"]["k_leek_reb"] = 1.0
+    with pytest.raises(shocktwin.ParamsError, match="k_leek_reb"):
+        shocktwin.features(full_log, params, ["position"])
+    params = shocktwin.default_params()
+    params["thermal"]["c_oil"] = -5.0
+    with pytest.raises(shocktwin.ParamsError, match="c_oil"):
+        shocktwin.features(full_log, params, ["position"])
+    with pytest.raises(FileNotFoundError, match="nope.json"):
+        shocktwin.features(full_log, tmp_path / "nope.json", ["position"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="twin.json"):
+        shocktwin.features(full_log, tmp_path / "empty", ["position"])
+    (tmp_path / "b2").mkdir()
+    (tmp_path / "b2" / "twin.json").write_text("{}")
+    with pytest.raises(shocktwin.BundleError, match="physics"):
+        shocktwin.features(full_log, tmp_path / "b2", ["position"])
+
+
+# --- closed loop: the pipeline against the separately bound models -------------------------
+
+
+def boxcar(t_ns_rel, values, n_ticks):
+    """SPEC §4 / ARCHITECTURE.md: mean over (t_{k-1}, t_k], hold when empty, NaN before."""
+    k = -(-t_ns_rel // TICK_NS)  # ceil: the tick whose interval holds the sample
+    out = np.full(n_ticks, np.nan)
+    last = np.nan
+    for tick in range(1, n_ticks + 1):
+        sel = (k == tick) & np.isfinite(values)
+        last = values[sel].mean() if sel.any() else last
+        out[tick - 1] = last
+    return out
+
+
+def test_pipeline_matches_the_bound_models(full_log):
+    """velocity = boxcar of KalmanFilter.run; the mechanical columns =
+    ForceModel at the boxcar means and the modelled oil temperature; the
+    oil/cylinder temperatures = ThermalModel.simulate over the ticks with the
+    heat rate and ambient of the previous tick."""
+    params = shocktwin.default_params()
+    x, cols, t_s = shocktwin.features(full_log, params, list(shocktwin.GROUPS))
+    col = {c: x[:, i] for i, c in enumerate(cols)}
+    n = len(t_s)
+
+    acc, pos = full_log.topic("/acceleration"), full_log.topic("/position")
+    a_rel = acc["a1_mps2"] - acc["a2_mps2"]
+    kf = shocktwin.KalmanFilter(**params["kalman"]).run(acc["t_s"], a_rel, pos["t_s"], pos["position_m"])
+    t_acc = np.round(acc["t_s"] * 1e9).astype(np.int64)
+    t_pos = np.round(pos["t_s"] * 1e9).astype(np.int64)
+    tight = dict(rtol=1e-9, atol=1e-9)
+
+    np.testing.assert_allclose(col["position_m"], boxcar(t_pos, pos["position_m"], n), **tight)
+    np.testing.assert_allclose(col["accel_rel_mps2"], boxcar(t_acc, a_rel, n), **tight)
+    velocity = boxcar(t_acc, kf["velocity_mps"], n)
+    np.testing.assert_allclose(col["velocity_mps"], velocity, **tight)
+    assert np.nanmax(np.abs(velocity)) > 0.4  # a 2 Hz, 80 mm p-p sine peaks at 0.5 m/s
+
+    y_hat = boxcar(t_acc, kf["position_m"], n)
+    a_hat = boxcar(t_acc, a_rel - kf["bias_mps2"], n)
+    oil = col["oil_temp_model_c"]
+    parts = shocktwin.ForceModel(**params["force"]).components(velocity, a_hat, y_hat, oil)
+    np.testing.assert_allclose(col["force_model_n"], parts["force_n"], **tight)
+    np.testing.assert_allclose(
+        col["force_damping_model_n"], parts["port_n"] + parts["main_n"] + parts["hysteresis_n"], **tight
+    )
+    np.testing.assert_allclose(col["force_gas_model_n"], parts["gas_n"], **tight)
+    np.testing.assert_allclose(col["heat_rate_model_w"], parts["power_w"], **tight)
+
+    t_shock0 = full_log.topic("/temperature/shock")["temperature_c"][0]
+    sim_oil, sim_cyl = shocktwin.ThermalModel(**params["thermal"]).simulate(
+        t_s, col["heat_rate_model_w"], col["temp_ambient_c"], t_shock0, t_shock0
+    )
+    np.testing.assert_allclose(oil, sim_oil, **tight)
+    np.testing.assert_allclose(col["cyl_temp_model_c"], sim_cyl, **tight)
+    assert oil[-1] > oil[0] + 1.0  # it heated: the comparison is not of constants
+
+
+# --- the GIL ------------------------------------------------------------------------------
+
+
+def _long_calls():
+    n = 3_000_000
+    t = np.arange(n) * 1e-3
+    zeros = np.zeros(n)
+    return {
+        "KalmanFilter.run": lambda: shocktwin.KalmanFilter().run(t, zeros, t[::10], zeros[::10]),
+        "ThermalModel.simulate": lambda: shocktwin.ThermalModel().simulate(t, zeros + 100.0, zeros, 20.0, 20.0),
+        "ForceModel.force": lambda: shocktwin.ForceModel().force(zeros + 0.3, zeros, zeros, zeros + 40.0),
+    }
+
+
+@pytest.mark.parametrize("name", list(_long_calls()))
+def test_long_calls_release_the_gil(name):
+    """While a long call runs in a thread, this thread keeps running Python:
+    the largest pause it sees is far shorter than the call."""
+    call = _long_calls()[name]
+    done = threading.Event()
+    duration = []
+
+    def work():
+        start = time.perf_counter()
+        call()
+        duration.append(time.perf_counter() - start)
+        done.set()
+
+    worker = threading.Thread(target=work)
+    last, max_gap = time.perf_counter(), 0.0  # before start: the worker may run first
+    worker.start()
+    while not done.is_set():
+        now = time.perf_counter()
+        max_gap, last = max(max_gap, now - last), now
+    worker.join()
+    max_gap = max(max_gap, time.perf_counter() - last)
+    assert duration[0] > 0.05, f"{name} too short to tell ({duration[0]:.3f} s)"
+    assert max_gap < 0.5 * duration[0], f"{name}: longest pause {max_gap:.3f} s of a {duration[0]:.3f} s call"
