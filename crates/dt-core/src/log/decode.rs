@@ -335,7 +335,9 @@ impl Parser<'_> {
 mod tests {
     use super::parse_flat_object;
 
-    fn fields(json: &str) -> Result<Vec<(String, Result<f64, String>)>, (String, String)> {
+    type Fields = Vec<(String, Result<f64, String>)>;
+
+    fn fields(json: &str) -> Result<Fields, (String, String)> {
         let mut out = Vec::new();
         parse_flat_object(json.as_bytes(), |k, v| {
             out.push((k.to_owned(), v));

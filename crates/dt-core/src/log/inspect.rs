@@ -31,6 +31,26 @@ pub struct ChannelReport {
 }
 
 impl ChannelReport {
+    fn new(channel: &super::raw::RawChannel) -> Self {
+        ChannelReport {
+            id: channel.id,
+            topic: channel.topic.clone(),
+            message_encoding: channel.message_encoding.clone(),
+            schema_name: channel
+                .schema
+                .as_ref()
+                .map(|s| s.name.clone())
+                .unwrap_or_default(),
+            schema_encoding: channel
+                .schema
+                .as_ref()
+                .map(|s| s.encoding.clone())
+                .unwrap_or_default(),
+            message_count: 0,
+            log_time_range_ns: None,
+        }
+    }
+
     /// Mean message rate in Hz: `(count - 1) / (last - first)` (intervals
     /// over the span), `None` with fewer than two messages or a zero span.
     #[must_use]
@@ -126,23 +146,9 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
                 if let Err(err) = decoder.on_channel(source_name, &channel) {
                     problems.note(err.to_string());
                 }
-                channels.entry(channel.id).or_insert_with(|| ChannelReport {
-                    id: channel.id,
-                    topic: channel.topic.clone(),
-                    message_encoding: channel.message_encoding.clone(),
-                    schema_name: channel
-                        .schema
-                        .as_ref()
-                        .map(|s| s.name.clone())
-                        .unwrap_or_default(),
-                    schema_encoding: channel
-                        .schema
-                        .as_ref()
-                        .map(|s| s.encoding.clone())
-                        .unwrap_or_default(),
-                    message_count: 0,
-                    log_time_range_ns: None,
-                });
+                channels
+                    .entry(channel.id)
+                    .or_insert_with(|| ChannelReport::new(&channel));
             }
             RawEvent::Message {
                 channel,
@@ -200,7 +206,13 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
         .collect();
     report.channels = channels.into_values().collect();
 
-    // What it lacks to be a shocktwin log.
+    lacks(&report, run_records, &mut problems);
+    report.problems = problems.into_strings();
+    Ok(report)
+}
+
+/// Notes what the file lacks to be a shocktwin log.
+fn lacks(report: &InspectReport, run_records: u32, problems: &mut Problems) {
     if run_records == 0 {
         problems.note(format!(
             "no `{RUN_METADATA_NAME}` metadata record: not a shocktwin log"
@@ -224,8 +236,6 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
     for (topic, n) in unknown {
         problems.note(format!("ignored topic {topic} ({n} messages)"));
     }
-    report.problems = problems.into_strings();
-    Ok(report)
 }
 
 fn widen(range: Option<(u64, u64)>, t: u64) -> (u64, u64) {

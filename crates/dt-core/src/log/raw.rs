@@ -616,9 +616,8 @@ const MAX_COMPRESSION_NAME: usize = 64;
 impl Scanner {
     fn at_boundary(&self) -> bool {
         match self.state {
-            ScanState::Head => self.head.is_empty(),
+            ScanState::Head | ScanState::StartMagic => self.head.is_empty(),
             ScanState::Done => true,
-            ScanState::StartMagic => self.head.is_empty(),
             ScanState::Body { .. } | ScanState::EndMagic => false,
         }
     }
@@ -635,6 +634,15 @@ impl Scanner {
                     self.head.extend_from_slice(&bytes[..n]);
                     bytes = &bytes[n..];
                     self.offset += n as u64;
+                    if !mcap::MAGIC.starts_with(&self.head) {
+                        return Err(LogError::Mcap {
+                            file: file.to_owned(),
+                            reason: format!(
+                                "bad magic at offset {} (expected \\x89MCAP0\\r\\n)",
+                                self.offset - self.head.len() as u64
+                            ),
+                        });
+                    }
                     if self.head.len() == MAGIC_LEN {
                         self.head.clear();
                         self.state = if self.state == ScanState::StartMagic {
@@ -684,9 +692,9 @@ impl Scanner {
                                 limit: limits.max_record_bytes,
                             });
                         }
-                        if self.head_len() > RECORD_HEAD {
-                            continue; // a chunk: collect its header
-                        }
+                    }
+                    if self.head_len() > self.head.len() {
+                        continue; // a chunk: collect its header and compression name
                     }
                     self.finish_head(file, limits)?;
                 }

@@ -348,13 +348,11 @@ impl LogDecoder {
                         return Some(Err(err));
                     }
                 }
-                RawEvent::Metadata { name, metadata } if name == RUN_METADATA_NAME => {
-                    if !self.metadata_seen {
-                        self.metadata_seen = true;
-                        return Some(
-                            RunMetadata::from_map(&file, &metadata).map(LogEvent::Metadata),
-                        );
-                    }
+                RawEvent::Metadata { name, metadata }
+                    if name == RUN_METADATA_NAME && !self.metadata_seen =>
+                {
+                    self.metadata_seen = true;
+                    return Some(RunMetadata::from_map(&file, &metadata).map(LogEvent::Metadata));
                 }
                 RawEvent::Message {
                     channel,

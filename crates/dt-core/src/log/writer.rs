@@ -136,6 +136,7 @@ impl<W: Write + Seek> LogWriter<W> {
         let mcap_options = mcap::WriteOptions::new()
             .compression(compression)
             .compression_threads(0)
+            .compression_level(1)
             .use_chunks(options.chunk_size.is_some())
             .chunk_size(options.chunk_size)
             .library(concat!("shocktwin dt-core ", env!("CARGO_PKG_VERSION")));

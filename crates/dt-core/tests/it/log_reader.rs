@@ -244,7 +244,7 @@ fn a_bad_message_is_skipped_and_named_and_its_neighbours_kept() {
     assert_eq!(errors.len(), 3, "{errors:?}");
     assert!(errors
         .iter()
-        .all(|e| !e.is_fatal() && e.to_string().contains("bad.mcap") == false));
+        .all(|e| !e.is_fatal() && !e.to_string().contains("bad.mcap")));
     assert!(
         errors[0]
             .to_string()

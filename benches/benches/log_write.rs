@@ -1,0 +1,88 @@
+//! Run-log writer and reader throughput: messages per second on one core,
+//! with the simulator's topic mix (per 1 ms: one acceleration sample, a
+//! position sample every 10, a force sample every 20, temperatures every 1000).
+
+#![allow(missing_docs)]
+
+use std::io::Cursor;
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use dt_core::log::{read_log_bytes, Compression, LogWriter, RunMetadata, Sample, WriteOptions};
+
+/// Samples of `ms` milliseconds of a run.
+fn samples(ms: i64) -> Vec<Sample> {
+    let mut out = Vec::new();
+    for i in 0..ms {
+        let t_ns = 1_000_000 * i;
+        let x = i as f64 * 1e-3;
+        out.push(Sample::Acceleration {
+            t_ns,
+            a1_mps2: 9.81 * (12.566 * x).sin() + 0.013 * (i % 7) as f64,
+            a2_mps2: 0.021 * (i % 5) as f64 - 0.04,
+        });
+        if i % 10 == 0 {
+            out.push(Sample::Position {
+                t_ns,
+                position_m: 0.04 * (12.566 * x).sin(),
+            });
+        }
+        if i % 20 == 0 {
+            out.push(Sample::Force {
+                t_ns,
+                force_n: 850.0 * (12.566 * x).cos() + 3.7,
+            });
+        }
+        if i % 1000 == 0 {
+            out.push(Sample::TempShock {
+                t_ns,
+                temperature_c: 25.0 + x * 0.01,
+            });
+            out.push(Sample::TempAmbient {
+                t_ns,
+                temperature_c: 21.3,
+            });
+        }
+    }
+    out
+}
+
+fn write(samples: &[Sample], compression: Compression) -> Vec<u8> {
+    let meta = RunMetadata {
+        asset_id: "bench".into(),
+        run_id: "r1".into(),
+        ..RunMetadata::default()
+    };
+    let options = WriteOptions {
+        compression,
+        ..WriteOptions::default()
+    };
+    let mut w = LogWriter::new(Cursor::new(Vec::with_capacity(8 << 20)), &meta, options).unwrap();
+    for s in samples {
+        w.write_sample(s).unwrap();
+    }
+    w.finish().unwrap().into_inner()
+}
+
+fn bench(c: &mut Criterion) {
+    let samples = samples(200_000); // 200 s of a run, ~230 k messages
+    let mut group = c.benchmark_group("log");
+    group.sample_size(10);
+    group.throughput(Throughput::Elements(samples.len() as u64));
+    for (name, compression) in [
+        ("zstd", Compression::Zstd),
+        ("lz4", Compression::Lz4),
+        ("none", Compression::None),
+    ] {
+        group.bench_function(format!("write_{name}"), |b| {
+            b.iter(|| write(&samples, compression));
+        });
+    }
+    let bytes = write(&samples, Compression::Zstd);
+    group.bench_function("read_zstd", |b| {
+        b.iter(|| read_log_bytes("bench", &bytes).unwrap());
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
