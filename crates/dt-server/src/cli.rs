@@ -20,6 +20,9 @@ pub enum Command {
     Simulate(SimulateArgs),
     /// Print channels, rates, duration, metadata and problems of an MCAP file.
     Inspect(InspectArgs),
+    /// Run logs through the streaming estimator and write the `/estimate`
+    /// stream (MCAP, JSON lines or CSV); prints per-run RMSE for labelled logs.
+    Replay(ReplayArgs),
     /// Run the fleet-gateway daemon (MCAP over TCP and an inbox in, HTTP API
     /// and recorded estimates out); flags override the file and environment.
     Serve(ServeArgs),
@@ -89,4 +92,21 @@ pub enum LogFormat {
     Text,
     /// One JSON object per line (structured logs for a log collector).
     Json,
+}
+
+/// `shocktwin replay`.
+#[derive(Debug, Args)]
+pub struct ReplayArgs {
+    /// Model bundle directory (`twin.json` + `mlp.onnx`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Run logs to replay.
+    #[arg(required = true)]
+    pub files: Vec<PathBuf>,
+    /// Output: `.mcap` (inputs + `/estimate`), `.jsonl` or `.csv`.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Worker threads (default: one per core).
+    #[arg(long)]
+    pub jobs: Option<usize>,
 }

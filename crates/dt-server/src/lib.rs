@@ -5,6 +5,7 @@
 
 pub mod cli;
 pub mod cmd_inspect;
+pub mod cmd_replay;
 pub mod cmd_serve;
 pub mod cmd_simulate;
 pub mod server;
