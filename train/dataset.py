@@ -1,19 +1,21 @@
 """Feature tables of a campaign for training and evaluation (SPEC §4).
 
 Features always come from ``shocktwin.features`` — the Rust pipeline the daemon runs.
-Each run's table is computed once with every group its sensors allow; a permutation
-then selects its columns, so the 13 (or 63) suites share one pass over the logs.
+A model uses only the sensors of its suite (the pipeline is given only the topics its
+groups need), so tables are computed once per distinct *sensor suite* (set of topics)
+and shared by every permutation on that suite.
 
 Rest periods: the paper's network sees every 50 Hz sample, but a damper at rest
 carries no information about its gas charge beyond the static rod force. Samples are
-used for training and scored for evaluation only when the twin's excitation measure
-(velocity RMS over the last second, computed causally) is at least
-``EXCITED_MPS``; the estimator reports ``unknown`` health below it.
+used for training and scored only where the damper is excited: the causal RMS of the
+full-suite Kalman velocity over the last second is at least ``EXCITED_MPS`` (the
+daemon's health is ``unknown`` below it). The same samples are scored for every
+suite, so suites are compared on equal terms.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
@@ -22,20 +24,19 @@ import shocktwin
 
 from train.campaign import Campaign, CampaignError, Run
 
-ALL_GROUPS = ["force", "position", "acceleration", "velocity", "mechanical", "thermal"]
+ALL_GROUPS = list(shocktwin.GROUPS)
 EXCITED_MPS = 0.05
 TICK_S = 0.02
 
 
 @dataclass
 class RunTable:
-    """The 50 Hz feature table of one run (every available column)."""
+    """The 50 Hz feature table of one run for one sensor suite."""
 
     run: Run
     t_s: np.ndarray
     columns: list[str]
-    x: np.ndarray  # [n, k] every available column
-    excited: np.ndarray  # bool [n]
+    x: np.ndarray  # [n, k]
     label_bar: float
 
     def select(self, columns: Sequence[str]) -> np.ndarray:
@@ -52,54 +53,63 @@ def excitation(velocity: np.ndarray, window: int = int(round(1.0 / TICK_S))) -> 
     return np.sqrt((c[n] - c[lo]) / (n - lo))
 
 
-def available_groups(run: Run) -> list[str]:
-    topics = set(run.log.topics)
+def suite_topics(groups: Sequence[str]) -> frozenset[str]:
+    return frozenset(t for g in groups for t in shocktwin.group_topics(g))
+
+
+def groups_within(topics: frozenset[str]) -> list[str]:
+    """Every group whose sensors are in ``topics`` (the columns that suite can give)."""
     return [g for g in ALL_GROUPS if set(shocktwin.group_topics(g)) <= topics]
 
 
-def run_table(run: Run, physics: dict[str, Any], groups: Sequence[str] | None = None) -> RunTable:
-    groups = list(groups) if groups is not None else available_groups(run)
-    x, columns, t_s = shocktwin.features(run.log, physics, groups)
-    if "velocity_mps" in columns:
-        exc = excitation(x[:, columns.index("velocity_mps")]) >= EXCITED_MPS
-    else:
-        exc = np.ones(len(t_s), dtype=bool)
-    if run.label_bar is None:
-        raise CampaignError(f"{run.name}: no charge_pressure_bar label")
-    return RunTable(run=run, t_s=np.asarray(t_s), columns=list(columns), x=x, excited=exc,
-                    label_bar=float(run.label_bar))
+def group_columns(groups: Sequence[str]) -> list[str]:
+    return [c for g in groups for c in shocktwin.group_columns(g)]
 
 
-def campaign_tables(campaign: Campaign, physics: dict[str, Any]) -> list[RunTable]:
-    campaign.require_labels()
-    return [run_table(run, physics) for run in campaign.runs]
+@dataclass
+class CampaignData:
+    """A labelled campaign's feature tables, computed lazily per sensor suite."""
 
+    campaign: Campaign
+    physics: dict[str, Any]
+    _tables: dict[frozenset[str], list[RunTable]] = field(default_factory=dict)
+    _excited: list[np.ndarray] | None = None
 
-def check_groups(tables: Sequence[RunTable], groups: Sequence[str]) -> list[str]:
-    """The ordered feature columns of ``groups``; an error names runs lacking their sensors."""
-    columns = [c for g in groups for c in shocktwin.group_columns(g)]
-    lacking = []
-    for tab in tables:
-        missing = [c for c in columns if c not in tab.columns]
-        if missing:
-            topics = sorted({t for g in groups for t in shocktwin.group_topics(g)} - set(tab.run.log.topics))
-            lacking.append(f"{tab.run.name} lacks {', '.join(topics) or ', '.join(missing)}")
-    if lacking:
-        raise CampaignError(f"groups {'+'.join(groups)}: " + "; ".join(lacking))
-    return columns
+    def __post_init__(self) -> None:
+        self.campaign.require_labels()
 
+    def tables(self, groups: Sequence[str]) -> list[RunTable]:
+        """Tables of every run for the suite of ``groups``; an error names runs lacking sensors."""
+        topics = suite_topics(groups)
+        if topics not in self._tables:
+            lacking = [
+                f"{r.name} lacks {', '.join(sorted(topics - set(r.log.topics)))}"
+                for r in self.campaign.runs
+                if not topics <= set(r.log.topics)
+            ]
+            if lacking:
+                raise CampaignError(f"input groups {'+'.join(groups)}: " + "; ".join(lacking))
+            within = groups_within(topics)
+            tabs = []
+            for run in self.campaign.runs:
+                x, columns, t_s = shocktwin.features(run.log, self.physics, within)
+                tabs.append(RunTable(run, np.asarray(t_s), list(columns), x, float(run.label_bar)))  # type: ignore[arg-type]
+            self._tables[topics] = tabs
+        return self._tables[topics]
 
-def stack(
-    tables: Sequence[RunTable], columns: Sequence[str], *, stride: int = 1, excited_only: bool = True
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """X, y, run index of the chosen columns over ``tables`` (every ``stride``-th excited tick)."""
-    xs, ys, gs = [], [], []
-    for i, tab in enumerate(tables):
-        sel = tab.excited if excited_only else np.ones(len(tab.t_s), dtype=bool)
-        x = tab.select(columns)
-        sel = sel & np.all(np.isfinite(x), axis=1)
-        idx = np.nonzero(sel)[0][::stride]
-        xs.append(x[idx])
-        ys.append(np.full(len(idx), tab.label_bar))
-        gs.append(np.full(len(idx), i))
-    return np.concatenate(xs), np.concatenate(ys), np.concatenate(gs)
+    def excited(self) -> list[np.ndarray]:
+        """Per run, the excited ticks (full-suite Kalman velocity; see the module doc)."""
+        if self._excited is None:
+            tabs = self.tables(["velocity"])
+            self._excited = [
+                excitation(t.select(["velocity_mps"])[:, 0]) >= EXCITED_MPS for t in tabs
+            ]
+        return self._excited
+
+    def excited_for(self, tabs: Sequence[RunTable]) -> list[np.ndarray]:
+        """The excited masks aligned to ``tabs`` (a suite's last tick may differ by one)."""
+        out = []
+        for tab, exc in zip(tabs, self.excited()):
+            n = len(tab.t_s)
+            out.append(exc[:n] if len(exc) >= n else np.concatenate([exc, np.zeros(n - len(exc), bool)]))
+        return out

@@ -22,7 +22,7 @@ import numpy as np
 
 import shocktwin
 
-from train import dataset, model
+from train import dataset, evaluate, model
 from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper
 
 log = logging.getLogger("shocktwin.train")
@@ -57,10 +57,6 @@ def load_physics(path: Path | None, campaign: Campaign, nominal_bar: float) -> d
     return calibrate(campaign, nominal_bar=nominal_bar)
 
 
-def rmse(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.sqrt(np.mean((a - b) ** 2)))
-
-
 def split_runs(n_runs: int, seed: int, frac: float = 0.25) -> np.ndarray:
     """Indices of the runs held out (at least one)."""
     rng = np.random.default_rng(seed)
@@ -84,26 +80,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     campaign.require_labels()
     perm = find_permutation(args.permutation)
     physics = load_physics(args.physics, campaign, args.nominal_bar)
-    tables = dataset.campaign_tables(campaign, physics)
-    columns = dataset.check_groups(tables, perm["groups"])
+    data = dataset.CampaignData(campaign, physics)
+    tables = data.tables(perm["groups"])
+    excited = data.excited_for(tables)
+    columns = dataset.group_columns(perm["groups"])
 
     metrics: dict[str, Any] = {}
     if args.split == "runs":
-        test_idx = split_runs(len(tables), args.seed)
-        train_t = [t for i, t in enumerate(tables) if i not in set(test_idx)]
-        test_t = [tables[i] for i in test_idx]
-        x, y, _ = dataset.stack(train_t, columns, stride=args.stride)
+        test_idx = set(split_runs(len(tables), args.seed).tolist())
+        masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
+        x, y = evaluate.training_set(tables, columns, excited, masks, args.stride)
         trained = model.fit(x, y, columns, seed=args.seed)
-        xt, yt, _ = dataset.stack(test_t, columns)
-        metrics = {"test_runs": [t.run.name for t in test_t], "rmse_bar": rmse(trained.predict(xt), yt)}
+        preds = [evaluate.predict_run(trained, tables[i], columns, excited[i]) for i in sorted(test_idx)]
+        scores = evaluate.score_runs(preds)
+        metrics = {"test_runs": [tables[i].run.name for i in sorted(test_idx)], **scores.as_dict()}
     elif args.split == "paper":
-        x, y, _ = dataset.stack(tables, columns)
-        rng = np.random.default_rng(args.seed)
-        is_test = rng.random(len(y)) < 0.25
-        trained = model.fit(x[~is_test][:: args.stride], y[~is_test][:: args.stride], columns, seed=args.seed)
-        metrics = {"rmse_bar": rmse(trained.predict(x[is_test]), y[is_test])}
+        test = evaluate.paper_split(tables, args.seed)
+        x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.stride)
+        trained = model.fit(x, y, columns, seed=args.seed)
+        metrics = evaluate.score_paper(trained, tables, columns, excited, test).as_dict()
     else:
-        x, y, _ = dataset.stack(tables, columns, stride=args.stride)
+        x, y = evaluate.training_set(tables, columns, excited, None, args.stride)
         trained = model.fit(x, y, columns, seed=args.seed)
 
     model.write_bundle(
@@ -124,7 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     what = f"permutation {perm['id']} ({perm['name']}): {len(columns)} inputs"
     if "rmse_bar" in metrics:
-        what += f", test RMSE {metrics['rmse_bar']:.3f} bar ({args.split} split, simulated data)"
+        what += (f", test RMSE {metrics['rmse_bar']:.3f} bar instantaneous, "
+                 f"{metrics['rmse_avg_bar']:.3f} bar 1 s average ({args.split} split, simulated data)")
     print(what)
     print(f"wrote bundle {args.out}")
     return 0

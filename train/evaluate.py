@@ -1,0 +1,162 @@
+"""Evaluation protocols (paper §5.4.2 and the held-out protocol) shared by the study.
+
+- *paper*: the excited 50 Hz samples of all runs are split at random 75/25; the
+  network is trained on the 75 % and scored on the 25 %. Neighbouring samples of
+  one run (20 ms apart, nearly identical) fall on both sides: this leaks.
+- *held-out runs*: whole runs are held out (grouped k-fold by run); every run is
+  scored by a network that never saw it — what a deployed twin meets.
+- *in-sample*: trained and scored on every sample; not a protocol but a bound:
+  what a network can extract from these inputs at all (an "oracle" on the same
+  inputs). If even it is poor, the inputs do not carry the information.
+
+RMSE in bar over excited samples (rest periods are excluded, see
+``train.dataset``), instantaneous and after a causal 1 s moving average of the
+run's own estimates (the daemon's ``pressure_avg_bar``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from train import dataset, model
+from train.dataset import RunTable
+
+AVG_TICKS = 50  # 1 s at 50 Hz
+
+
+def moving_average(x: np.ndarray, n: int = AVG_TICKS) -> np.ndarray:
+    """Causal mean over the last ``n`` values (fewer at the start)."""
+    c = np.cumsum(np.concatenate([[0.0], x]))
+    i = np.arange(1, len(x) + 1)
+    lo = np.maximum(i - n, 0)
+    return (c[i] - c[lo]) / (i - lo)
+
+
+@dataclass
+class Scores:
+    rmse_bar: float
+    rmse_avg_bar: float
+    n: int
+
+    def as_dict(self) -> dict[str, float]:
+        return {"rmse_bar": self.rmse_bar, "rmse_avg_bar": self.rmse_avg_bar, "n": self.n}
+
+
+def _rmse(err: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
+
+
+@dataclass
+class RunPrediction:
+    """Predictions of one run on its excited, finite ticks (in time order)."""
+
+    table: RunTable
+    idx: np.ndarray  # tick indices
+    pred: np.ndarray
+
+    def averaged(self) -> np.ndarray:
+        return moving_average(self.pred)
+
+
+def predict_run(trained: model.Trained, tab: RunTable, columns: Sequence[str], excited: np.ndarray) -> RunPrediction:
+    x = tab.select(columns)
+    sel = excited & np.all(np.isfinite(x), axis=1)
+    idx = np.nonzero(sel)[0]
+    pred = trained.predict(x[idx]) if len(idx) else np.empty(0)
+    return RunPrediction(tab, idx, pred)
+
+
+def _limit_threads() -> None:
+    # Two processes on two cores train faster than one process with two BLAS threads.
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - threadpoolctl ships with scikit-learn
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def fit_job(x: np.ndarray, y: np.ndarray, columns: Sequence[str], seed: int, max_iter: int) -> model.Trained:
+    _limit_threads()
+    return model.fit(x, y, columns, seed=seed, max_iter=max_iter)
+
+
+def held_out_folds(n_runs: int, k: int, seed: int) -> list[np.ndarray]:
+    """Grouped k-fold over runs: each run is held out exactly once."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n_runs)
+    return [np.sort(order[i::k]) for i in range(k)]
+
+
+def score_runs(preds: Sequence[RunPrediction]) -> Scores:
+    err = np.concatenate([p.pred - p.table.label_bar for p in preds]) if preds else np.empty(0)
+    err_avg = np.concatenate([p.averaged() - p.table.label_bar for p in preds]) if preds else np.empty(0)
+    return Scores(_rmse(err), _rmse(err_avg), len(err))
+
+
+def per_run(preds: Sequence[RunPrediction]) -> list[dict[str, float | str]]:
+    out = []
+    for p in preds:
+        out.append(
+            {
+                "run": p.table.run.name,
+                "label_bar": p.table.label_bar,
+                "rmse_bar": _rmse(p.pred - p.table.label_bar),
+                "rmse_avg_bar": _rmse(p.averaged() - p.table.label_bar),
+                "mean_bar": float(np.mean(p.pred)) if len(p.pred) else float("nan"),
+            }
+        )
+    return out
+
+
+def paper_split(tables: Sequence[RunTable], seed: int) -> list[np.ndarray]:
+    """Per run, a boolean mask of the test ticks of the random 75/25 split."""
+    rng = np.random.default_rng(seed)
+    return [rng.random(len(t.t_s)) < 0.25 for t in tables]
+
+
+def score_paper(
+    trained: model.Trained, tables: Sequence[RunTable], columns: Sequence[str],
+    excited: Sequence[np.ndarray], test_masks: Sequence[np.ndarray],
+) -> Scores:
+    """Scores on the test ticks. The 1 s average runs over the run's full series of
+    estimates (train and test ticks alike, as a deployed average would) and is
+    scored on the test ticks."""
+    err, err_avg = [], []
+    for tab, exc, test in zip(tables, excited, test_masks):
+        p = predict_run(trained, tab, columns, exc)
+        if not len(p.idx):
+            continue
+        is_test = test[p.idx]
+        err.append(p.pred[is_test] - tab.label_bar)
+        err_avg.append(p.averaged()[is_test] - tab.label_bar)
+    e = np.concatenate(err) if err else np.empty(0)
+    ea = np.concatenate(err_avg) if err_avg else np.empty(0)
+    return Scores(_rmse(e), _rmse(ea), len(e))
+
+
+def training_set(
+    tables: Sequence[RunTable], columns: Sequence[str], excited: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray] | None, stride: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Training rows: excited, finite, inside ``masks`` (all when None), every ``stride``-th."""
+    xs, ys = [], []
+    for i, tab in enumerate(tables):
+        x = tab.select(columns)
+        sel = excited[i] & np.all(np.isfinite(x), axis=1)
+        if masks is not None:
+            sel &= masks[i]
+        idx = np.nonzero(sel)[0][::stride]
+        xs.append(x[idx])
+        ys.append(np.full(len(idx), tab.label_bar))
+    return np.concatenate(xs), np.concatenate(ys)
+
+
+__all__ = [
+    "Scores", "RunPrediction", "moving_average", "predict_run", "fit_job", "held_out_folds",
+    "score_runs", "per_run", "paper_split", "score_paper", "training_set", "dataset",
+]
