@@ -13,7 +13,7 @@
 //!
 //! **Mount** (body end): `m ẍ_b = F − k x_b − c ẋ_b`, `F` the damper force
 //! (tension pulls the body toward the rod). Integrated by semi-implicit
-//! (symplectic) Euler at the plant sub-step (ω_n dt ≈ 0.16, stable and
+//! (symplectic) Euler at the plant sub-step (`ω_n dt ≈ 0.16`, stable and
 //! non-dissipative). The loadcell in series with the mount reads
 //! `k x_b + c ẋ_b = F − m ẍ_b`.
 

@@ -3,7 +3,7 @@
 //! Three oil spaces: the rebound chamber above the piston (annulus
 //! `A_a = A_p − A_rod`), the compression chamber below it (`A_p`), and the
 //! reservoir between the tubes at the gas pressure `p_g`. Oil is taken as
-//! incompressible (2 GPa bulk modulus, notes, puts the compliance far above
+//! incompressible (its 2 `GPa` bulk modulus, from the notes, puts the compliance far above
 //! the dyno band). With `v = ẏ`:
 //!
 //! * **rebound** (`v > 0`): `A_a v` flows through the piston rebound valve

@@ -85,7 +85,7 @@ pub enum SimError {
         run_id: String,
         /// The log error (names the file).
         #[source]
-        source: dt_core::log::LogError,
+        source: Box<dt_core::log::LogError>,
     },
     /// A file-system operation failed.
     #[error("{path}: {source}")]

@@ -130,7 +130,11 @@ impl Plant {
         params.validate()?;
         for (name, value, ok) in [
             ("charge_bar", config.charge_bar, config.charge_bar > -1.0),
-            ("frequency_hz", config.frequency_hz, config.frequency_hz >= 0.0),
+            (
+                "frequency_hz",
+                config.frequency_hz,
+                config.frequency_hz >= 0.0,
+            ),
             ("stroke_pp_m", config.stroke_pp_m, config.stroke_pp_m >= 0.0),
         ] {
             if !(value.is_finite() && ok) {
@@ -250,6 +254,15 @@ impl Plant {
     #[must_use]
     pub fn heat_to_room_j(&self) -> f64 {
         self.heat_to_room_j
+    }
+
+    /// Sets every node (and the gas) to the given temperatures, e.g. to
+    /// start a study near its thermal steady state; the gas takes the oil
+    /// temperature.
+    pub fn set_temperatures(&mut self, nodes: Nodes) {
+        self.nodes = nodes;
+        self.gas_c = nodes.oil_c;
+        self.nu_ratio = self.hyd.oil.ratio_to_40(nodes.oil_c);
     }
 
     /// Returns the truth at the current time and advances one sub-step.

@@ -12,7 +12,7 @@
 //! Sampling (SPEC §2): acceleration every 1 ms, position 10 ms, force 20 ms,
 //! truth gas pressure 100 ms, temperatures 1 s, all on one clock from
 //! `T0_NS`; at equal times samples come in topic-rank order (acceleration
-//! first). Every run draws its randomness from ChaCha8 streams seeded by
+//! first). Every run draws its randomness from `ChaCha8` streams seeded by
 //! `(seed, charge, frequency, unit)` (room, sensors) and by `seed` alone (the
 //! rig's sensor errors), so runs are independent of each other and of the
 //! thread count.
@@ -153,7 +153,7 @@ impl RunSpec {
             self.seed
         );
         if let Some(n) = self.unit {
-            id.push_str(&format!("-u{n}"));
+            id = format!("{id}-u{n}");
         }
         id
     }
@@ -233,7 +233,7 @@ where
     let run_seed = spec.run_seed();
     let room_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 1]));
     let sensor_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 2]));
-    let mut rig_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[spec.seed, 0x7269_67]));
+    let mut rig_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[spec.seed, 0x0072_6967]));
     let rig = RigErrors::draw(params, &mut rig_rng);
 
     let mut plant = Plant::new(params, &config, room_rng)?;
@@ -275,58 +275,18 @@ where
         summary.max_void_m3 = summary.max_void_m3.max(truth.void_m3);
         if i % n_sub == 0 {
             let ms = i / n_sub;
-            let t_ns = T0_NS + (ms as i64) * 1_000_000;
-            let mut emit = |s: Sample| -> Result<(), SimError> {
-                summary.messages += 1;
-                sink(&s)
-            };
-            let (a1, a2) = sensors.sample_acceleration();
-            emit(Sample::Acceleration {
-                t_ns,
-                a1_mps2: a1,
-                a2_mps2: a2,
-            })?;
-            if ms % 10 == 0 {
-                let position_m = sensors.sample_position();
-                emit(Sample::Position { t_ns, position_m })?;
-            }
-            if ms % 20 == 0 {
-                let force_n = sensors.sample_force();
-                emit(Sample::Force { t_ns, force_n })?;
-            }
-            let mut stop = None;
-            if ms % 1000 == 0 {
-                let shock_c = sensors.sample_temp_shock();
-                emit(Sample::TempShock {
-                    t_ns,
-                    temperature_c: shock_c,
-                })?;
-                let temperature_c = sensors.sample_temp_ambient();
-                emit(Sample::TempAmbient { t_ns, temperature_c })?;
-                summary.final_shock_reading_c = shock_c;
-                if ms > rest_ms {
-                    shock_history.push(shock_c);
-                    stop = check_stop(
-                        spec,
-                        params,
-                        &shock_history,
-                        eq_window_s,
-                        eq_min_s,
-                        ms >= max_ms,
-                    );
+            let shock_c = emit_tick(ms, &truth, &mut sensors, &mut summary, &mut sink)?;
+            if let (Some(shock_c), true) = (shock_c, ms > rest_ms) {
+                shock_history.push(shock_c);
+                let at_cap = ms >= max_ms;
+                if let Some(reason) =
+                    check_stop(spec, params, &shock_history, eq_window_s, eq_min_s, at_cap)
+                {
+                    summary.stop = reason;
+                    summary.duration_s = ms as f64 * 1e-3;
+                    summary.excitation_s = (ms - rest_ms) as f64 * 1e-3;
+                    break;
                 }
-            }
-            if ms % 100 == 0 {
-                emit(Sample::TruthPressure {
-                    t_ns,
-                    static_bar: truth.static_gas_bar,
-                })?;
-            }
-            if let Some(reason) = stop {
-                summary.stop = reason;
-                summary.duration_s = ms as f64 * 1e-3;
-                summary.excitation_s = (ms - rest_ms) as f64 * 1e-3;
-                break;
             }
         }
         truth = plant.step()?;
@@ -338,6 +298,63 @@ where
     summary.final_static_bar = truth.static_gas_bar;
     summary.heat_to_room_j = plant.heat_to_room_j();
     Ok(summary)
+}
+
+/// Samples the sensors due at millisecond `ms` and hands them to `sink` in
+/// topic-rank order; returns the shock thermocouple reading on 1 s ticks.
+fn emit_tick<F>(
+    ms: u64,
+    truth: &crate::plant::Truth,
+    sensors: &mut Sensors,
+    summary: &mut RunSummary,
+    sink: &mut F,
+) -> Result<Option<f64>, SimError>
+where
+    F: FnMut(&Sample) -> Result<(), SimError>,
+{
+    let t_ns = T0_NS + (ms as i64) * 1_000_000;
+    let mut emit = |s: Sample| -> Result<(), SimError> {
+        summary.messages += 1;
+        sink(&s)
+    };
+    let (a1, a2) = sensors.sample_acceleration();
+    emit(Sample::Acceleration {
+        t_ns,
+        a1_mps2: a1,
+        a2_mps2: a2,
+    })?;
+    if ms % 10 == 0 {
+        let position_m = sensors.sample_position();
+        emit(Sample::Position { t_ns, position_m })?;
+    }
+    if ms % 20 == 0 {
+        let force_n = sensors.sample_force();
+        emit(Sample::Force { t_ns, force_n })?;
+    }
+    let mut shock = None;
+    if ms % 1000 == 0 {
+        let shock_c = sensors.sample_temp_shock();
+        emit(Sample::TempShock {
+            t_ns,
+            temperature_c: shock_c,
+        })?;
+        let temperature_c = sensors.sample_temp_ambient();
+        emit(Sample::TempAmbient {
+            t_ns,
+            temperature_c,
+        })?;
+        shock = Some(shock_c);
+    }
+    if ms % 100 == 0 {
+        emit(Sample::TruthPressure {
+            t_ns,
+            static_bar: truth.static_gas_bar,
+        })?;
+    }
+    if let Some(c) = shock {
+        summary.final_shock_reading_c = c;
+    }
+    Ok(shock)
 }
 
 fn check_stop(
@@ -379,16 +396,16 @@ pub fn simulate_run(
     out_path: &Path,
 ) -> Result<RunSummary, SimError> {
     let run_id = spec.run_id();
-    let log_err = |source| SimError::Log {
+    let log_err = |source: dt_core::log::LogError| SimError::Log {
         run_id: run_id.clone(),
-        source,
+        source: Box::new(source),
     };
-    let mut writer = LogWriter::create(out_path, &spec.metadata(), WriteOptions::default())
-        .map_err(log_err)?;
+    let mut writer =
+        LogWriter::create(out_path, &spec.metadata(), WriteOptions::default()).map_err(log_err)?;
     let mut summary = simulate_run_with(spec, params, |s| {
         writer.write_sample(s).map_err(|source| SimError::Log {
             run_id: spec.run_id(),
-            source,
+            source: Box::new(source),
         })
     })?;
     writer.finish().map_err(log_err)?;
@@ -467,8 +484,16 @@ pub fn simulate_campaign(spec: &CampaignSpec, out_dir: &Path) -> Result<Vec<RunS
             reason: "two runs share a run id (duplicate values, or equal to 0.1)",
         });
     }
-    let params = runs.first().map(RunSpec::params).unwrap_or_else(PlantParams::nominal);
+    let params = runs
+        .first()
+        .map_or_else(PlantParams::nominal, RunSpec::params);
     runs.par_iter()
-        .map(|run| simulate_run(run, &params, &out_dir.join(format!("{}.mcap", run.run_id()))))
+        .map(|run| {
+            simulate_run(
+                run,
+                &params,
+                &out_dir.join(format!("{}.mcap", run.run_id())),
+            )
+        })
         .collect()
 }

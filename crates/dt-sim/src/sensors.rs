@@ -143,6 +143,7 @@ fn quantise(x: f64, lsb: f64) -> f64 {
 
 impl Sensors {
     /// Sensors whose filters start settled on `first` (the truth at t = 0).
+    #[must_use]
     pub fn new(
         p: &PlantParams,
         rig: RigErrors,
@@ -158,7 +159,8 @@ impl Sensors {
             inner_c: first.room_c,
             outer_c: first.room_c,
         });
-        let shock_in = p.tc_shock_contact * nodes.outer_c + (1.0 - p.tc_shock_contact) * first.room_c;
+        let shock_in =
+            p.tc_shock_contact * nodes.outer_c + (1.0 - p.tc_shock_contact) * first.room_c;
         Sensors {
             p: p.clone(),
             rig,

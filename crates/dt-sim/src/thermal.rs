@@ -58,7 +58,11 @@ impl HeatNetwork {
     #[must_use]
     pub fn new(p: &PlantParams) -> Self {
         HeatNetwork {
-            c_j_per_k: [p.oil_c_j_per_k(), p.inner_tube_c_j_per_k, p.outer_tube_c_j_per_k],
+            c_j_per_k: [
+                p.oil_c_j_per_k(),
+                p.inner_tube_c_j_per_k,
+                p.outer_tube_c_j_per_k,
+            ],
             g_oi: p.g_oil_inner_w_per_k,
             g_oo: p.g_oil_outer_w_per_k,
             g_io: p.g_inner_outer_w_per_k,
@@ -76,14 +80,7 @@ impl HeatNetwork {
 
     /// One explicit step of `dt_s` with heat inputs `p_oil_w`, `p_inner_w`
     /// held; returns the heat lost to the room over the step, J.
-    pub fn step(
-        &self,
-        n: &mut Nodes,
-        p_oil_w: f64,
-        p_inner_w: f64,
-        room_c: f64,
-        dt_s: f64,
-    ) -> f64 {
+    pub fn step(&self, n: &mut Nodes, p_oil_w: f64, p_inner_w: f64, room_c: f64, dt_s: f64) -> f64 {
         let q_oi = self.g_oi * (n.oil_c - n.inner_c);
         let q_oo = self.g_oo * (n.oil_c - n.outer_c);
         let q_io = self.g_io * (n.inner_c - n.outer_c);
@@ -116,6 +113,7 @@ pub struct Room {
 
 impl Room {
     /// A room for one run; draws the run's mean and phase from `rng`.
+    #[must_use]
     pub fn new(p: &PlantParams, mut rng: ChaCha8Rng) -> Self {
         let z: f64 = rng.sample(StandardNormal);
         let phase = rng.random::<f64>() * std::f64::consts::TAU;

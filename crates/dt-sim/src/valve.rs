@@ -72,18 +72,24 @@ impl Valve {
         // Q_b = (−a + √(a² + 4bΔp)) / 2b, written without cancellation.
         let q_b = 2.0 * dp / (a + disc);
         let dq_b = 1.0 / disc;
-        // Shim.
+        // Shim: closed (well) below cracking, otherwise softplus knee.
         let x = (dp - self.crack_pa) / KNEE_PA;
-        let (sp, dsp) = if x > 30.0 {
+        if x < -35.0 {
+            return (q_b, dq_b);
+        }
+        let (sp, dsp) = if x > 35.0 {
             (dp - self.crack_pa, 1.0)
         } else {
             let e = x.exp();
             (KNEE_PA * e.ln_1p(), e / (1.0 + e))
         };
         let u = self.gain_m2_pa * sp / self.max_m2;
-        let th = u.tanh();
-        let area = self.max_m2 * th;
-        let darea = self.gain_m2_pa * dsp * (1.0 - th * th);
+        let (area, darea) = if u > 20.0 {
+            (self.max_m2, 0.0)
+        } else {
+            let th = u.tanh();
+            (self.max_m2 * th, self.gain_m2_pa * dsp * (1.0 - th * th))
+        };
         let sq = dp.sqrt();
         let q_s = self.cd_sqrt_2_rho * area * sq;
         let dq_s = if sq > 0.0 {
@@ -112,7 +118,7 @@ impl Valve {
         } else {
             0.5 * hi
         };
-        let tol = 1e-10 * q_m3s;
+        let tol = 1e-9 * q_m3s;
         for _ in 0..60 {
             let (q, dq) = self.flow(x, nu_ratio);
             let r = q - q_m3s;
@@ -125,11 +131,16 @@ impl Valve {
                 lo = x;
             }
             let newton = x - r / dq;
-            x = if dq > 0.0 && newton > lo && newton < hi {
-                newton
+            if dq > 0.0 && newton > lo && newton < hi {
+                // Quadratic convergence: a step this small leaves an error
+                // far below it.
+                if (newton - x).abs() <= 1e-7 * x {
+                    return Some(newton);
+                }
+                x = newton;
             } else {
-                0.5 * (lo + hi)
-            };
+                x = 0.5 * (lo + hi);
+            }
             if hi - lo <= 1e-9 * hi {
                 return Some(x);
             }

@@ -1,0 +1,73 @@
+//! Written logs read back through dt-core; run procedure and metadata.
+
+use dt_core::log::read_log;
+use dt_sim::{simulate_run, PlantParams, RunSpec, StopReason};
+
+#[test]
+fn quick_run_file_reads_back_with_metadata() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.mcap");
+    let spec = RunSpec {
+        quick: true,
+        ..RunSpec::paper(12.0, 2.0, 1)
+    };
+    let summary = simulate_run(&spec, &PlantParams::nominal(), &path).unwrap();
+    assert_eq!(summary.stop, StopReason::QuickLimit);
+    let log = read_log(&path).unwrap();
+    let m = &log.metadata;
+    assert_eq!(m.asset_id, "dyno-unit-A");
+    assert_eq!(m.run_id, "p12.0-f2.0-s1");
+    assert_eq!(m.charge_pressure_bar, Some(12.0));
+    assert_eq!(m.excitation.as_deref(), Some("sine 2 Hz 80 mm p-p"));
+    assert_eq!(m.frequency_hz, Some(2.0));
+    assert_eq!(m.stroke_pp_m, Some(0.08));
+    assert_eq!(m.extra.get("simulated").map(String::as_str), Some("true"));
+    assert_eq!(m.extra.get("seed").map(String::as_str), Some("1"));
+    let n = log.position.len()
+        + log.acceleration.len()
+        + log.force.len()
+        + log.temp_shock.len()
+        + log.temp_ambient.len()
+        + log.truth_pressure.len();
+    assert_eq!(n as u64, summary.messages);
+    assert_eq!(log.acceleration.len(), 70_001);
+    // The excitation is visible: +-40 mm on the potentiometer.
+    let max = log.position.iter().map(|p| p.1).fold(f64::MIN, f64::max);
+    let min = log.position.iter().map(|p| p.1).fold(f64::MAX, f64::min);
+    assert!(
+        (0.038..0.042).contains(&max) && (-0.042..-0.038).contains(&min),
+        "{min} {max}"
+    );
+    // Rebound force about twice compression (notes), sign convention: tension > 0.
+    let fmax = log.force.iter().map(|p| p.1).fold(f64::MIN, f64::max);
+    let fmin = log.force.iter().map(|p| p.1).fold(f64::MAX, f64::min);
+    let ratio = fmax / -fmin;
+    assert!(
+        (1.4..2.8).contains(&ratio),
+        "rebound {fmax} N, compression {fmin} N"
+    );
+
+    let varied = RunSpec {
+        unit: Some(3),
+        ..spec
+    };
+    assert_eq!(varied.asset_id(), "dyno-unit-U3");
+    assert_eq!(varied.run_id(), "p12.0-f2.0-s1-u3");
+}
+
+#[test]
+fn full_4_hz_run_stops_at_80_c_within_minutes() {
+    let spec = RunSpec::paper(12.0, 4.0, 1);
+    let summary = dt_sim::simulate_run_with(&spec, &PlantParams::nominal(), |_| Ok(())).unwrap();
+    assert_eq!(summary.stop, StopReason::Temperature);
+    assert!(summary.final_shock_reading_c >= 80.0);
+    assert!(
+        (60.0..600.0).contains(&summary.excitation_s),
+        "excitation {} s",
+        summary.excitation_s
+    );
+    // The oil is hotter than the surface reading.
+    assert!(summary.final_oil_c > summary.final_shock_reading_c);
+    // Energy bookkeeping: stored + lost = dissipated (within 0.5 %).
+    assert!(summary.heat_to_room_j < summary.energy_dissipated_j);
+}
