@@ -57,6 +57,9 @@ pub struct SimulateArgs {
 pub struct InspectArgs {
     /// The MCAP file to inspect.
     pub file: PathBuf,
+    /// Print the report as one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// `shocktwin serve`.

@@ -15,6 +15,10 @@ pub fn run(args: &InspectArgs) -> anyhow::Result<ExitCode> {
     // The error's own message already names the file and the reason; turn it
     // into a message-only error so that it prints as one line.
     let report = dt_core::log::inspect(&args.file).map_err(|err| anyhow::anyhow!("{err}"))?;
-    print!("{report}");
+    if args.json {
+        println!("{}", report.to_json());
+    } else {
+        print!("{report}");
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -12,7 +12,7 @@ use super::reader::Problems;
 use super::{topic, LogError, RunMetadata, RUN_METADATA_NAME, TOPICS};
 
 /// One channel of an inspected file.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ChannelReport {
     /// Channel id.
     pub id: u16,
@@ -61,8 +61,10 @@ impl ChannelReport {
     }
 }
 
-/// What [`inspect`] found.
-#[derive(Debug, Clone, PartialEq, Default)]
+/// What [`inspect`] found. Serialises to JSON (`shocktwin inspect --json`)
+/// with the derived figures (`duration_s`, each channel's `rate_hz`) added
+/// by [`InspectReport::to_json`].
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize)]
 pub struct InspectReport {
     /// The file.
     pub file: String,
@@ -98,6 +100,19 @@ impl InspectReport {
     pub fn duration_s(&self) -> f64 {
         self.log_time_range_ns
             .map_or(0.0, |(a, b)| (b - a) as f64 * 1e-9)
+    }
+
+    /// The report as JSON, with `duration_s` and each channel's `rate_hz`.
+    #[must_use]
+    pub fn to_json(&self) -> serde_json::Value {
+        let mut value = serde_json::to_value(self).unwrap_or_default();
+        value["duration_s"] = self.duration_s().into();
+        if let Some(channels) = value["channels"].as_array_mut() {
+            for (c, report) in channels.iter_mut().zip(&self.channels) {
+                c["rate_hz"] = report.rate_hz().into();
+            }
+        }
+        value
     }
 
     /// Messages on `topic` over all its channels.
