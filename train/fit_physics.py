@@ -50,7 +50,7 @@ FORCE_FIT_NAMES = [
     "k_leak_reb", "k_leak_com", "f_preload_reb", "f_preload_com", "k_spring_reb",
     "k_spring_com", "k_main_reb", "k_main_com", "k_tr", "k_hys", "beta", "a_rod", "v_gas",
 ]
-FORCE_SIGNED = {"k_hys"}  # may be of either sign; the rest are positive
+FORCE_LINEAR = {"k_hys"}  # may be zero: fitted in linear space, bounded below by 0; the rest in log space
 NEEDED_TOPICS = ["/position", "/acceleration", "/force", "/temperature/shock", "/temperature/ambient"]
 
 
@@ -86,9 +86,9 @@ def fit_kalman(runs: Sequence[Run], prior: dict[str, float]) -> dict[str, Any]:
         log.warning("no rest period found; Kalman noise stays at its prior")
         return dict(prior)
     fitted = dict(prior)
-    # Quantisation alone can give a zero std at rest: never go below a tenth of the prior.
-    fitted["sigma_position"] = max(float(np.median(sz)), 0.1 * prior["sigma_position"])
-    fitted["sigma_accel"] = max(float(np.median(sa)), 0.1 * prior["sigma_accel"])
+    # Quantisation alone can give a zero std at rest: floors of 1 µm and 1 mm/s².
+    fitted["sigma_position"] = max(float(np.median(sz)), 1e-6)
+    fitted["sigma_accel"] = max(float(np.median(sa)), 1e-3)
     return fitted
 
 
@@ -111,9 +111,20 @@ def table(run: Run, params: dict[str, Any]) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------------------------------
 
 
+THERMAL_SIGMA_C = 0.5  # expected model + thermocouple error, °C
+THERMAL_PRIOR_FACTOR = 3.0  # a prior is believed to within this factor (one sigma)
+
+
 def thermal_residuals(
-    theta: np.ndarray, tabs: Sequence[dict[str, np.ndarray]], stride: int
+    theta: np.ndarray, tabs: Sequence[dict[str, np.ndarray]], stride: int, theta0: np.ndarray
 ) -> np.ndarray:
+    """Temperature residuals (in units of ``THERMAL_SIGMA_C``) and the log-normal prior terms.
+
+    Only the cylinder temperature is measured: the split of the heat capacity between oil
+    and cylinder, and of the conductances, is weakly identified on its own. The priors
+    (``shocktwin.default_params``, a typical damper's oil and steel masses) make the fit a
+    maximum a posteriori estimate instead of letting those parameters run to their bounds.
+    """
     params = dict(zip(THERMAL_NAMES, np.exp(theta)))
     model = shocktwin.ThermalModel(**params)
     res = []
@@ -122,15 +133,16 @@ def thermal_residuals(
         t0 = tab["temp_shock_c"][np.isfinite(tab["temp_shock_c"])][0]
         _, cyl = model.simulate(tab["t_s"], power, tab["temp_ambient_c"], t0, t0)
         r = (cyl - tab["temp_shock_c"])[::stride]
-        res.append(r[np.isfinite(r)])
+        res.append(r[np.isfinite(r)] / THERMAL_SIGMA_C)
+    res.append((theta - theta0) / np.log(THERMAL_PRIOR_FACTOR))
     return np.concatenate(res)
 
 
 def fit_thermal(tabs: Sequence[dict[str, np.ndarray]], prior: dict[str, float]) -> dict[str, float]:
     theta0 = np.log([prior[n] for n in THERMAL_NAMES])
-    # Physically sensible bounds: a factor of 20 either side of the prior.
-    lo, hi = theta0 - np.log(20.0), theta0 + np.log(20.0)
-    sol = least_squares(thermal_residuals, theta0, bounds=(lo, hi), args=(tabs, 50), x_scale=1.0)
+    # Hard bounds: a factor of 30 either side of the prior.
+    lo, hi = theta0 - np.log(30.0), theta0 + np.log(30.0)
+    sol = least_squares(thermal_residuals, theta0, bounds=(lo, hi), args=(tabs, 50, theta0))
     return dict(zip(THERMAL_NAMES, map(float, np.exp(sol.x))))
 
 
@@ -150,14 +162,14 @@ def oil_temperature(tab: dict[str, np.ndarray], thermal: dict[str, float]) -> np
 
 def _pack(force: dict[str, float]) -> np.ndarray:
     return np.array(
-        [force[n] if n in FORCE_SIGNED else np.log(force[n]) for n in FORCE_FIT_NAMES]
+        [force[n] if n in FORCE_LINEAR else np.log(force[n]) for n in FORCE_FIT_NAMES]
     )
 
 
 def _unpack(theta: np.ndarray, base: dict[str, float]) -> dict[str, float]:
     out = dict(base)
     for n, v in zip(FORCE_FIT_NAMES, theta):
-        out[n] = float(v if n in FORCE_SIGNED else np.exp(v))
+        out[n] = float(v if n in FORCE_LINEAR else np.exp(v))
     return out
 
 
@@ -181,8 +193,9 @@ def fit_force(
         return model.force(v, a, y, oil) - f
 
     theta0 = _pack(prior)
-    lo = np.where([n in FORCE_SIGNED for n in FORCE_FIT_NAMES], -np.inf, theta0 - np.log(50.0))
-    hi = np.where([n in FORCE_SIGNED for n in FORCE_FIT_NAMES], np.inf, theta0 + np.log(50.0))
+    linear = np.array([n in FORCE_LINEAR for n in FORCE_FIT_NAMES])
+    lo = np.where(linear, 0.0, theta0 - np.log(50.0))
+    hi = np.where(linear, np.inf, theta0 + np.log(50.0))
     sol = least_squares(residuals, theta0, bounds=(lo, hi), loss="soft_l1", f_scale=100.0)
     return _unpack(sol.x, prior)
 
