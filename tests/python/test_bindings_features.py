@@ -5,6 +5,7 @@ separately bound models (KalmanFilter, ForceModel, ThermalModel)."""
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
 from pathlib import Path
@@ -82,8 +83,15 @@ def test_shapes_and_columns_per_group(full_log, groups):
     x, columns, t_s = shocktwin.features(full_log, shocktwin.default_params(), groups)
     assert columns == [c for g in groups for c in shocktwin.group_columns(g)]
     assert x.dtype == np.float64 and x.flags.c_contiguous
-    assert x.shape == (len(t_s), len(columns)) == (300, len(columns))  # 6 s at 50 Hz
-    np.testing.assert_allclose(t_s, 0.02 * np.arange(1, 301), rtol=0, atol=1e-12)
+    # The pipeline sees only the topics of the groups' suite; its last tick is
+    # the one holding the last such sample (6 s at 50 Hz: 300 ticks, or 299
+    # for the loadcell alone, whose last sample is at 5.98 s).
+    needed = {t for g in groups for t in shocktwin.group_topics(g)}
+    t_last = max(full_log.topic(t)["t_s"][-1] for t in needed)
+    n_ticks = int(np.ceil(round(t_last / 0.02, 9)))
+    assert x.shape == (len(t_s), len(columns)) == (n_ticks, len(columns))
+    assert n_ticks in (299, 300)
+    np.testing.assert_allclose(t_s, 0.02 * np.arange(1, n_ticks + 1), rtol=0, atol=1e-12)
     # after the first second every column is filled
     assert np.isfinite(x[50:]).all()
 
@@ -126,7 +134,7 @@ def test_unknown_group_is_named(full_log):
         shocktwin.features(full_log, shocktwin.default_params(), "position")  # a str is not a list
 
 
-def test_params_from_dict_file_and_bundle(full_log, tmp_path: Path):
+def test_params_from_dict_and_file(full_log, tmp_path: Path):
     params = shocktwin.default_params()
     params["force"]["charge_bar"] = 7.0
     groups = ["mechanical"]
@@ -136,15 +144,41 @@ def test_params_from_dict_file_and_bundle(full_log, tmp_path: Path):
     physics.write_text(json.dumps({"format": "shocktwin-physics/1", **params, "fit": {"runs": []}}))
     got_file, _, _ = shocktwin.features(full_log, physics, groups)
     got_str, _, _ = shocktwin.features(full_log.path, str(physics), groups)  # the log as a path too
-    bundle = tmp_path / "bundle"
-    bundle.mkdir()
-    (bundle / "twin.json").write_text(json.dumps({"format": "shocktwin-bundle/1", "physics": params}))
-    got_bundle, _, _ = shocktwin.features(full_log, bundle, groups)
-    for got in (got_file, got_str, got_bundle):
+    for got in (got_file, got_str):
         np.testing.assert_array_equal(got, want)
     # and the parameters matter: the nominal charge changes the gas force column
     nominal, _, _ = shocktwin.features(full_log, shocktwin.default_params(), groups)
     assert np.nanmax(np.abs(nominal[:, 2] - want[:, 2])) > 10.0
+    with pytest.raises(TypeError, match="groups"):
+        shocktwin.features(full_log, params)  # groups may be left out only with a bundle
+
+
+@pytest.mark.filterwarnings("ignore:Stochastic Optimizer")  # 5 iterations: the network is not the point
+def test_params_and_groups_from_a_bundle(full_log, tmp_path: Path):
+    """A bundle written by train/model.py (SPEC §5): its physics and its permutation's groups."""
+    pytest.importorskip("skl2onnx")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    try:
+        from train import model as train_model
+    finally:
+        sys.path.pop(0)
+    params = shocktwin.default_params()
+    params["force"]["charge_bar"] = 7.0
+    perm = shocktwin.PERMUTATIONS[9]  # model 10: no force
+    x, columns, _ = shocktwin.features(full_log, params, perm["groups"])
+    rows = np.isfinite(x).all(axis=1)
+    trained = train_model.fit(x[rows], np.full(rows.sum(), 12.0), columns, seed=0, max_iter=5)
+    bundle = train_model.write_bundle(
+        tmp_path / "bundle", trained, permutation=perm, physics=params, nominal_bar=12.0, provenance={}
+    )
+    got, got_columns, _ = shocktwin.features(full_log, bundle)  # groups from the bundle
+    assert got_columns == columns
+    np.testing.assert_array_equal(got, x)
+    got, _, _ = shocktwin.features(full_log, str(bundle), ["position"])  # or as given
+    np.testing.assert_array_equal(got[:, 0], x[:, 0])
+    (bundle / "mlp.onnx").write_bytes(b"garbage")
+    with pytest.raises(shocktwin.BundleError, match="mlp.onnx"):
+        shocktwin.features(full_log, bundle)
 
 
 def test_bad_params_are_named(full_log, tmp_path: Path):
@@ -167,7 +201,7 @@ def test_bad_params_are_named(full_log, tmp_path: Path):
         shocktwin.features(full_log, tmp_path / "empty", ["position"])
     (tmp_path / "b2").mkdir()
     (tmp_path / "b2" / "twin.json").write_text("{}")
-    with pytest.raises(shocktwin.BundleError, match="physics"):
+    with pytest.raises(shocktwin.BundleError, match="twin.json"):
         shocktwin.features(full_log, tmp_path / "b2", ["position"])
 
 

@@ -6,6 +6,7 @@
 //! error kind to exactly one of them. The message is always the core's
 //! message, which names the file, topic, field or parameter at fault.
 
+use dt_core::bundle::BundleError;
 use dt_core::error::PhysicsError;
 use dt_core::log::LogError;
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError};
@@ -34,8 +35,8 @@ pub(crate) enum CoreError {
     /// Physics parameters given as a dict or JSON that do not parse (a key
     /// missing or unknown, a value not a number); the message names it.
     Params(String),
-    /// A model bundle that is incomplete or inconsistent.
-    Bundle(String),
+    /// Loading or running a model bundle.
+    Bundle(BundleError),
     /// A file other than a run log (physics.json, a bundle file) cannot be read.
     Io {
         /// The path.
@@ -49,6 +50,12 @@ impl CoreError {
     /// A parameter set `what` (a path or `parameters`) that does not parse.
     pub(crate) fn params(what: &str, err: &serde_json::Error) -> Self {
         CoreError::Params(format!("{what}: invalid physics parameters: {err}"))
+    }
+}
+
+impl From<BundleError> for CoreError {
+    fn from(err: BundleError) -> Self {
+        CoreError::Bundle(err)
     }
 }
 
@@ -73,16 +80,22 @@ impl From<CoreError> for PyErr {
             CoreError::Log(err) => py::LogError::new_err(err.to_string()),
             CoreError::Physics(err) => physics_error(&err),
             CoreError::Params(message) => py::ParamsError::new_err(message),
-            CoreError::Bundle(message) => py::BundleError::new_err(message),
-            CoreError::Io { file, source } => {
-                let message = format!("{file}: {source}");
-                if source.kind() == std::io::ErrorKind::NotFound {
-                    PyFileNotFoundError::new_err(message)
-                } else {
-                    PyOSError::new_err(message)
-                }
+            CoreError::Bundle(BundleError::Io { path, source }) => {
+                io_error(&path.display().to_string(), &source)
             }
+            CoreError::Bundle(err) => py::BundleError::new_err(err.to_string()),
+            CoreError::Io { file, source } => io_error(&file, &source),
         }
+    }
+}
+
+/// A file that is not a run log cannot be read: the builtin OS error class.
+fn io_error(file: &str, source: &std::io::Error) -> PyErr {
+    let message = format!("{file}: {source}");
+    if source.kind() == std::io::ErrorKind::NotFound {
+        PyFileNotFoundError::new_err(message)
+    } else {
+        PyOSError::new_err(message)
     }
 }
 

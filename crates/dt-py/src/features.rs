@@ -3,6 +3,7 @@
 
 use std::path::PathBuf;
 
+use dt_core::bundle::Bundle;
 use dt_core::features::{
     compute_features, paper_permutations, paper_rmse_bar, suite_cost_aud, suite_sensors, Group,
     Sensor, COLUMNS,
@@ -18,7 +19,7 @@ use crate::convert::{ns_to_seconds, to_numpy};
 use crate::exceptions::CoreError;
 use crate::gil::without_gil;
 use crate::log::{read_log, PyLog};
-use crate::params::{physics_from_dict, physics_from_path};
+use crate::params::{physics_from_dict, physics_from_file};
 
 fn groups_from_names(names: &[String]) -> PyResult<Vec<Group>> {
     names
@@ -31,15 +32,21 @@ fn group(name: &str) -> PyResult<Group> {
     Group::from_name(name).map_err(|e| CoreError::from(e).into())
 }
 
-/// Physics parameters from a dict (the physics.json structure), or a path
-/// to a physics.json file or to a model bundle directory (its `twin.json`).
-fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<PhysicsParams> {
+/// Physics parameters (and, from a bundle, its groups) from a dict (the
+/// physics.json structure), a path to a physics.json file, or a model bundle
+/// directory (loaded and checked by dt-core, network included).
+fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<(PhysicsParams, Option<Vec<Group>>)> {
     if obj.is_instance_of::<PyDict>() {
-        return physics_from_dict("parameters", obj);
+        return Ok((physics_from_dict("parameters", obj)?, None));
     }
     if obj.is_instance_of::<PyString>() || obj.hasattr("__fspath__")? {
         let path: PathBuf = obj.extract()?;
-        return physics_from_path(&path);
+        if path.is_dir() {
+            let bundle =
+                without_gil(obj.py(), move || Bundle::load(&path)).map_err(CoreError::from)?;
+            return Ok((*bundle.physics(), Some(bundle.groups)));
+        }
+        return Ok((physics_from_file(&path)?, None));
     }
     Err(PyTypeError::new_err(format!(
         "bundle_or_params: expected a dict of physics parameters or a path, got {}",
@@ -53,8 +60,10 @@ fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<PhysicsParams> {
 /// ``log`` is a ``Log`` (from ``read_log``) or a path to a run log.
 /// ``bundle_or_params`` is a dict of the physics.json structure
 /// (``{"kalman": {...}, "thermal": {...}, "force": {...}}``; other top-level
-/// keys are ignored), a path to a physics.json, or a model bundle directory.
-/// ``groups`` is a list of input group names (see ``GROUPS``).
+/// keys are ignored), a path to a physics.json, or a model bundle directory
+/// (SPEC §5; loaded and checked in full). ``groups`` is a list of input
+/// group names (see ``GROUPS``); with a bundle it may be left out (``None``)
+/// for the bundle's own permutation.
 ///
 /// Returns ``(X, columns, t_s)``: ``X`` float64 of shape
 /// ``(n_ticks, len(columns))``, the columns of ``groups`` in the order
@@ -66,19 +75,28 @@ fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<PhysicsParams> {
 /// >>> shocktwin.group_columns("mechanical")
 /// ['force_model_n', 'force_damping_model_n', 'force_gas_model_n']
 #[pyfunction]
+#[pyo3(signature = (log, bundle_or_params, groups = None))]
 #[allow(clippy::type_complexity)]
 pub(crate) fn features<'py>(
     py: Python<'py>,
     log: &Bound<'py, PyAny>,
     bundle_or_params: &Bound<'py, PyAny>,
-    groups: Vec<String>,
+    groups: Option<Vec<String>>,
 ) -> PyResult<(
     Bound<'py, PyArray2<f64>>,
     Vec<String>,
     Bound<'py, PyArray1<f64>>,
 )> {
-    let groups = groups_from_names(&groups)?;
-    let params = physics_from(bundle_or_params)?;
+    let (params, bundle_groups) = physics_from(bundle_or_params)?;
+    let groups = match (groups, bundle_groups) {
+        (Some(names), _) => groups_from_names(&names)?,
+        (None, Some(groups)) => groups,
+        (None, None) => {
+            return Err(PyTypeError::new_err(
+                "features: `groups` is required unless `bundle_or_params` is a model bundle",
+            ))
+        }
+    };
     let run = if let Ok(log) = log.downcast::<PyLog>() {
         log.get().run_log()
     } else if log.is_instance_of::<PyString>() || log.hasattr("__fspath__")? {

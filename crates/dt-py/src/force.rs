@@ -18,6 +18,13 @@ use crate::gil::without_gil;
 /// ``k_hys`` (N·s²/m), ``nu_40`` (cSt), ``beta`` (1/K), ``charge_bar``
 /// (bar gauge at 20 °C), ``a_rod`` (m²), ``v_gas`` (m³). Each defaults to
 /// dt-core's prior (``default_params()["force"]``).
+///
+/// >>> import shocktwin
+/// >>> model = shocktwin.ForceModel(charge_bar=12.0, a_rod=3.14159e-4)
+/// >>> model.force([0.0], [0.0], [0.0], [20.0]).round(1)  # at rest: 12 bar on a 20 mm rod
+/// array([-377.])
+/// >>> sorted(model.components([0.5], [0.0], [0.0], [40.0]))
+/// ['force_n', 'gas_n', 'hysteresis_n', 'main_n', 'port_n', 'power_w']
 #[pyclass(module = "shocktwin._native", name = "ForceModel", frozen)]
 pub(crate) struct PyForceModel {
     model: ForceModel,

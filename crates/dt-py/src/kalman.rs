@@ -14,6 +14,15 @@ use crate::gil::without_gil;
 ///
 /// ``sigma_accel`` (m/s²), ``sigma_bias`` (m/s²/√s), ``sigma_position`` (m);
 /// the defaults are dt-core's priors (``default_params()["kalman"]``).
+///
+/// >>> import numpy as np, shocktwin
+/// >>> t_acc, t_pos = np.arange(1000) * 1e-3, np.arange(100) * 1e-2
+/// >>> kf = shocktwin.KalmanFilter(sigma_accel=0.2, sigma_bias=0.005, sigma_position=1e-3)
+/// >>> out = kf.run(t_acc, np.zeros(1000), t_pos, np.full(100, 0.01))  # at rest at +10 mm
+/// >>> sorted(out)
+/// ['bias_mps2', 'position_m', 't_s', 'velocity_mps']
+/// >>> round(float(out["position_m"][-1]), 6), bool(abs(out["velocity_mps"][-1]) < 1e-3)
+/// (0.01, True)
 #[pyclass(module = "shocktwin._native", name = "KalmanFilter", frozen)]
 pub(crate) struct PyKalmanFilter {
     params: KalmanParams,

@@ -30,6 +30,12 @@ const TOPIC_ORDER: [&str; 6] = [
 /// or not a valid shocktwin log, ``LogReadError`` (an ``OSError``) when it
 /// cannot be read. Messages that cannot be decoded are skipped and listed in
 /// ``Log.problems``.
+///
+/// >>> import shocktwin
+/// >>> shocktwin.read_log("no/such/run.mcap")
+/// Traceback (most recent call last):
+/// ...
+/// shocktwin.exceptions.LogReadError: no/such/run.mcap: No such file or directory (os error 2)
 #[pyfunction]
 pub(crate) fn read_log(py: Python<'_>, path: PathBuf) -> PyResult<PyLog> {
     let display = path.display().to_string();

@@ -16,7 +16,15 @@ use serde_json::{Map, Number, Value};
 use crate::exceptions::CoreError;
 
 /// The SPEC §3 parameter priors of dt-core, as a fresh dict
-/// ``{"kalman": {...}, "thermal": {...}, "force": {...}}``.
+/// ``{"kalman": {...}, "thermal": {...}, "force": {...}}`` (the
+/// physics.json structure that ``features`` takes).
+///
+/// >>> import shocktwin
+/// >>> params = shocktwin.default_params()
+/// >>> sorted(params), params["force"]["charge_bar"]
+/// (['force', 'kalman', 'thermal'], 12.0)
+/// >>> shocktwin.ForceModel(**params["force"]).params == params["force"]
+/// True
 #[pyfunction]
 pub(crate) fn default_params(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     physics_dict(py, &PhysicsParams::default())
@@ -49,30 +57,14 @@ pub(crate) fn physics_from_dict(what: &str, obj: &Bound<'_, PyAny>) -> PyResult<
     physics_from_value(what, py_to_json(obj, what)?)
 }
 
-/// Reads and validates the physics parameters of a physics.json file, or of
-/// a model bundle directory (the `physics` object of its `twin.json`).
-pub(crate) fn physics_from_path(path: &Path) -> PyResult<PhysicsParams> {
-    let file = if path.is_dir() {
-        path.join("twin.json")
-    } else {
-        path.to_path_buf()
-    };
-    let what = file.display().to_string();
-    let text = std::fs::read_to_string(&file).map_err(|source| CoreError::Io {
+/// Reads and validates the physics parameters of a physics.json file.
+pub(crate) fn physics_from_file(path: &Path) -> PyResult<PhysicsParams> {
+    let what = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| CoreError::Io {
         file: what.clone(),
         source,
     })?;
     let value: Value = serde_json::from_str(&text).map_err(|err| CoreError::params(&what, &err))?;
-    let value = if path.is_dir() {
-        match value {
-            Value::Object(mut map) => map.remove("physics").ok_or_else(|| {
-                CoreError::Bundle(format!("{what}: no `physics` object (SPEC §5)"))
-            })?,
-            _ => return Err(CoreError::Bundle(format!("{what}: not a JSON object")).into()),
-        }
-    } else {
-        value
-    };
     physics_from_value(&what, value)
 }
 

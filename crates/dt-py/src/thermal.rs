@@ -16,6 +16,12 @@ use crate::gil::without_gil;
 /// Keyword-only parameters ``c_oil``, ``c_cyl`` (J/K), ``ha_in``, ``ha_out``
 /// (W/K), ``eps_sigma_a`` (W/K⁴); each defaults to dt-core's prior
 /// (``default_params()["thermal"]``).
+///
+/// >>> import shocktwin
+/// >>> model = shocktwin.ThermalModel(c_oil=500.0, c_cyl=700.0, ha_in=10.0, ha_out=2.5, eps_sigma_a=0.0)
+/// >>> oil, cyl = model.simulate([0.0, 1.0], [500.0, 500.0], [20.0, 20.0], 20.0, 20.0)
+/// >>> round(float(oil[1]), 3)  # 500 W into 500 J/K: about 1 K in 1 s
+/// 20.99
 #[pyclass(module = "shocktwin._native", name = "ThermalModel", frozen)]
 pub(crate) struct PyThermalModel {
     model: ThermalModel,
