@@ -21,7 +21,7 @@ use tract_onnx::prelude::{
     TypedRunnableModel,
 };
 
-use crate::features::{column_names, Group};
+use crate::features::{column_names, Group, N_COLUMNS};
 use crate::params::PhysicsParams;
 
 /// The `format` value this code reads and writes.
@@ -64,12 +64,12 @@ pub enum BundleError {
         /// tract's message.
         message: String,
     },
-    /// An input row of the wrong width.
-    #[error("bundle expects {expected} input columns, got {got}")]
+    /// Input values that are not whole rows of the permutation's width.
+    #[error("bundle expects rows of {expected} input columns, got {got} values")]
     Width {
         /// Number of columns of the permutation.
         expected: usize,
-        /// Number given.
+        /// Number of values given.
         got: usize,
     },
 }
@@ -203,12 +203,6 @@ pub struct Bundle {
     network: Network,
 }
 
-#[derive(Debug)]
-struct Network {
-    plan: Arc<TypedRunnableModel>,
-    f32_io: bool,
-}
-
 impl Bundle {
     /// Loads and checks `dir/twin.json` and the network it names.
     pub fn load(dir: impl AsRef<Path>) -> Result<Self, BundleError> {
@@ -264,37 +258,276 @@ impl Bundle {
     }
 
     /// Charge pressure (bar) for raw (un-normalised) feature rows, row-major
-    /// `[n_rows × n_inputs]`.
+    /// `[n_rows × n_inputs]`: `(x − mean) / std`, then the network.
     pub fn predict(&self, rows: &[f64]) -> Result<Vec<f64>, BundleError> {
+        let x = self.normalise(rows)?;
         let k = self.n_inputs();
-        if k == 0 || rows.len() % k != 0 {
+        self.network.run(&x, x.len() / k, k, &self.onnx_path())
+    }
+
+    /// [`predict`](Self::predict) through tract-onnx's plan, whatever the
+    /// backend (the reference the dense path is checked against at load).
+    pub fn predict_reference(&self, rows: &[f64]) -> Result<Vec<f64>, BundleError> {
+        let x = self.normalise(rows)?;
+        let k = self.n_inputs();
+        self.network
+            .run_tract(&x, x.len() / k, k, &self.onnx_path())
+    }
+
+    /// Charge pressure for one raw feature row (no allocation on the dense
+    /// path beyond a small scratch buffer).
+    pub fn predict_one(&self, row: &[f64]) -> Result<f64, BundleError> {
+        let k = self.n_inputs();
+        if row.len() != k {
             return Err(BundleError::Width {
                 expected: k,
-                got: rows.len() % k.max(1),
+                got: row.len(),
             });
         }
-        let n = rows.len() / k;
         let norm = &self.twin.normalisation;
-        let x: Vec<f64> = rows
+        let mut x = [0.0; N_COLUMNS];
+        for (xi, (v, (m, s))) in x
+            .iter_mut()
+            .zip(row.iter().zip(norm.mean.iter().zip(&norm.std)))
+        {
+            *xi = (v - m) / s;
+        }
+        match &self.network.dense {
+            Some(dense) => {
+                let mut scratch = Vec::with_capacity(2 * dense.max_width);
+                Ok(dense.forward_one(&x[..k], &mut scratch))
+            }
+            None => Ok(self.network.run_tract(&x[..k], 1, k, &self.onnx_path())?[0]),
+        }
+    }
+
+    /// Which evaluator runs the network: `"dense"` (a plain float64 MLP read
+    /// from the ONNX initializers, checked against tract at load) or
+    /// `"tract"` (tract-onnx's optimised plan, any other graph).
+    #[must_use]
+    pub fn backend(&self) -> &'static str {
+        if self.network.dense.is_some() {
+            "dense"
+        } else {
+            "tract"
+        }
+    }
+
+    fn onnx_path(&self) -> PathBuf {
+        self.dir.join(&self.twin.onnx.file)
+    }
+
+    /// Checks the width and normalises row-major rows.
+    fn normalise(&self, rows: &[f64]) -> Result<Vec<f64>, BundleError> {
+        let k = self.n_inputs();
+        if rows.len() % k != 0 {
+            return Err(BundleError::Width {
+                expected: k,
+                got: rows.len(),
+            });
+        }
+        let norm = &self.twin.normalisation;
+        Ok(rows
             .chunks_exact(k)
             .flat_map(|r| {
                 r.iter()
                     .zip(norm.mean.iter().zip(&norm.std))
                     .map(|(x, (m, s))| (x - m) / s)
             })
-            .collect();
-        self.network.run(&x, n, k, &self.dir)
+            .collect())
+    }
+}
+
+/// The network: tract-onnx's plan (the reference), and, when the graph is a
+/// plain float64 MLP (`MatMul`/`Add`/`Relu`, with `Cast`/`Identity`/`Reshape`
+/// that change nothing), the same layers evaluated directly from the ONNX
+/// initializers that tract-onnx parsed.
+#[derive(Debug)]
+struct Network {
+    plan: Arc<TypedRunnableModel>,
+    f32_io: bool,
+    dense: Option<DenseMlp>,
+}
+
+/// One dense layer `y = x W + b` (`W` row-major `[n_in, n_out]`, as in ONNX
+/// `MatMul`), optionally followed by `ReLU`.
+#[derive(Debug, Clone)]
+struct Dense {
+    n_in: usize,
+    n_out: usize,
+    w: Vec<f64>,
+    b: Vec<f64>,
+    relu: bool,
+}
+
+/// A plain MLP read from the ONNX graph.
+#[derive(Debug, Clone)]
+struct DenseMlp {
+    layers: Vec<Dense>,
+    max_width: usize,
+}
+
+/// Outputs evaluated together in registers by [`Dense::forward`].
+const LANES: usize = 8;
+
+impl Dense {
+    /// `out = x W + b` (then `ReLU`). Sums over the inputs in order for each
+    /// output, `LANES` outputs at a time (vectorises without reassociation).
+    fn forward(&self, x: &[f64], out: &mut [f64]) {
+        let (n_in, n_out) = (self.n_in, self.n_out);
+        let full = n_out - n_out % LANES;
+        for j0 in (0..full).step_by(LANES) {
+            let mut acc: [f64; LANES] = self.b[j0..j0 + LANES].try_into().unwrap_or([0.0; LANES]);
+            for (i, &xi) in x[..n_in].iter().enumerate() {
+                let w: &[f64; LANES] = self.w[i * n_out + j0..i * n_out + j0 + LANES]
+                    .try_into()
+                    .unwrap_or(&[0.0; LANES]);
+                for l in 0..LANES {
+                    acc[l] += xi * w[l];
+                }
+            }
+            out[j0..j0 + LANES].copy_from_slice(&acc);
+        }
+        for (j, o) in out.iter_mut().enumerate().take(n_out).skip(full) {
+            let mut acc = self.b[j];
+            for (i, &xi) in x[..n_in].iter().enumerate() {
+                acc += xi * self.w[i * n_out + j];
+            }
+            *o = acc;
+        }
+        if self.relu {
+            // ONNX Relu: max(x, 0), NaN stays NaN.
+            for v in &mut out[..n_out] {
+                if *v < 0.0 {
+                    *v = 0.0;
+                }
+            }
+        }
+    }
+}
+
+impl DenseMlp {
+    /// The network's single output for one normalised row.
+    fn forward_one(&self, x: &[f64], scratch: &mut Vec<f64>) -> f64 {
+        let w = self.max_width;
+        scratch.clear();
+        scratch.resize(2 * w, 0.0);
+        let (a, b) = scratch.split_at_mut(w);
+        a[..x.len()].copy_from_slice(x);
+        let (mut cur, mut next) = (a, b);
+        for layer in &self.layers {
+            layer.forward(&cur[..layer.n_in], &mut next[..layer.n_out]);
+            std::mem::swap(&mut cur, &mut next);
+        }
+        cur[0]
     }
 
-    /// Charge pressure for one raw feature row.
-    pub fn predict_one(&self, row: &[f64]) -> Result<f64, BundleError> {
-        if row.len() != self.n_inputs() {
-            return Err(BundleError::Width {
-                expected: self.n_inputs(),
-                got: row.len(),
-            });
+    /// Reads a plain MLP from the graph, or says why it is not one (the
+    /// caller then runs tract's plan).
+    fn from_proto(
+        proto: &tract_onnx::pb::ModelProto,
+        onnx: &tract_onnx::Onnx,
+        k: usize,
+    ) -> Result<Self, String> {
+        const DOUBLE: i64 = 11;
+        let graph = proto.graph.as_ref().ok_or("no graph")?;
+        let mut consts: std::collections::HashMap<&str, (Vec<usize>, Vec<f64>)> =
+            std::collections::HashMap::new();
+        for t in &graph.initializer {
+            let tensor = tract_onnx::tensor::load_tensor(&*onnx.provider, t, None)
+                .map_err(|e| format!("initializer {}: {e}", t.name))?;
+            let shape = tensor.shape().to_vec();
+            let values = tensor
+                .cast_to::<f64>()
+                .and_then(|c| {
+                    c.to_plain_array_view::<f64>()
+                        .map(|v| v.iter().copied().collect())
+                })
+                .map_err(|e| format!("initializer {}: {e}", t.name))?;
+            consts.insert(t.name.as_str(), (shape, values));
         }
-        Ok(self.predict(row)?[0])
+        let inputs: Vec<&str> = graph
+            .input
+            .iter()
+            .map(|v| v.name.as_str())
+            .filter(|n| !consts.contains_key(n))
+            .collect();
+        let [input] = inputs[..] else {
+            return Err(format!("{} graph inputs", inputs.len()));
+        };
+        let mut current = input.to_owned();
+        let mut width = k;
+        let mut layers: Vec<Dense> = Vec::new();
+        // Whether the last layer may still take its bias / ReLU.
+        let (mut open_bias, mut open_relu) = (false, false);
+        for node in &graph.node {
+            let data: Vec<&str> = node
+                .input
+                .iter()
+                .map(String::as_str)
+                .filter(|n| !consts.contains_key(n))
+                .collect();
+            let weights: Vec<&(Vec<usize>, Vec<f64>)> = node
+                .input
+                .iter()
+                .filter_map(|n| consts.get(n.as_str()))
+                .collect();
+            if data != [current.as_str()] || node.output.len() != 1 {
+                return Err(format!(
+                    "node {} ({}) is not on a chain",
+                    node.name, node.op_type
+                ));
+            }
+            match (node.op_type.as_str(), &weights[..]) {
+                ("Identity", []) => {}
+                ("Cast", []) => {
+                    let to = node.attribute.iter().find(|a| a.name == "to").map(|a| a.i);
+                    if to != Some(DOUBLE) {
+                        return Err(format!("Cast to {to:?}"));
+                    }
+                }
+                ("MatMul", [(shape, w)]) if node.input[1] != current => {
+                    if shape[..] != [width, shape.get(1).copied().unwrap_or(0)] {
+                        return Err(format!("MatMul weight {shape:?} for width {width}"));
+                    }
+                    layers.push(Dense {
+                        n_in: width,
+                        n_out: shape[1],
+                        w: w.clone(),
+                        b: vec![0.0; shape[1]],
+                        relu: false,
+                    });
+                    width = shape[1];
+                    (open_bias, open_relu) = (true, true);
+                }
+                ("Add", [(_, b)]) if open_bias && b.len() == width => {
+                    if let Some(last) = layers.last_mut() {
+                        last.b.clone_from(b);
+                    }
+                    open_bias = false;
+                }
+                ("Relu", []) if open_relu => {
+                    if let Some(last) = layers.last_mut() {
+                        last.relu = true;
+                    }
+                    (open_bias, open_relu) = (false, false);
+                }
+                ("Reshape", [(_, shape)])
+                    if width == 1 && matches!(shape[..], [-1.0 | 0.0, 1.0] | [1.0]) => {}
+                (op, _) => return Err(format!("operator {op} not supported by the dense path")),
+            }
+            current.clone_from(&node.output[0]);
+        }
+        let outputs: Vec<&str> = graph.output.iter().map(|v| v.name.as_str()).collect();
+        if outputs != [current.as_str()] || width != 1 || layers.is_empty() {
+            return Err("graph output is not the end of the chain".into());
+        }
+        let max_width = layers
+            .iter()
+            .map(|l| l.n_in.max(l.n_out))
+            .max()
+            .unwrap_or(1);
+        Ok(Self { layers, max_width })
     }
 }
 
@@ -304,44 +537,86 @@ impl Network {
             path: path.to_path_buf(),
             message: format!("{e:#}"),
         };
+        let inconsistent = |message: String| BundleError::Inconsistent {
+            path: path.to_path_buf(),
+            message,
+        };
         let f32_io = match twin.onnx.dtype.as_str() {
             "float64" => false,
             "float32" => true,
             other => {
-                return Err(BundleError::Inconsistent {
-                    path: path.to_path_buf(),
-                    message: format!("onnx.dtype must be float64 or float32, found {other:?}"),
-                })
+                return Err(inconsistent(format!(
+                    "onnx.dtype must be float64 or float32, found {other:?}"
+                )))
             }
         };
         let k = twin.permutation.columns.len();
+        let onnx = tract_onnx::onnx();
+        let proto = onnx
+            .proto_model_for_read(&mut &bytes[..])
+            .map_err(|e| onnx_err(&e))?;
+        check_io_names(&proto, twin).map_err(inconsistent)?;
         let fact: InferenceFact = if f32_io {
             f32::fact([1, k]).into()
         } else {
             f64::fact([1, k]).into()
         };
-        let plan = tract_onnx::onnx()
-            .model_for_read(&mut &bytes[..])
+        let plan = onnx
+            .model_for_proto_model(&proto)
             .and_then(|m| m.with_input_fact(0, fact))
             .and_then(InferenceModelExt::into_optimized)
             .and_then(IntoRunnable::into_runnable)
             .map_err(|e| onnx_err(&e))?;
-        let net = Self { plan, f32_io };
+        let mut net = Self {
+            plan,
+            f32_io,
+            dense: None,
+        };
         // A probe run checks the output shape now, not at the first tick.
-        let probe = net.run(&vec![0.0; k], 1, k, path)?;
+        let probe = net.run_tract(&vec![0.0; k], 1, k, path)?;
         if probe.len() != 1 {
-            return Err(BundleError::Inconsistent {
-                path: path.to_path_buf(),
-                message: format!(
-                    "network output has {} values per row, expected 1",
-                    probe.len()
-                ),
-            });
+            return Err(inconsistent(format!(
+                "network output has {} values per row, expected 1",
+                probe.len()
+            )));
+        }
+        if !f32_io {
+            // The dense path is used only if it agrees with tract on probe rows.
+            if let Ok(dense) = DenseMlp::from_proto(&proto, &onnx, k) {
+                let rows = probe_rows(k);
+                let reference = net.run_tract(&rows, rows.len() / k, k, path)?;
+                let mut scratch = Vec::new();
+                let agrees = rows.chunks_exact(k).zip(&reference).all(|(row, r)| {
+                    let d = dense.forward_one(row, &mut scratch);
+                    (d - r).abs() <= 1e-9 * r.abs().max(1.0)
+                });
+                if agrees {
+                    net.dense = Some(dense);
+                }
+            }
         }
         Ok(net)
     }
 
     fn run(&self, x: &[f64], n: usize, k: usize, path: &Path) -> Result<Vec<f64>, BundleError> {
+        match &self.dense {
+            Some(dense) => {
+                let mut scratch = Vec::with_capacity(2 * dense.max_width);
+                Ok(x.chunks_exact(k)
+                    .map(|row| dense.forward_one(row, &mut scratch))
+                    .collect())
+            }
+            None => self.run_tract(x, n, k, path),
+        }
+    }
+
+    fn run_tract(
+        &self,
+        x: &[f64],
+        n: usize,
+        k: usize,
+        path: &Path,
+    ) -> Result<Vec<f64>, BundleError> {
         let err = |e: &dyn std::fmt::Display| BundleError::Onnx {
             path: path.to_path_buf(),
             message: format!("{e:#}"),
@@ -370,6 +645,46 @@ impl Network {
         }
         Ok(out)
     }
+}
+
+/// Deterministic normalised probe rows in [-3, 3] (and a zero row).
+fn probe_rows(k: usize) -> Vec<f64> {
+    let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut rows = vec![0.0; k];
+    for _ in 0..16 * k {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        rows.push(((state >> 11) as f64 / (1u64 << 53) as f64) * 6.0 - 3.0);
+    }
+    rows
+}
+
+/// The graph's input and output names must be those `twin.json` gives.
+fn check_io_names(proto: &tract_onnx::pb::ModelProto, twin: &TwinJson) -> Result<(), String> {
+    let graph = proto.graph.as_ref().ok_or("the ONNX model has no graph")?;
+    let initializers: std::collections::HashSet<&str> =
+        graph.initializer.iter().map(|t| t.name.as_str()).collect();
+    let inputs: Vec<&str> = graph
+        .input
+        .iter()
+        .map(|v| v.name.as_str())
+        .filter(|n| !initializers.contains(n))
+        .collect();
+    let outputs: Vec<&str> = graph.output.iter().map(|v| v.name.as_str()).collect();
+    if inputs != [twin.onnx.input.as_str()] {
+        return Err(format!(
+            "network inputs {inputs:?} do not match twin.json onnx.input {:?}",
+            twin.onnx.input
+        ));
+    }
+    if outputs != [twin.onnx.output.as_str()] {
+        return Err(format!(
+            "network outputs {outputs:?} do not match twin.json onnx.output {:?}",
+            twin.onnx.output
+        ));
+    }
+    Ok(())
 }
 
 fn hex_digest(bytes: &[u8]) -> String {

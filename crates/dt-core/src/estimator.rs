@@ -8,39 +8,46 @@
 //!                                                   1 s moving average ─► health state machine
 //! ```
 //!
-//! - **Re-ordering.** Samples are held in a min-heap keyed by
+//! - **Re-ordering.** Samples are held in a buffer sorted by
 //!   `(t_ns, topic rank, arrival)` and released once the newest time seen is
-//!   more than `reorder_window_ns` past them, so the pipeline sees exactly the
+//!   at least `reorder_window_ns` past them, so the pipeline sees exactly the
 //!   order of [`crate::features::sorted_samples`]; that is why batch features
 //!   (`compute_features`, the Python `features`) and streaming agree. A
-//!   sample older than the last released one is late: counted and dropped.
+//!   sample that arrives less than the window after the newest one seen is
+//!   never late. A sample ordered before the last released one is late:
+//!   counted and dropped (a backward clock jump is late data). In-order
+//!   arrivals cost O(1); an out-of-order one a binary search and a short move.
 //! - **Clock jumps.** A forward jump of more than `max_gap_ns` between
 //!   released samples (a logger restart, a lost link) starts a new segment:
-//!   a fresh pipeline, average and health (`unknown` until excited again).
-//!   Counted.
+//!   a fresh pipeline (new tick origin), average and health (`unknown` until
+//!   excited again). Counted.
 //! - **Inputs the suite lacks** never reach the pipeline: it is built with the
 //!   topics that the bundle's groups need, so a model uses only its suite's
 //!   sensors (the batch path does the same, see `compute_features`).
 //! - **Pressure.** The network reads the permutation's columns of the row; a
-//!   row with a non-finite input gives a NaN pressure (a sensor not yet seen,
-//!   a dropout) and is counted. The 1 s average is the mean of the finite
-//!   pressures of excited ticks in the last 50 ticks.
-//! - **Health** (SPEC §6) is judged on the 1 s average: `leak` below the fault
-//!   threshold, `low` below the warn threshold, else `ok`; a state is left only
-//!   when the average is `hysteresis_bar` past its threshold, and a new state
-//!   is reported only after it has held for `dwell_s`. Without excitation
-//!   (1 s velocity RMS below `min_excitation_mps`) or without an average the
-//!   candidate state is `unknown`.
+//!   row with a non-finite input gives a NaN pressure (a sensor not yet seen)
+//!   and is counted.
+//! - **1 s average**: the mean of the finite pressures of the *usable* ticks
+//!   among the last 50: excited (1 s velocity RMS ≥ `min_excitation_mps`)
+//!   and fresh (every fast channel of the suite — loadcell, potentiometer,
+//!   accelerometers — had a sample in the tick; a held value from a dropout
+//!   is not averaged). NaN when no tick of the last second is usable.
+//! - **Health** ([`HealthMachine`], SPEC §6) is judged on the 1 s average:
+//!   `leak` below the fault threshold, `low` below the warn threshold, else
+//!   `ok`; a state is left only when the average is `hysteresis_bar` past its
+//!   threshold, and a new state is reported only after it has been the
+//!   candidate for `dwell_s`. Without excitation or without an average (no
+//!   usable data in the last second) the candidate is `unknown`.
 
-use std::cmp::Reverse;
-use std::collections::{BinaryHeap, VecDeque};
+use std::collections::VecDeque;
 use std::sync::Arc;
 
 use crate::bundle::{Bundle, BundleError, HealthConfig};
 use crate::error::PhysicsError;
 use crate::estimate::{Estimate, Health};
 use crate::features::{
-    column_indices, FeaturePipeline, TickRow, TopicSet, EXCITATION_WINDOW_TICKS, TICK_NS,
+    column_indices, FeaturePipeline, GapCounters, TickRow, TopicSet, EXCITATION_WINDOW_TICKS,
+    N_COLUMNS,
 };
 use crate::log::Sample;
 
@@ -62,7 +69,7 @@ pub struct EstimatorConfig {
     pub nominal_bar: f64,
     /// Health thresholds and timing.
     pub health: HealthConfig,
-    /// Samples are held this long for re-ordering, ns.
+    /// Samples are held this long for re-ordering, ns (the estimate latency).
     pub reorder_window_ns: i64,
     /// A forward gap longer than this starts a new segment, ns.
     pub max_gap_ns: i64,
@@ -85,11 +92,11 @@ impl EstimatorConfig {
 /// What an estimator has counted so far.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct EstimatorCounters {
-    /// Samples accepted (incl. those still in the re-order window).
+    /// Samples taken by [`Estimator::push`] (incl. late and held ones).
     pub samples: u64,
-    /// Samples older than the last released one: dropped.
+    /// Samples ordered before the last released one: dropped.
     pub late_dropped: u64,
-    /// Samples that arrived out of order but inside the window (re-ordered).
+    /// Samples that arrived out of time order but inside the window (re-ordered).
     pub reordered: u64,
     /// Forward clock jumps that started a new segment.
     pub clock_jumps: u64,
@@ -97,47 +104,41 @@ pub struct EstimatorCounters {
     pub ticks: u64,
     /// Ticks whose network inputs were not all finite (pressure NaN).
     pub ticks_without_inputs: u64,
+    /// Ticks left out of the 1 s average because a fast channel of the suite
+    /// had no sample in them (a dropout; the pipeline held its value).
+    pub ticks_stale: u64,
     /// Non-finite samples skipped by the pipeline (all segments).
     pub missing_samples: u64,
-    /// Ticks on which a fast channel had no sample (held value), all segments.
+    /// Ticks on which a fast channel had no sample (held value), summed over
+    /// the loadcell, potentiometer and accelerometers, all segments.
     pub gaps: u64,
+}
+
+/// One emitted tick: the estimate and the pipeline's full feature row (all
+/// [`crate::features::COLUMNS`]; the network read the bundle's columns of it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tick {
+    /// The `/estimate` fields.
+    pub estimate: Estimate,
+    /// The feature row and the twin's state at the tick.
+    pub row: TickRow,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Queued {
-    t_ns: i64,
-    rank: u8,
-    seq: u64,
+    key: (i64, u8),
     sample: Sample,
 }
 
-impl Eq for Queued {}
-impl Ord for Queued {
-    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
-        (self.t_ns, self.rank, self.seq).cmp(&(other.t_ns, other.rank, other.seq))
-    }
-}
-impl PartialOrd for Queued {
-    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(other))
-    }
-}
-
-/// Topic rank at equal times (SPEC §3.1: the accelerometer first).
-fn rank(s: &Sample) -> u8 {
-    match s {
-        Sample::Acceleration { .. } => 0,
-        Sample::Position { .. } => 1,
-        Sample::Force { .. } => 2,
-        Sample::TempShock { .. } => 3,
-        Sample::TempAmbient { .. } => 4,
-        Sample::TruthPressure { .. } => 5,
-    }
-}
-
-/// The health state machine of SPEC §6.
+/// The health state machine of SPEC §6, fed one tick at a time.
+///
+/// The *level* of a 1 s average is `leak` below `fault_bar`, `low` below
+/// `warn_bar`, else `ok`, with hysteresis around the reported state: `leak`
+/// is left only at `fault_bar + hysteresis_bar`, `low` (upwards) only at
+/// `warn_bar + hysteresis_bar`. Not excited or no average: `unknown`. The
+/// level becomes the reported state once it has been the same for `dwell_s`.
 #[derive(Debug, Clone, Copy)]
-struct HealthMachine {
+pub struct HealthMachine {
     cfg: HealthConfig,
     state: Health,
     candidate: Health,
@@ -145,7 +146,9 @@ struct HealthMachine {
 }
 
 impl HealthMachine {
-    fn new(cfg: HealthConfig) -> Self {
+    /// A machine in state `unknown`.
+    #[must_use]
+    pub fn new(cfg: HealthConfig) -> Self {
         Self {
             cfg,
             state: Health::Unknown,
@@ -154,21 +157,34 @@ impl HealthMachine {
         }
     }
 
-    /// The level the average points to, with hysteresis around the current state.
-    fn level(&self, avg_bar: f64) -> Health {
+    /// The reported state.
+    #[must_use]
+    pub fn state(&self) -> Health {
+        self.state
+    }
+
+    /// The level `avg_bar` points to, with hysteresis around the reported state.
+    #[must_use]
+    pub fn level(&self, avg_bar: f64) -> Health {
         let h = self.cfg.hysteresis_bar;
         let (warn, fault) = (self.cfg.warn_bar, self.cfg.fault_bar);
-        match self.state {
-            Health::Leak if avg_bar < fault + h => Health::Leak,
-            Health::Low if avg_bar < fault => Health::Leak,
-            Health::Low if avg_bar < warn + h => Health::Low,
-            _ if avg_bar < fault => Health::Leak,
-            _ if avg_bar < warn => Health::Low,
-            _ => Health::Ok,
+        let (fault_up, warn_up) = match self.state {
+            Health::Leak => (fault + h, warn + h),
+            Health::Low => (fault, warn + h),
+            Health::Ok | Health::Unknown => (fault, warn),
+        };
+        if avg_bar < fault_up {
+            Health::Leak
+        } else if avg_bar < warn_up {
+            Health::Low
+        } else {
+            Health::Ok
         }
     }
 
-    fn update(&mut self, t_ns: i64, avg_bar: f64, excited: bool) -> Health {
+    /// Takes the tick at `t_ns` with its 1 s average (NaN: none) and whether
+    /// the damper is excited; returns the reported state.
+    pub fn update(&mut self, t_ns: i64, avg_bar: f64, excited: bool) -> Health {
         let target = if excited && avg_bar.is_finite() {
             self.level(avg_bar)
         } else {
@@ -178,8 +194,9 @@ impl HealthMachine {
             self.candidate = target;
             self.candidate_since_ns = t_ns;
         }
-        let dwell_ns = (self.cfg.dwell_s * 1e9) as i64;
-        if self.candidate != self.state && t_ns - self.candidate_since_ns >= dwell_ns {
+        let dwell_ns = (self.cfg.dwell_s * 1e9).round() as i64;
+        if self.candidate != self.state && t_ns.saturating_sub(self.candidate_since_ns) >= dwell_ns
+        {
             self.state = self.candidate;
         }
         self.state
@@ -193,14 +210,17 @@ pub struct Estimator {
     topics: TopicSet,
     columns: Vec<usize>,
     pipe: FeaturePipeline,
-    heap: BinaryHeap<Reverse<Queued>>,
-    seq: u64,
+    /// The re-order buffer, sorted by key (ties in arrival order).
+    queue: VecDeque<Queued>,
     newest_ns: i64,
-    released_ns: Option<(i64, u8)>,
-    avg: VecDeque<f64>,
+    released: Option<(i64, u8)>,
+    /// After [`Estimator::finish`]: the next released sample starts a segment.
+    finished: bool,
+    avg: [f64; EXCITATION_WINDOW_TICKS],
+    avg_idx: usize,
     health: HealthMachine,
-    row: Vec<f64>,
-    out: VecDeque<Estimate>,
+    prev_gaps: GapCounters,
+    out: VecDeque<Tick>,
     counters: EstimatorCounters,
     seg_missing: u64,
     seg_gaps: u64,
@@ -224,18 +244,19 @@ impl Estimator {
         let columns = column_indices(&bundle.groups);
         Ok(Self {
             health: HealthMachine::new(cfg.health),
-            row: Vec::with_capacity(columns.len()),
             columns,
             pipe,
             topics,
             bundle,
             cfg,
-            heap: BinaryHeap::new(),
-            seq: 0,
+            queue: VecDeque::with_capacity(256),
             newest_ns: i64::MIN,
-            released_ns: None,
-            avg: VecDeque::with_capacity(EXCITATION_WINDOW_TICKS),
-            out: VecDeque::new(),
+            released: None,
+            finished: false,
+            avg: [f64::NAN; EXCITATION_WINDOW_TICKS],
+            avg_idx: 0,
+            prev_gaps: GapCounters::default(),
+            out: VecDeque::with_capacity(16),
             counters: EstimatorCounters::default(),
             seg_missing: 0,
             seg_gaps: 0,
@@ -257,12 +278,26 @@ impl Estimator {
         &self.cfg
     }
 
+    /// The bundle.
+    #[must_use]
+    pub fn bundle(&self) -> &Arc<Bundle> {
+        &self.bundle
+    }
+
+    /// Samples held in the re-order window.
+    #[must_use]
+    pub fn held(&self) -> usize {
+        self.queue.len()
+    }
+
     /// Takes one sample (any topic, any order within the re-order window).
+    /// Late samples are counted and dropped, not an error; an error is a
+    /// numerical failure of the twin or the network.
     pub fn push(&mut self, sample: Sample) -> Result<(), EstimatorError> {
         let t = sample.t_ns();
         self.counters.samples += 1;
-        let key = (t, rank(&sample));
-        if self.released_ns.is_some_and(|r| key < r) {
+        let key = (t, sample.topic_rank());
+        if self.released.is_some_and(|r| key < r) {
             self.counters.late_dropped += 1;
             return Ok(());
         }
@@ -270,35 +305,42 @@ impl Estimator {
             self.counters.reordered += 1;
         }
         self.newest_ns = self.newest_ns.max(t);
-        self.seq += 1;
-        self.heap.push(Reverse(Queued {
-            t_ns: t,
-            rank: key.1,
-            seq: self.seq,
-            sample,
-        }));
+        let q = Queued { key, sample };
+        if self.queue.back().is_none_or(|b| b.key <= key) {
+            self.queue.push_back(q);
+        } else {
+            let at = self.queue.partition_point(|x| x.key <= key);
+            self.queue.insert(at, q);
+        }
         let horizon = self.newest_ns.saturating_sub(self.cfg.reorder_window_ns);
-        while let Some(Reverse(q)) = self.heap.peek().copied() {
-            if q.t_ns > horizon {
-                break;
+        while self.queue.front().is_some_and(|q| q.key.0 <= horizon) {
+            if let Some(q) = self.queue.pop_front() {
+                self.release(q)?;
             }
-            self.heap.pop();
-            self.release(q)?;
         }
         Ok(())
     }
 
-    /// End of stream: releases everything held and emits the last tick.
+    /// End of stream: releases everything held and emits the last tick. A
+    /// later [`push`](Self::push) starts a new segment (samples before the
+    /// last released one are still late).
     pub fn finish(&mut self) -> Result<(), EstimatorError> {
-        while let Some(Reverse(q)) = self.heap.pop() {
+        while let Some(q) = self.queue.pop_front() {
             self.release(q)?;
         }
         self.pipe.finish();
-        self.take_rows()
+        self.take_rows()?;
+        self.finished = true;
+        Ok(())
     }
 
     /// The estimates emitted so far and not yet taken.
     pub fn drain(&mut self) -> impl Iterator<Item = Estimate> + '_ {
+        self.out.drain(..).map(|t| t.estimate)
+    }
+
+    /// The ticks (estimate and feature row) emitted so far and not yet taken.
+    pub fn drain_ticks(&mut self) -> impl Iterator<Item = Tick> + '_ {
         self.out.drain(..)
     }
 
@@ -309,34 +351,39 @@ impl Estimator {
     }
 
     fn release(&mut self, q: Queued) -> Result<(), EstimatorError> {
-        if let Some((last_t, _)) = self.released_ns {
-            if q.t_ns - last_t > self.cfg.max_gap_ns {
+        if let Some((last_t, _)) = self.released {
+            if self.finished {
+                self.new_segment()?;
+            } else if q.key.0.saturating_sub(last_t) > self.cfg.max_gap_ns {
+                self.counters.clock_jumps += 1;
+                self.pipe.finish();
+                self.take_rows()?;
                 self.new_segment()?;
             }
         }
-        self.released_ns = Some((q.t_ns, q.rank));
+        self.released = Some(q.key);
         self.pipe.push(&q.sample)?;
         self.take_rows()
     }
 
     fn new_segment(&mut self) -> Result<(), EstimatorError> {
-        self.pipe.finish();
-        self.take_rows()?;
-        self.counters.clock_jumps += 1;
+        self.finished = false;
         self.counters.missing_samples += self.seg_missing;
         self.counters.gaps += self.seg_gaps;
         self.seg_missing = 0;
         self.seg_gaps = 0;
+        self.prev_gaps = GapCounters::default();
         self.pipe = FeaturePipeline::new(self.bundle.physics(), self.topics)?;
-        self.avg.clear();
+        self.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
+        self.avg_idx = 0;
         self.health = HealthMachine::new(self.cfg.health);
         Ok(())
     }
 
     fn take_rows(&mut self) -> Result<(), EstimatorError> {
         while let Some(row) = self.pipe.pop() {
-            let est = self.estimate(&row)?;
-            self.out.push_back(est);
+            let estimate = self.estimate(&row)?;
+            self.out.push_back(Tick { estimate, row });
         }
         Ok(())
     }
@@ -344,22 +391,36 @@ impl Estimator {
     fn estimate(&mut self, row: &TickRow) -> Result<Estimate, EstimatorError> {
         self.counters.ticks += 1;
         let twin = &row.twin;
+        let g = twin.gaps;
         self.seg_missing = twin.missing_samples;
-        self.seg_gaps = twin.gaps.force + twin.gaps.position + twin.gaps.acceleration;
-        self.row.clear();
-        self.row.extend(self.columns.iter().map(|&i| row.values[i]));
-        let pressure_bar = if self.row.iter().all(|x| x.is_finite()) {
-            self.bundle.predict_one(&self.row)?
+        self.seg_gaps = g.force + g.position + g.acceleration;
+        let p = self.prev_gaps;
+        let stale = (self.topics.force && g.force > p.force)
+            || (self.topics.position && g.position > p.position)
+            || (self.topics.acceleration && g.acceleration > p.acceleration);
+        self.prev_gaps = g;
+
+        let k = self.columns.len();
+        let mut x = [0.0; N_COLUMNS];
+        for (xi, &i) in x.iter_mut().zip(&self.columns) {
+            *xi = row.values[i];
+        }
+        let pressure_bar = if x[..k].iter().all(|v| v.is_finite()) {
+            self.bundle.predict_one(&x[..k])?
         } else {
             self.counters.ticks_without_inputs += 1;
             f64::NAN
         };
-        let excited = twin.velocity_rms_1s_mps >= self.cfg.health.min_excitation_mps;
-        if self.avg.len() == EXCITATION_WINDOW_TICKS {
-            self.avg.pop_front();
+        if stale {
+            self.counters.ticks_stale += 1;
         }
-        self.avg
-            .push_back(if excited { pressure_bar } else { f64::NAN });
+        let excited = twin.velocity_rms_1s_mps >= self.cfg.health.min_excitation_mps;
+        self.avg[self.avg_idx] = if excited && !stale {
+            pressure_bar
+        } else {
+            f64::NAN
+        };
+        self.avg_idx = (self.avg_idx + 1) % EXCITATION_WINDOW_TICKS;
         let (sum, n) = self
             .avg
             .iter()
@@ -396,5 +457,3 @@ pub fn estimate_log(
     out.extend(est.drain());
     Ok((out, est.counters()))
 }
-
-const _: () = assert!(TICK_NS == 20_000_000);

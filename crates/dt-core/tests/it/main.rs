@@ -4,3 +4,5 @@ mod log_conformance;
 mod log_python;
 mod log_reader;
 mod log_writer;
+mod bundle;
+mod estimator;
