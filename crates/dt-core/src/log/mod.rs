@@ -1,8 +1,16 @@
 //! Run-log format "shocktwin log v1" (SPEC §2): one MCAP file per run of one
 //! asset, JSON messages, a `shocktwin.run` metadata record.
 //!
-//! Types shared by the writer, the whole-file reader and the incremental
-//! (sans-io) reader live here.
+//! - [`LogWriter`]: writes a run (metadata first, one `json` channel with a
+//!   `jsonschema` schema per topic, `log_time` = `publish_time` = `t_ns`).
+//! - [`read_log`] / [`read_log_bytes`]: whole-file reader into a [`RunLog`].
+//! - [`LogDecoder`]: incremental reader fed bytes as they arrive (a socket).
+//! - [`inspect()`]: what any MCAP file holds and lacks ([`InspectReport`]).
+//! - [`raw`]: the generic MCAP layer underneath (any MCAP, size limits on
+//!   untrusted lengths), checked against the official conformance files.
+//!
+//! Which findings are fatal and which are `problems` is tabled in [`reader`].
+//! Types shared by the writer and the readers live here.
 
 use std::collections::BTreeMap;
 

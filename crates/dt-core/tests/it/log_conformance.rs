@@ -127,3 +127,21 @@ fn every_conformance_file_yields_the_expected_messages_and_metadata() {
     assert!(messages_checked > 1000, "{messages_checked} messages");
     assert!(metadata_checked > 10, "{metadata_checked} metadata records");
 }
+
+#[test]
+fn every_conformance_file_inspects_and_is_reported_as_not_a_shocktwin_log() {
+    for path in conformance_files() {
+        let report = dt_core::log::inspect(&path).unwrap_or_else(|e| panic!("{e}"));
+        let bytes = std::fs::read(&path).unwrap();
+        let raw = read_raw("x", &bytes).unwrap();
+        assert_eq!(report.message_count, raw.messages.len() as u64);
+        let per_channel: u64 = report.channels.iter().map(|c| c.message_count).sum();
+        assert_eq!(per_channel, report.message_count, "{}", path.display());
+        assert!(
+            report.problems.iter().any(|p| p.contains("shocktwin.run")),
+            "{}: {:?}",
+            path.display(),
+            report.problems
+        );
+    }
+}

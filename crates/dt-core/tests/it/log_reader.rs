@@ -469,3 +469,51 @@ fn not_mcap_is_an_error_naming_the_file() {
     bytes[mid] ^= 0x55;
     assert!(read_log_bytes("flip.mcap", &bytes).is_err());
 }
+
+#[test]
+fn inspect_reports_counts_rates_and_a_complete_log() {
+    let bytes = write_bytes(&samples(), WriteOptions::default());
+    let report = dt_core::log::inspect_bytes("run.mcap", &bytes).unwrap();
+    assert!(report.problems.is_empty(), "{:?}", report.problems);
+    assert_eq!(report.count("/acceleration"), 200);
+    assert_eq!(report.count("/position"), 20);
+    assert_eq!(report.chunks.keys().collect::<Vec<_>>(), ["zstd"]);
+    let acc = report
+        .channels
+        .iter()
+        .find(|c| c.topic == "/acceleration")
+        .unwrap();
+    assert!((acc.rate_hz().unwrap() - 1000.0).abs() < 1e-9);
+    assert!((report.duration_s() - 0.199).abs() < 1e-12);
+    assert_eq!(report.run.as_ref(), Some(&meta()));
+    let text = report.to_string();
+    assert!(text.contains("problems:  none"), "{text}");
+
+    // a log without /force and with an unknown topic: listed, not fatal
+    let only_position: Vec<Sample> = samples()
+        .into_iter()
+        .filter(|s| matches!(s, Sample::Position { .. }))
+        .collect();
+    let mut w = LogWriter::new(Cursor::new(Vec::new()), &meta(), WriteOptions::default()).unwrap();
+    for s in &only_position {
+        w.write_sample(s).unwrap();
+    }
+    w.write_json(
+        "/estimate",
+        "{}",
+        5,
+        &serde_json::json!({"pressure_bar": 1.0}),
+    )
+    .unwrap();
+    let bytes = w.finish().unwrap().into_inner();
+    let report = dt_core::log::inspect_bytes("partial.mcap", &bytes).unwrap();
+    let problems = report.problems.join("\n");
+    for needle in [
+        "/force",
+        "/acceleration",
+        "ignored topic /estimate (1 messages)",
+    ] {
+        assert!(problems.contains(needle), "{needle}: {problems}");
+    }
+    assert!(!problems.contains("/position"), "{problems}");
+}
