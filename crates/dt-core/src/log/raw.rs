@@ -1,7 +1,7 @@
 //! Generic MCAP layer: records of any MCAP file, shocktwin or not.
 //!
 //! [`RawDecoder`] is an incremental (sans-io) reader built on the `mcap`
-//! crate's [`LinearReader`](mcap::sans_io::LinearReader): it accepts chunked
+//! crate's [`mcap::sans_io::LinearReader`]: it accepts chunked
 //! or unchunked files, zstd, lz4 or uncompressed chunks, with or without
 //! indexes and summary. It decodes the records a reader needs (header,
 //! schemas, channels, messages, metadata) with bounds-checked parsers of its
