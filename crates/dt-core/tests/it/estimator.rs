@@ -1,0 +1,462 @@
+//! The streaming estimator: streaming = batch (`compute_features`) in order
+//! and shuffled within the re-order window; late, NaN and missing data and
+//! clock jumps counted, not fatal; the SPEC §6 health state machine on
+//! synthetic ticks.
+
+use std::sync::Arc;
+
+use dt_core::bundle::{Bundle, HealthConfig};
+use dt_core::estimate::Health;
+use dt_core::estimator::{Estimator, EstimatorConfig, HealthMachine, Tick};
+use dt_core::features::{column_indices, compute_features, sorted_samples, FeatureTable, TICK_NS};
+use dt_core::log::{RunLog, RunMetadata, Sample};
+
+/// Streaming and batch features must agree to this (SPEC: 1e-9).
+const TOL: f64 = 1e-9;
+const T0: i64 = 1_700_000_000_000_000_000;
+const MS: i64 = 1_000_000;
+
+fn bundle(name: &str) -> Arc<Bundle> {
+    let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name);
+    Arc::new(Bundle::load(dir).unwrap())
+}
+
+/// Deterministic pseudo-random numbers (`SplitMix64`).
+struct Rng(u64);
+
+impl Rng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [0, 1).
+    fn uniform(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn noise(&mut self) -> f64 {
+        self.uniform() * 2.0 - 1.0
+    }
+}
+
+/// A dyno-like run at SPEC rates: a sine of `amp_m` at 2 Hz from `t0`, with
+/// sensor noise, an accelerometer bias, a warming shock body, jittered
+/// loadcell times and accelerometer/potentiometer samples at equal times.
+fn synth_log(t0: i64, seconds: i64, amp_m: f64, seed: u64) -> RunLog {
+    let mut rng = Rng(seed);
+    let w = 2.0 * std::f64::consts::PI * 2.0;
+    let secs = |t: i64| (t - t0) as f64 / 1e9;
+    let mut log = RunLog {
+        metadata: RunMetadata {
+            asset_id: "unit-1".into(),
+            run_id: "synthetic".into(),
+            ..RunMetadata::default()
+        },
+        ..RunLog::default()
+    };
+    for i in 0..seconds * 1000 {
+        let t = t0 + i * MS;
+        let a = -amp_m * w * w * (w * secs(t)).sin();
+        log.acceleration
+            .push((t, a + 0.3 + 0.05 * rng.noise(), 0.05 * rng.noise()));
+    }
+    for i in 0..seconds * 100 {
+        let t = t0 + i * 10 * MS;
+        log.position
+            .push((t, amp_m * (w * secs(t)).sin() + 5e-4 * rng.noise()));
+    }
+    for i in 0..seconds * 50 {
+        let t = t0 + 3 * MS + i * 20 * MS + (rng.noise() * 2e5) as i64;
+        let v = amp_m * w * (w * secs(t)).cos();
+        log.force.push((t, 6000.0 * v - 380.0 + 20.0 * rng.noise()));
+    }
+    for i in 0..seconds {
+        let t = t0 + 250 * MS + i * 1000 * MS;
+        log.temp_shock.push((t, 25.0 + 0.05 * i as f64));
+        log.temp_ambient
+            .push((t + 7 * MS, 21.5 + 0.1 * rng.noise()));
+        log.truth_pressure.push((t, 12.0));
+    }
+    log
+}
+
+/// Pushes `samples` in the order given, collecting every tick.
+fn stream(est: &mut Estimator, samples: &[Sample]) -> Vec<Tick> {
+    let mut ticks = Vec::new();
+    for s in samples {
+        est.push(*s).unwrap();
+        ticks.extend(est.drain_ticks());
+    }
+    est.finish().unwrap();
+    ticks.extend(est.drain_ticks());
+    ticks
+}
+
+fn estimator(b: &Arc<Bundle>) -> Estimator {
+    Estimator::new(Arc::clone(b), EstimatorConfig::from_bundle(b)).unwrap()
+}
+
+/// Every batch row has its tick, with the same features (to `TOL`, NaN
+/// where NaN) and the same pressure as the network on the batch row.
+fn assert_same_as_batch(b: &Bundle, ticks: &[Tick], table: &FeatureTable) {
+    let idx = column_indices(&b.groups);
+    let k = idx.len();
+    assert_eq!(table.columns.len(), k);
+    assert_eq!(ticks.len(), table.n_rows(), "every tick accounted for");
+    let pressures = b.predict(&table.values).unwrap();
+    let mut finite = 0;
+    for (i, tick) in ticks.iter().enumerate() {
+        assert_eq!(tick.row.t_ns, table.t_ns[i], "tick {i}");
+        assert_eq!(tick.estimate.t_ns, table.t_ns[i], "tick {i}");
+        for (j, &c) in idx.iter().enumerate() {
+            let (s, bt) = (tick.row.values[c], table.row(i)[j]);
+            assert!(
+                (s - bt).abs() <= TOL || (s.is_nan() && bt.is_nan()),
+                "tick {i} column {}: streaming {s} vs batch {bt}",
+                table.columns[j]
+            );
+        }
+        let p = tick.estimate.pressure_bar;
+        if table.row(i).iter().all(|x| x.is_finite()) {
+            assert_eq!(p.to_bits(), pressures[i].to_bits(), "tick {i}: {p}");
+            finite += 1;
+        } else {
+            assert!(p.is_nan(), "tick {i}");
+        }
+    }
+    // Most ticks carry a pressure (all but the ones before the thermal
+    // model starts and the Kalman filter's first sample).
+    assert!(finite + 20 > ticks.len(), "{finite} of {}", ticks.len());
+}
+
+#[test]
+fn streaming_in_order_equals_batch() {
+    for name in ["bundle-mlp13", "bundle-force-skl"] {
+        let b = bundle(name);
+        let log = synth_log(T0, 12, 0.04, 1);
+        let table = compute_features(&log, b.physics(), &b.groups).unwrap();
+        let mut est = estimator(&b);
+        let ticks = stream(&mut est, &sorted_samples(&log));
+        assert_same_as_batch(&b, &ticks, &table);
+        let c = est.counters();
+        assert_eq!((c.late_dropped, c.reordered, c.clock_jumps), (0, 0, 0));
+        assert_eq!(c.ticks, ticks.len() as u64);
+        assert_eq!(c.samples, sorted_samples(&log).len() as u64);
+    }
+}
+
+/// Arrival order: each sample delayed by a random time below `max_delay_ns`
+/// (so topics interleave arbitrarily and a topic's own samples may swap).
+fn shuffled(samples: &[Sample], max_delay_ns: i64, seed: u64) -> Vec<Sample> {
+    let mut rng = Rng(seed);
+    let mut arrivals: Vec<(i64, Sample)> = samples
+        .iter()
+        .map(|s| {
+            let d = (rng.uniform() * max_delay_ns as f64) as i64;
+            (s.t_ns() + d.min(max_delay_ns - 1), *s)
+        })
+        .collect();
+    arrivals.sort_by_key(|a| a.0);
+    arrivals.into_iter().map(|a| a.1).collect()
+}
+
+#[test]
+fn streaming_shuffled_within_the_window_equals_batch() {
+    let b = bundle("bundle-mlp13");
+    let log = synth_log(T0, 12, 0.04, 2);
+    let table = compute_features(&log, b.physics(), &b.groups).unwrap();
+    let cfg = EstimatorConfig::from_bundle(&b);
+    for seed in 0..3 {
+        let samples = shuffled(&sorted_samples(&log), cfg.reorder_window_ns, seed);
+        let mut est = estimator(&b);
+        let ticks = stream(&mut est, &samples);
+        assert_same_as_batch(&b, &ticks, &table);
+        let c = est.counters();
+        assert_eq!(c.late_dropped, 0);
+        assert!(c.reordered > 10_000, "{c:?}");
+    }
+    // The estimates are the same too, health included.
+    let mut a = estimator(&b);
+    let in_order: Vec<_> = stream(&mut a, &sorted_samples(&log));
+    let mut z = estimator(&b);
+    let shuffled = stream(
+        &mut z,
+        &shuffled(&sorted_samples(&log), cfg.reorder_window_ns, 9),
+    );
+    for (x, y) in in_order.iter().zip(&shuffled) {
+        assert_eq!(x.estimate.health, y.estimate.health);
+        assert_eq!(
+            x.estimate.pressure_avg_bar.to_bits(),
+            y.estimate.pressure_avg_bar.to_bits()
+        );
+    }
+}
+
+#[test]
+fn late_samples_beyond_the_window_are_counted_and_dropped() {
+    let b = bundle("bundle-mlp13");
+    let log = synth_log(T0, 6, 0.04, 3);
+    let mut samples = sorted_samples(&log);
+    // One potentiometer sample (t = 2 s) arrives 300 ms late: beyond the
+    // 100 ms window.
+    let i = samples
+        .iter()
+        .position(|s| matches!(s, Sample::Position { t_ns, .. } if *t_ns == T0 + 2000 * MS))
+        .unwrap();
+    let late = samples.remove(i);
+    let j = samples
+        .iter()
+        .position(|s| s.t_ns() > T0 + 2300 * MS)
+        .unwrap();
+    samples.insert(j, late);
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &samples);
+    let c = est.counters();
+    assert_eq!(c.late_dropped, 1);
+    // Exactly what the batch gives without that sample.
+    let mut without = log.clone();
+    without.position.retain(|p| p.0 != T0 + 2000 * MS);
+    let table = compute_features(&without, b.physics(), &b.groups).unwrap();
+    assert_same_as_batch(&b, &ticks, &table);
+}
+
+#[test]
+fn backward_clock_jump_is_late_data() {
+    let b = bundle("bundle-mlp13");
+    let log = synth_log(T0, 4, 0.04, 4);
+    let samples = sorted_samples(&log);
+    let mut est = estimator(&b);
+    let mut n_ticks = 0;
+    for (i, s) in samples.iter().enumerate() {
+        est.push(*s).unwrap();
+        if i == samples.len() / 2 {
+            // The logger's clock jumps 5 s back for a few samples.
+            for k in 0..10 {
+                est.push(Sample::Force {
+                    t_ns: T0 - 5_000 * MS + k * 20 * MS,
+                    force_n: 100.0,
+                })
+                .unwrap();
+            }
+        }
+        n_ticks += est.drain().count();
+    }
+    est.finish().unwrap();
+    n_ticks += est.drain().count();
+    let c = est.counters();
+    assert_eq!(c.late_dropped, 10);
+    assert_eq!(c.clock_jumps, 0);
+    assert_eq!(n_ticks, 200);
+}
+
+#[test]
+fn forward_clock_jump_starts_a_new_segment() {
+    let b = bundle("bundle-mlp13");
+    let first = synth_log(T0, 5, 0.04, 5);
+    // A logger restart: the second part starts 10 s after the first ends.
+    let t1 = T0 + 15_000 * MS + 7 * MS;
+    let second = synth_log(t1, 6, 0.04, 6);
+    let mut samples = sorted_samples(&first);
+    samples.extend(sorted_samples(&second));
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &samples);
+    let c = est.counters();
+    assert_eq!(c.clock_jumps, 1);
+    assert_eq!(c.late_dropped, 0);
+    let ta = compute_features(&first, b.physics(), &b.groups).unwrap();
+    let tb = compute_features(&second, b.physics(), &b.groups).unwrap();
+    assert_eq!(ticks.len(), ta.n_rows() + tb.n_rows());
+    // Each segment is its own run: a new tick origin, the same features.
+    assert_same_as_batch(&b, &ticks[..ta.n_rows()], &ta);
+    assert_same_as_batch(&b, &ticks[ta.n_rows()..], &tb);
+    assert_eq!(ticks[ta.n_rows()].row.t_ns, t1 + TICK_NS);
+    // Health and average restart: unknown, no average yet.
+    let first_b = &ticks[ta.n_rows()].estimate;
+    assert_eq!(first_b.health, Health::Unknown);
+    assert!(first_b.pressure_avg_bar.is_nan());
+    assert_ne!(ticks[ta.n_rows() - 1].estimate.health, Health::Unknown);
+}
+
+#[test]
+fn nan_samples_are_counted_not_fatal() {
+    let b = bundle("bundle-mlp13");
+    let mut log = synth_log(T0, 6, 0.04, 7);
+    for i in [500, 1500, 2500] {
+        log.acceleration[i].1 = f64::NAN;
+    }
+    log.position[300].1 = f64::NAN;
+    log.force[100].1 = f64::INFINITY;
+    log.temp_shock[3].1 = f64::NAN;
+    let table = compute_features(&log, b.physics(), &b.groups).unwrap();
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &sorted_samples(&log));
+    assert_eq!(est.counters().missing_samples, 6);
+    assert_same_as_batch(&b, &ticks, &table);
+    assert!(ticks.last().unwrap().estimate.pressure_avg_bar.is_finite());
+}
+
+#[test]
+fn dropout_is_left_out_of_the_average_and_goes_unknown() {
+    let b = bundle("bundle-mlp13");
+    let mut log = synth_log(T0, 16, 0.04, 8);
+    // The loadcell drops out from 6 s to 11 s.
+    log.force
+        .retain(|f| !(T0 + 6_000 * MS..T0 + 11_000 * MS).contains(&f.0));
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &sorted_samples(&log));
+    let at = |t_ms: i64| {
+        ticks
+            .iter()
+            .find(|t| t.row.t_ns == T0 + t_ms * MS)
+            .unwrap()
+            .estimate
+    };
+    assert_ne!(at(5_900).health, Health::Unknown);
+    assert!(at(5_900).pressure_avg_bar.is_finite());
+    // The features hold the last loadcell value: the network still answers…
+    assert!(at(8_000).pressure_bar.is_finite());
+    // …but after 1 s there is nothing to average, and after the dwell the
+    // state is unknown.
+    assert!(at(7_100).pressure_avg_bar.is_nan());
+    assert_eq!(at(10_900).health, Health::Unknown);
+    // Back after the dropout.
+    assert!(at(11_500).pressure_avg_bar.is_finite());
+    let c = est.counters();
+    assert_eq!(c.ticks_stale, 250);
+    assert!(c.gaps >= 250, "{c:?}");
+}
+
+#[test]
+fn unknown_without_excitation() {
+    let b = bundle("bundle-mlp13");
+    // 0.1 mm amplitude: the 1 s velocity RMS stays far below 0.05 m/s.
+    let log = synth_log(T0, 8, 1e-4, 9);
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &sorted_samples(&log));
+    assert_eq!(ticks.len(), 400);
+    assert!(ticks.iter().all(|t| t.estimate.health == Health::Unknown));
+    assert!(ticks.iter().all(|t| t.estimate.pressure_avg_bar.is_nan()));
+    // The network still gives an instantaneous value.
+    assert!(ticks[399].estimate.pressure_bar.is_finite());
+    // Excited, the same estimator judges (after the 3 s dwell).
+    let log = synth_log(T0, 8, 0.04, 9);
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &sorted_samples(&log));
+    assert_ne!(ticks[399].estimate.health, Health::Unknown);
+}
+
+// ---- the health state machine on synthetic ticks ----
+
+const TICK: i64 = TICK_NS;
+
+/// Feeds `avg(t_s)` (excited) for `seconds` from `*t`; returns the states.
+fn feed(
+    m: &mut HealthMachine,
+    t: &mut i64,
+    seconds: f64,
+    avg: impl Fn(f64) -> f64,
+    excited: bool,
+) -> Vec<Health> {
+    let n = (seconds * 50.0).round() as usize;
+    (0..n)
+        .map(|_| {
+            *t += TICK;
+            m.update(*t, avg(*t as f64 / 1e9), excited)
+        })
+        .collect()
+}
+
+fn transitions(states: &[Health]) -> usize {
+    states.windows(2).filter(|w| w[0] != w[1]).count()
+}
+
+#[test]
+fn health_dwell_delays_every_change() {
+    let mut m = HealthMachine::new(HealthConfig::default());
+    let mut t = 0;
+    assert_eq!(m.state(), Health::Unknown);
+    let s = feed(&mut m, &mut t, 2.98, |_| 12.0, true);
+    assert!(s.iter().all(|&h| h == Health::Unknown), "dwell 3 s");
+    let s = feed(&mut m, &mut t, 0.04, |_| 12.0, true);
+    assert_eq!(s.last(), Some(&Health::Ok));
+    // A 2 s dip to 3 bar does not change the state…
+    let s = feed(&mut m, &mut t, 2.0, |_| 3.0, true);
+    assert!(s.iter().all(|&h| h == Health::Ok));
+    feed(&mut m, &mut t, 1.0, |_| 12.0, true);
+    // …a 3 s one does, at 3 s.
+    let s = feed(&mut m, &mut t, 3.02, |_| 3.0, true);
+    assert_eq!(s.iter().position(|&h| h == Health::Leak), Some(150));
+}
+
+#[test]
+fn health_levels_and_hysteresis() {
+    let mut m = HealthMachine::new(HealthConfig::default());
+    let mut t = 0;
+    let mut go =
+        |m: &mut HealthMachine, avg: f64| *feed(m, &mut t, 3.1, |_| avg, true).last().unwrap();
+    assert_eq!(go(&mut m, 8.0), Health::Low);
+    assert_eq!(go(&mut m, 9.3), Health::Low, "left at warn + 0.5");
+    assert_eq!(go(&mut m, 9.6), Health::Ok);
+    assert_eq!(go(&mut m, 8.99), Health::Low);
+    assert_eq!(go(&mut m, 4.9), Health::Leak);
+    assert_eq!(go(&mut m, 5.4), Health::Leak, "left at fault + 0.5");
+    assert_eq!(
+        go(&mut m, 9.2),
+        Health::Low,
+        "from leak, ok only at warn + 0.5"
+    );
+    assert_eq!(go(&mut m, 4.0), Health::Leak);
+    assert_eq!(go(&mut m, 12.0), Health::Ok);
+}
+
+#[test]
+fn health_does_not_flap_at_the_threshold() {
+    // A 1 s average hovering at the warn threshold: slow drift ±0.3 bar
+    // (period 20 s) plus tick noise ±0.1 bar, for 10 minutes.
+    let hover = |t_s: f64| {
+        let mut r = Rng(t_s.to_bits());
+        9.0 + 0.3 * (2.0 * std::f64::consts::PI * t_s / 20.0).sin() + 0.1 * r.noise()
+    };
+    let cfg = HealthConfig::default();
+    let mut m = HealthMachine::new(cfg);
+    let mut t = 0;
+    let states = feed(&mut m, &mut t, 600.0, hover, true);
+    assert!(
+        transitions(&states) <= 2,
+        "{} transitions",
+        transitions(&states)
+    );
+    // Without hysteresis the same signal flaps (the test can fail).
+    let mut m = HealthMachine::new(HealthConfig {
+        hysteresis_bar: 0.0,
+        ..cfg
+    });
+    let mut t = 0;
+    let states = feed(&mut m, &mut t, 600.0, hover, true);
+    assert!(transitions(&states) > 20, "{}", transitions(&states));
+}
+
+#[test]
+fn health_unknown_without_excitation_or_average() {
+    let mut m = HealthMachine::new(HealthConfig::default());
+    let mut t = 0;
+    feed(&mut m, &mut t, 4.0, |_| 12.0, true);
+    assert_eq!(m.state(), Health::Ok);
+    // A 1 s pause in excitation is bridged…
+    let s = feed(&mut m, &mut t, 1.0, |_| 12.0, false);
+    assert!(s.iter().all(|&h| h == Health::Ok));
+    feed(&mut m, &mut t, 1.0, |_| 12.0, true);
+    // …a long one is unknown after the dwell, whatever the average says.
+    let s = feed(&mut m, &mut t, 3.02, |_| 3.0, false);
+    assert_eq!(s.iter().position(|&h| h == Health::Unknown), Some(150));
+    assert!(s.iter().all(|&h| h != Health::Leak));
+    // No average (no usable data): unknown too.
+    feed(&mut m, &mut t, 4.0, |_| 12.0, true);
+    assert_eq!(m.state(), Health::Ok);
+    feed(&mut m, &mut t, 3.1, |_| f64::NAN, true);
+    assert_eq!(m.state(), Health::Unknown);
+}
