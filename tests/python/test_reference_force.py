@@ -155,7 +155,7 @@ def test_force_matches_reference_hypothesis(v, a, y, t, k_tr, scale, charge_bar)
 
 
 def test_length_mismatch_is_an_error():
-    with pytest.raises(ValueError, match="position"):
+    with pytest.raises(shocktwin.InputError, match="position"):
         shocktwin.ForceModel(**PARAMS).force([0.1, 0.2], [0.0, 0.0], [0.0], [20.0, 20.0])
 
 

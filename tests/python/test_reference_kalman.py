@@ -151,9 +151,15 @@ def test_kalman_matches_filterpy_hypothesis(seed, sigma_accel, sigma_bias, sigma
         assert_close_to_reference(got, ref)
 
 
-def test_unsorted_times_are_an_error():
-    with pytest.raises(ValueError, match="t_pos"):
-        shocktwin.KalmanFilter(**SIGMAS).run([0.0, 0.001], [0.0, 0.0], [0.01, 0.0], [0.0, 0.0])
+def test_bad_inputs_are_named():
+    kf = shocktwin.KalmanFilter(**SIGMAS)
+    with pytest.raises(shocktwin.InputError, match="t_pos"):
+        kf.run([0.0, 0.001], [0.0, 0.0], [0.01, 0.0], [0.0, 0.0])  # not sorted
+    with pytest.raises(shocktwin.InputError, match=r"t_acc`\[1\]"):
+        kf.run([0.0, np.nan], [0.0, 0.0], [0.0], [0.0])  # a time must be finite
+    with pytest.raises(shocktwin.InputError, match="a_rel"):
+        kf.run([0.0, 0.001], [0.0], [0.0], [0.0])
+    assert isinstance(shocktwin.InputError("x"), ValueError)
 
 
 def test_bad_sigma_names_the_parameter():

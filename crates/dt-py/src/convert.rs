@@ -1,8 +1,9 @@
 //! numpy in, numpy out: conversions shared by every binding.
 
 use numpy::{AllowTypeChange, IntoPyArray, PyArray1, PyArrayLike1};
-use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+
+use crate::exceptions::input_error;
 
 /// Any 1-D array-like of numbers (a numpy array of any real dtype, a list,
 /// a tuple), converted to float64 by numpy.
@@ -20,7 +21,7 @@ pub(crate) fn check_same_len(arrays: &[(&str, usize)]) -> PyResult<()> {
     };
     for &(name, len) in &arrays[1..] {
         if len != first_len {
-            return Err(PyValueError::new_err(format!(
+            return Err(input_error(format!(
                 "`{name}` has {len} elements but `{first_name}` has {first_len}; they must be equal"
             )));
         }
@@ -49,7 +50,7 @@ pub(crate) fn seconds_to_ns(name: &str, t_s: &[f64]) -> PyResult<Vec<i64>> {
             if t_ns.is_finite() && t_ns.abs() < LIMIT_NS {
                 Ok(t_ns as i64)
             } else {
-                Err(PyValueError::new_err(format!(
+                Err(input_error(format!(
                     "`{name}`[{i}] = {t} s is not a finite time within ±146 years"
                 )))
             }

@@ -89,6 +89,12 @@ impl From<CoreError> for PyErr {
     }
 }
 
+/// An argument the bindings themselves reject (arrays of different lengths,
+/// a time that is not finite): `InputError`, like the core's input errors.
+pub(crate) fn input_error(message: String) -> PyErr {
+    py::InputError::new_err(message)
+}
+
 /// A file that is not a run log cannot be read: the builtin OS error class.
 fn io_error(file: &str, source: &std::io::Error) -> PyErr {
     let message = format!("{file}: {source}");
