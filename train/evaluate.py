@@ -141,16 +141,20 @@ def score_paper(
 
 def training_set(
     tables: Sequence[RunTable], columns: Sequence[str], excited: Sequence[np.ndarray],
-    masks: Sequence[np.ndarray] | None, stride: int,
+    masks: Sequence[np.ndarray] | None, per_run: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Training rows: excited, finite, inside ``masks`` (all when None), every ``stride``-th."""
+    """Training rows: excited, finite, inside ``masks`` (all when None); at most ``per_run``
+    evenly spaced rows of each run, so that long slow runs do not outweigh short fast ones
+    (a 1 Hz run lasts ~10x a 4 Hz run) and 50 Hz neighbours (nearly identical) are thinned."""
     xs, ys = [], []
     for i, tab in enumerate(tables):
         x = tab.select(columns)
         sel = excited[i] & np.all(np.isfinite(x), axis=1)
         if masks is not None:
             sel &= masks[i]
-        idx = np.nonzero(sel)[0][::stride]
+        idx = np.nonzero(sel)[0]
+        if len(idx) > per_run:
+            idx = idx[np.linspace(0, len(idx) - 1, per_run).round().astype(int)]
         xs.append(x[idx])
         ys.append(np.full(len(idx), tab.label_bar))
     return np.concatenate(xs), np.concatenate(ys)

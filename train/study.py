@@ -48,18 +48,21 @@ RMSE_GOAL_BAR = 1.5
 @dataclass
 class Settings:
     folds: int
-    stride: int
+    per_run: int  # training rows per run (evenly spaced excited ticks)
     max_iter: int
     suite_folds: int
-    suite_stride: int
+    suite_per_run: int
+    suite_max_iter: int
     seed: int
     jobs: int
 
 
 def settings(quick: bool, seed: int, jobs: int) -> Settings:
     if quick:
-        return Settings(folds=3, stride=4, max_iter=40, suite_folds=3, suite_stride=8, seed=seed, jobs=jobs)
-    return Settings(folds=5, stride=3, max_iter=60, suite_folds=3, suite_stride=6, seed=seed, jobs=jobs)
+        return Settings(folds=3, per_run=800, max_iter=40, suite_folds=3, suite_per_run=400,
+                        suite_max_iter=30, seed=seed, jobs=jobs)
+    return Settings(folds=5, per_run=3000, max_iter=60, suite_folds=3, suite_per_run=1200,
+                    suite_max_iter=40, seed=seed, jobs=jobs)
 
 
 def parallel(jobs: int):  # type: ignore[no-untyped-def]
@@ -68,11 +71,13 @@ def parallel(jobs: int):  # type: ignore[no-untyped-def]
     return Parallel(n_jobs=jobs, backend="loky" if jobs > 1 else "sequential")
 
 
-def fit_many(cfg: Settings, tasks: list[tuple[np.ndarray, np.ndarray, list[str], int]]) -> list[model.Trained]:
+def fit_many(
+    cfg: Settings, tasks: list[tuple[np.ndarray, np.ndarray, list[str], int]], max_iter: int
+) -> list[model.Trained]:
     from joblib import delayed
 
     return parallel(cfg.jobs)(
-        delayed(evaluate.fit_job)(x, y, cols, seed, cfg.max_iter) for x, y, cols, seed in tasks
+        delayed(evaluate.fit_job)(x, y, cols, seed, max_iter) for x, y, cols, seed in tasks
     )
 
 
@@ -81,7 +86,7 @@ def fit_many(cfg: Settings, tasks: list[tuple[np.ndarray, np.ndarray, list[str],
 
 def evaluate_permutation_set(
     data: dataset.CampaignData, perms: Sequence[dict[str, Any]], cfg: Settings, *, folds: int,
-    stride: int, paper: bool, in_sample: bool,
+    per_run: int, max_iter: int, paper: bool, in_sample: bool,
 ) -> tuple[list[dict[str, Any]], dict[int, model.Trained]]:
     """Both protocols for each permutation; returns result rows and the all-runs models."""
     n_runs = len(data.campaign.runs)
@@ -95,19 +100,19 @@ def evaluate_permutation_set(
         prepared[perm["key"]] = (tabs, exc, cols)
         for f, held in enumerate(fold_sets):
             masks = [np.full(len(t.t_s), i not in set(held)) for i, t in enumerate(tabs)]
-            x, y = evaluate.training_set(tabs, cols, exc, masks, stride)
+            x, y = evaluate.training_set(tabs, cols, exc, masks, per_run)
             tasks.append((x, y, cols, cfg.seed + f))
             keys.append((perm["key"], "fold", f))
         if paper:
             test = evaluate.paper_split(tabs, cfg.seed)
-            x, y = evaluate.training_set(tabs, cols, exc, [~m for m in test], stride)
+            x, y = evaluate.training_set(tabs, cols, exc, [~m for m in test], per_run)
             tasks.append((x, y, cols, cfg.seed))
             keys.append((perm["key"], "paper", test))
         if in_sample:
-            x, y = evaluate.training_set(tabs, cols, exc, None, stride)
+            x, y = evaluate.training_set(tabs, cols, exc, None, per_run)
             tasks.append((x, y, cols, cfg.seed))
             keys.append((perm["key"], "all", None))
-    trained = fit_many(cfg, tasks)
+    trained = fit_many(cfg, tasks, max_iter)
 
     results: dict[Any, dict[str, Any]] = {p["key"]: {"perm": p} for p in perms}
     fold_preds: dict[Any, list[evaluate.RunPrediction]] = {p["key"]: [] for p in perms}
@@ -247,7 +252,8 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
              "behaves on our simulator, not how the paper's hardware behaves.\n")
     L.append(f"Campaign: `{ctx['campaign']}` ({ctx['n_runs']} runs, digest `{ctx['digest'][:16]}…`), "
              f"{'quick' if ctx['quick'] else 'full'} settings: {cfg.folds}-fold held-out runs, "
-             f"every {cfg.stride}th excited 50 Hz tick for training, ≤ {cfg.max_iter} epochs, seed {cfg.seed}. "
+             f"at most {cfg.per_run} evenly spaced excited 50 Hz ticks per run for training, ≤ {cfg.max_iter} epochs "
+             f"(Adam, early stopping), seed {cfg.seed}. "
              f"Regenerate: `{ctx['command']}`. Wall time {ctx['seconds'] / 60:.1f} min.\n")
     L.append("Rest periods are excluded from training and scoring: a tick counts when the causal 1 s RMS "
              f"of the Kalman velocity is ≥ {dataset.EXCITED_MPS} m/s (the daemon reports `unknown` below it).\n")
@@ -298,7 +304,8 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
     if suites:
         L.append("## Every sensor suite (63 combinations of the six groups), whole runs held out\n")
         front = pareto([(s["cost_aud"], s["held_out"]["rmse_bar"], i) for i, s in enumerate(suites)])
-        L.append(f"{cfg.suite_folds}-fold held-out runs, every {cfg.suite_stride}th tick for training.\n")
+        L.append(f"{cfg.suite_folds}-fold held-out runs, at most {cfg.suite_per_run} ticks per run for training, "
+                 f"≤ {cfg.suite_max_iter} epochs.\n")
         L.append("Pareto front (cheapest suite for each accuracy):\n")
         L.append("| groups | sensors | cost (AUD) | held out | held out, 1 s avg |")
         L.append("| --- | --- | --- | --- | --- |")
@@ -398,8 +405,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     data = dataset.CampaignData(campaign, physics)
     perms = [dict(p, key=p["id"]) for p in shocktwin.permutations()]
     t0 = time.perf_counter()
-    table2, models = evaluate_permutation_set(data, perms, cfg, folds=cfg.folds, stride=cfg.stride,
-                                              paper=True, in_sample=True)
+    table2, models = evaluate_permutation_set(data, perms, cfg, folds=cfg.folds, per_run=cfg.per_run,
+                                              max_iter=cfg.max_iter, paper=True, in_sample=True)
     log.info("13 permutations: %.0f s", time.perf_counter() - t0)
     for row in table2:
         print(f"model {row['perm']['id']:>2}: paper split {row['paper']['rmse_bar']:.2f}, "
@@ -415,8 +422,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             sensors, cost = shocktwin.suite(c)
             sperms.append({"id": 0, "name": "+".join(c), "groups": c, "sensors": sensors, "cost_aud": cost,
                            "key": "+".join(c)})
-        rows, _ = evaluate_permutation_set(data, sperms, cfg, folds=cfg.suite_folds, stride=cfg.suite_stride,
-                                           paper=False, in_sample=False)
+        rows, _ = evaluate_permutation_set(data, sperms, cfg, folds=cfg.suite_folds, per_run=cfg.suite_per_run,
+                                           max_iter=cfg.suite_max_iter, paper=False, in_sample=False)
         suites = [dict(r, cost_aud=r["perm"]["cost_aud"]) for r in rows]
         log.info("63 suites: %.0f s", time.perf_counter() - t0)
 
@@ -426,7 +433,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             model.write_bundle(args.out / "bundles" / f"perm-{perm['id']}", models[perm["key"]],
                                permutation=perm, physics=physics, nominal_bar=physics.get("nominal_bar", 12.0),
                                provenance={"campaign": campaign.root.name, "campaign_digest": campaign.digest(),
-                                           "split": "none (all runs)", "seed": cfg.seed, "stride": cfg.stride,
+                                           "split": "none (all runs)", "seed": cfg.seed, "per_run": cfg.per_run,
                                            "metrics": next(r for r in table2 if r["perm"]["id"] == perm["id"])["held_out"],
                                            "simulated_data": True})
 

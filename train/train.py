@@ -72,7 +72,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--physics", type=Path, help="physics.json from train.fit_physics")
     p.add_argument("--split", choices=SPLITS, default="runs")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--stride", type=int, default=2, help="use every n-th excited 50 Hz tick for training")
+    p.add_argument("--per-run", type=int, default=3000, help="training rows per run (evenly spaced excited ticks)")
     p.add_argument("--nominal-bar", type=float, default=12.0)
     args = p.parse_args(argv)
 
@@ -89,18 +89,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.split == "runs":
         test_idx = set(split_runs(len(tables), args.seed).tolist())
         masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
-        x, y = evaluate.training_set(tables, columns, excited, masks, args.stride)
+        x, y = evaluate.training_set(tables, columns, excited, masks, args.per_run)
         trained = model.fit(x, y, columns, seed=args.seed)
         preds = [evaluate.predict_run(trained, tables[i], columns, excited[i]) for i in sorted(test_idx)]
         scores = evaluate.score_runs(preds)
         metrics = {"test_runs": [tables[i].run.name for i in sorted(test_idx)], **scores.as_dict()}
     elif args.split == "paper":
         test = evaluate.paper_split(tables, args.seed)
-        x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.stride)
+        x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.per_run)
         trained = model.fit(x, y, columns, seed=args.seed)
         metrics = evaluate.score_paper(trained, tables, columns, excited, test).as_dict()
     else:
-        x, y = evaluate.training_set(tables, columns, excited, None, args.stride)
+        x, y = evaluate.training_set(tables, columns, excited, None, args.per_run)
         trained = model.fit(x, y, columns, seed=args.seed)
 
     model.write_bundle(
@@ -114,7 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "campaign_digest": campaign.digest(),
             "split": args.split,
             "seed": args.seed,
-            "stride": args.stride,
+            "per_run": args.per_run,
             "metrics": metrics,
             "simulated_data": True,
         },
