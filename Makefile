@@ -19,7 +19,7 @@ CAMPAIGN ?= $(OUT)/campaign
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
-.PHONY: help setup build demo test test-rust test-python lint bench study clean
+.PHONY: help setup build demo test test-rust test-python lint bench bench-python study clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -42,16 +42,24 @@ setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python p
 
 build: $(BIN) ## build the shocktwin CLI (release)
 
-demo: setup ## simulate the quick campaign and inspect it (simulated data)
-	rm -rf $(CAMPAIGN)
+demo: setup ## simulate the quick campaign, inspect, calibrate, study, stream a leaking run through the daemon (simulated data)
+	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
-	$(BIN) inspect $$(ls $(CAMPAIGN)/*.mcap | head -n 1)
-	@echo "demo: campaign of simulated dyno runs in $(CAMPAIGN)"
+	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
+	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures
+	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
+	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-12 --out $(OUT)/serve-demo
+	@echo "demo done (simulated data): report $(OUT)/study/report.md, figures $(OUT)/figures"
+
+study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)
+	rm -rf $(OUT)/full-campaign
+	$(BIN) simulate --out $(OUT)/full-campaign
+	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --out docs/study
 
 test-rust: ## Rust unit and integration tests
 	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py
 
-test-python: setup ## pytest: the Python contract and references
+test-python: setup ## pytest: the Python contract, references and interop
 	$(PY) -m pytest -q tests/python
 
 test: setup test-rust test-python ## set up, then run every test

@@ -437,8 +437,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            "metrics": next(r for r in table2 if r["perm"]["id"] == perm["id"])["held_out"],
                                            "simulated_data": True})
 
-    gen = [] if args.no_generalisation else generalisation(
-        args.shocktwin, args.out, perms, models, physics, args.quick, args.seed)
+    gen: list[dict[str, Any]] = []
+    if not args.no_generalisation:
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="shocktwin-gen-") as work:
+            gen = generalisation(args.shocktwin, Path(work), perms, models, physics, args.quick, args.seed)
 
     plots(args.out, table2, suites)
     ctx = {
