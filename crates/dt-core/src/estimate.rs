@@ -78,7 +78,7 @@ pub struct Estimate {
 /// JSON schema (`jsonschema` encoding) of the `/estimate` topic's messages.
 pub const ESTIMATE_SCHEMA_JSON: &str = r#"{"type":"object","title":"shocktwin estimate","properties":{"t_ns":{"type":"integer"},"pressure_bar":{"type":["number","null"]},"pressure_avg_bar":{"type":["number","null"]},"expected_bar":{"type":["number","null"]},"health":{"type":"string","enum":["ok","low","leak","unknown"]},"velocity_mps":{"type":["number","null"]},"force_model_n":{"type":["number","null"]},"oil_temp_c":{"type":["number","null"]}},"required":["pressure_bar","pressure_avg_bar","expected_bar","health","velocity_mps","force_model_n","oil_temp_c"]}"#;
 
-/// Reads a JSON number, or `null` as NaN (serde_json writes NaN as `null`).
+/// Reads a JSON number, or `null` as NaN (`serde_json` writes NaN as `null`).
 fn f64_or_nan<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }

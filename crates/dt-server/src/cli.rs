@@ -83,7 +83,7 @@ pub struct ServeArgs {
     /// Directory for the recorded /estimate MCAP files.
     #[arg(long)]
     pub record_dir: Option<PathBuf>,
-    /// Log format (also SHOCKTWIN_LOG_FORMAT=json).
+    /// Log format (also `SHOCKTWIN_LOG_FORMAT=json`).
     #[arg(long, value_enum)]
     pub log_format: Option<LogFormat>,
 }

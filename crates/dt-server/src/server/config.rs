@@ -354,6 +354,7 @@ pub fn valid_id(id: &str) -> bool {
 }
 
 #[cfg(test)]
+#[allow(clippy::float_cmp)] // values are copied through, not computed
 mod tests {
     use super::*;
 

@@ -4,7 +4,7 @@
 //! | --- | --- |
 //! | `GET /healthz` | `200 ok` while the process serves |
 //! | `GET /readyz` | `200 ready`, or `503` while starting or draining |
-//! | `GET /metrics` | Prometheus metrics (OpenMetrics text) |
+//! | `GET /metrics` | Prometheus metrics (`OpenMetrics` text) |
 //! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update |
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |

@@ -1,9 +1,9 @@
-//! Prometheus metrics (`GET /metrics`, OpenMetrics text), kept with the
+//! Prometheus metrics (`GET /metrics`, `OpenMetrics` text), kept with the
 //! `prometheus-client` crate.
 
 use std::collections::HashMap;
 use std::sync::atomic::AtomicU64;
-use std::sync::Mutex;
+use std::sync::{Mutex, PoisonError};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use prometheus_client::encoding::EncodeLabelSet;
@@ -154,7 +154,10 @@ impl Metrics {
 
     /// Records the time of the last sample processed for `asset`.
     pub fn set_last_sample(&self, asset: &str, t_ns: i64) {
-        let mut map = self.last_sample_ns.lock().expect("metrics lock poisoned");
+        let mut map = self
+            .last_sample_ns
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         match map.get_mut(asset) {
             Some(v) => *v = t_ns,
             None => {
@@ -163,14 +166,17 @@ impl Metrics {
         }
     }
 
-    /// OpenMetrics text of every metric, lags computed against `now`.
+    /// `OpenMetrics` text of every metric, lags computed against `now`.
     #[must_use]
     pub fn encode(&self, now: SystemTime) -> String {
         let now_ns = now
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
         {
-            let map = self.last_sample_ns.lock().expect("metrics lock poisoned");
+            let map = self
+                .last_sample_ns
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
             for (asset, &t_ns) in map.iter() {
                 let lag_s = now_ns.saturating_sub(t_ns) as f64 * 1e-9;
                 self.asset_lag_seconds
@@ -181,8 +187,9 @@ impl Metrics {
             }
         }
         let mut text = String::new();
-        prometheus_client::encoding::text::encode(&mut text, &self.registry)
-            .expect("writing to a String cannot fail");
+        if let Err(e) = prometheus_client::encoding::text::encode(&mut text, &self.registry) {
+            tracing::error!("cannot encode the metrics: {e}");
+        }
         text
     }
 }

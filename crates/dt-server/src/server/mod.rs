@@ -35,7 +35,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::net::TcpListener;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
@@ -157,8 +157,18 @@ pub async fn run(
 
     let (sink_tx, sink_rx) = mpsc::channel(limits.queue_depth);
     let sink_metrics = Arc::clone(&metrics);
-    let sink_thread =
-        tokio::task::spawn_blocking(move || sink::dispatch(sink_rx, sinks, &sink_metrics));
+    // A dedicated thread: the sinks do blocking file I/O.
+    let (sinks_done_tx, sinks_done) = oneshot::channel::<()>();
+    std::thread::Builder::new()
+        .name("shocktwin-sinks".into())
+        .spawn(move || {
+            sink::dispatch(sink_rx, sinks, &sink_metrics);
+            let _ = sinks_done_tx.send(());
+        })
+        .map_err(|source| ServeError::Io {
+            path: PathBuf::from("<sink thread>"),
+            source,
+        })?;
     let ingest = Ingest::new(
         Arc::clone(&config),
         Arc::clone(&twins),
@@ -208,8 +218,8 @@ pub async fn run(
     tracker.wait().await;
     // The last sender goes: the sink thread drains the queue and flushes.
     drop(ingest);
-    if let Err(e) = sink_thread.await {
-        tracing::error!("sink thread failed: {e}");
+    if sinks_done.await.is_err() {
+        tracing::error!("the sink thread panicked");
     }
     http_stop.cancel();
     match http_task.await {

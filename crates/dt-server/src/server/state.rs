@@ -3,7 +3,7 @@
 //! (`GET /v1/events`), a bounded broadcast whose slow readers skip ahead.
 
 use std::collections::{BTreeMap, VecDeque};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, PoisonError, RwLock};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use dt_core::estimate::{Estimate, Health};
@@ -150,14 +150,14 @@ impl LiveState {
     /// Every asset, by id.
     #[must_use]
     pub fn summaries(&self) -> Vec<AssetSummary> {
-        let assets = self.assets.read().expect("state lock poisoned");
+        let assets = self.assets.read().unwrap_or_else(PoisonError::into_inner);
         assets.values().map(|a| a.summary.clone()).collect()
     }
 
     /// One asset with its last `history` estimates (all kept if `None`).
     #[must_use]
     pub fn detail(&self, asset_id: &str, history: Option<usize>) -> Option<AssetDetail> {
-        let assets = self.assets.read().expect("state lock poisoned");
+        let assets = self.assets.read().unwrap_or_else(PoisonError::into_inner);
         let a = assets.get(asset_id)?;
         let n = history.unwrap_or(a.history.len()).min(a.history.len());
         Some(AssetDetail {
@@ -177,7 +177,7 @@ impl LiveState {
     }
 
     fn with_asset<R>(&self, run: &RunInfo, f: impl FnOnce(&mut AssetView) -> R) -> R {
-        let mut assets = self.assets.write().expect("state lock poisoned");
+        let mut assets = self.assets.write().unwrap_or_else(PoisonError::into_inner);
         let view = assets
             .entry(run.meta.asset_id.clone())
             .or_insert_with(|| AssetView {

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use futures_util::future::BoxFuture;
-use tokio::io::AsyncWriteExt;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
 
@@ -101,12 +101,12 @@ async fn serve_connection(
     cancel: &tokio_util::sync::CancellationToken,
     idle: Duration,
 ) {
-    let (reader, mut writer) = socket.split();
+    let (mut reader, mut writer) = socket.split();
     let report = ingest
         .ingest_stream(
             SourceKind::Tcp,
             format!("tcp {peer}"),
-            reader,
+            &mut reader,
             cancel,
             Some(idle),
         )
@@ -116,4 +116,13 @@ async fn serve_connection(
     // Best effort: the client may be gone already.
     let _ = writer.write_all(&line).await;
     let _ = writer.shutdown().await;
+    // Lingering close: a client still sending (we stopped reading at an
+    // error) would otherwise get a reset and lose the report line.
+    let mut rest = reader.take(LINGER_MAX_BYTES);
+    let _ = tokio::time::timeout(LINGER, tokio::io::copy(&mut rest, &mut tokio::io::sink())).await;
 }
+
+/// How long a closing connection's remaining input is read and discarded.
+const LINGER: Duration = Duration::from_secs(2);
+/// At most this much of it.
+const LINGER_MAX_BYTES: u64 = 64 << 20;

@@ -1,0 +1,96 @@
+//! The HTTP API read with a real HTTP client: the live event stream.
+
+use crate::common::{good_stream, send, test_config, Daemon, WAIT};
+
+/// One parsed Server-Sent Event.
+#[derive(Debug)]
+struct SseEvent {
+    name: String,
+    data: serde_json::Value,
+}
+
+/// Parses complete events out of `buf` (leaves a partial one in it).
+fn parse_events(buf: &mut String) -> Vec<SseEvent> {
+    let mut out = Vec::new();
+    while let Some(end) = buf.find("\n\n") {
+        let block: String = buf.drain(..end + 2).collect();
+        let mut name = String::from("message");
+        let mut data = String::new();
+        for line in block.lines() {
+            if let Some(v) = line.strip_prefix("event:") {
+                v.trim().clone_into(&mut name);
+            } else if let Some(v) = line.strip_prefix("data:") {
+                data.push_str(v.trim_start());
+            }
+        }
+        if !data.is_empty() {
+            out.push(SseEvent {
+                name,
+                data: serde_json::from_str(&data).unwrap_or(serde_json::Value::String(data)),
+            });
+        }
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn event_stream_carries_every_estimate_and_the_run_lifecycle() {
+    let mut config = test_config();
+    config.limits.queue_depth = 256;
+    let d = Daemon::start(config).await;
+    assert_eq!(d.get("/healthz").await.text().await.unwrap().trim(), "ok");
+    let ready = d.get("/readyz").await;
+    assert_eq!(ready.status(), 200);
+
+    let mut events = d.get("/v1/events").await;
+    assert_eq!(events.status(), 200);
+    assert!(events.headers()["content-type"]
+        .to_str()
+        .unwrap()
+        .starts_with("text/event-stream"));
+
+    let s = good_stream("sse-1", "r7", 40_000_000_000, 1000);
+    let addr = d.ingest;
+    let bytes = s.bytes.clone();
+    let sender = tokio::spawn(async move { send(addr, &bytes, 1200).await });
+
+    let mut buf = String::new();
+    let mut seen = Vec::new();
+    let collect = async {
+        loop {
+            let chunk = events.chunk().await.unwrap().expect("stream ended early");
+            buf.push_str(std::str::from_utf8(&chunk).unwrap());
+            for e in parse_events(&mut buf) {
+                let done = e.name == "run" && e.data["status"] == "completed";
+                seen.push(e);
+                if done {
+                    return;
+                }
+            }
+        }
+    };
+    tokio::time::timeout(WAIT, collect)
+        .await
+        .expect("events in time");
+    let report = sender.await.unwrap();
+    assert_eq!(report["status"], "completed");
+
+    assert_eq!(seen[0].name, "run");
+    assert_eq!(seen[0].data["status"], "started");
+    assert_eq!(seen[0].data["asset_id"], "sse-1");
+    let estimates: Vec<_> = seen.iter().filter(|e| e.name == "estimate").collect();
+    assert_eq!(estimates.len() as u64, s.ticks, "one event per tick");
+    for (k, e) in estimates.iter().enumerate() {
+        assert_eq!(e.data["asset_id"], "sse-1");
+        assert_eq!(e.data["run_id"], "r7");
+        assert_eq!(
+            e.data["t_ns"].as_i64().unwrap(),
+            s.t0_ns + (k as i64 + 1) * 20_000_000
+        );
+        assert_eq!(e.data["health"], "unknown");
+        assert!(e.data["pressure_bar"].is_null());
+    }
+    // The placeholder's health never leaves `unknown`: no health events.
+    assert!(seen.iter().all(|e| e.name != "health"));
+    d.stop().await;
+}

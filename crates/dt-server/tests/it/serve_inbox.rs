@@ -1,0 +1,157 @@
+//! The inbox: files left there before start and files dropped while
+//! running are processed once and moved to `done/` or `failed/` (with a
+//! reason); nothing is lost across a restart.
+
+use std::path::Path;
+
+use crate::common::{
+    files_in, good_stream, metric, nan_out_of_order_stream, read_estimates, test_config,
+    truncate_mid_chunk, wait_until, wrong_schema_stream, Daemon,
+};
+
+fn drop_file(inbox: &Path, name: &str, bytes: &[u8]) {
+    // Written under another name, renamed when complete (as documented).
+    let tmp = inbox.join(format!("{name}.tmp"));
+    std::fs::write(&tmp, bytes).unwrap();
+    std::fs::rename(&tmp, inbox.join(name)).unwrap();
+}
+
+fn names(dir: &Path) -> Vec<String> {
+    files_in(dir)
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect()
+}
+
+fn mcap_in(dir: &Path) -> usize {
+    files_in(dir)
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .count()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn inbox_files_are_processed_once_and_moved() {
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    let record = root.path().join("estimates");
+    std::fs::create_dir_all(&inbox).unwrap();
+    // Left in the inbox before the daemon starts.
+    let a = good_stream("inb-a", "ra", 10_000_000_000, 1500);
+    drop_file(&inbox, "a.mcap", &a.bytes);
+    let full = good_stream("inb-t", "rt", 0, 3000);
+    drop_file(&inbox, "t.mcap", &truncate_mid_chunk(&full.bytes));
+    drop_file(&inbox, "junk.mcap", b"this is not an MCAP file at all");
+    std::fs::write(inbox.join("notes.txt"), "not for the daemon").unwrap();
+
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.clone());
+    config.server.record_dir = Some(record.clone());
+    let d = Daemon::start(config).await;
+    wait_until("the files present at start", || async {
+        mcap_in(&inbox) == 0 && files_in(&inbox.join("failed")).len() == 4
+    })
+    .await;
+
+    // Dropped while running.
+    let (b, nans, _) = nan_out_of_order_stream("inb-b", "rb", 20_000_000_000);
+    drop_file(&inbox, "b.mcap", &b.bytes);
+    drop_file(&inbox, "s.mcap", &wrong_schema_stream("inb-s", "rs", 0));
+    wait_until("the dropped files", || async {
+        mcap_in(&inbox) == 0
+            && mcap_in(&inbox.join("done")) == 2
+            && mcap_in(&inbox.join("failed")) == 3
+    })
+    .await;
+
+    assert_eq!(names(&inbox.join("done")), ["a.mcap", "b.mcap"]);
+    assert_eq!(
+        names(&inbox.join("failed")),
+        [
+            "junk.mcap",
+            "junk.mcap.reason.txt",
+            "s.mcap",
+            "s.mcap.reason.txt",
+            "t.mcap",
+            "t.mcap.reason.txt"
+        ]
+    );
+    assert_eq!(names(&inbox), ["notes.txt"], "other files are left alone");
+    let reason = |n: &str| std::fs::read_to_string(inbox.join("failed").join(n)).unwrap();
+    assert!(
+        reason("t.mcap.reason.txt").contains("kind: truncated"),
+        "{}",
+        reason("t.mcap.reason.txt")
+    );
+    assert!(reason("junk.mcap.reason.txt").contains("kind: invalid_mcap"));
+    let s_reason = reason("s.mcap.reason.txt");
+    assert!(
+        s_reason.contains("kind: schema") && s_reason.contains("/position"),
+        "{s_reason}"
+    );
+
+    // Every tick of the good files, in the API and in the recordings.
+    assert_eq!(d.asset_ticks("inb-a").await, a.ticks);
+    assert_eq!(d.asset_ticks("inb-b").await, b.ticks);
+    let rec_a = read_estimates(&record.join("inb-a").join("ra.0000.mcap"));
+    assert_eq!(rec_a.len() as u64, a.ticks);
+    let m = d.metrics().await;
+    assert_eq!(
+        metric(&m, "shocktwin_inbox_files_total{kind=\"done\"}"),
+        Some(2.0),
+        "{m}"
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_inbox_files_total{kind=\"failed\"}"),
+        Some(3.0),
+        "{m}"
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_errors_total{kind=\"truncated\"}"),
+        Some(1.0)
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_input_anomalies_total{kind=\"nan_samples\"}"),
+        Some(nans as f64)
+    );
+    let decoded = metric(&m, "shocktwin_messages_total{source=\"inbox\"}").unwrap() as u64;
+    assert!(decoded >= a.samples + b.samples, "{decoded}");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nothing_is_lost_across_a_restart() {
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    let record = root.path().join("estimates");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.clone());
+    config.server.record_dir = Some(record.clone());
+
+    let big = good_stream("inb-r", "rr", 0, 20_000);
+    let d = Daemon::start(config.clone()).await;
+    drop_file(&inbox, "r.mcap", &big.bytes);
+    // Stop at once: the file is either done or still waiting, never lost,
+    // never failed.
+    d.stop().await;
+    let waiting = mcap_in(&inbox);
+    let done = mcap_in(&inbox.join("done"));
+    assert_eq!((waiting + done, mcap_in(&inbox.join("failed"))), (1, 0));
+
+    let d = Daemon::start(config).await;
+    wait_until("the file after restart", || async {
+        mcap_in(&inbox.join("done")) == 1
+    })
+    .await;
+    d.stop().await;
+    let rec = read_estimates(&record.join("inb-r").join("rr.0000.mcap"));
+    assert_eq!(
+        rec.len() as u64,
+        big.ticks,
+        "the recording is complete (rewritten if reprocessed)"
+    );
+    assert!(files_in(&record.join("inb-r"))
+        .iter()
+        .all(|p| p.extension().unwrap() == "mcap"));
+}

@@ -1,0 +1,311 @@
+//! TCP ingest over real sockets: concurrent good and bad MCAP streams sent
+//! in small pieces; every tick of the good ones accounted for, each bad one
+//! closed with its reason, the daemon unaffected.
+
+use std::time::Duration;
+
+use dt_core::log::{Compression, WriteOptions};
+use dt_server::server::config::AssetOverrides;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+use crate::common::{
+    files_in, good_stream, meta, metric, nan_out_of_order_stream, read_estimates, run_samples,
+    send, test_config, truncate_mid_chunk, write_stream, wrong_schema_stream, Daemon, TICK_NS,
+};
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[allow(clippy::too_many_lines)] // one scenario, checked from every side
+async fn concurrent_streams_good_and_bad() {
+    let record = tempfile::tempdir().unwrap();
+    let mut config = test_config();
+    config.server.record_dir = Some(record.path().to_owned());
+    config.assets.insert(
+        "pump-2".into(),
+        AssetOverrides {
+            nominal_bar: Some(10.0),
+            ..AssetOverrides::default()
+        },
+    );
+    let d = Daemon::start(config).await;
+
+    let good1 = good_stream("pump-1", "r1", 1_000_000_000_000, 2000);
+    let good2 = good_stream("pump-2", "r1", 5_000_000_000_000, 1500);
+    let good3 = write_stream(
+        &meta("pump-3", "lz4"),
+        &run_samples(7_000_000_000, 1200),
+        WriteOptions {
+            compression: Compression::Lz4,
+            chunk_size: Some(16 << 10),
+        },
+    );
+    let (nan, nans, swaps) = nan_out_of_order_stream("pump-4", "nan", 3_000_000_000);
+    let full5 = good_stream("pump-5", "cut", 9_000_000_000, 3000);
+    let truncated = truncate_mid_chunk(&full5.bytes);
+    let schema = wrong_schema_stream("pump-6", "schema", 2_000_000_000);
+    let too_large = write_stream(
+        &meta("pump-7", "big"),
+        &run_samples(0, 2000),
+        WriteOptions {
+            compression: Compression::None,
+            chunk_size: Some(1 << 20),
+        },
+    );
+    assert!(too_large.bytes.len() > 64 << 10);
+    let junk = b"GET / HTTP/1.1\r\nHost: example\r\n\r\n".repeat(50);
+
+    let inputs: Vec<(&str, Vec<u8>, usize)> = vec![
+        ("good1", good1.bytes.clone(), 997),
+        ("good2", good2.bytes.clone(), 1500),
+        ("good3", good3.bytes.clone(), 4096),
+        ("nan", nan.bytes.clone(), 613),
+        ("truncated", truncated, 1024),
+        ("schema", schema, 777),
+        ("too_large", too_large.bytes.clone(), 8192),
+        ("junk", junk, 100),
+    ];
+    let addr = d.ingest;
+    let tasks: Vec<_> = inputs
+        .into_iter()
+        .map(|(name, bytes, piece)| {
+            tokio::spawn(async move { (name, send(addr, &bytes, piece).await) })
+        })
+        .collect();
+    let mut reports = std::collections::HashMap::new();
+    for t in tasks {
+        let (name, report) = t.await.unwrap();
+        reports.insert(name, report);
+    }
+
+    // Good streams: every sample decoded, every tick estimated and flushed.
+    for (name, s) in [
+        ("good1", &good1),
+        ("good2", &good2),
+        ("good3", &good3),
+        ("nan", &nan),
+    ] {
+        let r = &reports[name];
+        assert_eq!(r["status"], "completed", "{name}: {r}");
+        assert_eq!(r["samples"], s.samples, "{name}: {r}");
+        assert_eq!(r["ticks"], s.ticks, "{name}: {r}");
+        assert_eq!(r["flushed"], true, "{name}: {r}");
+    }
+    assert_eq!(good1.ticks, 99);
+    // Bad streams: closed with the reason; the good data before the error estimated.
+    let r = &reports["truncated"];
+    assert_eq!(
+        (r["status"].as_str(), r["kind"].as_str()),
+        (Some("failed"), Some("truncated")),
+        "{r}"
+    );
+    let partial = r["ticks"].as_u64().unwrap();
+    assert!(partial > 0 && partial < full5.ticks, "{r}");
+    let r = &reports["schema"];
+    assert_eq!(r["kind"], "schema", "{r}");
+    assert!(r["reason"].as_str().unwrap().contains("/position"), "{r}");
+    assert_eq!(
+        r["ticks"], 24,
+        "500 ms of good data before the bad channel: {r}"
+    );
+    let r = &reports["too_large"];
+    assert_eq!(r["kind"], "too_large", "{r}");
+    let r = &reports["junk"];
+    assert_eq!(r["kind"], "invalid_mcap", "{r}");
+    assert_eq!(r["asset_id"], serde_json::Value::Null);
+
+    // The API sees the same.
+    assert_eq!(d.asset_ticks("pump-1").await, good1.ticks);
+    assert_eq!(d.asset_ticks("pump-5").await, partial);
+    let v = d.get_json("/v1/assets").await;
+    let pump2 = v["assets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["asset_id"] == "pump-2")
+        .unwrap()
+        .clone();
+    assert_eq!(pump2["expected_bar"], 10.0, "per-asset config: {pump2}");
+    assert_eq!(pump2["health"], "unknown");
+    assert!(
+        pump2["pressure_bar"].is_null(),
+        "placeholder twin: no pressure"
+    );
+    assert_eq!(pump2["last_run_status"], "completed");
+    assert_eq!(
+        pump2["last_t_ns"].as_i64().unwrap(),
+        good2.t0_ns + good2.ticks as i64 * TICK_NS
+    );
+    let pump5 = d.get_json("/v1/assets/pump-5").await;
+    assert_eq!(pump5["last_run_status"], "failed");
+    assert!(
+        pump5["last_run_reason"]
+            .as_str()
+            .unwrap()
+            .contains("truncated"),
+        "{pump5}"
+    );
+
+    let detail = d.get_json("/v1/assets/pump-1?history=5").await;
+    let hist = detail["history"].as_array().unwrap();
+    assert_eq!(hist.len(), 5);
+    let last_t = good1.t0_ns + good1.ticks as i64 * TICK_NS;
+    assert_eq!(hist[4]["t_ns"].as_i64().unwrap(), last_t);
+    assert_eq!(hist[0]["t_ns"].as_i64().unwrap(), last_t - 4 * TICK_NS);
+    let all = d.get_json("/v1/assets/pump-1").await;
+    assert_eq!(
+        all["history"].as_array().unwrap().len(),
+        50,
+        "bounded by history_len"
+    );
+    assert_eq!(d.get("/v1/assets/nope").await.status(), 404);
+
+    // Metrics: errors by kind, connections, messages, ticks, anomalies, lag.
+    let m = d.metrics().await;
+    for kind in ["truncated", "schema", "too_large", "invalid_mcap"] {
+        assert_eq!(
+            metric(&m, &format!("shocktwin_errors_total{{kind=\"{kind}\"}}")),
+            Some(1.0),
+            "{kind}\n{m}"
+        );
+    }
+    assert_eq!(metric(&m, "shocktwin_connections_total"), Some(8.0), "{m}");
+    assert_eq!(metric(&m, "shocktwin_connections_active"), Some(0.0), "{m}");
+    let decoded: u64 = reports
+        .values()
+        .map(|r| r["samples"].as_u64().unwrap())
+        .sum();
+    assert_eq!(
+        metric(&m, "shocktwin_messages_total{source=\"tcp\"}"),
+        Some(decoded as f64),
+        "{m}"
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_ticks_total{asset=\"pump-1\"}"),
+        Some(good1.ticks as f64)
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_input_anomalies_total{kind=\"nan_samples\"}"),
+        Some(nans as f64),
+        "{m}"
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_input_anomalies_total{kind=\"out_of_order\"}"),
+        Some(swaps as f64),
+        "{m}"
+    );
+    assert!(nans > 0 && swaps > 0);
+    assert_eq!(
+        metric(&m, "shocktwin_runs_total{kind=\"completed\"}"),
+        Some(4.0)
+    );
+    assert_eq!(
+        metric(&m, "shocktwin_runs_total{kind=\"failed\"}"),
+        Some(4.0)
+    );
+    // Sample times near the epoch: the lag is large and positive.
+    let lag = metric(&m, "shocktwin_asset_lag_seconds{asset=\"pump-1\"}").unwrap();
+    assert!(lag > 1e8, "lag {lag}");
+
+    // Recorded estimates: every tick of the good run, in order.
+    let files = files_in(&record.path().join("pump-1"));
+    assert_eq!(files.len(), 1, "{files:?}");
+    assert!(files[0].ends_with("pump-1/r1.0000.mcap"));
+    let est = read_estimates(&files[0]);
+    assert_eq!(est.len() as u64, good1.ticks);
+    for (k, e) in est.iter().enumerate() {
+        assert_eq!(e.t_ns, good1.t0_ns + (k as i64 + 1) * TICK_NS);
+        assert!(e.pressure_bar.is_nan());
+    }
+    let cut = read_estimates(&files_in(&record.path().join("pump-5"))[0]);
+    assert_eq!(cut.len() as u64, partial, "the partial run is recorded too");
+
+    // Still serving.
+    assert_eq!(d.get("/healthz").await.status(), 200);
+    assert_eq!(d.get("/readyz").await.status(), 200);
+    let again = good_stream("pump-1", "r2", 2_000_000_000_000, 500);
+    let r = send(d.ingest, &again.bytes, 2048).await;
+    assert_eq!(r["status"], "completed", "{r}");
+    assert_eq!(r["ticks"], again.ticks);
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connection_limit_makes_clients_wait() {
+    let mut config = test_config();
+    config.limits.max_connections = 1;
+    let d = Daemon::start(config).await;
+    let first = good_stream("hold", "r1", 0, 1000);
+    // The first client sends half its stream and keeps the connection open.
+    let mut holder = TcpStream::connect(d.ingest).await.unwrap();
+    holder
+        .write_all(&first.bytes[..first.bytes.len() / 2])
+        .await
+        .unwrap();
+    crate::common::wait_until("the first connection", || async {
+        metric(&d.metrics().await, "shocktwin_connections_active") == Some(1.0)
+    })
+    .await;
+    let second = good_stream("queued", "r1", 0, 600);
+    let addr = d.ingest;
+    let bytes = second.bytes.clone();
+    let queued = tokio::spawn(async move { send(addr, &bytes, 1000).await });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        !queued.is_finished(),
+        "the second client must wait for a permit"
+    );
+    let m = d.metrics().await;
+    assert_eq!(metric(&m, "shocktwin_connections_total"), Some(1.0), "{m}");
+    // The first client finishes; the second is served.
+    holder
+        .write_all(&first.bytes[first.bytes.len() / 2..])
+        .await
+        .unwrap();
+    holder.shutdown().await.unwrap();
+    let mut reply = String::new();
+    holder.read_to_string(&mut reply).await.unwrap();
+    assert!(reply.contains("\"completed\""), "{reply}");
+    let r = queued.await.unwrap();
+    assert_eq!(r["status"], "completed", "{r}");
+    assert_eq!(r["ticks"], second.ticks);
+    d.stop().await;
+}
+
+/// Time matters here: with the clock paused, the idle timeout fires as soon
+/// as the daemon has nothing else to do, deterministically.
+#[tokio::test(start_paused = true)]
+async fn idle_connection_is_closed_with_its_estimates_kept() {
+    let mut config = test_config();
+    config.limits.idle_timeout_s = 30.0;
+    let d = Daemon::start(config).await;
+    let s = good_stream("idle", "r1", 0, 2000);
+    let mut c = TcpStream::connect(d.ingest).await.unwrap();
+    let cut = crate::common::top_level_records(&s.bytes)
+        .into_iter()
+        .filter(|&(_, op, _)| op == 0x06)
+        .nth(3)
+        .map(|(off, _, _)| off)
+        .unwrap();
+    c.write_all(&s.bytes[..cut]).await.unwrap();
+    let t0 = tokio::time::Instant::now();
+    let mut reply = String::new();
+    c.read_to_string(&mut reply).await.unwrap();
+    let r: serde_json::Value = serde_json::from_str(reply.trim()).unwrap();
+    assert_eq!(r["kind"], "idle_timeout", "{r}");
+    assert!(t0.elapsed() >= Duration::from_secs(30));
+    let ticks = r["ticks"].as_u64().unwrap();
+    assert!(ticks > 0 && ticks < s.ticks, "{r}");
+    // No timeouts around real I/O while the clock is paused.
+    let v: serde_json::Value = d
+        .client
+        .get(d.url("/v1/assets/idle"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(v["ticks"], ticks);
+    assert_eq!(v["last_run_status"], "failed");
+    d.stop_untimed().await;
+}
