@@ -1,0 +1,175 @@
+"""The daemon at work: stream a held-out leaking run through ``shocktwin serve``.
+
+    python -m train.demo_serve --bin target/release/shocktwin --bundle BUNDLE --out DIR
+
+1. Simulates one run the network never saw: a unit leaking down to ``--pressure`` bar
+   (default 2 bar, below the 5 bar fault threshold; not a campaign pressure).
+2. Starts ``shocktwin serve`` on loopback (ephemeral ports) with the bundle.
+3. Streams the run into the daemon's TCP ingest with Python's ``mcap`` writer, as a
+   vehicle gateway would (the messages re-encoded incrementally onto the socket), while
+   listening to the daemon's Server-Sent Events for health changes.
+4. Prints the verdict the daemon reached and when (seconds since the run's first
+   message), and what ``GET /v1/assets/{id}`` says. The data are simulated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import httpx
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+class SocketStream:
+    """A write-only, counting file over a socket (the mcap writer asks for ``tell``)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.pos = 0
+
+    def write(self, data: bytes) -> int:
+        self.sock.sendall(data)
+        self.pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        pass
+
+
+def start_daemon(binary: str, bundle: Path, record_dir: Path) -> tuple[subprocess.Popen[str], str, str]:
+    cmd = [binary, "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(bundle),
+           "--record-dir", str(record_dir)]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        line = ANSI.sub("", proc.stderr.readline())
+        if not line and proc.poll() is not None:
+            raise RuntimeError(f"shocktwin serve exited with {proc.returncode}")
+        m = re.search(r"listen=(\S+).*http=(\S+)", line)
+        if m:
+            # Keep draining the daemon's log so that it never blocks on a full pipe.
+            threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()  # type: ignore[union-attr]
+            return proc, m.group(1), m.group(2)
+    proc.kill()
+    raise RuntimeError("shocktwin serve did not report its addresses")
+
+
+def watch_events(http: str, asset_id: str, events: list[dict[str, Any]], ready: threading.Event) -> None:
+    with httpx.Client(timeout=None) as client, client.stream("GET", f"http://{http}/v1/events") as resp:
+        ready.set()
+        name = None
+        for line in resp.iter_lines():
+            if line.startswith("event:"):
+                name = line.split(":", 1)[1].strip()
+            elif line.startswith("data:") and name in ("health", "run"):
+                data = json.loads(line.split(":", 1)[1])
+                if data.get("asset_id") == asset_id:
+                    events.append({"event": name, **data})
+                    if name == "run" and data.get("status") != "started":
+                        return
+
+
+def stream_run(addr: str, path: Path) -> dict[str, Any]:
+    host, port = addr.rsplit(":", 1)
+    with socket.create_connection((host, int(port))) as sock, open(path, "rb") as fh:
+        reader = make_reader(fh)
+        out = SocketStream(sock)
+        writer = Writer(out, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
+        writer.start(profile="", library="shocktwin demo client (python mcap)")
+        for meta in reader.iter_metadata():
+            writer.add_metadata(meta.name, meta.metadata)
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas.get(channel.schema_id, 0))
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                               message.sequence)
+        writer.finish()
+        sock.shutdown(socket.SHUT_WR)
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    return json.loads(reply.decode().strip().splitlines()[-1])
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m train.demo_serve", description=__doc__.split("\n")[0])
+    p.add_argument("--bin", default="target/release/shocktwin")
+    p.add_argument("--bundle", required=True, type=Path)
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--pressure", type=float, default=2.0, help="charge pressure of the leaking unit (bar)")
+    p.add_argument("--frequency", type=float, default=2.0)
+    p.add_argument("--seed", type=int, default=7)
+    args = p.parse_args(argv)
+
+    run_dir = args.out / "run"
+    subprocess.run([args.bin, "simulate", "--quick", "--pressures", f"{args.pressure:g}", "--frequencies",
+                    f"{args.frequency:g}", "--seed", str(args.seed), "--out", str(run_dir)],
+                   check=True, stdout=subprocess.DEVNULL)
+    run_file = sorted(run_dir.glob("*.mcap"))[0]
+    with open(run_file, "rb") as fh:
+        meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["shocktwin.run"]
+    asset_id = meta["asset_id"]
+    print(f"streaming {run_file.name} (simulated: true charge {meta['charge_pressure_bar']} bar, "
+          f"{meta['excitation']}) into shocktwin serve with {args.bundle}")
+
+    proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records")
+    try:
+        events: list[dict[str, Any]] = []
+        ready = threading.Event()
+        watcher = threading.Thread(target=watch_events, args=(http, asset_id, events, ready), daemon=True)
+        watcher.start()
+        ready.wait(10)
+        started = time.perf_counter()
+        report = stream_run(listen, run_file)
+        watcher.join(10)
+        detail = httpx.get(f"http://{http}/v1/assets/{asset_id}", timeout=10).json()
+        wall = time.perf_counter() - started
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+    t0_ns = None
+    with open(run_file, "rb") as fh:
+        for _, _, message in make_reader(fh).iter_messages(log_time_order=True):
+            t0_ns = message.log_time
+            break
+    print(f"daemon: run {report.get('status')}, {report.get('samples')} samples, {report.get('ticks')} estimates "
+          f"in {wall:.1f} s wall")
+    changes = [e for e in events if e["event"] == "health"]
+    for e in changes:
+        print(f"  t = {(e['t_ns'] - t0_ns) * 1e-9:6.1f} s: health {e['from']} -> {e['to']}")
+    verdict = detail.get("health")
+    when = next((e for e in reversed(changes) if e["to"] == verdict), None)
+    when_s = f"at t = {(when['t_ns'] - t0_ns) * 1e-9:.1f} s of the run" if when else "(no change event seen)"
+    print(f"verdict for {asset_id}: {verdict} {when_s}; 1 s average "
+          f"{detail.get('pressure_avg_bar') or float('nan'):.2f} bar against {detail.get('expected_bar')} bar nominal "
+          f"(true charge {meta['charge_pressure_bar']} bar; simulated data)")
+    (args.out / "verdict.json").write_text(json.dumps({"report": report, "health_changes": changes,
+                                                         "asset": {k: v for k, v in detail.items() if k != "history"}},
+                                                        indent=2) + "\n")
+    return 0 if report.get("status") == "completed" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
