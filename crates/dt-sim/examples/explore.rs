@@ -1,20 +1,72 @@
-//! Development aid: prints what each paper run does (no files written).
+//! Development aid (simulated data): force-velocity curves of the plant,
+//! cavitation onset speeds, and a summary of each paper run (no files).
+//!
+//! `cargo run --release -p dt-sim --example explore [-- --quick] [-- --curves]`
+
+use dt_sim::hydraulics::TwinTube;
+use dt_sim::params::{KELVIN, P_ATM_PA};
 use dt_sim::{simulate_run_with, PlantParams, RunSpec};
+
+fn curves(p: &PlantParams) {
+    let mut hyd = TwinTube::new(p);
+    let a_r = p.rod_area_m2();
+    for temp_c in [20.0, 40.0, 80.0] {
+        let nu = hyd.oil.ratio_to_40(temp_c);
+        print!("{temp_c:>4} C (nu {:5.1} cSt):", hyd.oil.nu_cst(temp_c));
+        for v in [0.05, 0.13, 0.26, 0.5, 1.0] {
+            // Damping only: subtract the static gas force at 12 bar.
+            let p_g = 12.0e5 + P_ATM_PA;
+            let f0 = -(p_g - P_ATM_PA) * a_r;
+            let reb = hyd.evaluate(v, p_g, 0.0, nu).unwrap().force_n - f0;
+            let com = hyd.evaluate(-v, p_g, 0.0, nu).unwrap().force_n - f0;
+            print!("  {v:.2} m/s {reb:5.0}/{com:5.0} N");
+        }
+        println!();
+    }
+    for charge in [0.5, 4.0, 7.0, 12.0] {
+        let onset: Vec<String> = [20.0, 80.0]
+            .iter()
+            .map(|&t: &f64| {
+                let p_g = (charge * 1e5 + P_ATM_PA) * (t + KELVIN) / (20.0 + KELVIN);
+                let q = hyd.max_refill_m3s(p_g, hyd.oil.ratio_to_40(t));
+                format!("{:.2} m/s at {t} C", q / a_r)
+            })
+            .collect();
+        println!("cavitation onset {charge:>4} bar: {}", onset.join(", "));
+    }
+}
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let quick = args.iter().any(|a| a == "--quick");
     let p = PlantParams::nominal();
+    if args.iter().any(|a| a == "--curves") {
+        curves(&p);
+        return;
+    }
+    let quick = args.iter().any(|a| a == "--quick");
     for &charge in &[0.5, 4.0, 12.0] {
         for &f in &[1.0, 2.0, 4.0] {
-            let mut spec = RunSpec::paper(charge, f, 1);
-            spec.quick = quick;
+            let spec = RunSpec {
+                quick,
+                ..RunSpec::paper(charge, f, 1)
+            };
             let t = std::time::Instant::now();
-            let s = simulate_run_with(&spec, &p, |_| Ok(())).unwrap();
+            let s = simulate_run_with(&spec, &p, |_| Ok(())).expect("run");
             println!(
-                "{} {:>7.1}s exc {:>7.1}s {:?} shockTC {:5.1} oil {:5.1} outer {:5.1} gas {:5.2} bar E {:8.0} kJ msgs {} cav {:6.1}s void {:.2} mL  ({:.2}s wall)",
-                s.run_id, s.duration_s, s.excitation_s, s.stop, s.final_shock_reading_c, s.final_oil_c, s.final_outer_c,
-                s.final_static_bar, s.energy_dissipated_j / 1e3, s.messages, s.cavitation_s, s.max_void_m3 * 1e6, t.elapsed().as_secs_f64()
+                "{} {:7.1} s (exc {:7.1} s, {}) shock TC {:5.1} oil {:5.1} outer {:5.1} gas {:5.2} bar, {:6.0} kJ, {} msgs, cavitating {:5.1} s, void {:.2} mL ({:.2} s wall)",
+                s.run_id,
+                s.duration_s,
+                s.excitation_s,
+                s.stop,
+                s.final_shock_reading_c,
+                s.final_oil_c,
+                s.final_outer_c,
+                s.final_static_bar,
+                s.energy_dissipated_j / 1e3,
+                s.messages,
+                s.cavitation_s,
+                s.max_void_m3 * 1e6,
+                t.elapsed().as_secs_f64()
             );
         }
     }

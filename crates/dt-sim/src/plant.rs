@@ -202,6 +202,16 @@ impl Plant {
         })
     }
 
+    /// [`Plant::new`] with the room stream seeded from `seed`.
+    pub fn with_seed(
+        params: &PlantParams,
+        config: &PlantConfig,
+        seed: u64,
+    ) -> Result<Self, SimError> {
+        use rand::SeedableRng as _;
+        Self::new(params, config, ChaCha8Rng::seed_from_u64(seed))
+    }
+
     /// Sub-step, s.
     #[must_use]
     pub fn dt_s(&self) -> f64 {

@@ -8,9 +8,11 @@
 //!   `Δp = a(T) Q + b Q²`, `a(T) = a40 · ν(T)/ν40`,
 //!   `b = ρ / (2 Cd² A_bleed²)` (sharp-edged orifice), solved for `Q`;
 //! * shim stack: opening area grows linearly with `Δp` above the cracking
-//!   pressure and saturates at full opening,
-//!   `A_s = A_max · tanh(k_s · softplus(Δp − p_crack) / A_max)`, flow
-//!   `Q_s = Cd A_s √(2Δp/ρ)` (softplus width 0.3 bar smooths the knee);
+//!   pressure and saturates smoothly at full opening,
+//!   `A_s = A_max · u / √(1 + u²)`, `u = k_s · r(Δp − p_crack) / A_max`, flow
+//!   `Q_s = Cd A_s √(2Δp/ρ)`, where `r(d) = (d + √(d² + w²)) / 2` is a
+//!   hyperbolic ramp (knee width `w` = 0.3 bar) that smooths the cracking
+//!   knee (algebraic forms: no transcendental functions in the hot loop);
 //! * `Q(Δp) = Q_bleed + Q_s`, strictly increasing in `Δp`.
 //!
 //! The plant knows the flow (from the kinematics) and needs `Δp`: [`Valve::dp_pa`]
@@ -72,24 +74,18 @@ impl Valve {
         // Q_b = (−a + √(a² + 4bΔp)) / 2b, written without cancellation.
         let q_b = 2.0 * dp / (a + disc);
         let dq_b = 1.0 / disc;
-        // Shim: closed (well) below cracking, otherwise softplus knee.
-        let x = (dp - self.crack_pa) / KNEE_PA;
-        if x < -35.0 {
+        // Shim: hyperbolic ramp above cracking (closed well below it).
+        let d = dp - self.crack_pa;
+        if d < -50.0 * KNEE_PA {
             return (q_b, dq_b);
         }
-        let (sp, dsp) = if x > 35.0 {
-            (dp - self.crack_pa, 1.0)
-        } else {
-            let e = x.exp();
-            (KNEE_PA * e.ln_1p(), e / (1.0 + e))
-        };
-        let u = self.gain_m2_pa * sp / self.max_m2;
-        let (area, darea) = if u > 20.0 {
-            (self.max_m2, 0.0)
-        } else {
-            let th = u.tanh();
-            (self.max_m2 * th, self.gain_m2_pa * dsp * (1.0 - th * th))
-        };
+        let root = (d * d + KNEE_PA * KNEE_PA).sqrt();
+        let ramp = 0.5 * (d + root);
+        let dramp = 0.5 * (1.0 + d / root);
+        let u = self.gain_m2_pa * ramp / self.max_m2;
+        let s = (1.0 + u * u).sqrt();
+        let area = self.max_m2 * u / s;
+        let darea = self.gain_m2_pa * dramp / (s * s * s);
         let sq = dp.sqrt();
         let q_s = self.cd_sqrt_2_rho * area * sq;
         let dq_s = if sq > 0.0 {
