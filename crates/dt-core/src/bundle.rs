@@ -293,10 +293,7 @@ impl Bundle {
             *xi = (v - m) / s;
         }
         match &self.network.dense {
-            Some(dense) => {
-                let mut scratch = Vec::with_capacity(2 * dense.max_width);
-                Ok(dense.forward_one(&x[..k], &mut scratch))
-            }
+            Some(dense) => Ok(dense.forward_one(&x[..k], &mut Vec::new())),
             None => Ok(self.network.run_tract(&x[..k], 1, k, &self.onnx_path())?[0]),
         }
     }
@@ -367,8 +364,11 @@ struct DenseMlp {
     max_width: usize,
 }
 
+/// Layers up to this wide run on stack buffers.
+const STACK_WIDTH: usize = 128;
+
 /// Outputs evaluated together in registers by [`Dense::forward`].
-const LANES: usize = 8;
+const LANES: usize = 16;
 
 impl Dense {
     /// `out = x W + b` (then `ReLU`). Sums over the inputs in order for each
@@ -376,22 +376,23 @@ impl Dense {
     fn forward(&self, x: &[f64], out: &mut [f64]) {
         let (n_in, n_out) = (self.n_in, self.n_out);
         let full = n_out - n_out % LANES;
-        for j0 in (0..full).step_by(LANES) {
-            let mut acc: [f64; LANES] = self.b[j0..j0 + LANES].try_into().unwrap_or([0.0; LANES]);
-            for (i, &xi) in x[..n_in].iter().enumerate() {
-                let w: &[f64; LANES] = self.w[i * n_out + j0..i * n_out + j0 + LANES]
-                    .try_into()
-                    .unwrap_or(&[0.0; LANES]);
-                for l in 0..LANES {
-                    acc[l] += xi * w[l];
+        for (j0, out_block) in (0..full)
+            .step_by(LANES)
+            .zip(out[..full].chunks_exact_mut(LANES))
+        {
+            let mut acc = [0.0; LANES];
+            acc.copy_from_slice(&self.b[j0..j0 + LANES]);
+            for (&xi, w_row) in x[..n_in].iter().zip(self.w.chunks_exact(n_out)) {
+                for (a, &w) in acc.iter_mut().zip(&w_row[j0..j0 + LANES]) {
+                    *a += xi * w;
                 }
             }
-            out[j0..j0 + LANES].copy_from_slice(&acc);
+            out_block.copy_from_slice(&acc);
         }
         for (j, o) in out.iter_mut().enumerate().take(n_out).skip(full) {
             let mut acc = self.b[j];
-            for (i, &xi) in x[..n_in].iter().enumerate() {
-                acc += xi * self.w[i * n_out + j];
+            for (&xi, w_row) in x[..n_in].iter().zip(self.w.chunks_exact(n_out)) {
+                acc += xi * w_row[j];
             }
             *o = acc;
         }
@@ -410,9 +411,15 @@ impl DenseMlp {
     /// The network's single output for one normalised row.
     fn forward_one(&self, x: &[f64], scratch: &mut Vec<f64>) -> f64 {
         let w = self.max_width;
-        scratch.clear();
-        scratch.resize(2 * w, 0.0);
-        let (a, b) = scratch.split_at_mut(w);
+        let mut stack = [0.0; 2 * STACK_WIDTH];
+        let buf: &mut [f64] = if w <= STACK_WIDTH {
+            &mut stack[..2 * w]
+        } else {
+            scratch.clear();
+            scratch.resize(2 * w, 0.0);
+            scratch
+        };
+        let (a, b) = buf.split_at_mut(w);
         a[..x.len()].copy_from_slice(x);
         let (mut cur, mut next) = (a, b);
         for layer in &self.layers {
@@ -601,7 +608,7 @@ impl Network {
     fn run(&self, x: &[f64], n: usize, k: usize, path: &Path) -> Result<Vec<f64>, BundleError> {
         match &self.dense {
             Some(dense) => {
-                let mut scratch = Vec::with_capacity(2 * dense.max_width);
+                let mut scratch = Vec::new();
                 Ok(x.chunks_exact(k)
                     .map(|row| dense.forward_one(row, &mut scratch))
                     .collect())
