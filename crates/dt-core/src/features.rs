@@ -76,7 +76,8 @@
 //! Kalman estimates, the modelled force and oil temperature, an excitation
 //! measure (RMS of the tick velocities over the last 1 s = 50 ticks) and gap
 //! counters. The truth label `/truth/gas_pressure` (simulator only) is held
-//! at each tick in [`TickRow::truth_static_bar`].
+//! at each tick in [`TickRow::truth_static_bar`]; the simulator-truth
+//! velocity `/truth/velocity` is ignored entirely (not even the clock).
 //!
 //! # Sensor suites
 //!
@@ -795,6 +796,11 @@ impl FeaturePipeline {
     /// Takes one sample (time order; see the module docs). Completes every
     /// tick before the sample's time.
     pub fn push(&mut self, sample: &Sample) -> Result<(), PhysicsError> {
+        // Simulator-truth velocity is for analysis only: it neither drives
+        // the clock nor feeds anything (features are the same without it).
+        if let Sample::TruthVelocity { .. } = sample {
+            return Ok(());
+        }
         let t = sample.t_ns();
         if self.origin_ns.is_none() {
             self.origin_ns = Some(t);
@@ -886,6 +892,7 @@ impl FeaturePipeline {
                 }
             }
             Sample::TruthPressure { static_bar, .. } => self.truth_bar = static_bar,
+            Sample::TruthVelocity { .. } => {} // returned above
         }
         Ok(())
     }
@@ -1115,7 +1122,7 @@ pub fn compute_features(
     });
     let mut table = FeatureTable {
         run_id: log.metadata.run_id.clone(),
-        t_origin_ns: samples.first().map_or(0, Sample::t_ns),
+        t_origin_ns: 0, // the pipeline's origin, set at the end
         columns: idx.iter().map(|&i| COLUMNS[i].to_owned()).collect(),
         t_ns: Vec::with_capacity(n_ticks),
         values: Vec::with_capacity(n_ticks * idx.len()),
@@ -1136,6 +1143,9 @@ pub fn compute_features(
     }
     pipe.finish();
     take(&mut pipe);
+    // The pipeline's origin: its first sample (simulator-truth velocity is
+    // not one), 0 for an empty log.
+    table.t_origin_ns = pipe.origin_ns().unwrap_or(0);
     Ok(table)
 }
 
@@ -1516,6 +1526,27 @@ mod tests {
             })
             .unwrap_err();
         assert!(err.to_string().contains("/position"), "{err}");
+    }
+
+    #[test]
+    fn truth_velocity_changes_nothing() {
+        let mut log = synth_log(2, TopicSet::all());
+        let params = PhysicsParams::default();
+        let clean = compute_features(&log, &params, &Group::ALL).unwrap();
+        // before the first sensor sample, between samples, after the last one
+        for t in [
+            T0 - 7 * MS,
+            T0 + 5 * MS + 1,
+            T0 + 1234 * MS + 17,
+            T0 + 2500 * MS,
+        ] {
+            log.truth_velocity.push((t, 0.5));
+        }
+        log.truth_velocity.sort_by_key(|s| s.0);
+        let with = compute_features(&log, &params, &Group::ALL).unwrap();
+        assert_eq!(with.t_origin_ns, T0);
+        // Debug prints floats exactly (and NaN equal to NaN)
+        assert_eq!(format!("{clean:?}"), format!("{with:?}"));
     }
 
     #[test]

@@ -100,9 +100,13 @@ impl SampleDecoder {
                 t_ns,
                 temperature_c: v0,
             },
-            _ => Sample::TruthPressure {
+            5 => Sample::TruthPressure {
                 t_ns,
                 static_bar: v0,
+            },
+            _ => Sample::TruthVelocity {
+                t_ns,
+                velocity_mps: v0,
             },
         }))
     }

@@ -238,7 +238,8 @@ fn lacks(report: &InspectReport, run_records: u32, problems: &mut Problems) {
         ));
     }
     for spec in &TOPICS {
-        if spec.topic != topic::TRUTH_PRESSURE && report.count(spec.topic) == 0 {
+        let truth = spec.topic == topic::TRUTH_PRESSURE || spec.topic == topic::TRUTH_VELOCITY;
+        if !truth && report.count(spec.topic) == 0 {
             problems.note(format!("no messages on {} (sensor missing)", spec.topic));
         }
     }

@@ -41,6 +41,8 @@ pub mod topic {
     pub const TEMP_AMBIENT: &str = "/temperature/ambient";
     /// Simulator truth, field `static_bar`.
     pub const TRUTH_PRESSURE: &str = "/truth/gas_pressure";
+    /// Simulator truth, field `velocity_mps`.
+    pub const TRUTH_VELOCITY: &str = "/truth/velocity";
     /// Estimator output.
     pub const ESTIMATE: &str = "/estimate";
 }
@@ -114,6 +116,14 @@ pub enum Sample {
         /// Static gas pressure, bar gauge.
         static_bar: f64,
     },
+    /// `/truth/velocity`: true extension velocity of the damper, m/s
+    /// (positive = extension).
+    TruthVelocity {
+        /// MCAP `log_time`, ns.
+        t_ns: i64,
+        /// Extension velocity, m/s, positive in extension.
+        velocity_mps: f64,
+    },
 }
 
 impl Sample {
@@ -126,13 +136,15 @@ impl Sample {
             | Sample::Force { t_ns, .. }
             | Sample::TempShock { t_ns, .. }
             | Sample::TempAmbient { t_ns, .. }
-            | Sample::TruthPressure { t_ns, .. } => t_ns,
+            | Sample::TruthPressure { t_ns, .. }
+            | Sample::TruthVelocity { t_ns, .. } => t_ns,
         }
     }
 
     /// Rank of the sample's topic for ordering samples with equal `t_ns`:
     /// acceleration (0), position, force, shock temperature, ambient
-    /// temperature, truth (5). The accelerometer comes first (SPEC §3.1).
+    /// temperature, truth pressure, truth velocity (6). The accelerometer
+    /// comes first (SPEC §3.1).
     #[must_use]
     pub fn topic_rank(&self) -> u8 {
         match self {
@@ -142,6 +154,7 @@ impl Sample {
             Sample::TempShock { .. } => 3,
             Sample::TempAmbient { .. } => 4,
             Sample::TruthPressure { .. } => 5,
+            Sample::TruthVelocity { .. } => 6,
         }
     }
 
@@ -155,6 +168,7 @@ impl Sample {
             Sample::TempShock { .. } => topic::TEMP_SHOCK,
             Sample::TempAmbient { .. } => topic::TEMP_AMBIENT,
             Sample::TruthPressure { .. } => topic::TRUTH_PRESSURE,
+            Sample::TruthVelocity { .. } => topic::TRUTH_VELOCITY,
         }
     }
 }
@@ -177,6 +191,8 @@ pub struct RunLog {
     pub temp_ambient: Vec<(i64, f64)>,
     /// `/truth/gas_pressure`: `(t_ns, static_bar)`.
     pub truth_pressure: Vec<(i64, f64)>,
+    /// `/truth/velocity`: `(t_ns, velocity_mps)`.
+    pub truth_velocity: Vec<(i64, f64)>,
     /// Messages on topics this format does not know, by topic (counted, not kept).
     pub unknown_topics: BTreeMap<String, u64>,
     /// Non-fatal findings (skipped messages with topic and field, ignored
@@ -197,8 +213,9 @@ pub struct TopicSpec {
     pub description: &'static str,
 }
 
-/// The six sensor topics of SPEC §2, in topic-rank order (see [`Sample::topic_rank`]).
-pub const TOPICS: [TopicSpec; 6] = [
+/// The sensor topics of SPEC §2 and the two simulator-truth topics, in
+/// topic-rank order (see [`Sample::topic_rank`]).
+pub const TOPICS: [TopicSpec; 7] = [
     TopicSpec {
         topic: topic::ACCELERATION,
         fields: &["a1_mps2", "a2_mps2"],
@@ -234,6 +251,13 @@ pub const TOPICS: [TopicSpec; 6] = [
         fields: &["static_bar"],
         schema_name: "shocktwin.TruthGasPressure",
         description: "Simulator truth: instantaneous static gas pressure, bar gauge",
+    },
+    TopicSpec {
+        topic: topic::TRUTH_VELOCITY,
+        fields: &["velocity_mps"],
+        schema_name: "shocktwin.TruthVelocity",
+        description:
+            "Simulator truth: extension velocity of the damper, positive in extension, m/s",
     },
 ];
 

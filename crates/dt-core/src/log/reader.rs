@@ -113,6 +113,9 @@ impl RunLog {
             Sample::TruthPressure { t_ns, static_bar } => {
                 self.truth_pressure.push((t_ns, static_bar));
             }
+            Sample::TruthVelocity { t_ns, velocity_mps } => {
+                self.truth_velocity.push((t_ns, velocity_mps));
+            }
         }
     }
 
@@ -125,6 +128,7 @@ impl RunLog {
             + self.temp_shock.len()
             + self.temp_ambient.len()
             + self.truth_pressure.len()
+            + self.truth_velocity.len()
     }
 
     /// All samples in time order; at equal `t_ns` by topic rank
@@ -170,6 +174,11 @@ impl RunLog {
                 .iter()
                 .map(|&(t_ns, static_bar)| Sample::TruthPressure { t_ns, static_bar }),
         );
+        out.extend(
+            self.truth_velocity
+                .iter()
+                .map(|&(t_ns, velocity_mps)| Sample::TruthVelocity { t_ns, velocity_mps }),
+        );
         // stable: equal keys keep file order within a topic
         out.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
         out
@@ -185,6 +194,7 @@ impl RunLog {
             self.temp_shock.iter().map(|s| s.0).min(),
             self.temp_ambient.iter().map(|s| s.0).min(),
             self.truth_pressure.iter().map(|s| s.0).min(),
+            self.truth_velocity.iter().map(|s| s.0).min(),
         ];
         firsts.into_iter().flatten().min()
     }

@@ -209,6 +209,12 @@ impl<W: Write + Seek> LogWriter<W> {
                 self.buf.extend_from_slice(b"{\"static_bar\":");
                 push_f64(&mut self.buf, &mut self.float, v);
             }
+            Sample::TruthVelocity {
+                velocity_mps: v, ..
+            } => {
+                self.buf.extend_from_slice(b"{\"velocity_mps\":");
+                push_f64(&mut self.buf, &mut self.float, v);
+            }
         }
         self.buf.push(b'}');
         self.write_raw(spec.topic, channel_id, sequence, log_time)

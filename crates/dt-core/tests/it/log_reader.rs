@@ -58,6 +58,15 @@ fn whole_file_and_stream_readers_round_trip_every_layout() {
             assert!(log.problems.is_empty(), "{:?}", log.problems);
             // written in time order with acceleration first: the sort is the identity
             assert_eq!(log.samples_sorted(), written, "{options:?}");
+            let truth: Vec<(i64, f64)> = written
+                .iter()
+                .filter_map(|s| match *s {
+                    Sample::TruthVelocity { t_ns, velocity_mps } => Some((t_ns, velocity_mps)),
+                    _ => None,
+                })
+                .collect();
+            assert_eq!(truth.len(), 20);
+            assert_eq!(log.truth_velocity, truth, "{options:?}");
             assert_eq!(log.t0_ns(), Some(0));
 
             for piece in [1, 7, 4096, bytes.len()] {
@@ -112,6 +121,14 @@ fn samples_sorted_orders_equal_times_by_topic_rank() {
         t_ns: 10,
         force_n: 3.0,
     });
+    log.push(Sample::TruthVelocity {
+        t_ns: 10,
+        velocity_mps: 0.3,
+    });
+    log.push(Sample::TruthVelocity {
+        t_ns: 7,
+        velocity_mps: 0.2,
+    });
     log.push(Sample::TruthPressure {
         t_ns: 7,
         static_bar: 12.0,
@@ -126,10 +143,12 @@ fn samples_sorted_orders_equal_times_by_topic_rank() {
         [
             (5, "/position"),
             (7, "/truth/gas_pressure"),
+            (7, "/truth/velocity"),
             (10, "/acceleration"),
             (10, "/position"),
             (10, "/force"),
             (10, "/temperature/ambient"),
+            (10, "/truth/velocity"),
         ]
     );
     assert_eq!(log.t0_ns(), Some(5));
@@ -477,6 +496,14 @@ fn inspect_reports_counts_rates_and_a_complete_log() {
     assert!(report.problems.is_empty(), "{:?}", report.problems);
     assert_eq!(report.count("/acceleration"), 200);
     assert_eq!(report.count("/position"), 20);
+    assert_eq!(report.count("/truth/velocity"), 20);
+    let truth = report
+        .channels
+        .iter()
+        .find(|c| c.topic == "/truth/velocity")
+        .unwrap();
+    assert_eq!(truth.schema_name, "shocktwin.TruthVelocity");
+    assert!((truth.rate_hz().unwrap() - 100.0).abs() < 1e-9);
     assert_eq!(report.chunks.keys().collect::<Vec<_>>(), ["zstd"]);
     let acc = report
         .channels
@@ -516,4 +543,6 @@ fn inspect_reports_counts_rates_and_a_complete_log() {
         assert!(problems.contains(needle), "{needle}: {problems}");
     }
     assert!(!problems.contains("/position"), "{problems}");
+    // the simulator-truth topics are optional: their absence is no problem
+    assert!(!problems.contains("/truth/"), "{problems}");
 }

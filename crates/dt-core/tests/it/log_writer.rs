@@ -56,6 +56,13 @@ pub fn samples() -> Vec<Sample> {
                 static_bar: 12.0 + x,
             });
         }
+        if i % 10 == 0 {
+            // simulator truth at the /position instants, last at equal times (rank 6)
+            out.push(Sample::TruthVelocity {
+                t_ns,
+                velocity_mps: -0.04 * x.sin() - 3.5e-7,
+            });
+        }
     }
     out
 }
@@ -113,6 +120,9 @@ fn mcap_crate_reads_back_every_message_with_schema_and_time() {
                     vec![("temperature_c", temperature_c)]
                 }
                 Sample::TruthPressure { static_bar, .. } => vec![("static_bar", static_bar)],
+                Sample::TruthVelocity { velocity_mps, .. } => {
+                    vec![("velocity_mps", velocity_mps)]
+                }
             };
             assert_eq!(v.as_object().unwrap().len(), fields.len());
             for (name, value) in fields {
