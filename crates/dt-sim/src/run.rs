@@ -10,9 +10,12 @@
 //! and excite at most 60 s.
 //!
 //! Sampling (SPEC §2): acceleration every 1 ms, position 10 ms, force 20 ms,
-//! truth gas pressure 100 ms, temperatures 1 s, all on one clock from
-//! `T0_NS`; at equal times samples come in topic-rank order (acceleration
-//! first). Every run draws its randomness from `ChaCha8` streams seeded by
+//! temperatures 1 s; simulator truth (labels for analysis, never used by the
+//! twin): static gas pressure `/truth/gas_pressure` (`static_bar`, bar gauge)
+//! 100 ms and the plant's extension rate `ẏ` `/truth/velocity`
+//! (`velocity_mps`, m/s, positive in extension) 10 ms, at the position
+//! instants. All on one clock from `T0_NS`; at equal times samples come in
+//! topic-rank order (acceleration first, truth velocity last). Every run draws its randomness from `ChaCha8` streams seeded by
 //! `(seed, charge, frequency, unit)` (room, sensors) and by `seed` alone (the
 //! rig's sensor errors), so runs are independent of each other and of the
 //! thread count.
@@ -349,6 +352,12 @@ where
         emit(Sample::TruthPressure {
             t_ns,
             static_bar: truth.static_gas_bar,
+        })?;
+    }
+    if ms % 10 == 0 {
+        emit(Sample::TruthVelocity {
+            t_ns,
+            velocity_mps: truth.velocity_mps,
         })?;
     }
     if let Some(c) = shock {

@@ -28,7 +28,8 @@ fn quick_run_file_reads_back_with_metadata() {
         + log.force.len()
         + log.temp_shock.len()
         + log.temp_ambient.len()
-        + log.truth_pressure.len();
+        + log.truth_pressure.len()
+        + log.truth_velocity.len();
     assert_eq!(n as u64, summary.messages);
     assert_eq!(log.acceleration.len(), 70_001);
     // The excitation is visible: +-40 mm on the potentiometer.
@@ -46,6 +47,30 @@ fn quick_run_file_reads_back_with_metadata() {
         (1.4..2.8).contains(&ratio),
         "rebound {fmax} N, compression {fmin} N"
     );
+
+    // Simulator truth velocity: at the position instants, zero at rest, the
+    // 2 Hz, 80 mm p-p sine's peak 0.04 * 4 pi = 0.503 m/s while excited, and
+    // the sign of the position's rate (positive in extension).
+    let t_pos: Vec<i64> = log.position.iter().map(|p| p.0).collect();
+    let t_vel: Vec<i64> = log.truth_velocity.iter().map(|v| v.0).collect();
+    assert_eq!(t_vel, t_pos);
+    let rest = log.truth_velocity.iter().take(900);
+    assert!(rest.map(|v| v.1.abs()).fold(0.0, f64::max) < 1e-3);
+    let vmax = log
+        .truth_velocity
+        .iter()
+        .map(|v| v.1.abs())
+        .fold(0.0, f64::max);
+    assert!((0.48..0.53).contains(&vmax), "peak velocity {vmax}");
+    let (mut dot, mut n_rate) = (0.0, 0.0);
+    for (w, v) in log.position.windows(3).zip(&log.truth_velocity[1..]) {
+        let rate = (w[2].1 - w[0].1) / ((w[2].0 - w[0].0) as f64 * 1e-9);
+        dot += rate * v.1;
+        n_rate += rate * rate;
+    }
+    let n_vel: f64 = log.truth_velocity.iter().map(|v| v.1 * v.1).sum();
+    let corr = dot / (n_rate * n_vel).sqrt();
+    assert!(corr > 0.99, "correlation with the position's rate {corr}");
 
     let varied = RunSpec {
         unit: Some(3),
