@@ -7,7 +7,9 @@ use std::sync::Arc;
 use anyhow::Context;
 
 use crate::cli::ServeArgs;
-use crate::server::{self, Config, ConfigOverrides, Listeners, TickCounterFactory, TwinFactory};
+use crate::server::{
+    self, Config, ConfigOverrides, EstimatorFactory, Listeners, TickCounterFactory, TwinFactory,
+};
 
 /// Runs `shocktwin serve`.
 pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
@@ -23,7 +25,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         &|var| std::env::var(var).ok(),
         &overrides,
     )?;
-    let twins = twin_factory(&config);
+    let twins = twin_factory(&config)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("shocktwin-serve")
@@ -41,21 +43,17 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     })
 }
 
-/// The estimator behind the daemon.
-fn twin_factory(config: &Config) -> Arc<dyn TwinFactory> {
-    // The incremental estimator (dt_core::estimator) is not written yet; the
-    // daemon runs with the placeholder, which keeps the 50 Hz clock and
-    // reports no pressure. Say so loudly rather than pretend.
+/// The estimator behind the daemon: the model bundle's, or without one the
+/// placeholder (50 Hz clock only), said loudly.
+fn twin_factory(config: &Config) -> anyhow::Result<Arc<dyn TwinFactory>> {
     if let Some(bundle) = &config.model.bundle {
-        tracing::warn!(
-            bundle = %bundle.display(),
-            "the estimator is not available in this build: the model bundle is not used"
-        );
+        return Ok(Arc::new(EstimatorFactory::load(bundle)?));
     }
     tracing::warn!(
-        "serving with the placeholder twin: estimates carry NaN pressure and health `unknown`"
+        "no model bundle (--model, [model] bundle, SHOCKTWIN_MODEL): serving with the \
+         placeholder twin; estimates carry NaN pressure and health `unknown`"
     );
-    Arc::new(TickCounterFactory)
+    Ok(Arc::new(TickCounterFactory))
 }
 
 /// Resolves on SIGTERM or Ctrl-C.

@@ -21,7 +21,7 @@ use tokio_util::sync::CancellationToken;
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
-use super::twin::{AssetTwin, TwinFactory};
+use super::twin::{AssetTwin, TwinError, TwinFactory};
 
 /// Bytes read from a stream at a time.
 const READ_BUF_BYTES: usize = 64 << 10;
@@ -289,7 +289,10 @@ impl Ingest {
                     }
                 }
                 Ok(LogEvent::Sample(sample)) => match run.as_mut() {
-                    Some(r) => r.push(&sample),
+                    Some(r) => r.push(&sample).map_err(|e| RunOutcome::Failed {
+                        kind: "twin",
+                        reason: format!("{source}: the twin failed: {e}"),
+                    })?,
                     None => {
                         return Err(RunOutcome::Failed {
                             kind: "metadata",
@@ -319,19 +322,19 @@ impl Ingest {
 
     async fn end(&self, source: String, run: Option<RunHandle>, outcome: RunOutcome) -> RunReport {
         let m = &self.inner.metrics;
+        let (outcome, asset_id, run_id, samples, ticks, sink_result) = match run {
+            Some(r) => {
+                let ids = (r.info.meta.asset_id.clone(), r.info.meta.run_id.clone());
+                let (outcome, samples, ticks, result) = r.end(outcome).await;
+                (outcome, Some(ids.0), Some(ids.1), samples, ticks, result)
+            }
+            None => (outcome, None, None, 0, 0, Ok(())),
+        };
         if let RunOutcome::Failed { kind, reason } = &outcome {
             m.error(kind);
             tracing::warn!(source, kind, "stream closed: {reason}");
         }
         Metrics::add(&m.runs, outcome.status(), 1);
-        let (asset_id, run_id, samples, ticks, sink_result) = match run {
-            Some(r) => {
-                let ids = (r.info.meta.asset_id.clone(), r.info.meta.run_id.clone());
-                let (samples, ticks, result) = r.end(&outcome).await;
-                (Some(ids.0), Some(ids.1), samples, ticks, result)
-            }
-            None => (None, None, 0, 0, Ok(())),
-        };
         if matches!(outcome, RunOutcome::Completed) {
             tracing::info!(source, samples, ticks, "run completed");
         }
@@ -397,11 +400,11 @@ impl RunHandle {
     }
 
     /// Feeds one sample to the twin (no I/O; call [`RunHandle::flush`] after a batch).
-    pub fn push(&mut self, sample: &Sample) {
-        self.twin.push(sample);
+    pub fn push(&mut self, sample: &Sample) -> Result<(), TwinError> {
         self.samples += 1;
         let t = sample.t_ns();
         self.last_t_ns = Some(self.last_t_ns.map_or(t, |l| l.max(t)));
+        self.twin.push(sample)
     }
 
     /// Sends the estimates completed so far; waits while the sink queue is full.
@@ -441,10 +444,19 @@ impl RunHandle {
     }
 
     /// Ends the run: the twin's last estimates are sent, and this waits until
-    /// the sinks have made everything of the run durable. Returns samples,
-    /// ticks and the sinks' verdict.
-    pub async fn end(mut self, outcome: &RunOutcome) -> (u64, u64, Result<(), String>) {
-        self.twin.finish(&mut self.out);
+    /// the sinks have made everything of the run durable. Returns the
+    /// outcome (failed if the twin failed at the end), samples, ticks and the
+    /// sinks' verdict.
+    pub async fn end(mut self, outcome: RunOutcome) -> (RunOutcome, u64, u64, Result<(), String>) {
+        let mut outcome = outcome;
+        if let Err(e) = self.twin.finish(&mut self.out) {
+            if !matches!(outcome, RunOutcome::Failed { .. }) {
+                outcome = RunOutcome::Failed {
+                    kind: "twin",
+                    reason: format!("{}: the twin failed: {e}", self.info.source),
+                };
+            }
+        }
         let mut result = self.send_out().await.map_err(|e| e.to_string());
         let counters = self.twin.counters();
         self.ingest.inner.metrics.add_twin_counters(&counters);
@@ -474,6 +486,6 @@ impl RunHandle {
                 Ok(()) => ack_rx.await.unwrap_or_else(|_| Err(SinkClosed.to_string())),
             };
         }
-        (self.samples, self.ticks, result)
+        (outcome, self.samples, self.ticks, result)
     }
 }

@@ -56,7 +56,8 @@ pub struct Metrics {
     pub runs: Family<KindLabel, Counter>,
     /// Inbox files moved, by destination (`done`, `failed`).
     pub files: Family<KindLabel, Counter>,
-    /// Input anomalies the twins counted (`nan_samples`, `out_of_order`, `dropped_late`).
+    /// Input anomalies the twins counted (`nan_samples`, `out_of_order`,
+    /// `dropped_late`, `clock_jumps`, `ticks_without_inputs`).
     pub input: Family<KindLabel, Counter>,
     /// Per asset: now − time of the last sample processed, s.
     pub asset_lag_seconds: Family<AssetLabel, Gauge<f64, AtomicU64>>,
@@ -150,6 +151,8 @@ impl Metrics {
         Self::add(&self.input, "nan_samples", c.nan_samples);
         Self::add(&self.input, "out_of_order", c.out_of_order);
         Self::add(&self.input, "dropped_late", c.dropped_late);
+        Self::add(&self.input, "clock_jumps", c.clock_jumps);
+        Self::add(&self.input, "ticks_without_inputs", c.ticks_without_inputs);
     }
 
     /// Records the time of the last sample processed for `asset`.

@@ -16,6 +16,7 @@
 //! bounded; a semaphore caps connections; record sizes are limited.
 
 pub mod config;
+pub mod estimator;
 pub mod http;
 pub mod inbox;
 pub mod ingest;
@@ -40,6 +41,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 pub use config::{AssetConfig, Config, ConfigOverrides};
+pub use estimator::EstimatorFactory;
 pub use twin::{AssetTwin, TickCounterFactory, TickCounterTwin, TwinCounters, TwinFactory};
 
 use self::http::AppState;
@@ -95,6 +97,14 @@ pub enum ServeError {
         path: PathBuf,
         /// The OS error.
         source: std::io::Error,
+    },
+    /// The model bundle cannot be loaded.
+    #[error("model bundle {}: {reason}", path.display())]
+    Model {
+        /// The bundle directory.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
     },
     /// A sink cannot be set up.
     #[error(transparent)]

@@ -1,7 +1,8 @@
 //! What the daemon drives per run: an [`AssetTwin`] made by a
 //! [`TwinFactory`]. The real estimator (`dt_core::estimator`) plugs in behind
-//! these traits; until it does, [`TickCounterTwin`] is a clearly-named
-//! placeholder that keeps the 50 Hz clock but estimates nothing.
+//! these traits ([`super::estimator::EstimatorFactory`]);
+//! [`TickCounterTwin`] is a clearly-named placeholder that keeps the 50 Hz
+//! clock but estimates nothing (tests, and a daemon started without a model).
 
 use dt_core::estimate::{Estimate, Health};
 use dt_core::log::{RunMetadata, Sample};
@@ -20,6 +21,10 @@ pub struct TwinCounters {
     pub out_of_order: u64,
     /// Out-of-order samples too late to use, dropped.
     pub dropped_late: u64,
+    /// Forward clock jumps that restarted the twin.
+    pub clock_jumps: u64,
+    /// Ticks whose model inputs were not all available (pressure NaN).
+    pub ticks_without_inputs: u64,
     /// Estimates emitted.
     pub ticks: u64,
 }
@@ -27,12 +32,13 @@ pub struct TwinCounters {
 /// One asset's estimator for one run: fed samples in any interleaving, it
 /// emits one [`Estimate`] per 50 Hz tick.
 pub trait AssetTwin: Send {
-    /// Feeds one sample (any topic; NaN values are missing data).
-    fn push(&mut self, sample: &Sample);
+    /// Feeds one sample (any topic; NaN values are missing data). An error
+    /// is a numerical failure of the twin: the run ends with it.
+    fn push(&mut self, sample: &Sample) -> Result<(), TwinError>;
     /// Appends the estimates completed so far to `out`.
     fn drain(&mut self, out: &mut Vec<Estimate>);
     /// End of the run: appends every remaining estimate to `out`.
-    fn finish(&mut self, out: &mut Vec<Estimate>);
+    fn finish(&mut self, out: &mut Vec<Estimate>) -> Result<(), TwinError>;
     /// Counters so far.
     fn counters(&self) -> TwinCounters;
 }
@@ -131,7 +137,7 @@ fn has_nan(s: &Sample) -> bool {
 }
 
 impl AssetTwin for TickCounterTwin {
-    fn push(&mut self, sample: &Sample) {
+    fn push(&mut self, sample: &Sample) -> Result<(), TwinError> {
         self.counters.samples += 1;
         if has_nan(sample) {
             self.counters.nan_samples += 1;
@@ -151,6 +157,7 @@ impl AssetTwin for TickCounterTwin {
             }
             Some(_) => self.newest_ns = Some(t),
         }
+        Ok(())
     }
 
     fn drain(&mut self, out: &mut Vec<Estimate>) {
@@ -159,10 +166,11 @@ impl AssetTwin for TickCounterTwin {
         }
     }
 
-    fn finish(&mut self, out: &mut Vec<Estimate>) {
+    fn finish(&mut self, out: &mut Vec<Estimate>) -> Result<(), TwinError> {
         if let Some(newest) = self.newest_ns {
             self.emit(newest, true, out);
         }
+        Ok(())
     }
 
     fn counters(&self) -> TwinCounters {
@@ -204,12 +212,12 @@ mod tests {
         // 1 kHz for 1 s: samples at 0, 1, ..., 999 ms (+ offset).
         let t0 = 5_000_000_000;
         for i in 0..1000 {
-            twin.push(&pos(t0 + i * 1_000_000, 0.0));
+            twin.push(&pos(t0 + i * 1_000_000, 0.0)).unwrap();
             twin.drain(&mut out);
         }
         // Ticks at 20, 40, ..., 980 ms are complete (a later sample arrived).
         assert_eq!(out.len(), 49);
-        twin.finish(&mut out);
+        twin.finish(&mut out).unwrap();
         // Last sample at 999 ms: no tick at 1000 ms.
         assert_eq!(out.len(), 49);
         assert_eq!(out[0].t_ns, t0 + TICK_NS);
@@ -224,14 +232,14 @@ mod tests {
     fn finish_emits_a_tick_at_the_last_sample() {
         let mut twin = TickCounterTwin::new(12.0);
         let mut out = Vec::new();
-        twin.push(&pos(0, 0.0));
-        twin.push(&pos(40_000_000, 0.0));
+        twin.push(&pos(0, 0.0)).unwrap();
+        twin.push(&pos(40_000_000, 0.0)).unwrap();
         twin.drain(&mut out);
         assert_eq!(out.len(), 1, "tick at 40 ms is not complete yet");
-        twin.finish(&mut out);
+        twin.finish(&mut out).unwrap();
         assert_eq!(out.len(), 2);
         let mut more = Vec::new();
-        twin.finish(&mut more);
+        twin.finish(&mut more).unwrap();
         assert!(more.is_empty(), "finish twice emits nothing new");
     }
 
@@ -239,11 +247,11 @@ mod tests {
     fn counts_nan_and_out_of_order() {
         let mut twin = TickCounterTwin::new(12.0);
         let mut out = Vec::new();
-        twin.push(&pos(0, 0.0));
-        twin.push(&pos(50_000_000, f64::NAN));
+        twin.push(&pos(0, 0.0)).unwrap();
+        twin.push(&pos(50_000_000, f64::NAN)).unwrap();
         twin.drain(&mut out);
-        twin.push(&pos(45_000_000, 0.1)); // out of order, after tick 40 ms: usable
-        twin.push(&pos(10_000_000, 0.1)); // before tick 40 ms: too late
+        twin.push(&pos(45_000_000, 0.1)).unwrap(); // out of order, after tick 40 ms: usable
+        twin.push(&pos(10_000_000, 0.1)).unwrap(); // before tick 40 ms: too late
         let c = twin.counters();
         assert_eq!(c.samples, 4);
         assert_eq!(c.nan_samples, 1);

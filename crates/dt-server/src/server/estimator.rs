@@ -1,0 +1,100 @@
+//! The real twin behind [`AssetTwin`]: `dt_core::estimator::Estimator`
+//! with a model bundle (SPEC §5), one per run.
+//!
+//! The asset's nominal pressure and its warn and fault thresholds come from
+//! the daemon's configuration (`[defaults]`, `[assets.<id>]`); hysteresis,
+//! dwell time, minimum excitation, the re-order window and the gap limit
+//! come from the bundle (`EstimatorConfig::from_bundle`).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use dt_core::bundle::Bundle;
+use dt_core::estimate::Estimate;
+use dt_core::estimator::{Estimator, EstimatorConfig};
+use dt_core::log::{RunMetadata, Sample};
+
+use super::config::AssetConfig;
+use super::twin::{AssetTwin, TwinCounters, TwinError, TwinFactory};
+use super::ServeError;
+
+/// Makes one [`Estimator`] per run from a loaded bundle.
+#[derive(Debug, Clone)]
+pub struct EstimatorFactory {
+    bundle: Arc<Bundle>,
+}
+
+impl EstimatorFactory {
+    /// Loads (and checks) the bundle at `dir`.
+    pub fn load(dir: &Path) -> Result<Self, ServeError> {
+        let bundle = Bundle::load(dir).map_err(|e| ServeError::Model {
+            path: dir.to_owned(),
+            reason: e.to_string(),
+        })?;
+        Ok(Self::new(Arc::new(bundle)))
+    }
+
+    /// Uses an already loaded bundle.
+    #[must_use]
+    pub fn new(bundle: Arc<Bundle>) -> Self {
+        Self { bundle }
+    }
+
+    /// The estimator settings for `asset`.
+    #[must_use]
+    pub fn config_for(&self, asset: &AssetConfig) -> EstimatorConfig {
+        let mut cfg = EstimatorConfig::from_bundle(&self.bundle);
+        cfg.nominal_bar = asset.nominal_bar;
+        cfg.health.warn_bar = asset.warn_bar;
+        cfg.health.fault_bar = asset.fault_bar;
+        cfg
+    }
+}
+
+impl TwinFactory for EstimatorFactory {
+    fn create(
+        &self,
+        _meta: &RunMetadata,
+        asset: &AssetConfig,
+    ) -> Result<Box<dyn AssetTwin>, TwinError> {
+        let est = Estimator::new(Arc::clone(&self.bundle), self.config_for(asset))?;
+        Ok(Box::new(EstimatorTwin(est)))
+    }
+
+    fn describe(&self) -> String {
+        format!("estimator, bundle {}", self.bundle.dir.display())
+    }
+}
+
+/// [`Estimator`] as an [`AssetTwin`].
+#[derive(Debug)]
+pub struct EstimatorTwin(pub Estimator);
+
+impl AssetTwin for EstimatorTwin {
+    fn push(&mut self, sample: &Sample) -> Result<(), TwinError> {
+        Ok(self.0.push(*sample)?)
+    }
+
+    fn drain(&mut self, out: &mut Vec<Estimate>) {
+        out.extend(self.0.drain());
+    }
+
+    fn finish(&mut self, out: &mut Vec<Estimate>) -> Result<(), TwinError> {
+        self.0.finish()?;
+        out.extend(self.0.drain());
+        Ok(())
+    }
+
+    fn counters(&self) -> TwinCounters {
+        let c = self.0.counters();
+        TwinCounters {
+            samples: c.samples,
+            nan_samples: c.missing_samples,
+            out_of_order: c.reordered + c.late_dropped,
+            dropped_late: c.late_dropped,
+            clock_jumps: c.clock_jumps,
+            ticks_without_inputs: c.ticks_without_inputs,
+            ticks: c.ticks,
+        }
+    }
+}
