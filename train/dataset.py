@@ -24,6 +24,9 @@ import shocktwin
 
 from train.campaign import Campaign, CampaignError, Run
 
+#: The paper's six input groups (SPEC §4): the sensor-suite search spans these.
+PAPER_GROUPS = ["force", "position", "acceleration", "velocity", "mechanical", "thermal"]
+#: Every group the bindings know (the paper's six and any causal-window groups).
 ALL_GROUPS = list(shocktwin.GROUPS)
 EXCITED_MPS = 0.05
 TICK_S = 0.02
