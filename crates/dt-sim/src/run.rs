@@ -11,11 +11,12 @@
 //!
 //! Sampling (SPEC §2): acceleration every 1 ms, position 10 ms, force 20 ms,
 //! temperatures 1 s; simulator truth (labels for analysis, never used by the
-//! twin): static gas pressure `/truth/gas_pressure` (`static_bar`, bar gauge)
-//! 100 ms and the plant's extension rate `ẏ` `/truth/velocity`
-//! (`velocity_mps`, m/s, positive in extension) 10 ms, at the position
+//! twin): static gas pressure `/truth/gas_pressure` (`static_bar`, bar
+//! gauge) every 100 ms and the plant's extension rate `ẏ` `/truth/velocity`
+//! (`velocity_mps`, m/s, positive in extension) every 10 ms, at the position
 //! instants. All on one clock from `T0_NS`; at equal times samples come in
-//! topic-rank order (acceleration first, truth velocity last). Every run draws its randomness from `ChaCha8` streams seeded by
+//! topic-rank order (acceleration first, truth velocity last). Every run
+//! draws its randomness from `ChaCha8` streams seeded by
 //! `(seed, charge, frequency, unit)` (room, sensors) and by `seed` alone (the
 //! rig's sensor errors), so runs are independent of each other and of the
 //! thread count.
