@@ -1,5 +1,5 @@
 //! The streaming estimator with the fixture bundle (`crates/dt-core/tests/fixtures/bundle-mlp13`:
-//! permutation 13, 4 × 64 ReLU MLP, random float64 weights):
+//! permutation 13, 4 × 64 `ReLU` MLP, random float64 weights):
 //!
 //! - `estimator/tick`: one 50 Hz tick — pushing its samples (20 accelerometer,
 //!   2 potentiometer, 1 loadcell, temperatures once a second) through the
@@ -79,10 +79,10 @@ fn samples(t0: i64, ms: i64) -> Vec<Sample> {
 }
 
 fn bench_tick(c: &mut Criterion) {
+    const PERIOD_MS: i64 = 10_000;
     let b = bundle();
     // 10 s of samples grouped by tick; replayed with a growing time offset
     // (the sine is periodic in 0.5 s), so the estimator runs for ever.
-    const PERIOD_MS: i64 = 10_000;
     let pattern = samples(0, PERIOD_MS);
     let mut ticks: Vec<Vec<Sample>> = vec![Vec::new(); (PERIOD_MS / 20) as usize];
     for s in pattern {
@@ -186,7 +186,7 @@ fn bench_replay(c: &mut Criterion) {
     let log = read_log_bytes("bench-1h", &bytes).unwrap();
     eprintln!(
         "replay_1h: {n_messages} messages, {:.1} MiB zstd MCAP",
-        bytes.len() as f64 / (1 << 20) as f64
+        bytes.len() as f64 / f64::from(1 << 20)
     );
     let mut group = c.benchmark_group("replay_1h");
     group.sample_size(10);
