@@ -59,7 +59,7 @@ study: setup ## the full study on the default campaign (docs/study; ~20 min on 2
 test-rust: ## Rust unit and integration tests
 	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py
 
-test-python: setup ## pytest: the Python contract, references and interop
+test-python: setup $(BIN) ## pytest: the Python contract, references and interop
 	$(PY) -m pytest -q tests/python
 
 test: setup test-rust test-python ## set up, then run every test
@@ -70,6 +70,9 @@ lint: ## rustfmt and clippy (pedantic, workspace allow-list)
 
 bench: ## criterion benches (see README for the figures)
 	$(CARGO) bench -p dt-bench
+
+bench-python: $(VENV)/.deps $(BIN) ## the Python reference (mcap, filterpy, scipy, onnxruntime) beside `shocktwin replay` on a 1 h log
+	$(PY) benches/python_reference.py
 
 clean: ## remove build outputs, the venv and out/
 	rm -rf target $(VENV) $(OUT)
