@@ -211,14 +211,17 @@ pub async fn run(
         ready: Arc::clone(&ready),
         stop: http_stop.clone(),
     });
-    let http_addr = listeners.http.local_addr().ok();
+    let http_addr = listeners
+        .http
+        .local_addr()
+        .map_or_else(|e| e.to_string(), |a| a.to_string());
     let http_task = tokio::spawn(
         axum::serve(listeners.http, app)
             .with_graceful_shutdown(http_stop.clone().cancelled_owned())
             .into_future(),
     );
     ready.store(true, Ordering::Relaxed);
-    tracing::info!(http = ?http_addr, twin = %twins.describe(), "serving");
+    tracing::info!(http = %http_addr, twin = %twins.describe(), "serving");
 
     shutdown.await;
     tracing::info!("shutting down: ending runs in progress");
