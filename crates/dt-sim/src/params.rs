@@ -399,10 +399,16 @@ pub fn parameter_table() -> String {
         } else {
             "-".to_owned()
         };
+        let mag = p.nominal.abs();
+        let nominal = if mag != 0.0 && !(1e-2..1e5).contains(&mag) {
+            format!("{:e}", p.nominal)
+        } else {
+            format!("{}", p.nominal)
+        };
         let _ = writeln!(
             out,
             "| {} | `{}` | {} | {} | {} | {} |",
-            p.group, p.name, p.nominal, p.unit, scatter, p.doc
+            p.group, p.name, nominal, p.unit, scatter, p.doc
         );
     }
     out
