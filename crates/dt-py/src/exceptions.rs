@@ -8,6 +8,7 @@
 
 use dt_core::bundle::BundleError;
 use dt_core::error::PhysicsError;
+use dt_core::estimator::EstimatorError;
 use dt_core::log::LogError;
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError};
 use pyo3::PyErr;
@@ -22,6 +23,8 @@ mod py {
     pyo3::import_exception!(shocktwin.exceptions, ParamsError);
     pyo3::import_exception!(shocktwin.exceptions, PhysicsError);
     pyo3::import_exception!(shocktwin.exceptions, BundleError);
+    pyo3::import_exception!(shocktwin.exceptions, BundleReadError);
+    pyo3::import_exception!(shocktwin.exceptions, BundleNotFoundError);
     pyo3::import_exception!(shocktwin.exceptions, InputError);
 }
 
@@ -59,6 +62,15 @@ impl From<BundleError> for CoreError {
     }
 }
 
+impl From<EstimatorError> for CoreError {
+    fn from(err: EstimatorError) -> Self {
+        match err {
+            EstimatorError::Bundle(err) => CoreError::Bundle(err),
+            EstimatorError::Physics(err) => CoreError::Physics(err),
+        }
+    }
+}
+
 impl From<PhysicsError> for CoreError {
     fn from(err: PhysicsError) -> Self {
         CoreError::Physics(err)
@@ -80,8 +92,22 @@ impl From<CoreError> for PyErr {
             CoreError::Log(err) => py::LogError::new_err(err.to_string()),
             CoreError::Physics(err) => physics_error(&err),
             CoreError::Params(message) => py::ParamsError::new_err(message),
-            CoreError::Bundle(BundleError::Io { path, source }) => {
-                io_error(&path.display().to_string(), &source)
+            // A part of a bundle cannot be read: a BundleError that is also
+            // an OSError (FileNotFoundError when it is missing).
+            CoreError::Bundle(err @ BundleError::Io { .. }) => {
+                let missing = matches!(
+                    &err,
+                    BundleError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound
+                );
+                if missing {
+                    py::BundleNotFoundError::new_err(err.to_string())
+                } else {
+                    py::BundleReadError::new_err(err.to_string())
+                }
+            }
+            // A network input of the wrong width is a caller's error.
+            CoreError::Bundle(err @ BundleError::Width { .. }) => {
+                py::InputError::new_err(err.to_string())
             }
             CoreError::Bundle(err) => py::BundleError::new_err(err.to_string()),
             CoreError::Io { file, source } => io_error(&file, &source),

@@ -15,6 +15,7 @@ use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyString};
 
+use crate::bundle::PyBundle;
 use crate::convert::{ns_to_seconds, to_numpy};
 use crate::exceptions::CoreError;
 use crate::gil::without_gil;
@@ -39,6 +40,10 @@ fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<(PhysicsParams, Option<Vec<G
     if obj.is_instance_of::<PyDict>() {
         return Ok((physics_from_dict("parameters", obj)?, None));
     }
+    if let Ok(bundle) = obj.downcast::<PyBundle>() {
+        let bundle = bundle.get().inner();
+        return Ok((*bundle.physics(), Some(bundle.groups.clone())));
+    }
     if obj.is_instance_of::<PyString>() || obj.hasattr("__fspath__")? {
         let path: PathBuf = obj.extract()?;
         if path.is_dir() {
@@ -49,7 +54,7 @@ fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<(PhysicsParams, Option<Vec<G
         return Ok((physics_from_file(&path)?, None));
     }
     Err(PyTypeError::new_err(format!(
-        "bundle_or_params: expected a dict of physics parameters or a path, got {}",
+        "bundle_or_params: expected a dict of physics parameters, a shocktwin.Bundle or a path, got {}",
         obj.get_type().name()?
     )))
 }
@@ -60,8 +65,8 @@ fn physics_from(obj: &Bound<'_, PyAny>) -> PyResult<(PhysicsParams, Option<Vec<G
 /// ``log`` is a ``Log`` (from ``read_log``) or a path to a run log.
 /// ``bundle_or_params`` is a dict of the physics.json structure
 /// (``{"kalman": {...}, "thermal": {...}, "force": {...}}``; other top-level
-/// keys are ignored), a path to a physics.json, or a model bundle directory
-/// (SPEC §5; loaded and checked in full). ``groups`` is a list of input
+/// keys are ignored), a path to a physics.json, a ``Bundle`` or a model
+/// bundle directory (SPEC §5; loaded and checked in full). ``groups`` is a list of input
 /// group names (see ``GROUPS``); with a bundle it may be left out (``None``)
 /// for the bundle's own permutation.
 ///

@@ -10,6 +10,7 @@
 // pyo3 extracts every argument by value.
 #![allow(clippy::needless_pass_by_value)]
 
+mod bundle;
 mod convert;
 mod exceptions;
 mod features;
@@ -37,6 +38,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(features::group_topics, m)?)?;
     m.add_function(wrap_pyfunction!(features::suite, m)?)?;
     m.add_function(wrap_pyfunction!(features::permutations, m)?)?;
+    m.add_class::<bundle::PyBundle>()?;
+    m.add_function(wrap_pyfunction!(bundle::estimate, m)?)?;
     features::add_constants(m)?;
     Ok(())
 }

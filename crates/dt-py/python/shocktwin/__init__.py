@@ -9,6 +9,10 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   (SPEC §3.1–3.3); ``default_params()`` their priors as a physics.json dict.
 - ``features(log, bundle_or_params, groups)``: the 50 Hz feature table
   (SPEC §4) that training and the streaming estimator share.
+- ``Bundle(path)``: a model bundle (SPEC §5), checked; ``Bundle.predict(X)``
+  runs its network on raw feature rows.
+- ``estimate(log, bundle)``: the streaming estimator (the daemon's code) over
+  a whole run: pressure, 1 s average and health per 50 Hz tick.
 - ``GROUPS``, ``COLUMNS``, ``group_columns``, ``group_topics``, ``suite``,
   ``SENSOR_COSTS_AUD``, ``PERMUTATIONS`` / ``permutations()``: the input
   groups, sensor costs and the paper's 13 permutations, as data.
@@ -19,7 +23,7 @@ Errors are the classes of :mod:`shocktwin.exceptions`, all derived from
 ``ShocktwinError``.
 
 >>> import shocktwin
->>> shocktwin.GROUPS
+>>> shocktwin.GROUPS[:6]  # the paper's six input groups
 ('force', 'position', 'acceleration', 'velocity', 'mechanical', 'thermal')
 >>> [p["cost_aud"] for p in shocktwin.PERMUTATIONS if p["id"] in (12, 13)]
 [297, 4292]
@@ -31,6 +35,7 @@ from typing import Any
 
 from shocktwin._native import (
     COLUMNS,
+    Bundle,
     GROUPS,
     SENSOR_COSTS_AUD,
     ForceModel,
@@ -39,6 +44,7 @@ from shocktwin._native import (
     ThermalModel,
     __version__,
     default_params,
+    estimate,
     features,
     group_columns,
     group_topics,
@@ -48,6 +54,8 @@ from shocktwin._native import (
 )
 from shocktwin.exceptions import (
     BundleError,
+    BundleNotFoundError,
+    BundleReadError,
     InputError,
     LogError,
     LogReadError,
@@ -82,6 +90,9 @@ __all__ = [
     "SENSOR_COSTS_AUD",
     "PERMUTATIONS",
     "permutations",
+    # model bundles and the estimator
+    "Bundle",
+    "estimate",
     # errors
     "ShocktwinError",
     "LogError",
@@ -90,5 +101,7 @@ __all__ = [
     "ParamsError",
     "PhysicsError",
     "BundleError",
+    "BundleReadError",
+    "BundleNotFoundError",
     "InputError",
 ]

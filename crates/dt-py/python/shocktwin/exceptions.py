@@ -22,6 +22,8 @@ __all__ = [
     "ParamsError",
     "PhysicsError",
     "BundleError",
+    "BundleReadError",
+    "BundleNotFoundError",
     "InputError",
 ]
 
@@ -60,7 +62,16 @@ class PhysicsError(ShocktwinError, ArithmeticError):
 
 
 class BundleError(ShocktwinError, ValueError):
-    """A model bundle is incomplete or inconsistent."""
+    """A model bundle is incomplete or inconsistent; the message names the
+    file (``twin.json``, ``mlp.onnx``) and the part at fault."""
+
+
+class BundleReadError(BundleError, OSError):
+    """A file of a model bundle could not be read (the OS error is in the message)."""
+
+
+class BundleNotFoundError(BundleReadError, FileNotFoundError):
+    """A file of a model bundle (``twin.json``, the network it names) is missing."""
 
 
 class InputError(ShocktwinError, ValueError):

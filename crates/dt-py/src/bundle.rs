@@ -1,0 +1,280 @@
+//! `shocktwin.Bundle` (a model bundle, SPEC §5) and `shocktwin.estimate`
+//! (dt-core's streaming estimator over a whole log, SPEC §2 `/estimate`).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use dt_core::bundle::Bundle;
+use dt_core::estimator::{estimate_log, EstimatorConfig};
+use dt_core::log::RunLog;
+use numpy::{AllowTypeChange, PyArray1, PyArrayLike2};
+use pyo3::exceptions::PyTypeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyString};
+
+use crate::convert::{ns_to_seconds, to_numpy};
+use crate::exceptions::{input_error, CoreError};
+use crate::gil::without_gil;
+use crate::log::{read_log, PyLog};
+use crate::params::{json_to_py, physics_dict};
+
+/// Loads a bundle directory with the GIL released.
+pub(crate) fn load_bundle(py: Python<'_>, path: PathBuf) -> PyResult<Arc<Bundle>> {
+    let bundle = without_gil(py, move || Bundle::load(&path)).map_err(CoreError::from)?;
+    Ok(Arc::new(bundle))
+}
+
+/// A model bundle (SPEC §5): ``twin.json`` + ``mlp.onnx``, loaded and checked
+/// by dt-core (the same code the daemon and ``shocktwin replay`` run).
+///
+/// ``Bundle(path)`` reads the directory ``path``. Every part is checked: the
+/// format, the permutation's groups and their ordered columns, the
+/// normalisation, the physics, the health thresholds, the network's input
+/// and output names and ``onnx.sha256``. A part that is missing or does not
+/// fit raises ``BundleError`` naming the file and the part
+/// (``BundleNotFoundError``, also a ``FileNotFoundError``, for a missing
+/// file). Immutable; cheap to share between threads.
+///
+/// >>> import shocktwin
+/// >>> shocktwin.Bundle("no/such/bundle")
+/// Traceback (most recent call last):
+/// ...
+/// shocktwin.exceptions.BundleNotFoundError: no/such/bundle/twin.json: No such file or directory (os error 2)
+#[pyclass(module = "shocktwin._native", name = "Bundle", frozen)]
+pub(crate) struct PyBundle {
+    bundle: Arc<Bundle>,
+}
+
+impl PyBundle {
+    /// The loaded bundle, shared without a copy.
+    pub(crate) fn inner(&self) -> Arc<Bundle> {
+        Arc::clone(&self.bundle)
+    }
+}
+
+/// Row-major values of a 2-D array of feature rows, checked against the
+/// bundle's width.
+fn rows_of(bundle: &Bundle, x: &PyArrayLike2<'_, f64, AllowTypeChange>) -> PyResult<Vec<f64>> {
+    let view = x.as_array();
+    let k = bundle.n_inputs();
+    if view.ncols() != k {
+        return Err(input_error(format!(
+            "`X` has {} columns but the bundle's permutation reads {k} ({})",
+            view.ncols(),
+            bundle.twin.permutation.columns.join(", ")
+        )));
+    }
+    Ok(view.iter().copied().collect())
+}
+
+#[pymethods]
+impl PyBundle {
+    #[new]
+    fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        Ok(Self {
+            bundle: load_bundle(py, path)?,
+        })
+    }
+
+    /// Charge pressure (bar) for raw, un-normalised feature rows ``X`` of
+    /// shape ``(n, len(columns))`` (the columns of ``features`` for this
+    /// bundle, in ``columns`` order): the bundle's normalisation, then the
+    /// network (``backend``). A row with a NaN input gives NaN. Returns a
+    /// float64 array of ``n`` values; the GIL is released meanwhile.
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyArrayLike2<'py, f64, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let rows = rows_of(&self.bundle, &x)?;
+        let bundle = self.inner();
+        let out = without_gil(py, move || bundle.predict(&rows)).map_err(CoreError::from)?;
+        Ok(to_numpy(py, out))
+    }
+
+    /// ``predict`` through tract-onnx's plan whatever ``backend`` is: the
+    /// reference the dense path is checked against when the bundle loads.
+    fn predict_reference<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyArrayLike2<'py, f64, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let rows = rows_of(&self.bundle, &x)?;
+        let bundle = self.inner();
+        let out =
+            without_gil(py, move || bundle.predict_reference(&rows)).map_err(CoreError::from)?;
+        Ok(to_numpy(py, out))
+    }
+
+    /// The bundle directory.
+    #[getter]
+    fn path(&self) -> String {
+        self.bundle.dir.display().to_string()
+    }
+
+    /// The ordered feature columns the network reads.
+    #[getter]
+    fn columns(&self) -> Vec<String> {
+        self.bundle.twin.permutation.columns.clone()
+    }
+
+    /// The permutation's input groups (SPEC §4 names).
+    #[getter]
+    fn groups(&self) -> Vec<String> {
+        self.bundle.twin.permutation.groups.clone()
+    }
+
+    /// The permutation: ``{"id", "name", "groups", "columns"}`` (``id`` 0 for
+    /// a custom suite).
+    #[getter]
+    fn permutation<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let p = &self.bundle.twin.permutation;
+        let d = PyDict::new(py);
+        d.set_item("id", p.id)?;
+        d.set_item("name", &p.name)?;
+        d.set_item("groups", p.groups.clone())?;
+        d.set_item("columns", p.columns.clone())?;
+        Ok(d)
+    }
+
+    /// The physics parameters as the physics.json dict
+    /// (``{"kalman": {...}, "thermal": {...}, "force": {...}}``).
+    #[getter]
+    fn physics<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        physics_dict(py, self.bundle.physics())
+    }
+
+    /// The asset model's nominal charge pressure (``expected_bar``), bar gauge.
+    #[getter]
+    fn nominal_bar(&self) -> f64 {
+        self.bundle.twin.nominal_bar
+    }
+
+    /// Health thresholds (SPEC §6): ``warn_bar``, ``fault_bar``,
+    /// ``hysteresis_bar``, ``dwell_s``, ``min_excitation_mps``.
+    #[getter]
+    fn health<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let h = &self.bundle.twin.health;
+        let d = PyDict::new(py);
+        d.set_item("warn_bar", h.warn_bar)?;
+        d.set_item("fault_bar", h.fault_bar)?;
+        d.set_item("hysteresis_bar", h.hysteresis_bar)?;
+        d.set_item("dwell_s", h.dwell_s)?;
+        d.set_item("min_excitation_mps", h.min_excitation_mps)?;
+        Ok(d)
+    }
+
+    /// The whole ``twin.json`` as read and checked (a fresh dict; provenance
+    /// verbatim).
+    #[getter]
+    fn twin<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let value = serde_json::to_value(&self.bundle.twin)
+            .map_err(|e| PyTypeError::new_err(format!("twin.json: {e}")))?;
+        json_to_py(py, &value)
+    }
+
+    /// Which evaluator runs the network: ``"dense"`` (a float64 MLP read from
+    /// the ONNX initializers, checked against tract at load) or ``"tract"``.
+    #[getter]
+    fn backend(&self) -> &'static str {
+        self.bundle.backend()
+    }
+
+    fn __repr__(&self) -> String {
+        let p = &self.bundle.twin.permutation;
+        format!(
+            "<shocktwin.Bundle {} permutation={} ({:?}) columns={} backend={}>",
+            self.bundle.dir.display(),
+            p.id,
+            p.name,
+            p.columns.len(),
+            self.bundle.backend()
+        )
+    }
+}
+
+/// A `Log` or a path to a run log.
+pub(crate) fn run_log_of(py: Python<'_>, log: &Bound<'_, PyAny>) -> PyResult<Arc<RunLog>> {
+    if let Ok(log) = log.downcast::<PyLog>() {
+        Ok(log.get().run_log())
+    } else if log.is_instance_of::<PyString>() || log.hasattr("__fspath__")? {
+        Ok(read_log(py, log.extract()?)?.run_log())
+    } else {
+        Err(PyTypeError::new_err(format!(
+            "log: expected a shocktwin.Log or a path, got {}",
+            log.get_type().name()?
+        )))
+    }
+}
+
+/// A `Bundle` or a path to a bundle directory.
+fn bundle_of(py: Python<'_>, bundle: &Bound<'_, PyAny>) -> PyResult<Arc<Bundle>> {
+    if let Ok(b) = bundle.downcast::<PyBundle>() {
+        Ok(b.get().inner())
+    } else if bundle.is_instance_of::<PyString>() || bundle.hasattr("__fspath__")? {
+        load_bundle(py, bundle.extract()?)
+    } else {
+        Err(PyTypeError::new_err(format!(
+            "bundle: expected a shocktwin.Bundle or a path, got {}",
+            bundle.get_type().name()?
+        )))
+    }
+}
+
+/// Runs dt-core's streaming estimator (the daemon's and ``replay``'s code:
+/// re-order window, 50 Hz pipeline, network, 1 s average, health state
+/// machine) over a whole run log; the GIL is released meanwhile.
+///
+/// ``log`` is a ``Log`` or a path to a run log; ``bundle`` a ``Bundle`` or a
+/// path to a bundle directory. The estimator is configured from the bundle
+/// (its nominal pressure and health thresholds, a 100 ms re-order window, a
+/// new segment after a 2 s gap).
+///
+/// Returns a dict of equal-length arrays, one element per 50 Hz tick:
+/// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
+/// ``pressure_avg_bar`` (1 s average), ``expected_bar``, ``velocity_mps``,
+/// ``force_model_n``, ``oil_temp_c`` (float64, NaN where the estimator has
+/// no value) and ``health`` (str: ``ok``, ``low``, ``leak``, ``unknown``).
+/// Raises ``MissingTopicsError`` when the log lacks a topic the bundle's
+/// groups need.
+///
+/// >>> import shocktwin
+/// >>> shocktwin.estimate("no/such/run.mcap", "no/such/bundle")
+/// Traceback (most recent call last):
+/// ...
+/// shocktwin.exceptions.LogReadError: no/such/run.mcap: No such file or directory (os error 2)
+#[pyfunction]
+pub(crate) fn estimate<'py>(
+    py: Python<'py>,
+    log: &Bound<'py, PyAny>,
+    bundle: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let run = run_log_of(py, log)?;
+    let bundle = bundle_of(py, bundle)?;
+    let cfg = EstimatorConfig::from_bundle(&bundle);
+    let origin_ns = run.t0_ns().unwrap_or(0);
+    let (estimates, _counters) =
+        without_gil(py, move || estimate_log(bundle, cfg, &run)).map_err(CoreError::from)?;
+    let column = |f: fn(&dt_core::estimate::Estimate) -> f64| -> Vec<f64> {
+        estimates.iter().map(f).collect()
+    };
+    let out = PyDict::new(py);
+    let t_ns: Vec<i64> = estimates.iter().map(|e| e.t_ns).collect();
+    out.set_item("t_s", to_numpy(py, ns_to_seconds(&t_ns, origin_ns)))?;
+    out.set_item("pressure_bar", to_numpy(py, column(|e| e.pressure_bar)))?;
+    out.set_item(
+        "pressure_avg_bar",
+        to_numpy(py, column(|e| e.pressure_avg_bar)),
+    )?;
+    out.set_item("expected_bar", to_numpy(py, column(|e| e.expected_bar)))?;
+    let health: Vec<&str> = estimates.iter().map(|e| e.health.as_str()).collect();
+    let numpy = py.import("numpy")?;
+    out.set_item(
+        "health",
+        numpy.call_method1("asarray", (health, numpy.getattr("str_")?))?,
+    )?;
+    out.set_item("velocity_mps", to_numpy(py, column(|e| e.velocity_mps)))?;
+    out.set_item("force_model_n", to_numpy(py, column(|e| e.force_model_n)))?;
+    out.set_item("oil_temp_c", to_numpy(py, column(|e| e.oil_temp_c)))?;
+    Ok(out)
+}
