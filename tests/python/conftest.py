@@ -18,6 +18,7 @@ SENSOR_FIELDS: dict[str, tuple[str, ...]] = {
     "/temperature/shock": ("temperature_c",),
     "/temperature/ambient": ("temperature_c",),
     "/truth/gas_pressure": ("static_bar",),
+    "/truth/velocity": ("velocity_mps",),
 }
 
 
@@ -103,6 +104,8 @@ def synthetic_run(
     out["/temperature/shock"] = (t, {"temperature_c": 25 + 0.5 * secs(t)})
     out["/temperature/ambient"] = (t, {"temperature_c": np.full(t.size, 22.0)})
     out["/truth/gas_pressure"] = (t, {"static_bar": np.full(t.size, 12.3)})
+    t = times(100)
+    out["/truth/velocity"] = (t, {"velocity_mps": amp * w * np.cos(w * secs(t))})
     return {k: v for k, v in out.items() if k in topics}
 
 

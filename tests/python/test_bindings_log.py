@@ -56,6 +56,22 @@ def test_columns_round_trip(tmp_path: Path, run_topics, chunked):
     assert log.problems == []
 
 
+def test_truth_topics_are_listed_and_returned(tmp_path: Path):
+    topics = synthetic_run(duration_s=1.0, topics=["/position", "/truth/gas_pressure", "/truth/velocity"])
+    log = shocktwin.read_log(write_mcap_log(tmp_path / "run.mcap", META, topics))
+    assert log.topics == ["/position", "/truth/gas_pressure", "/truth/velocity"]
+    got = log.topic("/truth/velocity")
+    assert set(got) == {"t_s", "velocity_mps"}
+    t_ns, fields = topics["/truth/velocity"]
+    assert got["velocity_mps"].size == 100
+    np.testing.assert_array_equal(got["t_s"], (t_ns - t_ns[0]) / 1e9)
+    np.testing.assert_array_equal(got["velocity_mps"], fields["velocity_mps"])
+    # same instants as /position, and a velocity (2 Hz, 40 mm amplitude), not the pressure
+    np.testing.assert_array_equal(got["t_s"], log.topic("/position")["t_s"])
+    assert np.max(np.abs(got["velocity_mps"])) == pytest.approx(0.04 * 2 * np.pi * 2, rel=1e-9)
+    assert set(log.topic("/truth/gas_pressure")) == {"t_s", "static_bar"}
+
+
 def test_metadata_types_and_label(tmp_path: Path, run_topics):
     log = shocktwin.read_log(str(write_mcap_log(tmp_path / "run.mcap", META, run_topics)))
     md = log.metadata

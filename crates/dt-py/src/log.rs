@@ -14,13 +14,14 @@ use crate::exceptions::CoreError;
 use crate::gil::without_gil;
 
 /// The SPEC §2 sensor topics in the order `Log.topics` lists them.
-const TOPIC_ORDER: [&str; 6] = [
+const TOPIC_ORDER: [&str; 7] = [
     topic::POSITION,
     topic::ACCELERATION,
     topic::FORCE,
     topic::TEMP_SHOCK,
     topic::TEMP_AMBIENT,
     topic::TRUTH_PRESSURE,
+    topic::TRUTH_VELOCITY,
 ];
 
 /// Reads a whole shocktwin run log (an MCAP file, SPEC §2); the GIL is
@@ -73,6 +74,7 @@ impl PyLog {
             topic::TEMP_SHOCK => log.temp_shock.len(),
             topic::TEMP_AMBIENT => log.temp_ambient.len(),
             topic::TRUTH_PRESSURE => log.truth_pressure.len(),
+            topic::TRUTH_VELOCITY => log.truth_velocity.len(),
             _ => return None,
         })
     }
@@ -182,6 +184,7 @@ impl PyLog {
                 topic::FORCE => (&log.force, "force_n"),
                 topic::TEMP_SHOCK => (&log.temp_shock, "temperature_c"),
                 topic::TEMP_AMBIENT => (&log.temp_ambient, "temperature_c"),
+                topic::TRUTH_VELOCITY => (&log.truth_velocity, "velocity_mps"),
                 _ => (&log.truth_pressure, "static_bar"),
             };
             let (t, v) = split2(rows);
