@@ -16,6 +16,13 @@
 //! | `velocity` | `velocity_mps` | `/position`, `/acceleration` |
 //! | `mechanical` | `force_model_n`, `force_damping_model_n`, `force_gas_model_n` | `/position`, `/acceleration`, `/temperature/shock` (+ thermocouples) |
 //! | `thermal` | `temp_shock_c`, `temp_ambient_c`, `oil_temp_model_c`, `cyl_temp_model_c`, `heat_rate_model_w` | `/position`, `/acceleration`, `/temperature/shock`, `/temperature/ambient` |
+//! | `signature` | `accel_hf_rms_mps2`, `velocity_rms_mps`, `temp_resid_c`, `temp_resid_rate_cps` | as `thermal` (potentiometer, accelerometers, thermocouples) |
+//! | `residual` | `force_resid_mean_n`, `force_resid_rms_n` | `/force` + those of `mechanical` (loadcell, potentiometer, accelerometers, thermocouples) |
+//!
+//! The first six are the paper's ([`Group::PAPER`]); `signature` and
+//! `residual` are ours, causal windows over past ticks (issue 4 "beyond
+//! memoryless inputs"): where the gas charge shows without absolute
+//! quantities that fingerprint a run.
 //!
 //! - `force_n`: boxcar mean of the loadcell, N (tension positive).
 //! - `position_m`: boxcar mean of the potentiometer (raw sensor), m.
@@ -27,6 +34,23 @@
 //! - `temp_shock_c`, `temp_ambient_c`: thermocouples, zero-order held, °C.
 //! - `oil_temp_model_c`, `cyl_temp_model_c`: thermal model (SPEC §3.2) at the tick, °C.
 //! - `heat_rate_model_w`: heat input at the tick, `(F_port+F_main)·|ẏ|`, W.
+//! - `accel_hf_rms_mps2`: RMS over the last 1 s (50 ticks: this one and the
+//!   49 before, NaN ticks skipped) of the within-tick standard deviation of
+//!   the raw `a_rel`, `sqrt(max(E[a²] − E[a]², 0))` over the samples of the
+//!   tick's interval (NaN for a tick without one), m/s²: the high-frequency
+//!   energy, e.g. the mount ringing after the friction step at each velocity
+//!   reversal (seal friction grows with the gas pressure).
+//! - `velocity_rms_mps`: the excitation measure
+//!   [`TwinState::velocity_rms_1s_mps`], m/s.
+//! - `temp_resid_c`: `temp_shock_c − cyl_temp_model_c`, °C: how far the
+//!   measured temperature is from the nominal thermal model (less damping
+//!   force, less heat).
+//! - `temp_resid_rate_cps`: `(temp_resid_c(t_k) − temp_resid_c(t_k − 10 s)) /
+//!   10 s` (500 ticks back), °C/s; NaN until 10 s of history.
+//! - `force_resid_mean_n`: mean over the last 1 s (50 ticks, NaN ticks
+//!   skipped) of `force_n − force_model_n`, N: the force the nominal model
+//!   misses (gas force offset).
+//! - `force_resid_rms_n`: the RMS of those 50 differences about that mean, N.
 //!
 //! # Algorithm (what a transcription must reproduce)
 //!
@@ -72,6 +96,13 @@
 //!    this is within ≈ 2 % of the mean power over the interval) — held over
 //!    the next RK4 step. Before the filter's first velocity, 0 W is used.
 //!
+//! 9. **Windows** (`signature`, `residual`): per tick the within-tick
+//!    variance of the raw `a_rel` (from the boxcar's `Σa`, `Σa²`, `n`), the
+//!    temperature residual and the force residual go into fixed rings of the
+//!    last 50 (500 for the temperature rate) ticks; the columns are
+//!    statistics of the rings, so row `k` still depends on nothing after
+//!    `t_k`.
+//!
 //! Per tick the twin's internal state ([`TwinState`]) is reported too:
 //! Kalman estimates, the modelled force and oil temperature, an excitation
 //! measure (RMS of the tick velocities over the last 1 s = 50 ticks) and gap
@@ -83,7 +114,8 @@
 //!
 //! [`Sensor`] costs (AUD, paper Table 3): loadcell 3995, potentiometer 275,
 //! accelerometer pair 11, thermocouples (both) 11. [`paper_permutations`] are
-//! the 13 input permutations of SPEC §4 / paper Table 2.
+//! the 13 input permutations of SPEC §4 / paper Table 2;
+//! [`extra_permutations`] (14–16) add the causal-window groups.
 
 use std::borrow::Cow;
 use std::collections::VecDeque;
@@ -104,11 +136,15 @@ pub const TICK_S: f64 = 0.02;
 /// Ticks in the excitation window (1 s).
 pub const EXCITATION_WINDOW_TICKS: usize = 50;
 
+/// Ticks in the temperature-residual rate window (10 s).
+pub const TEMP_RATE_WINDOW_TICKS: usize = 500;
+
 /// Number of feature columns.
-pub const N_COLUMNS: usize = 12;
+pub const N_COLUMNS: usize = 18;
 
 /// All feature columns, in group order (force, position, acceleration,
-/// velocity, mechanical, thermal); a group's columns are contiguous.
+/// velocity, mechanical, thermal, signature, residual); a group's columns
+/// are contiguous.
 pub const COLUMNS: [&str; N_COLUMNS] = [
     "force_n",
     "position_m",
@@ -122,6 +158,12 @@ pub const COLUMNS: [&str; N_COLUMNS] = [
     "oil_temp_model_c",
     "cyl_temp_model_c",
     "heat_rate_model_w",
+    "accel_hf_rms_mps2",
+    "velocity_rms_mps",
+    "temp_resid_c",
+    "temp_resid_rate_cps",
+    "force_resid_mean_n",
+    "force_resid_rms_n",
 ];
 
 /// Indices into [`COLUMNS`] / [`TickRow::values`].
@@ -150,6 +192,18 @@ pub mod col {
     pub const CYL_TEMP_MODEL_C: usize = 10;
     /// `heat_rate_model_w`.
     pub const HEAT_RATE_MODEL_W: usize = 11;
+    /// `accel_hf_rms_mps2`.
+    pub const ACCEL_HF_RMS_MPS2: usize = 12;
+    /// `velocity_rms_mps`.
+    pub const VELOCITY_RMS_MPS: usize = 13;
+    /// `temp_resid_c`.
+    pub const TEMP_RESID_C: usize = 14;
+    /// `temp_resid_rate_cps`.
+    pub const TEMP_RESID_RATE_CPS: usize = 15;
+    /// `force_resid_mean_n`.
+    pub const FORCE_RESID_MEAN_N: usize = 16;
+    /// `force_resid_rms_n`.
+    pub const FORCE_RESID_RMS_N: usize = 17;
 }
 
 /// A sensor of a suite (paper Table 3).
@@ -197,7 +251,8 @@ impl Sensor {
     }
 }
 
-/// An input group of SPEC §4.
+/// An input group: the paper's six of SPEC §4 ([`Group::PAPER`]) and two
+/// causal-window groups of ours (`signature`, `residual`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Group {
@@ -213,11 +268,29 @@ pub enum Group {
     Mechanical,
     /// Measured and modelled temperatures, modelled heat rate.
     Thermal,
+    /// Causal 1 s / 10 s window signatures of the gas charge without a
+    /// loadcell: high-frequency acceleration energy, excitation level,
+    /// measured-minus-modelled temperature and its rate.
+    Signature,
+    /// Causal 1 s mean and RMS of measured minus modelled force (loadcell).
+    Residual,
 }
 
 impl Group {
     /// All groups, in column order.
-    pub const ALL: [Group; 6] = [
+    pub const ALL: [Group; 8] = [
+        Group::Force,
+        Group::Position,
+        Group::Acceleration,
+        Group::Velocity,
+        Group::Mechanical,
+        Group::Thermal,
+        Group::Signature,
+        Group::Residual,
+    ];
+
+    /// The paper's six groups (SPEC §4), in column order.
+    pub const PAPER: [Group; 6] = [
         Group::Force,
         Group::Position,
         Group::Acceleration,
@@ -236,6 +309,8 @@ impl Group {
             Group::Velocity => "velocity",
             Group::Mechanical => "mechanical",
             Group::Thermal => "thermal",
+            Group::Signature => "signature",
+            Group::Residual => "residual",
         }
     }
 
@@ -257,6 +332,8 @@ impl Group {
             Group::Velocity => 3..4,
             Group::Mechanical => 4..7,
             Group::Thermal => 7..12,
+            Group::Signature => 12..16,
+            Group::Residual => 16..18,
         }
     }
 
@@ -275,7 +352,13 @@ impl Group {
             Group::Acceleration => &[topic::ACCELERATION],
             Group::Velocity => &[topic::POSITION, topic::ACCELERATION],
             Group::Mechanical => &[topic::POSITION, topic::ACCELERATION, topic::TEMP_SHOCK],
-            Group::Thermal => &[
+            Group::Residual => &[
+                topic::FORCE,
+                topic::POSITION,
+                topic::ACCELERATION,
+                topic::TEMP_SHOCK,
+            ],
+            Group::Thermal | Group::Signature => &[
                 topic::POSITION,
                 topic::ACCELERATION,
                 topic::TEMP_SHOCK,
@@ -292,7 +375,13 @@ impl Group {
             Group::Position => &[Sensor::Potentiometer],
             Group::Acceleration => &[Sensor::Accelerometers],
             Group::Velocity => &[Sensor::Potentiometer, Sensor::Accelerometers],
-            Group::Mechanical | Group::Thermal => &[
+            Group::Mechanical | Group::Thermal | Group::Signature => &[
+                Sensor::Potentiometer,
+                Sensor::Accelerometers,
+                Sensor::Thermocouples,
+            ],
+            Group::Residual => &[
+                Sensor::Loadcell,
                 Sensor::Potentiometer,
                 Sensor::Accelerometers,
                 Sensor::Thermocouples,
@@ -333,7 +422,7 @@ pub fn suite_cost_aud(groups: &[Group]) -> u32 {
 /// (a repeated group is taken once).
 #[must_use]
 pub fn column_indices(groups: &[Group]) -> Vec<usize> {
-    let mut seen = [false; 6];
+    let mut seen = [false; Group::ALL.len()];
     let mut out = Vec::new();
     for g in groups {
         let i = *g as usize;
@@ -368,7 +457,8 @@ pub fn select(row: &TickRow, groups: &[Group]) -> Vec<f64> {
 /// their own).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Permutation {
-    /// Identifier (1–13 for the paper's).
+    /// Identifier (1–13 for the paper's, 14–16 for
+    /// [`extra_permutations`]).
     pub id: u32,
     /// Human-readable name.
     pub name: Cow<'static, str>,
@@ -451,6 +541,33 @@ pub static PAPER_PERMUTATIONS: [Permutation; 13] = [
 #[must_use]
 pub fn paper_permutations() -> &'static [Permutation] {
     &PAPER_PERMUTATIONS
+}
+
+/// Our permutations beyond the paper's (ids 14–16): the paper's hybrids
+/// with the causal-window groups `signature` and `residual`.
+pub static EXTRA_PERMUTATIONS: [Permutation; 3] = [
+    perm!(
+        14,
+        "Causal signature hybrid (no force)",
+        [Velocity, Mechanical, Signature]
+    ),
+    perm!(
+        15,
+        "Causal residual hybrid",
+        [Force, Velocity, Mechanical, Residual]
+    ),
+    perm!(
+        16,
+        "Causal full hybrid",
+        [Force, Velocity, Mechanical, Residual, Signature]
+    ),
+];
+
+/// Our permutations beyond the paper's 13 ([`EXTRA_PERMUTATIONS`], ids
+/// 14–16); [`paper_rmse_bar`] has no figure for them.
+#[must_use]
+pub fn extra_permutations() -> &'static [Permutation] {
+    &EXTRA_PERMUTATIONS
 }
 
 /// The paper's test RMSE for permutation `id` (SPEC §4 table), bar.
@@ -632,10 +749,13 @@ pub struct TickRow {
     pub truth_static_bar: f64,
 }
 
-/// Boxcar (first-order CIC) mean with hold-on-empty.
+/// Boxcar (first-order CIC) mean with hold-on-empty; it also keeps the
+/// sum of squares of the samples given by [`Boxcar::add`] (the within-tick
+/// variance of the raw `a_rel`).
 #[derive(Debug, Clone, Copy)]
 struct Boxcar {
     sum: f64,
+    sum_sq: f64,
     n: f64,
     last: f64,
     gaps: u64,
@@ -645,6 +765,7 @@ impl Boxcar {
     const fn new() -> Self {
         Self {
             sum: 0.0,
+            sum_sq: 0.0,
             n: 0.0,
             last: f64::NAN,
             gaps: 0,
@@ -653,7 +774,19 @@ impl Boxcar {
 
     fn add(&mut self, x: f64) {
         self.sum += x;
+        self.sum_sq += x * x;
         self.n += 1.0;
+    }
+
+    /// Population variance `max(E[x²] − E[x]², 0)` of the samples of the
+    /// current interval (before [`take`](Self::take)); NaN when empty.
+    fn variance(&self) -> f64 {
+        if self.n > 0.0 {
+            let mean = self.sum / self.n;
+            (self.sum_sq / self.n - mean * mean).max(0.0)
+        } else {
+            f64::NAN
+        }
     }
 
     fn add_sum(&mut self, sum: f64, n: f64) {
@@ -666,11 +799,63 @@ impl Boxcar {
         if self.n > 0.0 {
             self.last = self.sum / self.n;
             self.sum = 0.0;
+            self.sum_sq = 0.0;
             self.n = 0.0;
         } else if !self.last.is_nan() {
             self.gaps += 1;
         }
         self.last
+    }
+}
+
+/// The last `N` per-tick values in a ring (no allocation); the statistics
+/// skip NaN entries (and the slots not yet written, which are NaN).
+#[derive(Debug, Clone)]
+struct TickWindow<const N: usize> {
+    values: [f64; N],
+    next: usize,
+}
+
+impl<const N: usize> TickWindow<N> {
+    const fn new() -> Self {
+        Self {
+            values: [f64::NAN; N],
+            next: 0,
+        }
+    }
+
+    /// Stores `x` and returns the value it replaces: the one pushed `N`
+    /// ticks before (NaN in the first `N` ticks).
+    fn push(&mut self, x: f64) -> f64 {
+        let old = std::mem::replace(&mut self.values[self.next], x);
+        self.next = (self.next + 1) % N;
+        old
+    }
+
+    /// `(mean, RMS about the mean)` of the finite values (two-pass); NaN
+    /// when there is none.
+    fn mean_and_rms(&self) -> (f64, f64) {
+        let (sum, n) = self
+            .values
+            .iter()
+            .filter(|x| !x.is_nan())
+            .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
+        if n == 0.0 {
+            return (f64::NAN, f64::NAN);
+        }
+        let mean = sum / n;
+        let ss = self
+            .values
+            .iter()
+            .filter(|x| !x.is_nan())
+            .map(|x| (x - mean) * (x - mean))
+            .sum::<f64>();
+        (mean, (ss / n).sqrt())
+    }
+
+    /// Mean of the finite values; NaN when there is none.
+    fn mean(&self) -> f64 {
+        self.mean_and_rms().0
     }
 }
 
@@ -716,6 +901,10 @@ pub struct FeaturePipeline {
     v_sq: [f64; EXCITATION_WINDOW_TICKS],
     v_idx: usize,
     missing_samples: u64,
+
+    acc_var: TickWindow<EXCITATION_WINDOW_TICKS>,
+    force_resid: TickWindow<EXCITATION_WINDOW_TICKS>,
+    temp_resid: TickWindow<TEMP_RATE_WINDOW_TICKS>,
 
     out: VecDeque<TickRow>,
 }
@@ -771,6 +960,9 @@ impl FeaturePipeline {
             v_sq: [f64::NAN; EXCITATION_WINDOW_TICKS],
             v_idx: 0,
             missing_samples: 0,
+            acc_var: TickWindow::new(),
+            force_resid: TickWindow::new(),
+            temp_resid: TickWindow::new(),
             out: VecDeque::with_capacity(64),
         })
     }
@@ -945,6 +1137,23 @@ impl FeaturePipeline {
         self.pending_a_sum = 0.0;
     }
 
+    /// Pushes the tick's within-tick `a_rel` variance, temperature residual
+    /// and force residual into the causal windows of the `signature` and
+    /// `residual` groups (this tick and the ones before it only); returns
+    /// `[accel_hf_rms_mps2, temp_resid_c, temp_resid_rate_cps,
+    /// force_resid_mean_n, force_resid_rms_n]`.
+    fn window_columns(&mut self, acc_var: f64, temp_resid_c: f64, force_resid_n: f64) -> [f64; 5] {
+        self.acc_var.push(acc_var);
+        let accel_hf_rms = self.acc_var.mean().sqrt();
+        let temp_resid_10s_ago = self.temp_resid.push(temp_resid_c);
+        #[allow(clippy::cast_precision_loss)] // 500
+        let temp_resid_rate =
+            (temp_resid_c - temp_resid_10s_ago) / (TEMP_RATE_WINDOW_TICKS as f64 * TICK_S);
+        self.force_resid.push(force_resid_n);
+        let (mean, rms) = self.force_resid.mean_and_rms();
+        [accel_hf_rms, temp_resid_c, temp_resid_rate, mean, rms]
+    }
+
     fn complete_tick(&mut self) {
         let t_k = self.next_tick_ns;
         self.next_tick_ns += TICK_NS;
@@ -952,6 +1161,7 @@ impl FeaturePipeline {
 
         let force_n = self.bx_force.take();
         let pos_m = self.bx_pos.take();
+        let acc_var = self.bx_acc.variance();
         let acc = self.bx_acc.take();
         let y = self.bx_kf_y.take();
         let v = self.bx_kf_v.take();
@@ -993,6 +1203,9 @@ impl FeaturePipeline {
             .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
         let velocity_rms_1s_mps = if n > 0.0 { (sum / n).sqrt() } else { f64::NAN };
 
+        let [accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] =
+            self.window_columns(acc_var, self.temp_shock_c - cyl_c, force_n - fb.total_n);
+
         let mut values = [
             force_n,
             pos_m,
@@ -1006,6 +1219,12 @@ impl FeaturePipeline {
             oil_c,
             cyl_c,
             power_w,
+            accel_hf_rms,
+            velocity_rms_1s_mps,
+            temp_resid_c,
+            temp_resid_rate,
+            force_resid_mean,
+            force_resid_rms,
         ];
         for (value, keep) in values.iter_mut().zip(self.column_mask) {
             if !keep {
@@ -1613,6 +1832,219 @@ mod tests {
             column_indices(&[Group::Thermal, Group::Force, Group::Thermal]),
             vec![7, 8, 9, 10, 11, 0]
         );
+    }
+
+    /// Replaces the accelerometer samples (1 kHz from `T0`): `a1 = f(k, i)`
+    /// with `k` the row whose interval holds sample `i`, `a2 = 0`.
+    fn set_acceleration(log: &mut RunLog, f: impl Fn(usize, usize) -> f64) {
+        for (i, s) in log.acceleration.iter_mut().enumerate() {
+            assert_eq!(s.0, T0 + i as i64 * MS);
+            let k = i.saturating_sub(1) / 20;
+            *s = (s.0, f(k, i), 0.0);
+        }
+    }
+
+    #[test]
+    fn accel_hf_rms_of_tick_constant_and_alternating_signals() {
+        // Quarter multiples: every sum below is exact in binary.
+        let level = |k: usize| 0.25 * (k % 7) as f64 - 1.0;
+        let mut log = synth_log(3, TopicSet::all());
+        set_acceleration(&mut log, |k, _| level(k));
+        let table = compute_features(&log, &PhysicsParams::default(), &[Group::Signature]).unwrap();
+        let hf = table.column("accel_hf_rms_mps2").unwrap();
+        assert_eq!(hf.len(), 150);
+        assert!(hf.iter().all(|&x| x == 0.0), "{hf:?}");
+
+        // ±c_k about the tick's level, c_k = 0.5 on even ticks, 0.25 on odd
+        // ones: the within-tick std is c_k (10 samples of each sign), the
+        // column the RMS of c over the last 50 ticks. Tick 60 has only NaN
+        // samples: skipped.
+        let c = |k: usize| if k % 2 == 0 { 0.5 } else { 0.25 };
+        set_acceleration(&mut log, |k, i| {
+            if k == 60 {
+                f64::NAN
+            } else {
+                level(k) + c(k) * if i % 2 == 0 { 1.0 } else { -1.0 }
+            }
+        });
+        let table = compute_features(&log, &PhysicsParams::default(), &[Group::Signature]).unwrap();
+        let hf = table.column("accel_hf_rms_mps2").unwrap();
+        assert_eq!(hf[0], 0.5);
+        // (The last row, 149, holds 19 samples: not a balanced alternation.)
+        for (r, &got) in hf[..149].iter().enumerate() {
+            let ticks: Vec<usize> = (r.saturating_sub(49)..=r).filter(|&k| k != 60).collect();
+            let want =
+                (ticks.iter().map(|&k| c(k) * c(k)).sum::<f64>() / ticks.len() as f64).sqrt();
+            assert!((got - want).abs() < 1e-12, "row {r}: {got} vs {want}");
+        }
+        assert!(hf[60].is_finite(), "a NaN tick is skipped, not propagated");
+        // The excitation column is the twin's 1 s velocity RMS.
+        let v = table.column("velocity_rms_mps").unwrap();
+        for (k, tw) in table.twin.iter().enumerate() {
+            assert!(same(v[k], tw.velocity_rms_1s_mps), "row {k}");
+        }
+    }
+
+    #[test]
+    fn temp_resid_is_measured_minus_model_and_its_rate_looks_back_10_s() {
+        let log = synth_log(14, TopicSet::all());
+        let table = compute_features(
+            &log,
+            &PhysicsParams::default(),
+            &[Group::Thermal, Group::Signature],
+        )
+        .unwrap();
+        let col = |name| table.column(name).unwrap();
+        let (shock, cyl, resid, rate) = (
+            col("temp_shock_c"),
+            col("cyl_temp_model_c"),
+            col("temp_resid_c"),
+            col("temp_resid_rate_cps"),
+        );
+        assert_eq!(table.n_rows(), 700);
+        for k in 0..700 {
+            assert!(same(resid[k], shock[k] - cyl[k]), "row {k}");
+        }
+        // The thermal model starts at row 12; the rate needs the residual
+        // 500 rows (10 s) back.
+        assert!(resid[..12].iter().all(|x| x.is_nan()) && resid[12].is_finite());
+        assert!(
+            rate[..512].iter().all(|x| x.is_nan()),
+            "NaN until 10 s of history"
+        );
+        for k in 512..700 {
+            let want = (resid[k] - resid[k - 500]) / 10.0;
+            assert!(
+                (rate[k] - want).abs() < 1e-12,
+                "row {k}: {} vs {want}",
+                rate[k]
+            );
+        }
+        // The thermocouple rises 0.05 °C/s, the model otherwise: not zero.
+        assert!(rate[699].abs() > 1e-3, "{}", rate[699]);
+    }
+
+    #[test]
+    fn force_resid_of_model_plus_offset() {
+        let params = PhysicsParams::default();
+        let groups = [Group::Mechanical, Group::Residual];
+        let mut log = synth_log(4, TopicSet::all());
+        let model = compute_features(&log, &params, &groups)
+            .unwrap()
+            .column("force_model_n")
+            .unwrap();
+        // One loadcell sample per tick interval (at +3 ms): row i's boxcar is
+        // sample i. The loadcell does not feed the model.
+        assert_eq!(log.force.len(), model.len());
+        for (offset, ripple) in [(100.0, 0.0), (100.0, 30.0)] {
+            for (i, s) in log.force.iter_mut().enumerate() {
+                let sign = if i % 2 == 0 { 1.0 } else { -1.0 };
+                s.1 = model[i] + offset + ripple * sign;
+            }
+            let table = compute_features(&log, &params, &groups).unwrap();
+            let again = table.column("force_model_n").unwrap();
+            assert!(again.iter().zip(&model).all(|(a, b)| same(*a, *b)));
+            let mean = table.column("force_resid_mean_n").unwrap();
+            let rms = table.column("force_resid_rms_n").unwrap();
+            // The model starts at row 12; 1 s later the window is full.
+            assert!(
+                model[..12].iter().all(|x| x.is_nan()) && mean[..12].iter().all(|x| x.is_nan())
+            );
+            assert!(mean[12].is_finite());
+            for k in 61..table.n_rows() {
+                assert!((mean[k] - offset).abs() < 1e-9, "row {k}: {}", mean[k]);
+                assert!((rms[k] - ripple).abs() < 1e-9, "row {k}: {}", rms[k]);
+            }
+        }
+    }
+
+    #[test]
+    fn window_groups_need_their_topics() {
+        let no_force = TopicSet {
+            force: false,
+            ..TopicSet::all()
+        };
+        let log = synth_log(2, no_force);
+        let params = PhysicsParams::default();
+        match compute_features(&log, &params, &[Group::Signature, Group::Residual]).unwrap_err() {
+            PhysicsError::MissingTopics { missing, .. } => assert_eq!(missing, ["/force"]),
+            other => panic!("{other}"),
+        }
+        compute_features(&log, &params, &[Group::Signature]).unwrap();
+        let log = synth_log(
+            2,
+            TopicSet {
+                temp_ambient: false,
+                ..TopicSet::all()
+            },
+        );
+        let err = compute_features(&log, &params, &[Group::Signature]).unwrap_err();
+        assert!(err.to_string().contains("/temperature/ambient"), "{err}");
+        compute_features(&log, &params, &[Group::Residual]).unwrap();
+        // A pipeline without the loadcell leaves the residual columns NaN.
+        let rows = run_rows(&sorted_samples(&synth_log(2, no_force)), no_force, true);
+        let r = &rows[80].values;
+        assert!(r[Group::Residual.column_range()].iter().all(|x| x.is_nan()));
+        assert!(r[Group::Signature.column_range()][..3]
+            .iter()
+            .all(|x| x.is_finite()));
+    }
+
+    #[test]
+    fn window_columns_do_not_look_ahead() {
+        // Long enough for the 10 s temperature rate.
+        let log = synth_log(12, TopicSet::all());
+        let samples = sorted_samples(&log);
+        let full = run_rows(&samples, TopicSet::all(), true);
+        assert!(full[599].values[col::TEMP_RESID_RATE_CPS].is_finite());
+        for frac in [0.05, 0.4, 0.87, 0.999] {
+            let cut = (frac * samples.len() as f64) as usize;
+            let prefix = run_rows(&samples[..cut], TopicSet::all(), false);
+            assert!(prefix.len() + 1 >= full.len() * cut / samples.len());
+            for (a, b) in prefix.iter().zip(&full) {
+                assert!(
+                    a.values.iter().zip(&b.values).all(|(x, y)| same(*x, *y)),
+                    "cut {cut}, row at {}",
+                    a.t_ns
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn extra_permutations_are_ours() {
+        let perms = extra_permutations();
+        assert_eq!(perms.iter().map(|p| p.id).collect::<Vec<_>>(), [14, 15, 16]);
+        assert_eq!(
+            perms[0].groups.as_ref(),
+            [Group::Velocity, Group::Mechanical, Group::Signature]
+        );
+        assert_eq!(perms[0].name, "Causal signature hybrid (no force)");
+        assert_eq!(
+            perms.iter().map(Permutation::cost_aud).collect::<Vec<_>>(),
+            [297, 4292, 4292]
+        );
+        assert_eq!(
+            perms[1].columns(),
+            [
+                "force_n",
+                "velocity_mps",
+                "force_model_n",
+                "force_damping_model_n",
+                "force_gas_model_n",
+                "force_resid_mean_n",
+                "force_resid_rms_n"
+            ]
+        );
+        assert_eq!(perms[2].columns().len(), 11);
+        assert!(perms.iter().all(|p| paper_rmse_bar(p.id).is_none()));
+        assert_eq!(paper_permutations().len(), 13);
+        assert_eq!(Group::from_name("signature").unwrap(), Group::Signature);
+        assert_eq!(
+            serde_json::to_string(&Group::Residual).unwrap(),
+            "\"residual\""
+        );
+        assert_eq!(Group::PAPER, Group::ALL[..6]);
     }
 
     proptest! {
