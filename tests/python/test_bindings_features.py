@@ -39,11 +39,14 @@ def cheap_log(tmp_path_factory) -> shocktwin.Log:
 
 
 def test_groups_columns_topics():
-    assert shocktwin.GROUPS == ("force", "position", "acceleration", "velocity", "mechanical", "thermal")
+    assert shocktwin.GROUPS[:6] == ("force", "position", "acceleration", "velocity", "mechanical", "thermal")
+    assert shocktwin.GROUPS[6:] == ("signature", "residual")  # causal-window groups beyond the paper
     assert [c for g in shocktwin.GROUPS for c in shocktwin.group_columns(g)] == list(shocktwin.COLUMNS)
     assert shocktwin.group_topics("force") == ["/force"]
     assert shocktwin.group_topics("velocity") == ["/position", "/acceleration"]
     assert set(shocktwin.group_topics("thermal")) == set(ALL_TOPICS) - {"/force"}
+    assert shocktwin.group_topics("signature") == shocktwin.group_topics("thermal")
+    assert set(shocktwin.group_topics("residual")) == {"/force"} | set(shocktwin.group_topics("mechanical"))
     with pytest.raises(shocktwin.InputError, match="torque"):
         shocktwin.group_columns("torque")
 
@@ -56,7 +59,7 @@ def test_permutations_are_the_papers_table():
     assert by_id[3]["groups"] == ["force", "position"]
     assert by_id[7]["groups"] == ["force", "position", "acceleration"]
     assert by_id[12]["groups"] == ["position", "acceleration", "velocity", "mechanical", "thermal"]
-    assert by_id[13]["groups"] == list(shocktwin.GROUPS)
+    assert by_id[13]["groups"] == list(shocktwin.GROUPS[:6])
     assert by_id[12]["paper_rmse_bar"] == 1.40 and by_id[13]["paper_rmse_bar"] == 0.85
     # paper abstract: suites cost A$297 to A$4,292
     assert by_id[12]["cost_aud"] == 297 and by_id[13]["cost_aud"] == 4292
@@ -67,6 +70,19 @@ def test_permutations_are_the_papers_table():
     assert shocktwin.PERMUTATIONS == tuple(perms)
     perms[0]["groups"].append("thermal")  # a fresh copy each call
     assert shocktwin.permutations()[0]["groups"] == ["force"]
+
+
+def test_extra_permutations_are_ours():
+    extra = {p["id"]: p for p in shocktwin.extra_permutations()}
+    assert sorted(extra) == [14, 15, 16]
+    assert extra[14]["groups"] == ["velocity", "mechanical", "signature"]
+    assert extra[14]["sensors"] == ["potentiometer", "accelerometers", "thermocouples"]
+    assert extra[15]["groups"] == ["force", "velocity", "mechanical", "residual"]
+    assert extra[16]["groups"] == ["force", "velocity", "mechanical", "residual", "signature"]
+    assert [extra[i]["cost_aud"] for i in (14, 15, 16)] == [297, 4292, 4292]
+    assert all(p["paper_rmse_bar"] is None for p in extra.values())
+    for p in extra.values():
+        assert p["columns"] == [c for g in p["groups"] for c in shocktwin.group_columns(g)]
 
 
 def test_suite_costs():
@@ -92,8 +108,11 @@ def test_shapes_and_columns_per_group(full_log, groups):
     assert x.shape == (len(t_s), len(columns)) == (n_ticks, len(columns))
     assert n_ticks in (299, 300)
     np.testing.assert_allclose(t_s, 0.02 * np.arange(1, n_ticks + 1), rtol=0, atol=1e-12)
-    # after the first second every column is filled
-    assert np.isfinite(x[50:]).all()
+    # after the first second every column is filled (the 10 s temperature
+    # rate of `signature` needs 10 s of history: NaN in this 6 s log)
+    late = [i for i, c in enumerate(columns) if c == "temp_resid_rate_cps"]
+    assert np.isfinite(np.delete(x[50:], late, axis=1)).all()
+    assert np.isnan(x[:, late]).all()
 
 
 def test_group_order_is_kept(full_log):

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use dt_core::bundle::Bundle;
 use dt_core::features::{
     compute_features, paper_permutations, paper_rmse_bar, suite_cost_aud, suite_sensors, Group,
-    Sensor, COLUMNS,
+    Permutation, Sensor, COLUMNS,
 };
 use dt_core::params::PhysicsParams;
 use numpy::ndarray::Array2;
@@ -162,7 +162,26 @@ pub(crate) fn suite(groups: Vec<String>) -> PyResult<(Vec<&'static str>, u32)> {
 /// ``paper_rmse_bar``. They are data: any list of groups is a permutation.
 #[pyfunction]
 pub(crate) fn permutations(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
-    paper_permutations()
+    permutation_dicts(py, paper_permutations())
+}
+
+/// Our input permutations beyond the paper's (ids 14–16: its hybrids with
+/// the causal-window groups ``signature`` and ``residual``), as a fresh list
+/// of dicts like ``permutations()`` (``paper_rmse_bar`` is ``None``).
+///
+/// >>> import shocktwin
+/// >>> [(p["id"], p["cost_aud"]) for p in shocktwin.extra_permutations()]
+/// [(14, 297), (15, 4292), (16, 4292)]
+#[pyfunction]
+pub(crate) fn extra_permutations(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
+    permutation_dicts(py, dt_core::features::extra_permutations())
+}
+
+fn permutation_dicts<'py>(
+    py: Python<'py>,
+    perms: &[Permutation],
+) -> PyResult<Vec<Bound<'py, PyDict>>> {
+    perms
         .iter()
         .map(|p| {
             let d = PyDict::new(py);

@@ -38,6 +38,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(features::group_topics, m)?)?;
     m.add_function(wrap_pyfunction!(features::suite, m)?)?;
     m.add_function(wrap_pyfunction!(features::permutations, m)?)?;
+    m.add_function(wrap_pyfunction!(features::extra_permutations, m)?)?;
     m.add_class::<bundle::PyBundle>()?;
     m.add_function(wrap_pyfunction!(bundle::estimate, m)?)?;
     features::add_constants(m)?;

@@ -15,7 +15,9 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   a whole run: pressure, 1 s average and health per 50 Hz tick.
 - ``GROUPS``, ``COLUMNS``, ``group_columns``, ``group_topics``, ``suite``,
   ``SENSOR_COSTS_AUD``, ``PERMUTATIONS`` / ``permutations()``: the input
-  groups, sensor costs and the paper's 13 permutations, as data.
+  groups, sensor costs and the paper's 13 permutations, as data;
+  ``extra_permutations()`` ours beyond them (14–16, with the causal-window
+  groups ``signature`` and ``residual``).
 
 Times on the Python side are in seconds (float64); the core works in
 integer nanoseconds, so input times are rounded to the nanosecond.
@@ -49,6 +51,7 @@ from shocktwin._native import (
     group_columns,
     group_topics,
     permutations,
+    extra_permutations,
     read_log,
     suite,
 )
@@ -90,6 +93,7 @@ __all__ = [
     "SENSOR_COSTS_AUD",
     "PERMUTATIONS",
     "permutations",
+    "extra_permutations",
     # model bundles and the estimator
     "Bundle",
     "estimate",
