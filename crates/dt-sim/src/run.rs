@@ -483,17 +483,27 @@ pub fn simulate_campaign(spec: &CampaignSpec, out_dir: &Path) -> Result<Vec<RunS
         path: out_dir.display().to_string(),
         source,
     })?;
-    let runs = spec.runs();
-    let mut ids: Vec<String> = runs.iter().map(RunSpec::run_id).collect();
-    ids.sort();
-    ids.dedup();
-    if ids.len() != runs.len() {
-        return Err(SimError::InvalidSpec {
-            field: "pressures/frequencies",
-            value: f64::NAN,
-            reason: "two runs share a run id (duplicate values, or equal to 0.1)",
-        });
+    for (field, values) in [
+        ("pressures_bar", &spec.pressures_bar),
+        ("frequencies_hz", &spec.frequencies_hz),
+    ] {
+        // Run ids carry one decimal: values equal at one decimal would
+        // overwrite each other's files.
+        let mut seen: Vec<String> = Vec::new();
+        for &v in values {
+            let key = fmt_num(v);
+            if seen.contains(&key) {
+                return Err(SimError::InvalidSpec {
+                    field,
+                    value: v,
+                    reason:
+                        "repeated (run ids use one decimal, so values must differ at one decimal)",
+                });
+            }
+            seen.push(key);
+        }
     }
+    let runs = spec.runs();
     let params = runs
         .first()
         .map_or_else(PlantParams::nominal, RunSpec::params);

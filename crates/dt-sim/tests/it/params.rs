@@ -56,3 +56,16 @@ fn validation_names_the_parameter() {
     assert!(matches!(err, SimError::InvalidParameter { .. }));
     assert!(err.to_string().contains("g_oil_outer_w_per_k"), "{err}");
 }
+
+#[test]
+fn campaign_rejects_values_that_would_share_a_run_id() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = dt_sim::CampaignSpec {
+        pressures_bar: vec![1.0, 1.04],
+        quick: true,
+        ..dt_sim::CampaignSpec::paper(1)
+    };
+    let err = dt_sim::simulate_campaign(&spec, dir.path()).unwrap_err();
+    assert!(err.to_string().contains("pressures_bar = 1.04"), "{err}");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
