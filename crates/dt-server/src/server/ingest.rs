@@ -9,7 +9,7 @@
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use dt_core::estimate::Estimate;
 use dt_core::log::{LogDecoder, LogError, LogEvent, ReadLimits, RunMetadata, Sample};
@@ -180,6 +180,7 @@ impl Ingest {
             samples_reported: 0,
             ticks: 0,
             last_t_ns: None,
+            arrived: None,
         })
     }
 
@@ -236,6 +237,7 @@ impl Ingest {
             if n == 0 {
                 break None;
             }
+            let arrived = Instant::now();
             decoder.feed(&buf[..n]);
             if let Err(outcome) = self
                 .handle_events(kind, &source, &mut decoder, &mut run, &mut unknown_topics)
@@ -244,6 +246,7 @@ impl Ingest {
                 break Some(outcome);
             }
             if let Some(r) = &mut run {
+                r.set_arrival(arrived);
                 if r.flush().await.is_err() {
                     break Some(sink_closed_outcome());
                 }
@@ -381,6 +384,8 @@ pub struct RunHandle {
     samples_reported: u64,
     ticks: u64,
     last_t_ns: Option<i64>,
+    /// When the input pushed since the last flush arrived (earliest).
+    arrived: Option<Instant>,
 }
 
 impl std::fmt::Debug for RunHandle {
@@ -407,6 +412,14 @@ impl RunHandle {
         self.twin.push(sample)
     }
 
+    /// Says when the samples pushed since the last flush arrived (the read
+    /// that returned their bytes); the earliest call before a flush counts.
+    /// Without it a flush takes its own time as the arrival. The daemon's
+    /// `estimate_delay_seconds` histogram is measured from this instant.
+    pub fn set_arrival(&mut self, at: Instant) {
+        self.arrived.get_or_insert(at);
+    }
+
     /// Sends the estimates completed so far; waits while the sink queue is full.
     pub async fn flush(&mut self) -> Result<(), SinkClosed> {
         self.twin.drain(&mut self.out);
@@ -427,6 +440,7 @@ impl RunHandle {
         if let Some(t) = self.last_t_ns {
             m.set_last_sample(&self.info.meta.asset_id, t);
         }
+        let arrived = self.arrived.take().unwrap_or_else(Instant::now);
         if self.out.is_empty() {
             return Ok(());
         }
@@ -435,7 +449,7 @@ impl RunHandle {
         self.ingest
             .inner
             .sink_tx
-            .send(SinkMsg::Estimates(Arc::clone(&self.info), batch))
+            .send(SinkMsg::Estimates(Arc::clone(&self.info), batch, arrived))
             .await
             .map_err(|_| SinkClosed)?;
         self.ticks += n;

@@ -6,14 +6,14 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::SystemTime;
+use std::time::{Instant, SystemTime};
 
 use dt_core::estimate::Estimate;
 use dt_core::log::RunMetadata;
 use tokio::sync::{mpsc, oneshot};
 
 use super::config::AssetConfig;
-use super::metrics::Metrics;
+use super::metrics::{AssetLabel, Metrics};
 
 /// Where a run's bytes come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -119,7 +119,8 @@ pub trait Sink: Send {
 #[derive(Debug)]
 pub(crate) enum SinkMsg {
     Started(Arc<RunInfo>),
-    Estimates(Arc<RunInfo>, Vec<Estimate>),
+    /// A batch and when the input that completed it arrived.
+    Estimates(Arc<RunInfo>, Vec<Estimate>, Instant),
     /// The sender gets `Err(reason)` if a sink failed for this run.
     Ended(
         Arc<RunInfo>,
@@ -153,12 +154,16 @@ pub(crate) fn dispatch(
                     }
                 }
             }
-            SinkMsg::Estimates(run, batch) => {
+            SinkMsg::Estimates(run, batch, arrived) => {
                 for sink in &mut sinks {
                     if let Err(e) = sink.estimates(&run, &batch) {
                         note(&mut failed, run.seq, e);
                     }
                 }
+                let label = AssetLabel {
+                    asset: run.meta.asset_id.clone(),
+                };
+                metrics.observe_delay(&label, arrived.elapsed().as_secs_f64(), batch.len());
             }
             SinkMsg::Ended(run, outcome, ack) => {
                 for sink in &mut sinks {

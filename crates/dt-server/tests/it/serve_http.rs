@@ -94,3 +94,38 @@ async fn event_stream_carries_every_estimate_and_the_run_lifecycle() {
     assert!(seen.iter().all(|e| e.name != "health"));
     d.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn delay_histogram_counts_every_estimate_of_each_asset() {
+    let d = Daemon::start(test_config()).await;
+    let a = good_stream("delay-a", "r1", 10_000_000_000, 700);
+    let b = good_stream("delay-b", "r1", 20_000_000_000, 300);
+    let (ra, rb) = tokio::join!(send(d.ingest, &a.bytes, 500), send(d.ingest, &b.bytes, 700));
+    assert_eq!(ra["status"], "completed");
+    assert_eq!(rb["status"], "completed");
+    let text = d.metrics().await;
+    for (asset, s) in [("delay-a", &a), ("delay-b", &b)] {
+        let count = crate::common::metric(
+            &text,
+            &format!("shocktwin_estimate_delay_seconds_count{{asset=\"{asset}\"}}"),
+        );
+        assert_eq!(
+            count,
+            Some(s.ticks as f64),
+            "{asset}: one observation per estimate"
+        );
+        // Every estimate is under the largest finite bound (5 s) on loopback.
+        let le5 = crate::common::metric(
+            &text,
+            &format!("shocktwin_estimate_delay_seconds_bucket{{le=\"5.0\",asset=\"{asset}\"}}"),
+        );
+        assert_eq!(le5, Some(s.ticks as f64), "{asset}:\n{text}");
+        let sum = crate::common::metric(
+            &text,
+            &format!("shocktwin_estimate_delay_seconds_sum{{asset=\"{asset}\"}}"),
+        )
+        .unwrap();
+        assert!(sum >= 0.0 && sum.is_finite(), "{asset}: sum {sum}");
+    }
+    d.stop().await;
+}
