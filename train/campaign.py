@@ -70,10 +70,10 @@ class Campaign:
         self.require_labels()
         runs = [r for r in self.runs if abs(r.label_bar - nominal_bar) <= tol_bar]  # type: ignore[operator]
         if not runs:
-            labels = sorted({r.label_bar for r in self.runs})  # type: ignore[type-var]
+            labelled = ", ".join(f"{r.name} {r.label_bar:g} bar" for r in self.runs)
             raise CampaignError(
                 f"{self.root}: no nominal runs at {nominal_bar:g} bar "
-                f"(labels present: {', '.join(f'{x:g}' for x in labels)})"
+                f"(calibration needs them; the runs are labelled: {labelled})"
             )
         return runs
 

@@ -112,6 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         provenance={
             "campaign": campaign.root.name,
             "campaign_digest": campaign.digest(),
+            "skipped_runs": [f"{path.name}: {reason}" for path, reason in campaign.skipped],
             "split": args.split,
             "seed": args.seed,
             "per_run": args.per_run,

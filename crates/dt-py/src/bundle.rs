@@ -5,7 +5,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use dt_core::bundle::Bundle;
+use dt_core::error::PhysicsError;
 use dt_core::estimator::{estimate_log, EstimatorConfig};
+use dt_core::features::TopicSet;
 use dt_core::log::RunLog;
 use numpy::{AllowTypeChange, PyArray1, PyArrayLike2};
 use pyo3::exceptions::PyTypeError;
@@ -193,12 +195,19 @@ impl PyBundle {
     }
 }
 
+/// A `Log` or a `Bundle` given as the object itself or as a path; paths are
+/// resolved only after every argument's type has been checked.
+enum Given<T> {
+    Object(T),
+    Path(PathBuf),
+}
+
 /// A `Log` or a path to a run log.
-pub(crate) fn run_log_of(py: Python<'_>, log: &Bound<'_, PyAny>) -> PyResult<Arc<RunLog>> {
+fn log_arg(log: &Bound<'_, PyAny>) -> PyResult<Given<Arc<RunLog>>> {
     if let Ok(log) = log.downcast::<PyLog>() {
-        Ok(log.get().run_log())
+        Ok(Given::Object(log.get().run_log()))
     } else if log.is_instance_of::<PyString>() || log.hasattr("__fspath__")? {
-        Ok(read_log(py, log.extract()?)?.run_log())
+        Ok(Given::Path(log.extract()?))
     } else {
         Err(PyTypeError::new_err(format!(
             "log: expected a shocktwin.Log or a path, got {}",
@@ -208,11 +217,11 @@ pub(crate) fn run_log_of(py: Python<'_>, log: &Bound<'_, PyAny>) -> PyResult<Arc
 }
 
 /// A `Bundle` or a path to a bundle directory.
-fn bundle_of(py: Python<'_>, bundle: &Bound<'_, PyAny>) -> PyResult<Arc<Bundle>> {
+fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
     if let Ok(b) = bundle.downcast::<PyBundle>() {
-        Ok(b.get().inner())
+        Ok(Given::Object(b.get().inner()))
     } else if bundle.is_instance_of::<PyString>() || bundle.hasattr("__fspath__")? {
-        load_bundle(py, bundle.extract()?)
+        Ok(Given::Path(bundle.extract()?))
     } else {
         Err(PyTypeError::new_err(format!(
             "bundle: expected a shocktwin.Bundle or a path, got {}",
@@ -249,8 +258,26 @@ pub(crate) fn estimate<'py>(
     log: &Bound<'py, PyAny>,
     bundle: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let run = run_log_of(py, log)?;
-    let bundle = bundle_of(py, bundle)?;
+    let (log, bundle) = (log_arg(log)?, bundle_arg(bundle)?);
+    let run = match log {
+        Given::Object(run) => run,
+        Given::Path(path) => read_log(py, path)?.run_log(),
+    };
+    let bundle = match bundle {
+        Given::Object(bundle) => bundle,
+        Given::Path(path) => load_bundle(py, path)?,
+    };
+    // A whole log that lacks a topic the bundle needs is an error here, as
+    // in `features` (a live stream cannot know; it gives NaN pressures).
+    let missing = TopicSet::from_log(&run).missing_for(&bundle.groups);
+    if !missing.is_empty() {
+        return Err(CoreError::from(PhysicsError::MissingTopics {
+            run_id: run.metadata.run_id.clone(),
+            missing: missing.into_iter().map(str::to_owned).collect(),
+            groups: bundle.twin.permutation.groups.clone(),
+        })
+        .into());
+    }
     let cfg = EstimatorConfig::from_bundle(&bundle);
     let origin_ns = run.t0_ns().unwrap_or(0);
     let (estimates, _counters) =

@@ -1,0 +1,155 @@
+"""``shocktwin.Bundle`` and ``shocktwin.estimate`` on dt-core's fixture bundles
+(``crates/dt-core/tests/fixtures/bundle-*``: random weights, outputs from a numpy
+forward pass cross-checked with onnxruntime) and synthetic logs. Bundles trained
+by ``train/`` are tested in ``test_train_tools.py``."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import shocktwin
+
+FIXTURES = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "tests" / "fixtures"
+MLP13 = FIXTURES / "bundle-mlp13"
+ESTIMATE_KEYS = {
+    "t_s", "pressure_bar", "pressure_avg_bar", "expected_bar", "health",
+    "velocity_mps", "force_model_n", "oil_temp_c",
+}
+
+
+def expected(name: str) -> tuple[np.ndarray, np.ndarray]:
+    data = json.loads((FIXTURES / name / "expected.json").read_text())
+    return np.array(data["rows"], dtype=float), np.array(data["pressure_bar"], dtype=float)
+
+
+@pytest.mark.parametrize(
+    ("name", "backend"),
+    [("bundle-mlp13", "dense"), ("bundle-force-skl", "dense"), ("bundle-force-tanh", "tract")],
+)
+def test_predict_matches_the_fixture_outputs(name: str, backend: str):
+    bundle = shocktwin.Bundle(FIXTURES / name)
+    rows, want = expected(name)
+    assert bundle.backend == backend
+    got = bundle.predict(rows)
+    assert got.dtype == np.float64 and got.shape == (len(rows),)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(bundle.predict_reference(rows), want, rtol=0, atol=1e-9)
+    assert np.ptp(want) > 0.1  # the outputs differ: the comparison is not of one constant
+
+
+def test_properties_are_twin_json():
+    bundle = shocktwin.Bundle(str(MLP13))
+    twin = json.loads((MLP13 / "twin.json").read_text())
+    perm = twin["permutation"]
+    assert bundle.columns == perm["columns"]
+    assert bundle.groups == perm["groups"]
+    assert bundle.permutation == perm
+    assert bundle.columns == [c for g in perm["groups"] for c in shocktwin.group_columns(g)]
+    assert bundle.physics == {k: twin["physics"][k] for k in ("kalman", "thermal", "force")}
+    assert bundle.nominal_bar == twin["nominal_bar"]
+    assert bundle.health == twin["health"]
+    got = bundle.twin
+    assert got["normalisation"] == twin["normalisation"]
+    assert got["onnx"] == twin["onnx"] and got["provenance"] == twin["provenance"]
+    assert Path(bundle.path) == MLP13
+    assert "permutation=13" in repr(bundle) and "backend=dense" in repr(bundle)
+    # a fresh dict each time: mutating it changes nothing
+    bundle.twin["nominal_bar"] = 1.0
+    bundle.physics["force"]["charge_bar"] = 1.0
+    assert bundle.twin["nominal_bar"] == twin["nominal_bar"]
+    assert bundle.physics["force"]["charge_bar"] == twin["physics"]["force"]["charge_bar"]
+
+
+def test_predict_inputs():
+    bundle = shocktwin.Bundle(MLP13)
+    rows, want = expected("bundle-mlp13")
+    np.testing.assert_array_equal(bundle.predict(rows.tolist()), bundle.predict(rows))  # lists
+    np.testing.assert_array_equal(bundle.predict(np.asfortranarray(rows)), bundle.predict(rows))
+    np.testing.assert_array_equal(bundle.predict(rows[::2]), bundle.predict(rows)[::2])  # strided
+    assert bundle.predict(np.empty((0, 12))).shape == (0,)
+    nan_row = rows[:2].copy()
+    nan_row[1, 3] = np.nan
+    got = bundle.predict(nan_row)
+    assert got[0] == pytest.approx(want[0], abs=1e-9) and np.isnan(got[1])
+    with pytest.raises(shocktwin.InputError, match="11 columns.*reads 12"):
+        bundle.predict(rows[:, :11])
+    with pytest.raises(TypeError):
+        bundle.predict(rows[0])  # one row must still be 2-D
+
+
+def test_missing_and_bad_bundles_are_named(tmp_path: Path):
+    with pytest.raises(shocktwin.BundleNotFoundError, match="twin.json") as err:
+        shocktwin.Bundle(tmp_path / "nope")
+    # a BundleError and a FileNotFoundError
+    assert isinstance(err.value, shocktwin.BundleError) and isinstance(err.value, FileNotFoundError)
+    copy = tmp_path / "b"
+    shutil.copytree(MLP13, copy)
+    (copy / "mlp.onnx").unlink()
+    with pytest.raises(shocktwin.BundleNotFoundError, match="mlp.onnx"):
+        shocktwin.Bundle(copy)
+    with pytest.raises(TypeError, match="bundle"):
+        shocktwin.estimate(str(tmp_path / "x.mcap"), 12)  # type: ignore[arg-type]
+
+
+def test_estimate_on_a_synthetic_log(make_log):
+    log = shocktwin.read_log(make_log(duration_s=6.0))
+    bundle = shocktwin.Bundle(MLP13)
+    out = shocktwin.estimate(log, bundle)
+    assert set(out) == ESTIMATE_KEYS
+    n = len(out["t_s"])
+    assert n == 300  # 6 s at 50 Hz
+    for key, values in out.items():
+        assert values.shape == (n,), key
+        assert values.dtype.kind == "U" if key == "health" else values.dtype == np.float64, key
+    np.testing.assert_allclose(out["t_s"], 0.02 * np.arange(1, n + 1), rtol=0, atol=1e-12)
+    assert set(out["health"]) <= {"ok", "low", "leak", "unknown"}
+    assert (out["expected_bar"] == bundle.nominal_bar).all()
+    assert np.isfinite(out["pressure_bar"][60:]).all()
+    # the same from paths, and features() takes the Bundle object like its path
+    again = shocktwin.estimate(log.path, str(MLP13))
+    for key in ESTIMATE_KEYS:
+        np.testing.assert_array_equal(again[key], out[key])
+    x, columns, t_s = shocktwin.features(log, bundle)
+    x_path, _, _ = shocktwin.features(log, MLP13)
+    np.testing.assert_array_equal(x, x_path)
+    assert columns == bundle.columns
+    np.testing.assert_array_equal(t_s, out["t_s"])
+
+
+def test_estimate_names_missing_topics(make_log):
+    log = make_log(topics=["/position", "/acceleration"])
+    with pytest.raises(shocktwin.MissingTopicsError, match="run-1.*/force") as err:
+        shocktwin.estimate(log, MLP13)  # a whole log: known up front, as in features()
+    assert err.value.topics == ["/force", "/temperature/shock", "/temperature/ambient"]
+
+
+def test_predict_releases_the_gil():
+    """While ``predict`` runs in a thread, this thread keeps running Python."""
+    bundle = shocktwin.Bundle(MLP13)
+    rows = np.random.default_rng(0).normal(size=(100_000, 12)) * 100
+    done = threading.Event()
+    duration = []
+
+    def work():
+        start = time.perf_counter()
+        bundle.predict(rows)
+        duration.append(time.perf_counter() - start)
+        done.set()
+
+    worker = threading.Thread(target=work)
+    last, max_gap = time.perf_counter(), 0.0
+    worker.start()
+    while not done.is_set():
+        now = time.perf_counter()
+        max_gap, last = max(max_gap, now - last), now
+    worker.join()
+    max_gap = max(max_gap, time.perf_counter() - last)
+    assert duration[0] > 0.05, f"predict too short to tell ({duration[0]:.3f} s)"
+    assert max_gap < 0.5 * duration[0], f"longest pause {max_gap:.3f} s of a {duration[0]:.3f} s call"
