@@ -73,6 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--split", choices=SPLITS, default="runs")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--per-run", type=int, default=3000, help="training rows per run (evenly spaced excited ticks)")
+    p.add_argument("--max-iter", type=int, default=80, help="training epochs at most (Adam, early stopping)")
     p.add_argument("--nominal-bar", type=float, default=12.0)
     args = p.parse_args(argv)
 
@@ -90,18 +91,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         test_idx = set(split_runs(len(tables), args.seed).tolist())
         masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
         x, y = evaluate.training_set(tables, columns, excited, masks, args.per_run)
-        trained = model.fit(x, y, columns, seed=args.seed)
+        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
         preds = [evaluate.predict_run(trained, tables[i], columns, excited[i]) for i in sorted(test_idx)]
         scores = evaluate.score_runs(preds)
         metrics = {"test_runs": [tables[i].run.name for i in sorted(test_idx)], **scores.as_dict()}
     elif args.split == "paper":
         test = evaluate.paper_split(tables, args.seed)
         x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.per_run)
-        trained = model.fit(x, y, columns, seed=args.seed)
+        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
         metrics = evaluate.score_paper(trained, tables, columns, excited, test).as_dict()
     else:
         x, y = evaluate.training_set(tables, columns, excited, None, args.per_run)
-        trained = model.fit(x, y, columns, seed=args.seed)
+        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
 
     model.write_bundle(
         args.out,
@@ -116,6 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "split": args.split,
             "seed": args.seed,
             "per_run": args.per_run,
+            "max_iter": args.max_iter,
             "metrics": metrics,
             "simulated_data": True,
         },

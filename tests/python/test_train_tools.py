@@ -1,0 +1,460 @@
+"""The training tools (``train/``) on a tiny simulated campaign (issue 4): parity of
+the network's three evaluators, bundle round trip and tampering, protocol
+separation, streaming = batch through Python, bad input for the CLIs, and
+``train.train`` → ``shocktwin replay`` end to end.
+
+The campaign is made once per session with ``shocktwin simulate --quick
+--pressures 4,12 --frequencies 2,4`` (4 runs of 70 s, ~1 s); the binary is
+``target/release/shocktwin`` (built with ``cargo build --release -p dt-server``
+when missing) or ``SHOCKTWIN_BIN``. Networks are trained on a few hundred rows for
+a few iterations: the tests are about the plumbing, not the accuracy.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import shocktwin
+from conftest import synthetic_run, write_mcap_log
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
+sys.path.insert(0, str(ROOT))
+from train import dataset, evaluate, model  # noqa: E402
+from train.campaign import load_campaign  # noqa: E402
+
+sys.path.remove(str(ROOT))
+
+PERM12 = next(p for p in shocktwin.PERMUTATIONS if p["id"] == 12)
+ESTIMATE_FIELDS = [
+    "pressure_bar", "pressure_avg_bar", "expected_bar", "health",
+    "velocity_mps", "force_model_n", "oil_temp_c",
+]
+PER_RUN = 300  # training rows per run
+MAX_ITER = 15
+PARITY_BAR = 1e-5
+
+pytestmark = pytest.mark.filterwarnings("ignore:Stochastic Optimizer")  # few iterations on purpose
+
+
+# --- session fixtures -----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def shocktwin_bin() -> Path:
+    if not BIN.exists():
+        subprocess.run(
+            ["cargo", "build", "--release", "-p", "dt-server", "--bin", "shocktwin"],
+            cwd=ROOT, check=True, timeout=3600,
+        )
+    return BIN
+
+
+@pytest.fixture(scope="session")
+def campaign(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("campaign")
+    proc = subprocess.run(
+        [str(shocktwin_bin), "simulate", "--quick", "--pressures", "4,12", "--frequencies", "2,4", "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert len(list(out.glob("*.mcap"))) == 4
+    return out
+
+
+@pytest.fixture(scope="session")
+def physics() -> dict[str, Any]:
+    """The priors at the nominal charge (calibration is exercised by the CLI tests)."""
+    params = shocktwin.default_params()
+    params["force"]["charge_bar"] = 12.0
+    return params
+
+
+@pytest.fixture(scope="session")
+def data(campaign: Path, physics: dict[str, Any]) -> dataset.CampaignData:
+    return dataset.CampaignData(load_campaign(campaign), physics)
+
+
+@pytest.fixture(scope="session")
+def trained(data: dataset.CampaignData) -> model.Trained:
+    tables = data.tables(PERM12["groups"])
+    columns = dataset.group_columns(PERM12["groups"])
+    x, y = evaluate.training_set(tables, columns, data.excited_for(tables), None, PER_RUN)
+    return model.fit(x, y, columns, seed=0, max_iter=MAX_ITER)
+
+
+@pytest.fixture(scope="session")
+def bundle_dir(trained: model.Trained, physics: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return model.write_bundle(
+        tmp_path_factory.mktemp("bundle") / "perm-12", trained, permutation=PERM12, physics=physics,
+        nominal_bar=12.0, provenance={"campaign": "test", "split": "none", "seed": 0},
+    )
+
+
+def real_rows(data: dataset.CampaignData, every: int = 7) -> np.ndarray:
+    """Finite feature rows of every run (excited or not), thinned."""
+    tables = data.tables(PERM12["groups"])
+    x = np.concatenate([t.select(dataset.group_columns(PERM12["groups"]))[::every] for t in tables])
+    return x[np.isfinite(x).all(axis=1)]
+
+
+# --- parity: onnxruntime, scikit-learn, tract and the dense path ---------------------------
+
+
+def test_parity_of_the_network_evaluators(data, trained, bundle_dir):
+    """The bundle's mlp.onnx run by onnxruntime on the normalised inputs, Trained.predict
+    (scikit-learn) and shocktwin.Bundle.predict (dense path) / predict_reference (tract)
+    agree to 1e-5 bar on real feature rows."""
+    import onnxruntime as ort
+
+    x = real_rows(data)
+    assert len(x) > 1000
+    sk = trained.predict(x)
+    session = ort.InferenceSession(str(bundle_dir / "mlp.onnx"), providers=["CPUExecutionProvider"])
+    (inp,) = session.get_inputs()
+    assert inp.name == model.ONNX_INPUT and inp.type == "tensor(double)"
+    onnx_out = session.run([model.ONNX_OUTPUT], {inp.name: (x - trained.mean) / trained.std})[0][:, 0]
+    bundle = shocktwin.Bundle(bundle_dir)
+    assert bundle.backend == "dense"  # skl2onnx's float64 MLP is read by the dense path
+    dense = bundle.predict(x)
+    tract = bundle.predict_reference(x)
+    results = {"onnxruntime": onnx_out, "tract": tract, "dense": dense}
+    for name, got in results.items():
+        assert got.shape == sk.shape, name
+        err = np.max(np.abs(got - sk))
+        assert err <= PARITY_BAR, f"{name} vs scikit-learn: {err:.3g} bar"
+    assert np.max(np.abs(dense - tract)) <= 1e-9  # the dense path is checked against tract at load
+    assert np.ptp(sk) > 0.5, "the network is constant: parity would prove nothing"
+
+
+# --- bundle round trip and tampering --------------------------------------------------------
+
+
+def test_bundle_round_trip(trained, bundle_dir, physics):
+    bundle = shocktwin.Bundle(bundle_dir)
+    assert bundle.columns == trained.columns == dataset.group_columns(PERM12["groups"])
+    assert bundle.groups == PERM12["groups"]
+    assert bundle.permutation == {
+        "id": 12, "name": PERM12["name"], "groups": PERM12["groups"], "columns": trained.columns,
+    }
+    twin = bundle.twin
+    # float64 through JSON and back, bit for bit
+    assert twin["normalisation"]["mean"] == trained.mean.tolist()
+    assert twin["normalisation"]["std"] == trained.std.tolist()
+    assert bundle.physics == {k: physics[k] for k in ("kalman", "thermal", "force")}
+    assert bundle.nominal_bar == 12.0
+    assert bundle.health == model.DEFAULT_HEALTH
+    assert twin["format"] == model.BUNDLE_FORMAT
+    assert twin["onnx"]["sha256"] == hashlib.sha256((bundle_dir / "mlp.onnx").read_bytes()).hexdigest()
+    prov = twin["provenance"]
+    assert (prov["campaign"], prov["split"], prov["seed"]) == ("test", "none", 0)
+    assert prov["network"]["hidden"] == list(model.HIDDEN)
+
+
+def _edit_twin(path: Path, edit) -> None:  # type: ignore[no-untyped-def]
+    twin = json.loads((path / "twin.json").read_text())
+    edit(twin)
+    (path / "twin.json").write_text(json.dumps(twin))
+
+
+def _swap_columns(twin: dict[str, Any]) -> None:
+    cols = twin["permutation"]["columns"]
+    cols[0], cols[1] = cols[1], cols[0]
+
+
+def _flip_byte(path: Path) -> None:
+    onnx = bytearray((path / "mlp.onnx").read_bytes())
+    onnx[-20] ^= 0x01
+    (path / "mlp.onnx").write_bytes(bytes(onnx))
+
+
+TAMPERING = {
+    "sha256 in twin.json": (
+        lambda p: _edit_twin(p, lambda t: t["onnx"].update(sha256="0" * 64)), r"mlp\.onnx: sha256 .* onnx\.sha256",
+    ),
+    "mlp.onnx changed": (_flip_byte, r"mlp\.onnx: sha256 [0-9a-f]{64} does not match"),
+    "columns swapped": (lambda p: _edit_twin(p, _swap_columns), r"twin\.json: permutation\.columns"),
+    "a column dropped": (
+        lambda p: _edit_twin(p, lambda t: t["permutation"]["columns"].pop()), r"twin\.json: permutation\.columns",
+    ),
+    "a group the columns lack": (
+        lambda p: _edit_twin(p, lambda t: t["permutation"]["groups"].insert(0, "force")),
+        r"twin\.json: permutation\.columns",
+    ),
+    "normalisation too short": (
+        lambda p: _edit_twin(p, lambda t: t["normalisation"]["std"].pop()), r"twin\.json: normalisation",
+    ),
+    "physics key missing": (
+        lambda p: _edit_twin(p, lambda t: t["physics"]["thermal"].pop("c_oil")), r"twin\.json: .*c_oil",
+    ),
+    "mlp.onnx missing": (lambda p: (p / "mlp.onnx").unlink(), r"mlp\.onnx: No such file"),
+}
+
+
+@pytest.mark.parametrize("what", list(TAMPERING))
+def test_tampered_bundles_name_the_part(bundle_dir, tmp_path, what):
+    tamper, pattern = TAMPERING[what]
+    copy = tmp_path / "bundle"
+    shutil.copytree(bundle_dir, copy)
+    shocktwin.Bundle(copy)  # intact: loads
+    tamper(copy)
+    with pytest.raises(shocktwin.BundleError, match=pattern):
+        shocktwin.Bundle(copy)
+
+
+def test_a_missing_network_is_also_a_file_not_found_error(bundle_dir, tmp_path):
+    copy = tmp_path / "bundle"
+    shutil.copytree(bundle_dir, copy)
+    (copy / "mlp.onnx").unlink()
+    with pytest.raises(FileNotFoundError, match="mlp.onnx"):
+        shocktwin.Bundle(copy)
+
+
+# --- protocol separation --------------------------------------------------------------------
+
+
+def _row_set(x: np.ndarray) -> set[bytes]:
+    return {row.tobytes() for row in np.ascontiguousarray(x)}
+
+
+def test_held_out_folds_keep_test_runs_out_of_training(data):
+    tables = data.tables(PERM12["groups"])
+    excited = data.excited_for(tables)
+    columns = dataset.group_columns(PERM12["groups"])
+    n = len(tables)
+    for k in (2, 3, n):
+        folds = evaluate.held_out_folds(n, k, seed=k)
+        assert len(folds) == k
+        # every run in exactly one test fold
+        assert sorted(np.concatenate(folds).tolist()) == list(range(n))
+        for fold in folds:
+            test = set(fold.tolist())
+            assert test, "an empty test fold"
+            masks = [np.full(len(t.t_s), i not in test) for i, t in enumerate(tables)]
+            x, y = evaluate.training_set(tables, columns, excited, masks, per_run=10**9)
+            rows = _row_set(x)
+            test_rows = set().union(*(_row_set(tables[i].select(columns)) for i in test))
+            train_rows = set().union(*(_row_set(tables[i].select(columns)) for i in range(n) if i not in test))
+            assert not rows & test_rows, f"fold {sorted(test)}: a test run's row is in the training set"
+            assert rows <= train_rows  # (so the check above looks at the right rows)
+            want = sum(int((excited[i] & np.isfinite(tables[i].select(columns)).all(axis=1)).sum())
+                       for i in range(n) if i not in test)
+            assert len(x) == len(y) == want > 0
+
+
+def test_paper_split_masks_are_disjoint_and_cover_every_tick(data):
+    tables = data.tables(PERM12["groups"])
+    excited = data.excited_for(tables)
+    columns = dataset.group_columns(PERM12["groups"])
+    test = evaluate.paper_split(tables, seed=3)
+    train = [~m for m in test]  # what train.train and the study train on
+    for t, te, tr in zip(tables, test, train):
+        assert te.shape == tr.shape == t.t_s.shape
+        assert not (te & tr).any() and (te | tr).all()
+    share = np.concatenate(test).mean()
+    assert 0.2 < share < 0.3
+    x, _ = evaluate.training_set(tables, columns, excited, train, per_run=10**9)
+    test_rows = set().union(*(_row_set(t.select(columns)[m]) for t, m in zip(tables, test)))
+    assert not _row_set(x) & test_rows
+    # a different seed draws a different split
+    assert any((a != b).any() for a, b in zip(test, evaluate.paper_split(tables, seed=4)))
+
+
+# --- streaming = batch through Python -------------------------------------------------------
+
+
+def test_estimate_equals_predict_on_features(campaign, bundle_dir):
+    bundle = shocktwin.Bundle(bundle_dir)
+    for path in sorted(campaign.glob("*.mcap")):
+        log = shocktwin.read_log(path)
+        out = shocktwin.estimate(log, bundle)
+        x, columns, t_s = shocktwin.features(log, bundle)
+        assert columns == bundle.columns
+        np.testing.assert_array_equal(out["t_s"], t_s)  # the same ticks
+        finite = np.isfinite(x).all(axis=1)
+        assert finite.mean() > 0.95, path.name
+        batch = bundle.predict(x[finite])
+        np.testing.assert_allclose(out["pressure_bar"][finite], batch, rtol=0, atol=1e-12, err_msg=path.name)
+        assert np.isnan(out["pressure_bar"][~finite]).all()
+        assert (out["expected_bar"] == 12.0).all()
+        assert set(out["health"]) <= {"ok", "low", "leak", "unknown"}
+        assert (out["health"] != "unknown").any(), f"{path.name}: never excited?"
+
+
+# --- the training CLIs: bad input -----------------------------------------------------------
+
+
+def run_cli(module: str, *args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", module, *map(str, args)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )
+
+
+def reason(proc: subprocess.CompletedProcess[str], prog: str) -> str:
+    """The CLI failed with exit 1 and exactly one stderr line giving the reason."""
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith(f"{prog}: ")]
+    assert len(lines) == 1, proc.stderr
+    return lines[0]
+
+
+META = {"asset_id": "unit-1", "frequency_hz": "2"}
+
+
+def synthetic_campaign(root: Path, runs: dict[str, dict[str, Any]]) -> Path:
+    """``runs``: file name → {"label": str | None, "topics": [...]} (2 s synthetic runs)."""
+    root.mkdir()
+    for name, spec in runs.items():
+        meta = dict(META, run_id=Path(name).stem)
+        if spec.get("label") is not None:
+            meta["charge_pressure_bar"] = spec["label"]
+        kwargs = {"topics": spec["topics"]} if "topics" in spec else {}
+        write_mcap_log(root / name, meta, synthetic_run(duration_s=2.0, **kwargs))
+    return root
+
+
+@pytest.fixture(scope="session")
+def physics_json(physics: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("physics") / "physics.json"
+    path.write_text(json.dumps(physics))
+    return path
+
+
+TRAIN = ("train.train", "train")
+FIT = ("train.fit_physics", "fit_physics")
+
+
+@pytest.mark.parametrize(("module", "prog"), [TRAIN, FIT])
+def test_a_campaign_without_labels(tmp_path, module, prog):
+    root = synthetic_campaign(tmp_path / "c", {"a.mcap": {"label": None}, "b.mcap": {"label": None},
+                                               "c.mcap": {"label": "12"}})
+    out = ["--permutation", "12"] if module == "train.train" else []
+    line = reason(run_cli(module, "--campaign", root, "--out", tmp_path / "out", *out), prog)
+    assert "without a charge_pressure_bar label: a.mcap, b.mcap" in line
+    assert "c.mcap" not in line
+
+
+@pytest.mark.parametrize(("module", "prog"), [TRAIN, FIT])
+def test_a_campaign_without_nominal_runs(tmp_path, module, prog):
+    root = synthetic_campaign(tmp_path / "c", {"a.mcap": {"label": "4"}, "b.mcap": {"label": "7.5"}})
+    out = ["--permutation", "12"] if module == "train.train" else []  # no --physics: calibrates first
+    line = reason(run_cli(module, "--campaign", root, "--out", tmp_path / "out", *out), prog)
+    assert "no nominal runs at 12 bar" in line
+    assert "a.mcap 4 bar" in line and "b.mcap 7.5 bar" in line
+
+
+def test_train_names_a_run_lacking_the_permutations_sensors(campaign, physics_json, tmp_path):
+    root = tmp_path / "c"
+    root.mkdir()
+    for run in campaign.glob("*.mcap"):
+        (root / run.name).symlink_to(run)
+    topics = ["/position", "/acceleration", "/force", "/temperature/shock"]
+    write_mcap_log(root / "no-ambient.mcap", dict(META, run_id="no-ambient", charge_pressure_bar="7"),
+                   synthetic_run(duration_s=2.0, topics=topics))
+    args = ["--campaign", root, "--physics", physics_json, "--out", tmp_path / "b", "--per-run", "50", "--max-iter", "5"]
+    line = reason(run_cli("train.train", *args, "--permutation", "12"), "train")
+    assert "no-ambient.mcap lacks /temperature/ambient" in line
+    assert "p12.0" not in line  # only the run that lacks it
+    # permutation 9 (force, position, acceleration, velocity) does not need it: trains
+    ok = run_cli("train.train", *args, "--permutation", "9", "--split", "none")
+    assert ok.returncode == 0, ok.stderr
+    assert shocktwin.Bundle(tmp_path / "b").permutation["id"] == 9
+
+
+def test_fit_physics_names_a_nominal_run_lacking_sensors(campaign, tmp_path):
+    root = tmp_path / "c"
+    root.mkdir()
+    for run in campaign.glob("*.mcap"):
+        (root / run.name).symlink_to(run)
+    write_mcap_log(root / "no-force.mcap", dict(META, run_id="no-force", charge_pressure_bar="12"),
+                   synthetic_run(duration_s=2.0, topics=["/position", "/acceleration", "/temperature/shock",
+                                                         "/temperature/ambient"]))
+    line = reason(run_cli("train.fit_physics", "--campaign", root, "--out", tmp_path / "p.json"), "fit_physics")
+    assert "no-force.mcap lacks /force" in line
+    assert "p12.0" not in line
+
+
+@pytest.fixture
+def campaign_with_a_truncated_run(campaign: Path, tmp_path: Path) -> Path:
+    root = tmp_path / "c"
+    root.mkdir()
+    for run in campaign.glob("*.mcap"):
+        (root / run.name).symlink_to(run)
+    whole = (campaign / "p12.0-f2.0-s1.mcap").read_bytes()
+    (root / "truncated.mcap").write_bytes(whole[: len(whole) // 2])
+    return root
+
+
+def test_train_skips_an_unreadable_run(campaign_with_a_truncated_run, physics_json, tmp_path):
+    root = campaign_with_a_truncated_run
+    proc = run_cli("train.train", "--campaign", root, "--physics", physics_json, "--permutation", "12",
+                   "--out", tmp_path / "b", "--per-run", "50", "--max-iter", "5", "--split", "none")
+    assert proc.returncode == 0, proc.stderr
+    assert "skipping unreadable run truncated.mcap" in proc.stderr
+    prov = shocktwin.Bundle(tmp_path / "b").twin["provenance"]
+    assert [s.split(":")[0] for s in prov["skipped_runs"]] == ["truncated.mcap"]
+
+
+def test_fit_physics_skips_an_unreadable_run(campaign_with_a_truncated_run, tmp_path):
+    out = tmp_path / "physics.json"
+    proc = run_cli("train.fit_physics", "--campaign", campaign_with_a_truncated_run, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "skipping unreadable run truncated.mcap" in proc.stderr
+    fitted = json.loads(out.read_text())
+    assert sorted(fitted["fit"]["runs"]) == ["p12.0-f2.0-s1.mcap", "p12.0-f4.0-s1.mcap"]
+
+
+# --- end to end: train.train, then shocktwin replay -----------------------------------------
+
+
+def test_train_then_replay(campaign, shocktwin_bin, tmp_path):
+    bundle_dir = tmp_path / "B"
+    proc = run_cli("train.train", "--campaign", campaign, "--permutation", "12", "--out", bundle_dir,
+                   "--per-run", str(PER_RUN), "--max-iter", str(MAX_ITER))  # no --physics: calibrates first
+    assert proc.returncode == 0, proc.stderr
+    assert f"wrote bundle {bundle_dir}" in proc.stdout
+    bundle = shocktwin.Bundle(bundle_dir)
+    assert bundle.permutation["id"] == 12 and bundle.columns == dataset.group_columns(PERM12["groups"])
+    prov = bundle.twin["provenance"]
+    assert prov["split"] == "runs" and len(prov["metrics"]["test_runs"]) == 1
+    assert (prov["per_run"], prov["max_iter"], prov["skipped_runs"]) == (PER_RUN, MAX_ITER, [])
+    assert np.isfinite(prov["metrics"]["rmse_bar"])
+    assert bundle.physics != {k: shocktwin.default_params()[k] for k in ("kalman", "thermal", "force")}  # calibrated
+
+    runs = sorted(campaign.glob("*.mcap"))
+    out_csv = tmp_path / "x.csv"
+    replay = subprocess.run(
+        [str(shocktwin_bin), "replay", "--model", str(bundle_dir), *map(str, runs), "--out", str(out_csv)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert replay.returncode == 0, replay.stderr
+    with open(out_csv, newline="") as fh:
+        reader = csv.DictReader(fh)
+        assert {"run_id", "t_s", *ESTIMATE_FIELDS} <= set(reader.fieldnames or [])
+        rows = list(reader)
+    by_run: dict[str, list[dict[str, str]]] = {}
+    for row in rows:
+        by_run.setdefault(row["run_id"], []).append(row)
+    assert sorted(by_run) == sorted(p.stem for p in runs)
+    # the CLI's estimates are the Python binding's (same estimator, same bundle)
+    for path in runs:
+        want = shocktwin.estimate(path, bundle)
+        got = by_run[path.stem]
+        assert len(got) == len(want["t_s"])
+        pressure = np.array([float(r["pressure_bar"]) if r["pressure_bar"] else np.nan for r in got])
+        np.testing.assert_array_equal(pressure, want["pressure_bar"])
+        np.testing.assert_allclose([float(r["t_s"]) for r in got], want["t_s"], rtol=0, atol=5e-4)
+        assert [r["health"] for r in got] == want["health"].tolist()
