@@ -30,7 +30,8 @@ EXAMPLES = public_docstrings()
 
 
 def test_the_main_entry_points_have_examples():
-    for name in ["shocktwin", "KalmanFilter", "ThermalModel", "ForceModel", "features", "default_params", "read_log"]:
+    for name in ["shocktwin", "KalmanFilter", "ThermalModel", "ForceModel", "features", "default_params", "read_log",
+                 "Bundle", "estimate"]:
         assert any(k == name or k.endswith("." + name) for k in EXAMPLES), name
 
 

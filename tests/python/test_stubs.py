@@ -32,6 +32,11 @@ def test_package_is_typed_and_a_user_type_checks(tmp_path: Path):
             f = shocktwin.ForceModel(charge_bar=10.0).force([0.1], [0.0], [0.0], [20.0], charge_bar=4.0)
             cols: list[str] = shocktwin.group_columns("thermal")
             label: float | None = shocktwin.read_log("x.mcap").label
+            bundle = shocktwin.Bundle("bundle")
+            p: np.ndarray = bundle.predict(np.zeros((2, len(bundle.columns))))
+            nominal: float = bundle.nominal_bar
+            est: dict[str, np.ndarray] = shocktwin.estimate("x.mcap", bundle)
+            x, columns, t_s = shocktwin.features("x.mcap", bundle)
             try:
                 pass
             except shocktwin.MissingTopicsError as err:
@@ -40,7 +45,10 @@ def test_package_is_typed_and_a_user_type_checks(tmp_path: Path):
         )
     )
     bad = tmp_path / "bad.py"
-    bad.write_text("import shocktwin\nshocktwin.ThermalModel(500.0)\nx: str = shocktwin.read_log('x').label\n")
+    bad.write_text(
+        "import shocktwin\nshocktwin.ThermalModel(500.0)\nx: str = shocktwin.read_log('x').label\n"
+        "y: str = shocktwin.Bundle('b').nominal_bar\n"
+    )
     ok = run(["mypy", "--strict", "--no-incremental", str(user)], cwd=tmp_path)
     assert ok.returncode == 0, ok.stdout + ok.stderr
     # and the stubs are strict enough to catch misuse (so the check above can fail)
@@ -48,3 +56,4 @@ def test_package_is_typed_and_a_user_type_checks(tmp_path: Path):
     assert wrong.returncode == 1, wrong.stdout
     assert "Too many positional arguments" in wrong.stdout
     assert 'incompatible type "float | None"' in wrong.stdout or "Incompatible types" in wrong.stdout
+    assert wrong.stdout.count("Incompatible types in assignment") == 2, wrong.stdout
