@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import IO, Any, Sequence, cast
 
 import httpx
 from mcap.reader import make_reader
@@ -77,6 +77,9 @@ def watch_events(http: str, asset_id: str, events: list[dict[str, Any]], ready: 
         for line in resp.iter_lines():
             if line.startswith("event:"):
                 name = line.split(":", 1)[1].strip()
+            elif line.startswith("data:") and name == "lagged":
+                # The daemon's event buffer overflowed for this slow reader: events were skipped.
+                events.append({"event": "lagged", "skipped": int(line.split(":", 1)[1])})
             elif line.startswith("data:") and name in ("health", "run"):
                 data = json.loads(line.split(":", 1)[1])
                 if data.get("asset_id") == asset_id:
@@ -90,7 +93,7 @@ def stream_run(addr: str, path: Path) -> dict[str, Any]:
     with socket.create_connection((host, int(port))) as sock, open(path, "rb") as fh:
         reader = make_reader(fh)
         out = SocketStream(sock)
-        writer = Writer(out, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
+        writer = Writer(cast(IO[bytes], out), compression=CompressionType.ZSTD, chunk_size=64 * 1024)
         writer.start(profile="", library="shocktwin demo client (python mcap)")
         for meta in reader.iter_metadata():
             writer.add_metadata(meta.name, meta.metadata)
@@ -156,6 +159,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             break
     print(f"daemon: run {report.get('status')}, {report.get('samples')} samples, {report.get('ticks')} estimates "
           f"in {wall:.1f} s wall")
+    skipped = sum(e["skipped"] for e in events if e["event"] == "lagged")
+    if skipped:
+        print(f"  (this reader lagged: the daemon skipped {skipped} live events for it; the verdict below is "
+              "read from GET /v1/assets/{id})")
     changes = [e for e in events if e["event"] == "health"]
     for e in changes:
         print(f"  t = {(e['t_ns'] - t0_ns) * 1e-9:6.1f} s: health {e['from']} -> {e['to']}")
