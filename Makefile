@@ -35,8 +35,10 @@ $(VENV)/.shocktwin: $(VENV)/.deps $(PY_EXT_SRC)
 	  $(VENV)/bin/maturin develop -q --release -m crates/dt-py/Cargo.toml
 	touch $@
 
+# One build of every Rust target (tests and benches included) with the feature set the
+# tests use, so that `cargo test` below reuses it instead of compiling again.
 $(BIN): $(RUST_SRC) Cargo.lock
-	$(CARGO) build $(CARGO_PROFILE) -p dt-server --bin shocktwin
+	$(CARGO) build $(CARGO_PROFILE) --workspace --exclude dt-py --all-targets
 
 setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python package
 
