@@ -9,11 +9,13 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from sklearn.exceptions import ConvergenceWarning
 from sklearn.neural_network import MLPRegressor
 
 BUNDLE_FORMAT = "shocktwin-bundle/1"
@@ -62,7 +64,11 @@ def fit(
         n_iter_no_change=8,
         random_state=seed,
     )
-    mlp.fit((x - mean) / std, y)
+    with warnings.catch_warnings():
+        # The epoch budget is capped on purpose (2-core time budget); scikit-learn's
+        # "not converged" warning for it is expected, not a fault.
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        mlp.fit((x - mean) / std, y)
     return Trained(mlp=mlp, mean=mean, std=std, columns=list(columns))
 
 
