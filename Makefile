@@ -50,7 +50,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate, study, stream a 
 	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
 	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
-	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-12 --out $(OUT)/serve-demo
+	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-16 --out $(OUT)/serve-demo
 	@echo "demo done (simulated data): report $(OUT)/study/report.md, figures $(OUT)/figures"
 
 study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)

@@ -400,7 +400,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-generalisation", action="store_true", help="skip the generalisation sets")
     p.add_argument("--shocktwin", default=os.environ.get("SHOCKTWIN_BIN", "target/release/shocktwin"),
                    help="the shocktwin binary (for simulating the generalisation sets)")
-    p.add_argument("--bundles", default="12,13", help="permutations to export as model bundles")
+    p.add_argument("--bundles", default="12,13,16", help="permutations to export as model bundles")
     args = p.parse_args(argv)
     started = time.perf_counter()
     cfg = settings(args.quick, args.seed, args.jobs)
