@@ -21,6 +21,7 @@ import re
 import signal
 import socket
 import subprocess
+import sys
 import threading
 from pathlib import Path
 from typing import IO, Any, Iterator, cast
@@ -36,24 +37,10 @@ BUNDLE = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
 TICK_NS = 20_000_000
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 
+sys.path.insert(0, str(ROOT))
+from train.demo_serve import SocketStream  # noqa: E402  (the demo's socket writer, shared)
 
-class SocketStream:
-    """A write-only file over a socket that knows its position (the mcap writer asks ``tell``)."""
-
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.pos = 0
-
-    def write(self, data: bytes) -> int:
-        self.sock.sendall(data)
-        self.pos += len(data)
-        return len(data)
-
-    def tell(self) -> int:
-        return self.pos
-
-    def flush(self) -> None:
-        pass
+sys.path.remove(str(ROOT))
 
 
 class Daemon:
