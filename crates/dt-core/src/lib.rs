@@ -1,6 +1,7 @@
 //! `dt-core` owns the twin itself: the run-log format (shocktwin log v1 on
 //! MCAP, SPEC §2), the twin's physics models (paper §5.1–5.3, SPEC §3), the
-//! 50 Hz feature pipeline (SPEC §4) and, later, the incremental estimator.
+//! 50 Hz feature pipeline (SPEC §4), the model bundle (SPEC §5) and the
+//! incremental estimator with its health state machine (SPEC §6).
 //!
 //! It knows nothing of pyo3, tokio or sockets: `dt-py` and `dt-server` are
 //! thin shells around it.
