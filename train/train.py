@@ -38,10 +38,10 @@ def find_permutation(spec: str) -> dict[str, Any]:
         if unknown or not groups:
             raise CampaignError(f"unknown input groups {unknown} (known: {', '.join(dataset.ALL_GROUPS)})")
         return {"id": 0, "name": "custom: " + "+".join(groups), "groups": groups}
-    for perm in shocktwin.permutations():
+    for perm in [*shocktwin.permutations(), *shocktwin.extra_permutations()]:
         if str(perm["id"]) == spec:
             return perm
-    raise CampaignError(f"unknown permutation {spec!r} (built in: 1–13, or groups:a,b,…)")
+    raise CampaignError(f"unknown permutation {spec!r} (built in: 1–13 paper, 14–16 causal, or groups:a,b,…)")
 
 
 def load_physics(path: Path | None, campaign: Campaign, nominal_bar: float) -> dict[str, Any]:
