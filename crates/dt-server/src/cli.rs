@@ -50,6 +50,10 @@ pub struct SimulateArgs {
     /// few per cent, drawn from this unit seed.
     #[arg(long)]
     pub unit: Option<u64>,
+    /// Repeat take: every run again on the same rig and unit, with
+    /// independent noise and room (0 = the first take; run ids get `-r<k>`).
+    #[arg(long, default_value_t = 0)]
+    pub repeat: u32,
 }
 
 /// `shocktwin inspect`.

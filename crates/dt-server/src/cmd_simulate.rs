@@ -17,6 +17,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         seed: args.seed,
         quick: args.quick,
         unit: args.unit,
+        repeat: args.repeat,
         ..CampaignSpec::paper(args.seed)
     };
     let started = std::time::Instant::now();

@@ -59,6 +59,9 @@ pub struct RunSpec {
     pub unit: Option<u64>,
     /// Shortened run (10 s rest, at most 60 s excitation).
     pub quick: bool,
+    /// Repeat take of the run: 0 is the first; take `k > 0` is the same
+    /// condition on the same rig and unit with independent noise and room.
+    pub repeat: u32,
 }
 
 /// Why a run ended.
@@ -135,6 +138,7 @@ impl RunSpec {
             seed,
             unit: None,
             quick: false,
+            repeat: 0,
         }
     }
 
@@ -147,7 +151,8 @@ impl RunSpec {
         }
     }
 
-    /// E.g. `p12.0-f2.0-s1` (`-u<n>` appended for a varied unit).
+    /// E.g. `p12.0-f2.0-s1` (`-u<n>` appended for a varied unit, `-r<k>` for
+    /// repeat take `k > 0`).
     #[must_use]
     pub fn run_id(&self) -> String {
         let mut id = format!(
@@ -158,6 +163,9 @@ impl RunSpec {
         );
         if let Some(n) = self.unit {
             id = format!("{id}-u{n}");
+        }
+        if self.repeat > 0 {
+            id = format!("{id}-r{}", self.repeat);
         }
         id
     }
@@ -185,16 +193,32 @@ impl RunSpec {
         if let Some(n) = self.unit {
             meta.extra.insert("unit_seed".into(), n.to_string());
         }
+        if self.repeat > 0 {
+            meta.extra.insert("repeat".into(), self.repeat.to_string());
+        }
         meta
     }
 
     fn run_seed(&self) -> u64 {
-        mix_seed(&[
+        let base = [
             self.seed,
             self.charge_bar.to_bits(),
             self.frequency_hz.to_bits(),
             self.unit.map_or(u64::MAX, |n| n),
-        ])
+        ];
+        if self.repeat == 0 {
+            // The first take keeps the seeds of campaigns made before repeats existed.
+            mix_seed(&base)
+        } else {
+            mix_seed(&[
+                base[0],
+                base[1],
+                base[2],
+                base[3],
+                0x7265_7065_6174,
+                u64::from(self.repeat),
+            ])
+        }
     }
 
     /// The plant parameters of this run's unit.
@@ -438,6 +462,8 @@ pub struct CampaignSpec {
     pub quick: bool,
     /// Unit (`None` = nominal).
     pub unit: Option<u64>,
+    /// Repeat take of every run (see [`RunSpec::repeat`]).
+    pub repeat: u32,
 }
 
 impl CampaignSpec {
@@ -451,6 +477,7 @@ impl CampaignSpec {
             seed,
             quick: false,
             unit: None,
+            repeat: 0,
         }
     }
 
@@ -467,6 +494,7 @@ impl CampaignSpec {
                     seed: self.seed,
                     unit: self.unit,
                     quick: self.quick,
+                    repeat: self.repeat,
                 });
             }
         }

@@ -64,3 +64,22 @@ fn campaign_is_independent_of_thread_count() {
     assert_eq!(outputs[0].len(), 2);
     assert!(outputs[0] == outputs[1], "1 and 2 threads differ");
 }
+
+#[test]
+fn a_repeat_take_is_another_realisation_of_the_same_condition_on_the_same_rig() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = PlantParams::nominal();
+    let first = quick(4.0, 2.0, 5);
+    let again = RunSpec { repeat: 1, ..first };
+    assert_eq!(again.run_id(), "p4.0-f2.0-s5-r1");
+    assert_eq!(
+        again.metadata().extra.get("repeat").map(String::as_str),
+        Some("1")
+    );
+    let a = dir.path().join("a.mcap");
+    let b = dir.path().join("b.mcap");
+    simulate_run(&first, &p, &a).unwrap();
+    simulate_run(&again, &p, &b).unwrap();
+    let (ba, bb) = (std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    assert!(ba != bb, "a repeat take gave the first take's bytes");
+}

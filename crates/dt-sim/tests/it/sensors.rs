@@ -45,6 +45,7 @@ fn at_rest_rates_and_noise_match_the_table() {
         seed: 3,
         unit: None,
         quick: false,
+        repeat: 0,
     };
     let mut samples = Vec::new();
     let summary = simulate_run_with(&spec, &p, |s| {
