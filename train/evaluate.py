@@ -5,9 +5,18 @@
   one run (20 ms apart, nearly identical) fall on both sides: this leaks.
 - *held-out runs*: whole runs are held out (grouped k-fold by run); every run is
   scored by a network that never saw it — what a deployed twin meets.
-- *in-sample*: trained and scored on every sample; not a protocol but a bound:
-  what a network can extract from these inputs at all (an "oracle" on the same
-  inputs). If even it is poor, the inputs do not carry the information.
+- *in-sample*: trained and scored on every sample. Not a protocol and not an
+  information bound either: with a constant label per run, slowly varying inputs
+  (temperatures) let it memorise runs. The study's bound is its *oracle*
+  (``train.study``): the same network trained with the test conditions in training
+  (re-simulated with an independent seed), scored on the test runs themselves.
+
+Training rows get *temperature-offset augmentation* (``shift_temperatures``): each
+run's rows are dealt round-robin to four copies of the run, three of which see every
+absolute temperature column shifted by one common offset drawn from N(0, 5 °C). A
+deployed twin meets rooms and thermocouples other than the dyno's; without it a
+network with the thermal group identifies the campaign's runs by their temperatures
+(15 runs, one label each) instead of reading the physics. The row count is unchanged.
 
 RMSE in bar over excited samples (rest periods are excluded, see
 ``train.dataset``), instantaneous and after a causal 1 s moving average of the
@@ -26,6 +35,12 @@ from train import dataset, model
 from train.dataset import RunTable
 
 AVG_TICKS = 50  # 1 s at 50 Hz
+# Absolute temperatures (°C) that a common offset shifts; differences and rates are left alone.
+TEMPERATURE_COLUMNS = ("temp_shock_c", "temp_ambient_c", "oil_temp_model_c", "cyl_temp_model_c")
+TEMP_SHIFT_SD_C = 5.0
+TEMP_SHIFT_COPIES = 3
+AUGMENTATION = {"temperature_shift_sd_c": TEMP_SHIFT_SD_C, "shifted_copies": TEMP_SHIFT_COPIES,
+                "columns": list(TEMPERATURE_COLUMNS)}
 
 
 def moving_average(x: np.ndarray, n: int = AVG_TICKS) -> np.ndarray:
@@ -139,13 +154,29 @@ def score_paper(
     return Scores(_rmse(e), _rmse(ea), len(e))
 
 
+def shift_temperatures(x: np.ndarray, columns: Sequence[str], rng: np.random.Generator,
+                       sd_c: float = TEMP_SHIFT_SD_C, copies: int = TEMP_SHIFT_COPIES) -> np.ndarray:
+    """One run's rows with temperature-offset augmentation (see the module doc): row j
+    belongs to copy ``j mod (copies + 1)``; copy 0 is unchanged, copy c > 0 has every
+    column of ``TEMPERATURE_COLUMNS`` shifted by its own offset ~ N(0, sd_c)."""
+    idx = [i for i, c in enumerate(columns) if c in TEMPERATURE_COLUMNS]
+    if not idx or copies == 0 or not len(x):
+        return x
+    offsets = np.concatenate([[0.0], rng.normal(0.0, sd_c, size=copies)])
+    out = x.copy()
+    out[:, idx] += offsets[np.arange(len(x)) % (copies + 1)][:, None]
+    return out
+
+
 def training_set(
     tables: Sequence[RunTable], columns: Sequence[str], excited: Sequence[np.ndarray],
-    masks: Sequence[np.ndarray] | None, per_run: int,
+    masks: Sequence[np.ndarray] | None, per_run: int, *, seed: int = 0, augment: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Training rows: excited, finite, inside ``masks`` (all when None); at most ``per_run``
     evenly spaced rows of each run, so that long slow runs do not outweigh short fast ones
-    (a 1 Hz run lasts ~10x a 4 Hz run) and 50 Hz neighbours (nearly identical) are thinned."""
+    (a 1 Hz run lasts ~10x a 4 Hz run) and 50 Hz neighbours (nearly identical) are thinned.
+    With ``augment``, temperature-offset augmentation (``shift_temperatures``, seeded by
+    ``seed`` and the run's position)."""
     xs, ys = [], []
     for i, tab in enumerate(tables):
         x = tab.select(columns)
@@ -155,12 +186,16 @@ def training_set(
         idx = np.nonzero(sel)[0]
         if len(idx) > per_run:
             idx = idx[np.linspace(0, len(idx) - 1, per_run).round().astype(int)]
-        xs.append(x[idx])
+        rows = x[idx]
+        if augment:
+            rows = shift_temperatures(rows, columns, np.random.default_rng([seed, i]))
+        xs.append(rows)
         ys.append(np.full(len(idx), tab.label_bar))
     return np.concatenate(xs), np.concatenate(ys)
 
 
 __all__ = [
     "Scores", "RunPrediction", "moving_average", "predict_run", "fit_job", "held_out_folds",
-    "score_runs", "per_run", "paper_split", "score_paper", "training_set", "dataset",
+    "score_runs", "per_run", "paper_split", "score_paper", "training_set", "shift_temperatures",
+    "TEMPERATURE_COLUMNS", "AUGMENTATION", "dataset",
 ]

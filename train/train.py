@@ -75,6 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--per-run", type=int, default=3000, help="training rows per run (evenly spaced excited ticks)")
     p.add_argument("--max-iter", type=int, default=80, help="training epochs at most (Adam, early stopping)")
     p.add_argument("--nominal-bar", type=float, default=12.0)
+    p.add_argument("--no-augment", action="store_true",
+                   help="train without the temperature-offset augmentation (see train.evaluate)")
     args = p.parse_args(argv)
 
     campaign = load_campaign(args.campaign)
@@ -90,18 +92,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.split == "runs":
         test_idx = set(split_runs(len(tables), args.seed).tolist())
         masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
-        x, y = evaluate.training_set(tables, columns, excited, masks, args.per_run)
+        x, y = evaluate.training_set(tables, columns, excited, masks, args.per_run, seed=args.seed,
+                                      augment=not args.no_augment)
         trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
         preds = [evaluate.predict_run(trained, tables[i], columns, excited[i]) for i in sorted(test_idx)]
         scores = evaluate.score_runs(preds)
         metrics = {"test_runs": [tables[i].run.name for i in sorted(test_idx)], **scores.as_dict()}
     elif args.split == "paper":
         test = evaluate.paper_split(tables, args.seed)
-        x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.per_run)
+        x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.per_run,
+                                      seed=args.seed, augment=not args.no_augment)
         trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
         metrics = evaluate.score_paper(trained, tables, columns, excited, test).as_dict()
     else:
-        x, y = evaluate.training_set(tables, columns, excited, None, args.per_run)
+        x, y = evaluate.training_set(tables, columns, excited, None, args.per_run, seed=args.seed,
+                                      augment=not args.no_augment)
         trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
 
     model.write_bundle(
@@ -118,6 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "seed": args.seed,
             "per_run": args.per_run,
             "max_iter": args.max_iter,
+            "augmentation": None if args.no_augment else evaluate.AUGMENTATION,
             "metrics": metrics,
             "simulated_data": True,
         },
