@@ -242,7 +242,7 @@ def test_held_out_folds_keep_test_runs_out_of_training(data):
             test = set(fold.tolist())
             assert test, "an empty test fold"
             masks = [np.full(len(t.t_s), i not in test) for i, t in enumerate(tables)]
-            x, y = evaluate.training_set(tables, columns, excited, masks, per_run=10**9)
+            x, y = evaluate.training_set(tables, columns, excited, masks, per_run=10**9, augment=False)
             rows = _row_set(x)
             test_rows = set().union(*(_row_set(tables[i].select(columns)) for i in test))
             train_rows = set().union(*(_row_set(tables[i].select(columns)) for i in range(n) if i not in test))
@@ -251,6 +251,37 @@ def test_held_out_folds_keep_test_runs_out_of_training(data):
             want = sum(int((excited[i] & np.isfinite(tables[i].select(columns)).all(axis=1)).sum())
                        for i in range(n) if i not in test)
             assert len(x) == len(y) == want > 0
+
+
+def test_temperature_augmentation_shifts_absolute_temperatures_only(data):
+    tables = data.tables(PERM12["groups"])
+    excited = data.excited_for(tables)
+    columns = dataset.group_columns(PERM12["groups"])
+    temp = [columns.index(c) for c in evaluate.TEMPERATURE_COLUMNS]
+    assert len(temp) == 4  # the thermal group has all four absolute temperatures
+    plain, y0 = evaluate.training_set(tables, columns, excited, None, per_run=200, augment=False)
+    aug, y1 = evaluate.training_set(tables, columns, excited, None, per_run=200, seed=5)
+    np.testing.assert_array_equal(y0, y1)  # labels and row count unchanged
+    other = [i for i in range(len(columns)) if i not in temp]
+    np.testing.assert_array_equal(aug[:, other], plain[:, other])
+    shift = aug[:, temp] - plain[:, temp]
+    np.testing.assert_allclose(shift, shift[:, :1].repeat(len(temp), axis=1), atol=1e-9)  # one offset a row
+    offsets = shift[:, 0]
+    assert np.count_nonzero(offsets == 0.0) >= len(offsets) // 4  # copy 0 of every run is untouched
+    nonzero = np.unique(np.round(offsets[offsets != 0.0], 9))
+    assert len(nonzero) == 3 * len(tables)  # three draws per run
+    assert 1.0 < np.std(nonzero) < 15.0  # N(0, 5 °C)
+    # deterministic for a seed, different for another
+    again, _ = evaluate.training_set(tables, columns, excited, None, per_run=200, seed=5)
+    np.testing.assert_array_equal(again, aug)
+    other_seed, _ = evaluate.training_set(tables, columns, excited, None, per_run=200, seed=6)
+    assert not np.array_equal(other_seed, aug)
+    # a suite without absolute temperatures is left alone
+    cols11 = dataset.group_columns(["force", "position", "acceleration", "velocity", "mechanical"])
+    t11 = data.tables(["force", "position", "acceleration", "velocity", "mechanical"])
+    a, _ = evaluate.training_set(t11, cols11, data.excited_for(t11), None, per_run=200)
+    b, _ = evaluate.training_set(t11, cols11, data.excited_for(t11), None, per_run=200, augment=False)
+    np.testing.assert_array_equal(a, b)
 
 
 def test_paper_split_masks_are_disjoint_and_cover_every_tick(data):
@@ -264,7 +295,7 @@ def test_paper_split_masks_are_disjoint_and_cover_every_tick(data):
         assert not (te & tr).any() and (te | tr).all()
     share = np.concatenate(test).mean()
     assert 0.2 < share < 0.3
-    x, _ = evaluate.training_set(tables, columns, excited, train, per_run=10**9)
+    x, _ = evaluate.training_set(tables, columns, excited, train, per_run=10**9, augment=False)
     test_rows = set().union(*(_row_set(t.select(columns)[m]) for t, m in zip(tables, test)))
     assert not _row_set(x) & test_rows
     # a different seed draws a different split
@@ -458,3 +489,39 @@ def test_train_then_replay(campaign, shocktwin_bin, tmp_path):
         np.testing.assert_array_equal(pressure, want["pressure_bar"])
         np.testing.assert_allclose([float(r["t_s"]) for r in got], want["t_s"], rtol=0, atol=5e-4)
         assert [r["health"] for r in got] == want["health"].tolist()
+
+
+# --- the quick study end to end -------------------------------------------------------------
+
+
+def test_quick_study_reports_both_protocols_and_an_oracle_that_never_sees_test_runs(
+    campaign, physics_json, shocktwin_bin, tmp_path
+):
+    out = tmp_path / "study"
+    proc = subprocess.run(
+        [sys.executable, "-W", "ignore", "-m", "train.study", "--quick", "--no-suites", "--campaign", str(campaign),
+         "--physics", str(physics_json), "--out", str(out), "--shocktwin", str(shocktwin_bin), "--bundles", "13"],
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = (out / "report.md").read_text()
+    assert "simulated" in report.splitlines()[2].lower()
+    for heading in ("## Table 2", "## Table 3", "## Targets", "## Generalisation"):
+        assert heading in report
+    results = json.loads((out / "results.json").read_text())
+    ids = [r["id"] for r in results["table2"]]
+    assert ids[:13] == list(range(1, 14))
+    for row in results["table2"]:
+        for protocol in ("paper", "held_out", "in_sample"):
+            assert np.isfinite(row[protocol]["rmse_bar"]) and np.isfinite(row[protocol]["rmse_avg_bar"])
+        # only the suites with absolute temperatures get the comparison without augmentation
+        assert ("held_out_plain" in row) == (row["id"] in (12, 13))
+    assert results["oracle"], "no oracle rows"
+    for o in results["oracle"]:
+        tested = {r["run"] for r in o["runs"]}
+        trained = set(o["train_runs"])
+        assert tested and not tested & trained, f"model {o['id']}: the oracle trained on a test run"
+        # it has seen each test condition in a repeat take
+        repeats = {name.removeprefix("oracle/") for name in trained if name.startswith("oracle/")}
+        assert {t.replace(".mcap", "-r1.mcap") for t in tested} == repeats
+    assert shocktwin.Bundle(out / "bundles" / "perm-13").permutation["id"] == 13
