@@ -163,9 +163,6 @@ def simulate(binary: str, out: Path, extra: Sequence[str], quick: bool, seed: in
     return out
 
 
-ORACLE_PERMS = (11, 12, 13, 14, 15, 16)
-
-
 def campaign_seed(campaign: Any) -> int | None:
     """The simulator seed the campaign was made with (its runs' metadata), if it says one."""
     seeds = {str(r.log.metadata.get("seed")) for r in campaign.runs}
@@ -183,7 +180,7 @@ def generalisation(
     Sets (``shocktwin simulate``): a second unit and unseen conditions on the campaign's own
     rig (its seed: the same sensor calibration errors, independent noise and room), and
     unseen conditions on another rig (another seed: accelerometer and thermocouple
-    calibration redrawn too). The *oracle* for ``ORACLE_PERMS`` is the same network trained
+    calibration redrawn too). The *oracle* of every permutation is the same network trained
     on the campaign plus a repeat take of the unseen conditions (``simulate --repeat 1``: the
     same rig and unit, independent noise and room), then scored on the same-rig unseen set: it has seen every test condition, never the test
     runs, so it cannot memorise them; what it misses, these inputs do not carry across
@@ -216,7 +213,7 @@ def generalisation(
             rows.append({"set": name, "key": key, "perm": perm, **evaluate.score_runs(preds).as_dict(),
                          "runs": evaluate.per_run(preds)})
 
-    tasks, chosen = [], [p for p in perms if p["id"] in ORACLE_PERMS]
+    tasks, chosen = [], [p for p in perms if p["key"] in models]
     for perm in chosen:
         cols = dataset.group_columns(perm["groups"])
         tabs = data.tables(perm["groups"]) + sim["oracle_train"].tables(perm["groups"])
@@ -406,13 +403,16 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
         L.append("What a fleet sees: another unit of the same model, charge pressures and frequencies the "
                  "campaign does not contain, and another rig (sensor calibration errors redrawn). RMSE in bar, "
                  "instantaneous (1 s average).\n")
-        L.append("| id | " + " | ".join(sets) + " |")
-        L.append("| --- |" + " --- |" * len(sets))
+        oracle = {o["perm"]["id"]: o for o in ctx.get("oracle", [])}
+        L.append("| id | " + " | ".join(sets) + " | oracle on the same-rig unseen set (repeat take in training) |")
+        L.append("| --- |" + " --- |" * (len(sets) + 1))
         for pid in sorted({g["perm"]["id"] for g in gen if g["perm"]["id"]}):
             cells = []
             for sname in sets:
                 g = next((g for g in gen if g["set"] == sname and g["perm"]["id"] == pid), None)
                 cells.append("–" if g is None else f"{fmt(g['rmse_bar'])} ({fmt(g['rmse_avg_bar'])} avg)")
+            o = oracle.get(pid)
+            cells.append("–" if o is None else f"{fmt(o['rmse_bar'])} ({fmt(o['rmse_avg_bar'])} avg)")
             L.append(f"| {pid} | " + " | ".join(cells) + " |")
         L.append("")
     path = out / "report.md"

@@ -516,7 +516,7 @@ def test_quick_study_reports_both_protocols_and_an_oracle_that_never_sees_test_r
             assert np.isfinite(row[protocol]["rmse_bar"]) and np.isfinite(row[protocol]["rmse_avg_bar"])
         # only the suites with absolute temperatures get the comparison without augmentation
         assert ("held_out_plain" in row) == (row["id"] in (12, 13))
-    assert results["oracle"], "no oracle rows"
+    assert sorted(o["id"] for o in results["oracle"]) == sorted(ids), "an oracle for every permutation"
     for o in results["oracle"]:
         tested = {r["run"] for r in o["runs"]}
         trained = set(o["train_runs"])
