@@ -20,7 +20,12 @@
 //! - **Clock jumps.** A forward jump of more than `max_gap_ns` between
 //!   released samples (a logger restart, a lost link) starts a new segment:
 //!   a fresh pipeline (new tick origin), average and health (`unknown` until
-//!   excited again). Counted.
+//!   excited again). Counted. A sample that far ahead of the newest one is
+//!   first held aside: the jump is taken once [`JUMP_CONFIRM`] samples
+//!   agree on the new time; if the stream goes on at its old time instead,
+//!   the held samples were corrupt timestamps — counted as
+//!   `timestamp_outliers` and dropped, so one bad time cannot make the rest
+//!   of a run "late".
 //! - **Inputs the suite lacks** never reach the pipeline: it is built with the
 //!   topics that the bundle's groups need, so a model uses only its suite's
 //!   sensors (the batch path does the same, see `compute_features`).
@@ -62,6 +67,10 @@ pub enum EstimatorError {
     Physics(#[from] PhysicsError),
 }
 
+/// Samples (within `max_gap_ns` of each other) that must agree on a forward
+/// clock jump before it is taken; fewer are timestamp outliers.
+pub const JUMP_CONFIRM: usize = 5;
+
 /// Per-asset settings of an estimator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EstimatorConfig {
@@ -100,6 +109,9 @@ pub struct EstimatorCounters {
     pub reordered: u64,
     /// Forward clock jumps that started a new segment.
     pub clock_jumps: u64,
+    /// Samples far ahead of the stream that the stream did not follow
+    /// (corrupt timestamps): dropped.
+    pub timestamp_outliers: u64,
     /// Ticks emitted.
     pub ticks: u64,
     /// Ticks whose network inputs were not all finite (pressure NaN).
@@ -213,6 +225,8 @@ pub struct Estimator {
     /// The re-order buffer, sorted by key (ties in arrival order).
     queue: VecDeque<Queued>,
     newest_ns: i64,
+    /// Samples far ahead of `newest_ns`, held until the jump is confirmed.
+    jump: Vec<Sample>,
     released: Option<(i64, u8)>,
     /// After [`Estimator::finish`]: the next released sample starts a segment.
     finished: bool,
@@ -251,6 +265,7 @@ impl Estimator {
             cfg,
             queue: VecDeque::with_capacity(256),
             newest_ns: i64::MIN,
+            jump: Vec::new(),
             released: None,
             finished: false,
             avg: [f64::NAN; EXCITATION_WINDOW_TICKS],
@@ -294,8 +309,36 @@ impl Estimator {
     /// Late samples are counted and dropped, not an error; an error is a
     /// numerical failure of the twin or the network.
     pub fn push(&mut self, sample: Sample) -> Result<(), EstimatorError> {
-        let t = sample.t_ns();
         self.counters.samples += 1;
+        let t = sample.t_ns();
+        if self.newest_ns != i64::MIN && t.saturating_sub(self.newest_ns) > self.cfg.max_gap_ns {
+            if self
+                .jump
+                .first()
+                .is_some_and(|f| f.t_ns().abs_diff(t) > self.cfg.max_gap_ns.unsigned_abs())
+            {
+                self.drop_jump();
+            }
+            self.jump.push(sample);
+            if self.jump.len() >= JUMP_CONFIRM {
+                for s in std::mem::take(&mut self.jump) {
+                    self.accept(s)?;
+                }
+            }
+            return Ok(());
+        }
+        self.drop_jump();
+        self.accept(sample)
+    }
+
+    /// The held "jump" samples were not followed by the stream: outliers.
+    fn drop_jump(&mut self) {
+        self.counters.timestamp_outliers += self.jump.len() as u64;
+        self.jump.clear();
+    }
+
+    fn accept(&mut self, sample: Sample) -> Result<(), EstimatorError> {
+        let t = sample.t_ns();
         let key = (t, sample.topic_rank());
         if self.released.is_some_and(|r| key < r) {
             self.counters.late_dropped += 1;
@@ -323,8 +366,11 @@ impl Estimator {
 
     /// End of stream: releases everything held and emits the last tick. A
     /// later [`push`](Self::push) starts a new segment (samples before the
-    /// last released one are still late).
+    /// last released one are still late). Samples held aside as a possible
+    /// clock jump that fewer than [`JUMP_CONFIRM`] agreed on are counted as
+    /// timestamp outliers.
     pub fn finish(&mut self) -> Result<(), EstimatorError> {
+        self.drop_jump();
         while let Some(q) = self.queue.pop_front() {
             self.release(q)?;
         }

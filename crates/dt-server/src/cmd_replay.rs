@@ -309,14 +309,15 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
             dur_s / r.seconds.max(1e-9),
         );
         let c = r.counters;
-        if c.late_dropped + c.clock_jumps + c.missing_samples > 0 {
+        if c.late_dropped + c.clock_jumps + c.missing_samples + c.timestamp_outliers > 0 {
             println!(
-                "  {}: {} samples, {} late dropped, {} re-ordered, {} clock jumps, {} missing, {} ticks without inputs",
+                "  {}: {} samples, {} late dropped, {} re-ordered, {} clock jumps, {} timestamp outliers, {} missing, {} ticks without inputs",
                 r.file.display(),
                 r.samples,
                 c.late_dropped,
                 c.reordered,
                 c.clock_jumps,
+                c.timestamp_outliers,
                 c.missing_samples,
                 c.ticks_without_inputs
             );

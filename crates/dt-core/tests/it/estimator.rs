@@ -460,3 +460,47 @@ fn health_unknown_without_excitation_or_average() {
     feed(&mut m, &mut t, 3.1, |_| f64::NAN, true);
     assert_eq!(m.state(), Health::Unknown);
 }
+
+#[test]
+fn one_far_future_timestamp_is_an_outlier_not_the_end_of_the_run() {
+    let b = bundle("bundle-mlp13");
+    let log = synth_log(T0, 4, 0.04, 4);
+    let samples = sorted_samples(&log);
+    let reference = {
+        let mut est = estimator(&b);
+        stream(&mut est, &samples)
+    };
+    let mut est = estimator(&b);
+    let mut ticks = Vec::new();
+    for (i, s) in samples.iter().enumerate() {
+        est.push(*s).unwrap();
+        if i == samples.len() / 3 || i == samples.len() / 2 {
+            // A corrupt time stamp (a flipped high bit), then the stream goes on.
+            est.push(Sample::Force {
+                t_ns: T0 + (1_i64 << 60),
+                force_n: 100.0,
+            })
+            .unwrap();
+        }
+        ticks.extend(est.drain());
+    }
+    est.finish().unwrap();
+    ticks.extend(est.drain());
+    let c = est.counters();
+    assert_eq!(c.timestamp_outliers, 2);
+    assert_eq!((c.late_dropped, c.clock_jumps), (0, 0));
+    assert_eq!(
+        ticks.len(),
+        reference.len(),
+        "ticks lost after the outliers"
+    );
+    let p = |e: &[dt_core::estimate::Estimate]| {
+        e.iter()
+            .map(|e| e.pressure_bar.to_bits())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(
+        p(&ticks),
+        p(&reference.iter().map(|t| t.estimate).collect::<Vec<_>>())
+    );
+}

@@ -93,6 +93,7 @@ impl AssetTwin for EstimatorTwin {
             out_of_order: c.reordered + c.late_dropped,
             dropped_late: c.late_dropped,
             clock_jumps: c.clock_jumps,
+            timestamp_outliers: c.timestamp_outliers,
             ticks_without_inputs: c.ticks_without_inputs,
             ticks: c.ticks,
         }

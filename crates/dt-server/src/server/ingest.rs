@@ -474,12 +474,13 @@ impl RunHandle {
         let mut result = self.send_out().await.map_err(|e| e.to_string());
         let counters = self.twin.counters();
         self.ingest.inner.metrics.add_twin_counters(&counters);
-        if counters.nan_samples + counters.out_of_order > 0 {
+        if counters.nan_samples + counters.out_of_order + counters.timestamp_outliers > 0 {
             tracing::info!(
                 source = %self.info.source,
                 nan_samples = counters.nan_samples,
                 out_of_order = counters.out_of_order,
                 dropped_late = counters.dropped_late,
+                timestamp_outliers = counters.timestamp_outliers,
                 "input anomalies"
             );
         }

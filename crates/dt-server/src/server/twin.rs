@@ -23,6 +23,9 @@ pub struct TwinCounters {
     pub dropped_late: u64,
     /// Forward clock jumps that restarted the twin.
     pub clock_jumps: u64,
+    /// Samples far ahead of the stream that it did not follow (corrupt
+    /// timestamps), dropped.
+    pub timestamp_outliers: u64,
     /// Ticks whose model inputs were not all available (pressure NaN).
     pub ticks_without_inputs: u64,
     /// Estimates emitted.
