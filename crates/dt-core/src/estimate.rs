@@ -114,7 +114,7 @@ mod tests {
         assert!(json.contains("\"health\":\"ok\""), "{json}");
         let back: Estimate = serde_json::from_str(&json).unwrap();
         assert!(back.pressure_bar.is_nan());
-        assert_eq!(back.pressure_avg_bar, 11.5);
+        assert_eq!(back.pressure_avg_bar.to_bits(), 11.5_f64.to_bits());
         assert_eq!(back.t_ns, e.t_ns);
         assert_eq!(back.health, Health::Ok);
     }

@@ -68,7 +68,7 @@ pub struct Metrics {
     /// Inbox files moved, by destination (`done`, `failed`).
     pub files: Family<KindLabel, Counter>,
     /// Input anomalies the twins counted (`nan_samples`, `out_of_order`,
-    /// `dropped_late`, `clock_jumps`, `ticks_without_inputs`).
+    /// `dropped_late`, `clock_jumps`, `timestamp_outliers`, `ticks_without_inputs`).
     pub input: Family<KindLabel, Counter>,
     /// Per asset: now − time of the last sample processed, s.
     pub asset_lag_seconds: Family<AssetLabel, Gauge<f64, AtomicU64>>,
@@ -78,8 +78,15 @@ pub struct Metrics {
     /// estimate, s. Time the bytes spent in the kernel's socket buffer
     /// before that read is not seen here (see `asset_lag_seconds`).
     pub estimate_delay_seconds: Family<AssetLabel, Histogram, fn() -> Histogram>,
-    last_sample_ns: Mutex<HashMap<String, i64>>,
+    /// Per asset: `log_time` of the newest sample processed, and when (wall clock).
+    last_sample_ns: Mutex<HashMap<String, (i64, SystemTime)>>,
 }
+
+/// An asset that has sent nothing for this long (wall clock) loses its
+/// per-asset series (`asset_lag_seconds`, `estimate_delay_seconds`) at the
+/// next scrape, so that a gateway serving a changing fleet for months does
+/// not keep a series per vehicle it ever saw. They come back with its next run.
+pub const ASSET_IDLE_EVICT: std::time::Duration = std::time::Duration::from_secs(3600);
 
 impl Default for Metrics {
     fn default() -> Self {
@@ -176,6 +183,7 @@ impl Metrics {
         Self::add(&self.input, "out_of_order", c.out_of_order);
         Self::add(&self.input, "dropped_late", c.dropped_late);
         Self::add(&self.input, "clock_jumps", c.clock_jumps);
+        Self::add(&self.input, "timestamp_outliers", c.timestamp_outliers);
         Self::add(&self.input, "ticks_without_inputs", c.ticks_without_inputs);
     }
 
@@ -189,14 +197,18 @@ impl Metrics {
 
     /// Records the time of the last sample processed for `asset`.
     pub fn set_last_sample(&self, asset: &str, t_ns: i64) {
+        self.set_last_sample_at(asset, t_ns, SystemTime::now());
+    }
+
+    fn set_last_sample_at(&self, asset: &str, t_ns: i64, wall: SystemTime) {
         let mut map = self
             .last_sample_ns
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         match map.get_mut(asset) {
-            Some(v) => *v = t_ns,
+            Some(v) => *v = (t_ns, wall),
             None => {
-                map.insert(asset.to_owned(), t_ns);
+                map.insert(asset.to_owned(), (t_ns, wall));
             }
         }
     }
@@ -208,23 +220,64 @@ impl Metrics {
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
         {
-            let map = self
+            let mut map = self
                 .last_sample_ns
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner);
-            for (asset, &t_ns) in map.iter() {
+            map.retain(|asset, &mut (t_ns, wall)| {
+                let label = AssetLabel {
+                    asset: asset.clone(),
+                };
+                if now.duration_since(wall).unwrap_or_default() > ASSET_IDLE_EVICT {
+                    self.asset_lag_seconds.remove(&label);
+                    self.estimate_delay_seconds.remove(&label);
+                    return false;
+                }
                 let lag_s = now_ns.saturating_sub(t_ns) as f64 * 1e-9;
-                self.asset_lag_seconds
-                    .get_or_create(&AssetLabel {
-                        asset: asset.clone(),
-                    })
-                    .set(lag_s);
-            }
+                self.asset_lag_seconds.get_or_create(&label).set(lag_s);
+                true
+            });
         }
         let mut text = String::new();
         if let Err(e) = prometheus_client::encoding::text::encode(&mut text, &self.registry) {
             tracing::error!("cannot encode the metrics: {e}");
         }
         text
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use super::*;
+
+    #[test]
+    fn idle_assets_lose_their_series_and_get_them_back_when_they_return() {
+        let m = Metrics::new();
+        let t0 = UNIX_EPOCH + Duration::from_secs(1_700_000_000);
+        let t_ns = 1_700_000_000_000_000_000;
+        for asset in ["car-1", "car-2"] {
+            m.set_last_sample_at(asset, t_ns, t0);
+            m.observe_delay(
+                &AssetLabel {
+                    asset: asset.into(),
+                },
+                0.001,
+                3,
+            );
+        }
+        let text = m.encode(t0 + Duration::from_secs(10));
+        assert!(text.contains("asset=\"car-1\"") && text.contains("asset=\"car-2\""));
+        // car-2 keeps sending; car-1 goes quiet for longer than the horizon.
+        let later = t0 + ASSET_IDLE_EVICT + Duration::from_secs(60);
+        m.set_last_sample_at("car-2", t_ns, later);
+        let text = m.encode(later);
+        assert!(!text.contains("asset=\"car-1\""), "{text}");
+        assert!(text.contains("shocktwin_estimate_delay_seconds_count{asset=\"car-2\"} 3"));
+        m.set_last_sample_at("car-1", t_ns, later);
+        assert!(m
+            .encode(later)
+            .contains("shocktwin_asset_lag_seconds{asset=\"car-1\"}"));
     }
 }
