@@ -46,6 +46,8 @@ from train.fit_physics import calibrate, print_report, save_figures
 log = logging.getLogger("shocktwin.study")
 
 UNSEEN_PRESSURES = "2,5.5,9"
+# The oracle is the best of this many training seeds: a bound should err on the optimistic side.
+ORACLE_ATTEMPTS = 2
 UNSEEN_FREQUENCIES = "1.5,3"
 RMSE_GOAL_BAR = 1.5
 
@@ -184,7 +186,8 @@ def generalisation(
     on the campaign plus a repeat take of the unseen conditions (``simulate --repeat 1``: the
     same rig and unit, independent noise and room), then scored on the same-rig unseen set: it has seen every test condition, never the test
     runs, so it cannot memorise them; what it misses, these inputs do not carry across
-    realisations (an estimate of the bound, with this network and budget)."""
+    realisations (an estimate of the bound, with this network and budget). It is the best
+    of ``ORACLE_ATTEMPTS`` training seeds, scored on the test runs: optimistic on purpose."""
     if binary is None:
         return [], []
     seed = campaign_seed(data.campaign)
@@ -219,14 +222,22 @@ def generalisation(
         tabs = data.tables(perm["groups"]) + sim["oracle_train"].tables(perm["groups"])
         exc = data.excited_for(tabs[: len(data.campaign.runs)]) + sim["oracle_train"].excited_for(
             tabs[len(data.campaign.runs):])
-        x, y = evaluate.training_set(tabs, cols, exc, None, cfg.per_run, seed=cfg.seed)
-        tasks.append((x, y, cols, cfg.seed))
+        for attempt in range(ORACLE_ATTEMPTS):
+            x, y = evaluate.training_set(tabs, cols, exc, None, cfg.per_run, seed=cfg.seed + attempt)
+            tasks.append((x, y, cols, cfg.seed + attempt))
+    fits = fit_many(cfg, tasks, cfg.max_iter)
     oracle = []
-    for perm, tr in zip(chosen, fit_many(cfg, tasks, cfg.max_iter)):
+    for n, perm in enumerate(chosen):
         tabs = sim["unseen"].tables(perm["groups"])
         exc = sim["unseen"].excited_for(tabs)
-        preds = [evaluate.predict_run(tr, t, tr.columns, e) for t, e in zip(tabs, exc)]
-        oracle.append({"perm": perm, **evaluate.score_runs(preds).as_dict(), "runs": evaluate.per_run(preds),
+        best = None
+        for tr in fits[n * ORACLE_ATTEMPTS:(n + 1) * ORACLE_ATTEMPTS]:
+            preds = [evaluate.predict_run(tr, t, tr.columns, e) for t, e in zip(tabs, exc)]
+            scores = evaluate.score_runs(preds)
+            if best is None or scores.rmse_bar < best[0].rmse_bar:
+                best = (scores, preds)
+        assert best is not None
+        oracle.append({"perm": perm, **best[0].as_dict(), "runs": evaluate.per_run(best[1]),
                        "train_runs": [t.run.name for t in data.tables(perm["groups"])]
                        + [f"oracle/{t.run.name}" for t in sim["oracle_train"].tables(perm["groups"])]})
     return rows, oracle
@@ -404,7 +415,7 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
                  "campaign does not contain, and another rig (sensor calibration errors redrawn). RMSE in bar, "
                  "instantaneous (1 s average).\n")
         oracle = {o["perm"]["id"]: o for o in ctx.get("oracle", [])}
-        L.append("| id | " + " | ".join(sets) + " | oracle on the same-rig unseen set (repeat take in training) |")
+        L.append("| id | " + " | ".join(sets) + f" | oracle on the same-rig unseen set (repeat take in training, best of {ORACLE_ATTEMPTS} seeds) |")
         L.append("| --- |" + " --- |" * (len(sets) + 1))
         for pid in sorted({g["perm"]["id"] for g in gen if g["perm"]["id"]}):
             cells = []
@@ -434,7 +445,8 @@ def targets_section(gen: list[dict[str, Any]], oracle: list[dict[str, Any]]) -> 
          f"Networks trained on the whole campaign, scored on {UNSEEN_PRESSURES} bar × {UNSEEN_FREQUENCIES} Hz "
          "simulated on the campaign's own rig. *oracle*: the same network trained on the campaign **plus** these "
          "very conditions in a repeat take (`shocktwin simulate --repeat 1`: same rig and unit, independent "
-         "noise and room), scored on the same test runs — it has seen every test condition but not the test runs, so it cannot memorise them. "
+         f"noise and room), scored on the same test runs, the best of {ORACLE_ATTEMPTS} training seeds — it has seen "
+         "every test condition but not the test runs, so it cannot memorise them. "
          "What even the oracle misses, these inputs do not carry from one realisation to the next (an estimate "
          "of the bound with this network and training budget, not a proof). Targets 11 and 14–16 are ours "
          "(11 and 14 carry model 12's target, 15–16 model 13's).\n",
