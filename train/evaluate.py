@@ -8,8 +8,8 @@
 - *in-sample*: trained and scored on every sample. Not a protocol and not an
   information bound either: with a constant label per run, slowly varying inputs
   (temperatures) let it memorise runs. The study's bound is its *oracle*
-  (``train.study``): the same network trained with the test conditions in training
-  (re-simulated with an independent seed), scored on the test runs themselves.
+  (``train.study``): the same network trained with a repeat take of the test
+  conditions added (same rig and unit, new noise and room), scored on the test runs.
 
 Training rows get *temperature-offset augmentation* (``shift_temperatures``): each
 run's rows are dealt round-robin to four copies of the run, three of which see every

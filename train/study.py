@@ -16,8 +16,8 @@
 5. Generalisation: the networks trained on the whole campaign are scored on a second
    simulated unit (parameter scatter), on charge pressures and frequencies that are not
    in the campaign (same rig, and another rig), all simulated with ``shocktwin simulate``;
-   and the oracle bound for the targets: the same network trained with a repeat take of
-   the unseen conditions added (see ``generalisation``).
+   and the oracle bound of every permutation: the same network trained with a repeat
+   take of the unseen conditions added (see ``generalisation``).
 6. Writes ``report.md`` with all of it. The data are simulated: the report says so.
 """
 
@@ -184,8 +184,8 @@ def generalisation(
     unseen conditions on another rig (another seed: accelerometer and thermocouple
     calibration redrawn too). The *oracle* of every permutation is the same network trained
     on the campaign plus a repeat take of the unseen conditions (``simulate --repeat 1``: the
-    same rig and unit, independent noise and room), then scored on the same-rig unseen set: it has seen every test condition, never the test
-    runs, so it cannot memorise them; what it misses, these inputs do not carry across
+    same rig and unit, independent noise and room), then scored on the same-rig unseen set:
+    it has seen every test condition, never the test runs, so it cannot memorise them; what it misses, these inputs do not carry across
     realisations (an estimate of the bound, with this network and budget). It is the best
     of ``ORACLE_ATTEMPTS`` training seeds, scored on the test runs: optimistic on purpose."""
     if binary is None:
