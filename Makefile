@@ -51,7 +51,8 @@ demo: setup ## simulate the quick campaign, inspect, calibrate, study, stream a 
 	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-16 --out $(OUT)/serve-demo
-	@echo "demo done (simulated data): report $(OUT)/study/report.md, figures $(OUT)/figures"
+	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}' $(OUT)/study/report.md
+	@echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures"
 
 study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)
 	rm -rf $(OUT)/full-campaign
