@@ -88,6 +88,30 @@ def watch_events(http: str, asset_id: str, events: list[dict[str, Any]], ready: 
                         return
 
 
+def copy_log(reader: Any, writer: Writer, run_meta: dict[str, str] | None = None) -> int:
+    """Re-encodes every metadata record and message of ``reader`` (an mcap reader) with
+    ``writer`` (started, not finished), in log-time order; ``run_meta`` updates the
+    ``shocktwin.run`` record. Returns the messages written."""
+    for meta in reader.iter_metadata():
+        data = dict(meta.metadata)
+        if meta.name == "shocktwin.run" and run_meta:
+            data.update(run_meta)
+        writer.add_metadata(meta.name, data)
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    sent = 0
+    for schema, channel, message in reader.iter_messages(log_time_order=True):
+        if schema is not None and schema.id not in schemas:
+            schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+        if channel.id not in channels:
+            channels[channel.id] = writer.register_channel(
+                channel.topic, channel.message_encoding, schemas.get(channel.schema_id, 0))
+        writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                           message.sequence)
+        sent += 1
+    return sent
+
+
 def stream_run(addr: str, path: Path) -> dict[str, Any]:
     host, port = addr.rsplit(":", 1)
     with socket.create_connection((host, int(port))) as sock, open(path, "rb") as fh:
@@ -95,18 +119,7 @@ def stream_run(addr: str, path: Path) -> dict[str, Any]:
         out = SocketStream(sock)
         writer = Writer(cast(IO[bytes], out), compression=CompressionType.ZSTD, chunk_size=64 * 1024)
         writer.start(profile="", library="shocktwin demo client (python mcap)")
-        for meta in reader.iter_metadata():
-            writer.add_metadata(meta.name, meta.metadata)
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            if schema is not None and schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas.get(channel.schema_id, 0))
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
-                               message.sequence)
+        copy_log(reader, writer)
         writer.finish()
         sock.shutdown(socket.SHUT_WR)
         reply = b""

@@ -38,7 +38,7 @@ TICK_NS = 20_000_000
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 
 sys.path.insert(0, str(ROOT))
-from train.demo_serve import SocketStream  # noqa: E402  (the demo's socket writer, shared)
+from train.demo_serve import SocketStream, copy_log  # noqa: E402  (the demo's socket writer, shared)
 
 sys.path.remove(str(ROOT))
 
@@ -132,28 +132,12 @@ def stream_run(addr: str, path: Path, asset_id: str, run_id: str, *, chunked: bo
     """Re-encodes ``path`` onto a socket with Python's mcap Writer as its own asset and run;
     returns the daemon's report and the messages sent."""
     host, port = addr.rsplit(":", 1)
-    sent = 0
     with socket.create_connection((host, int(port)), timeout=60) as sock, open(path, "rb") as fh:
         reader = make_reader(fh)
         writer = Writer(cast(IO[bytes], SocketStream(sock)), compression=CompressionType.ZSTD if chunked else CompressionType.NONE,
                         chunk_size=4096, use_chunking=chunked)
         writer.start(profile="", library="shocktwin test client (python mcap)")
-        for meta in reader.iter_metadata():
-            data = dict(meta.metadata)
-            if meta.name == "shocktwin.run":
-                data.update(asset_id=asset_id, run_id=run_id)
-            writer.add_metadata(meta.name, data)
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            if schema is not None and schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas.get(channel.schema_id, 0))
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
-                               message.sequence)
-            sent += 1
+        sent = copy_log(reader, writer, {"asset_id": asset_id, "run_id": run_id})
         writer.finish()
         sock.shutdown(socket.SHUT_WR)
         reply = b""
