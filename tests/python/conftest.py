@@ -126,3 +126,30 @@ def make_log(tmp_path: Path) -> Callable[..., Path]:
         return write_mcap_log(tmp_path / name, meta, synthetic_run(**kwargs), chunked=chunked)  # type: ignore[arg-type]
 
     return make
+
+
+def assert_releases_gil(name: str, call: Callable[[], object]) -> None:
+    """While ``call`` runs in a thread, this thread keeps running Python: the largest
+    pause it sees is far shorter than the call (the binding released the GIL)."""
+    import threading
+    import time
+
+    done = threading.Event()
+    duration: list[float] = []
+
+    def work() -> None:
+        start = time.perf_counter()
+        call()
+        duration.append(time.perf_counter() - start)
+        done.set()
+
+    worker = threading.Thread(target=work)
+    last, max_gap = time.perf_counter(), 0.0  # before start: the worker may run first
+    worker.start()
+    while not done.is_set():
+        now = time.perf_counter()
+        max_gap, last = max(max_gap, now - last), now
+    worker.join()
+    max_gap = max(max_gap, time.perf_counter() - last)
+    assert duration[0] > 0.05, f"{name} too short to tell ({duration[0]:.3f} s)"
+    assert max_gap < 0.5 * duration[0], f"{name}: longest pause {max_gap:.3f} s of a {duration[0]:.3f} s call"

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import json
 import shutil
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import shocktwin
+from conftest import assert_releases_gil
 
 FIXTURES = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "tests" / "fixtures"
 MLP13 = FIXTURES / "bundle-mlp13"
@@ -134,22 +133,4 @@ def test_predict_releases_the_gil():
     """While ``predict`` runs in a thread, this thread keeps running Python."""
     bundle = shocktwin.Bundle(MLP13)
     rows = np.random.default_rng(0).normal(size=(100_000, 12)) * 100
-    done = threading.Event()
-    duration = []
-
-    def work():
-        start = time.perf_counter()
-        bundle.predict(rows)
-        duration.append(time.perf_counter() - start)
-        done.set()
-
-    worker = threading.Thread(target=work)
-    last, max_gap = time.perf_counter(), 0.0
-    worker.start()
-    while not done.is_set():
-        now = time.perf_counter()
-        max_gap, last = max(max_gap, now - last), now
-    worker.join()
-    max_gap = max(max_gap, time.perf_counter() - last)
-    assert duration[0] > 0.05, f"predict too short to tell ({duration[0]:.3f} s)"
-    assert max_gap < 0.5 * duration[0], f"longest pause {max_gap:.3f} s of a {duration[0]:.3f} s call"
+    assert_releases_gil("predict", lambda: bundle.predict(rows))

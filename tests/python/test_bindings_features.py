@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import json
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import synthetic_run, write_mcap_log
+from conftest import assert_releases_gil, synthetic_run, write_mcap_log
 
 import shocktwin
 
@@ -300,23 +298,4 @@ def _long_calls():
 def test_long_calls_release_the_gil(name):
     """While a long call runs in a thread, this thread keeps running Python:
     the largest pause it sees is far shorter than the call."""
-    call = _long_calls()[name]
-    done = threading.Event()
-    duration = []
-
-    def work():
-        start = time.perf_counter()
-        call()
-        duration.append(time.perf_counter() - start)
-        done.set()
-
-    worker = threading.Thread(target=work)
-    last, max_gap = time.perf_counter(), 0.0  # before start: the worker may run first
-    worker.start()
-    while not done.is_set():
-        now = time.perf_counter()
-        max_gap, last = max(max_gap, now - last), now
-    worker.join()
-    max_gap = max(max_gap, time.perf_counter() - last)
-    assert duration[0] > 0.05, f"{name} too short to tell ({duration[0]:.3f} s)"
-    assert max_gap < 0.5 * duration[0], f"{name}: longest pause {max_gap:.3f} s of a {duration[0]:.3f} s call"
+    assert_releases_gil(name, _long_calls()[name])
