@@ -19,7 +19,7 @@ FIXTURES = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "tests" 
 MLP13 = FIXTURES / "bundle-mlp13"
 ESTIMATE_KEYS = {
     "t_s", "pressure_bar", "pressure_avg_bar", "expected_bar", "health",
-    "velocity_mps", "force_model_n", "oil_temp_c",
+    "velocity_mps", "force_model_n", "oil_temp_c", "pressure_lo_bar", "pressure_hi_bar",
 }
 
 
@@ -111,6 +111,8 @@ def test_estimate_on_a_synthetic_log(make_log):
     assert set(out["health"]) <= {"ok", "low", "leak", "unknown"}
     assert (out["expected_bar"] == bundle.nominal_bar).all()
     assert np.isfinite(out["pressure_bar"][60:]).all()
+    # a bundle without the charge observer has no interval (SPEC §2a: NaN)
+    assert np.isnan(out["pressure_lo_bar"]).all() and np.isnan(out["pressure_hi_bar"]).all()
     # the same from paths, and features() takes the Bundle object like its path
     again = shocktwin.estimate(log.path, str(MLP13))
     for key in ESTIMATE_KEYS:

@@ -38,7 +38,8 @@ def cheap_log(tmp_path_factory) -> shocktwin.Log:
 
 def test_groups_columns_topics():
     assert shocktwin.GROUPS[:6] == ("force", "position", "acceleration", "velocity", "mechanical", "thermal")
-    assert shocktwin.GROUPS[6:] == ("signature", "residual")  # causal-window groups beyond the paper
+    # beyond the paper: causal-window groups and the charge observer
+    assert shocktwin.GROUPS[6:] == ("signature", "residual", "observer")
     assert [c for g in shocktwin.GROUPS for c in shocktwin.group_columns(g)] == list(shocktwin.COLUMNS)
     assert shocktwin.group_topics("force") == ["/force"]
     assert shocktwin.group_topics("velocity") == ["/position", "/acceleration"]
@@ -72,12 +73,16 @@ def test_permutations_are_the_papers_table():
 
 def test_extra_permutations_are_ours():
     extra = {p["id"]: p for p in shocktwin.extra_permutations()}
-    assert sorted(extra) == [14, 15, 16]
+    assert sorted(extra) == [14, 15, 16, 17, 18, 19]
     assert extra[14]["groups"] == ["velocity", "mechanical", "signature"]
     assert extra[14]["sensors"] == ["potentiometer", "accelerometers", "thermocouples"]
     assert extra[15]["groups"] == ["force", "velocity", "mechanical", "residual"]
     assert extra[16]["groups"] == ["force", "velocity", "mechanical", "residual", "signature"]
     assert [extra[i]["cost_aud"] for i in (14, 15, 16)] == [297, 4292, 4292]
+    assert extra[17]["groups"] == ["observer"]
+    assert extra[17]["sensors"] == ["potentiometer", "accelerometers", "thermocouples"]
+    assert extra[18]["groups"] == [*shocktwin.permutations()[11]["groups"], "observer"]
+    assert [extra[i]["cost_aud"] for i in (17, 18, 19)] == [297, 297, 4292]
     assert all(p["paper_rmse_bar"] is None for p in extra.values())
     for p in extra.values():
         assert p["columns"] == [c for g in p["groups"] for c in shocktwin.group_columns(g)]

@@ -59,6 +59,14 @@ pub struct Estimate {
     /// 1 s moving average of `pressure_bar`, bar gauge.
     #[serde(deserialize_with = "f64_or_nan")]
     pub pressure_avg_bar: f64,
+    /// Lower end of the central 95 % interval of the charge pressure at the
+    /// tick, bar gauge (SPEC §2a); NaN when the estimator cannot say (a
+    /// bundle without the charge observer). Absent in older records.
+    #[serde(default = "nan", deserialize_with = "f64_or_nan")]
+    pub pressure_lo_bar: f64,
+    /// Upper end of that interval, bar gauge.
+    #[serde(default = "nan", deserialize_with = "f64_or_nan")]
+    pub pressure_hi_bar: f64,
     /// The asset's nominal charge pressure, bar gauge (SPEC §6).
     #[serde(deserialize_with = "f64_or_nan")]
     pub expected_bar: f64,
@@ -76,7 +84,11 @@ pub struct Estimate {
 }
 
 /// JSON schema (`jsonschema` encoding) of the `/estimate` topic's messages.
-pub const ESTIMATE_SCHEMA_JSON: &str = r#"{"type":"object","title":"shocktwin estimate","properties":{"t_ns":{"type":"integer"},"pressure_bar":{"type":["number","null"]},"pressure_avg_bar":{"type":["number","null"]},"expected_bar":{"type":["number","null"]},"health":{"type":"string","enum":["ok","low","leak","unknown"]},"velocity_mps":{"type":["number","null"]},"force_model_n":{"type":["number","null"]},"oil_temp_c":{"type":["number","null"]}},"required":["pressure_bar","pressure_avg_bar","expected_bar","health","velocity_mps","force_model_n","oil_temp_c"]}"#;
+pub const ESTIMATE_SCHEMA_JSON: &str = r#"{"type":"object","title":"shocktwin estimate","properties":{"t_ns":{"type":"integer"},"pressure_bar":{"type":["number","null"]},"pressure_avg_bar":{"type":["number","null"]},"pressure_lo_bar":{"type":["number","null"]},"pressure_hi_bar":{"type":["number","null"]},"expected_bar":{"type":["number","null"]},"health":{"type":"string","enum":["ok","low","leak","unknown"]},"velocity_mps":{"type":["number","null"]},"force_model_n":{"type":["number","null"]},"oil_temp_c":{"type":["number","null"]}},"required":["pressure_bar","pressure_avg_bar","expected_bar","health","velocity_mps","force_model_n","oil_temp_c"]}"#;
+
+fn nan() -> f64 {
+    f64::NAN
+}
 
 /// Reads a JSON number, or `null` as NaN (`serde_json` writes NaN as `null`).
 fn f64_or_nan<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
@@ -103,6 +115,8 @@ mod tests {
             t_ns: 20_000_000,
             pressure_bar: f64::NAN,
             pressure_avg_bar: 11.5,
+            pressure_lo_bar: 10.0,
+            pressure_hi_bar: f64::NAN,
             expected_bar: 12.0,
             health: Health::Ok,
             velocity_mps: -0.25,
@@ -115,6 +129,14 @@ mod tests {
         let back: Estimate = serde_json::from_str(&json).unwrap();
         assert!(back.pressure_bar.is_nan());
         assert_eq!(back.pressure_avg_bar.to_bits(), 11.5_f64.to_bits());
+        assert_eq!(back.pressure_lo_bar.to_bits(), 10.0_f64.to_bits());
+        assert!(back.pressure_hi_bar.is_nan());
+        // A v1 record (no interval) still reads, with NaN bounds.
+        let v1 = json
+            .replace(",\"pressure_lo_bar\":10.0", "")
+            .replace(",\"pressure_hi_bar\":null", "");
+        let old: Estimate = serde_json::from_str(&v1).unwrap();
+        assert!(old.pressure_lo_bar.is_nan() && old.pressure_hi_bar.is_nan());
         assert_eq!(back.t_ns, e.t_ns);
         assert_eq!(back.health, Health::Ok);
     }
@@ -126,6 +148,8 @@ mod tests {
         for field in [
             "pressure_bar",
             "pressure_avg_bar",
+            "pressure_lo_bar",
+            "pressure_hi_bar",
             "expected_bar",
             "health",
             "velocity_mps",

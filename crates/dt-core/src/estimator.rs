@@ -48,13 +48,15 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 
 use crate::bundle::{Bundle, BundleError, HealthConfig};
+use crate::charge::Z95;
 use crate::error::PhysicsError;
 use crate::estimate::{Estimate, Health};
 use crate::features::{
-    column_indices, FeaturePipeline, GapCounters, TickRow, TopicSet, EXCITATION_WINDOW_TICKS,
-    N_COLUMNS,
+    col, column_indices, FeaturePipeline, GapCounters, Group, TickRow, TopicSet,
+    EXCITATION_WINDOW_TICKS, N_COLUMNS,
 };
 use crate::log::Sample;
+use crate::params::PhysicsParams;
 
 /// Errors of the estimator (a bad bundle or a numerical failure).
 #[derive(Debug, thiserror::Error)]
@@ -142,13 +144,24 @@ struct Queued {
     sample: Sample,
 }
 
-/// The health state machine of SPEC §6, fed one tick at a time.
+/// The health state machine of SPEC §6 and §6a, fed one tick at a time.
 ///
-/// The *level* of a 1 s average is `leak` below `fault_bar`, `low` below
-/// `warn_bar`, else `ok`, with hysteresis around the reported state: `leak`
-/// is left only at `fault_bar + hysteresis_bar`, `low` (upwards) only at
-/// `warn_bar + hysteresis_bar`. Not excited or no average: `unknown`. The
-/// level becomes the reported state once it has been the same for `dwell_s`.
+/// Without an interval (a bundle without the charge observer), the *level*
+/// of a 1 s average is `leak` below `fault_bar`, `low` below `warn_bar`, else
+/// `ok`, with hysteresis around the reported state: `leak` is left only at
+/// `fault_bar + hysteresis_bar`, `low` (upwards) only at
+/// `warn_bar + hysteresis_bar`.
+///
+/// With the central 95 % interval `[lo, hi]` of the 1 s average (SPEC §6a)
+/// the level is `leak` when `hi < fault`, else `low` when `hi < warn`, else
+/// `ok` when `lo > warn`, else `unknown` (the interval straddles a
+/// threshold). Hysteresis: in state `leak` the fault threshold is
+/// `fault_bar + hysteresis_bar`, in `leak` or `low` the warn threshold for
+/// `hi` is `warn_bar + hysteresis_bar`, and in `ok` the warn threshold for
+/// `lo` is `warn_bar − hysteresis_bar`.
+///
+/// Not excited or no average: `unknown`. The level becomes the reported state
+/// once it has been the same for `dwell_s`.
 #[derive(Debug, Clone, Copy)]
 pub struct HealthMachine {
     cfg: HealthConfig,
@@ -194,13 +207,60 @@ impl HealthMachine {
         }
     }
 
+    /// The level the interval `[lo_bar, hi_bar]` points to, with hysteresis
+    /// around the reported state (SPEC §6a).
+    #[must_use]
+    pub fn level_interval(&self, lo_bar: f64, hi_bar: f64) -> Health {
+        let h = self.cfg.hysteresis_bar;
+        let (warn, fault) = (self.cfg.warn_bar, self.cfg.fault_bar);
+        let fault_hi = if self.state == Health::Leak {
+            fault + h
+        } else {
+            fault
+        };
+        let warn_hi = if matches!(self.state, Health::Leak | Health::Low) {
+            warn + h
+        } else {
+            warn
+        };
+        let warn_lo = if self.state == Health::Ok {
+            warn - h
+        } else {
+            warn
+        };
+        if hi_bar < fault_hi {
+            Health::Leak
+        } else if hi_bar < warn_hi {
+            Health::Low
+        } else if lo_bar > warn_lo {
+            Health::Ok
+        } else {
+            Health::Unknown
+        }
+    }
+
     /// Takes the tick at `t_ns` with its 1 s average (NaN: none) and whether
     /// the damper is excited; returns the reported state.
     pub fn update(&mut self, t_ns: i64, avg_bar: f64, excited: bool) -> Health {
-        let target = if excited && avg_bar.is_finite() {
-            self.level(avg_bar)
-        } else {
+        self.update_interval(t_ns, avg_bar, f64::NAN, f64::NAN, excited)
+    }
+
+    /// As [`update`](Self::update), with the 95 % interval of the average
+    /// (NaN bounds: the rule without an interval).
+    pub fn update_interval(
+        &mut self,
+        t_ns: i64,
+        avg_bar: f64,
+        lo_bar: f64,
+        hi_bar: f64,
+        excited: bool,
+    ) -> Health {
+        let target = if !(excited && avg_bar.is_finite()) {
             Health::Unknown
+        } else if lo_bar.is_finite() && hi_bar.is_finite() {
+            self.level_interval(lo_bar, hi_bar)
+        } else {
+            self.level(avg_bar)
         };
         if target != self.candidate {
             self.candidate = target;
@@ -221,6 +281,9 @@ pub struct Estimator {
     cfg: EstimatorConfig,
     topics: TopicSet,
     columns: Vec<usize>,
+    /// The bundle reads the charge observer: its standard deviation gives
+    /// the interval.
+    uses_observer: bool,
     pipe: FeaturePipeline,
     /// The re-order buffer, sorted by key (ties in arrival order).
     queue: VecDeque<Queued>,
@@ -250,14 +313,26 @@ impl std::fmt::Debug for Estimator {
     }
 }
 
+/// The bundle's physics for its pipeline: the charge observer runs only when
+/// the bundle reads it.
+fn pipeline_params(bundle: &Bundle) -> PhysicsParams {
+    let mut params = *bundle.physics();
+    if !bundle.groups.contains(&Group::Observer) {
+        params.observer = None;
+    }
+    params
+}
+
 impl Estimator {
     /// An estimator for one asset with the bundle's model.
     pub fn new(bundle: Arc<Bundle>, cfg: EstimatorConfig) -> Result<Self, EstimatorError> {
         let topics = TopicSet::for_groups(&bundle.groups);
-        let pipe = FeaturePipeline::new(bundle.physics(), topics)?;
+        let pipe = FeaturePipeline::new(&pipeline_params(&bundle), topics)?;
         let columns = column_indices(&bundle.groups);
+        let uses_observer = bundle.groups.contains(&Group::Observer) && pipe.observer().is_some();
         Ok(Self {
             health: HealthMachine::new(cfg.health),
+            uses_observer,
             columns,
             pipe,
             topics,
@@ -419,7 +494,7 @@ impl Estimator {
         self.seg_missing = 0;
         self.seg_gaps = 0;
         self.prev_gaps = GapCounters::default();
-        self.pipe = FeaturePipeline::new(self.bundle.physics(), self.topics)?;
+        self.pipe = FeaturePipeline::new(&pipeline_params(&self.bundle), self.topics)?;
         self.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
         self.avg_idx = 0;
         self.health = HealthMachine::new(self.cfg.health);
@@ -473,11 +548,25 @@ impl Estimator {
             .filter(|x| x.is_finite())
             .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
         let pressure_avg_bar = if n > 0.0 { sum / n } else { f64::NAN };
-        let health = self.health.update(row.t_ns, pressure_avg_bar, excited);
+        // The interval: the charge observer's standard deviation around the
+        // estimate, when the bundle reads the observer (SPEC §2a).
+        let sd = if self.uses_observer {
+            row.values[col::OBSERVER_SD_BAR]
+        } else {
+            f64::NAN
+        };
+        let half = Z95 * sd;
+        let (lo, hi) = (pressure_bar - half, pressure_bar + half);
+        let (avg_lo, avg_hi) = (pressure_avg_bar - half, pressure_avg_bar + half);
+        let health =
+            self.health
+                .update_interval(row.t_ns, pressure_avg_bar, avg_lo, avg_hi, excited);
         Ok(Estimate {
             t_ns: row.t_ns,
             pressure_bar,
             pressure_avg_bar,
+            pressure_lo_bar: lo,
+            pressure_hi_bar: hi,
             expected_bar: self.cfg.nominal_bar,
             health,
             velocity_mps: twin.velocity_mps,

@@ -122,6 +122,7 @@ use std::collections::VecDeque;
 
 use serde::{Deserialize, Serialize};
 
+use crate::charge::{ChargeObserver, ObserverCounters, ObserverParams, Reversal};
 use crate::error::PhysicsError;
 use crate::force::ForceModel;
 use crate::kalman::{KalmanFilter, POSITION_ONLY_JERK_PSD};
@@ -140,7 +141,7 @@ pub const EXCITATION_WINDOW_TICKS: usize = 50;
 pub const TEMP_RATE_WINDOW_TICKS: usize = 500;
 
 /// Number of feature columns.
-pub const N_COLUMNS: usize = 18;
+pub const N_COLUMNS: usize = 20;
 
 /// All feature columns, in group order (force, position, acceleration,
 /// velocity, mechanical, thermal, signature, residual); a group's columns
@@ -164,6 +165,8 @@ pub const COLUMNS: [&str; N_COLUMNS] = [
     "temp_resid_rate_cps",
     "force_resid_mean_n",
     "force_resid_rms_n",
+    "observer_bar",
+    "observer_sd_bar",
 ];
 
 /// Indices into [`COLUMNS`] / [`TickRow::values`].
@@ -204,6 +207,10 @@ pub mod col {
     pub const FORCE_RESID_MEAN_N: usize = 16;
     /// `force_resid_rms_n`.
     pub const FORCE_RESID_RMS_N: usize = 17;
+    /// `observer_bar`.
+    pub const OBSERVER_BAR: usize = 18;
+    /// `observer_sd_bar`.
+    pub const OBSERVER_SD_BAR: usize = 19;
 }
 
 /// A sensor of a suite (paper Table 3).
@@ -274,11 +281,14 @@ pub enum Group {
     Signature,
     /// Causal 1 s mean and RMS of measured minus modelled force (loadcell).
     Residual,
+    /// The gas-charge observer's posterior mean and standard deviation
+    /// ([`crate::charge`]).
+    Observer,
 }
 
 impl Group {
     /// All groups, in column order.
-    pub const ALL: [Group; 8] = [
+    pub const ALL: [Group; 9] = [
         Group::Force,
         Group::Position,
         Group::Acceleration,
@@ -287,6 +297,7 @@ impl Group {
         Group::Thermal,
         Group::Signature,
         Group::Residual,
+        Group::Observer,
     ];
 
     /// The paper's six groups (SPEC §4), in column order.
@@ -311,6 +322,7 @@ impl Group {
             Group::Thermal => "thermal",
             Group::Signature => "signature",
             Group::Residual => "residual",
+            Group::Observer => "observer",
         }
     }
 
@@ -334,6 +346,7 @@ impl Group {
             Group::Thermal => 7..12,
             Group::Signature => 12..16,
             Group::Residual => 16..18,
+            Group::Observer => 18..20,
         }
     }
 
@@ -351,7 +364,9 @@ impl Group {
             Group::Position => &[topic::POSITION],
             Group::Acceleration => &[topic::ACCELERATION],
             Group::Velocity => &[topic::POSITION, topic::ACCELERATION],
-            Group::Mechanical => &[topic::POSITION, topic::ACCELERATION, topic::TEMP_SHOCK],
+            Group::Mechanical | Group::Observer => {
+                &[topic::POSITION, topic::ACCELERATION, topic::TEMP_SHOCK]
+            }
             Group::Residual => &[
                 topic::FORCE,
                 topic::POSITION,
@@ -375,7 +390,7 @@ impl Group {
             Group::Position => &[Sensor::Potentiometer],
             Group::Acceleration => &[Sensor::Accelerometers],
             Group::Velocity => &[Sensor::Potentiometer, Sensor::Accelerometers],
-            Group::Mechanical | Group::Thermal | Group::Signature => &[
+            Group::Mechanical | Group::Thermal | Group::Signature | Group::Observer => &[
                 Sensor::Potentiometer,
                 Sensor::Accelerometers,
                 Sensor::Thermocouples,
@@ -543,9 +558,10 @@ pub fn paper_permutations() -> &'static [Permutation] {
     &PAPER_PERMUTATIONS
 }
 
-/// Our permutations beyond the paper's (ids 14–16): the paper's hybrids
-/// with the causal-window groups `signature` and `residual`.
-pub static EXTRA_PERMUTATIONS: [Permutation; 3] = [
+/// Our permutations beyond the paper's (ids 14–19): the paper's hybrids
+/// with the causal-window groups `signature` and `residual` (14–16) and with
+/// the gas-charge observer (17–19).
+pub static EXTRA_PERMUTATIONS: [Permutation; 6] = [
     perm!(
         14,
         "Causal signature hybrid (no force)",
@@ -561,10 +577,36 @@ pub static EXTRA_PERMUTATIONS: [Permutation; 3] = [
         "Causal full hybrid",
         [Force, Velocity, Mechanical, Residual, Signature]
     ),
+    perm!(17, "Charge observer (no force)", [Observer]),
+    perm!(
+        18,
+        "Observer thermomechanical hybrid (no force)",
+        [
+            Position,
+            Acceleration,
+            Velocity,
+            Mechanical,
+            Thermal,
+            Observer
+        ]
+    ),
+    perm!(
+        19,
+        "Observer thermomechanical hybrid",
+        [
+            Force,
+            Position,
+            Acceleration,
+            Velocity,
+            Mechanical,
+            Thermal,
+            Observer
+        ]
+    ),
 ];
 
 /// Our permutations beyond the paper's 13 ([`EXTRA_PERMUTATIONS`], ids
-/// 14–16); [`paper_rmse_bar`] has no figure for them.
+/// 14–19); [`paper_rmse_bar`] has no figure for them.
 #[must_use]
 pub fn extra_permutations() -> &'static [Permutation] {
     &EXTRA_PERMUTATIONS
@@ -887,7 +929,9 @@ pub struct FeaturePipeline {
     pending_t_ns: Option<i64>,
     pending_n: f64,
     pending_a_sum: f64,
+    pending_a2: f64,
     bias_mps2: f64,
+    observer: Option<ChargeObserver>,
 
     temp_shock_c: f64,
     temp_ambient_c: f64,
@@ -929,6 +973,16 @@ impl FeaturePipeline {
                 }
             }
         }
+        let observer = match params.observer {
+            Some(o) if column_mask[col::OBSERVER_BAR] && !position_only => {
+                Some(ChargeObserver::new(o)?)
+            }
+            _ => None,
+        };
+        if observer.is_none() {
+            column_mask[col::OBSERVER_BAR] = false;
+            column_mask[col::OBSERVER_SD_BAR] = false;
+        }
         Ok(Self {
             available,
             force_model: ForceModel::new(params.force),
@@ -949,7 +1003,9 @@ impl FeaturePipeline {
             pending_t_ns: None,
             pending_n: 0.0,
             pending_a_sum: 0.0,
+            pending_a2: f64::NAN,
             bias_mps2: f64::NAN,
+            observer,
             temp_shock_c: f64::NAN,
             temp_ambient_c: f64::NAN,
             first_shock_c: f64::NAN,
@@ -965,6 +1021,20 @@ impl FeaturePipeline {
             temp_resid: TickWindow::new(),
             out: VecDeque::with_capacity(64),
         })
+    }
+
+    /// The gas-charge observer, when the parameters configure one and the
+    /// suite feeds it.
+    #[must_use]
+    pub fn observer(&self) -> Option<&ChargeObserver> {
+        self.observer.as_ref()
+    }
+
+    /// Keeps the observer's fitted reversals (see [`ChargeObserver::reversals`]).
+    pub fn record_reversals(&mut self) {
+        if let Some(obs) = self.observer.as_mut() {
+            obs.record_reversals();
+        }
     }
 
     /// Whether the position-only Kalman filter runs.
@@ -1038,6 +1108,7 @@ impl FeaturePipeline {
                         self.pending_t_ns = Some(t);
                         self.pending_n += 1.0;
                         self.pending_a_sum += a;
+                        self.pending_a2 = a2_mps2;
                     }
                 } else {
                     self.missing_samples += 1;
@@ -1121,6 +1192,11 @@ impl FeaturePipeline {
         let in_tick = self
             .pending_t_ns
             .is_some_and(|t| t > self.next_tick_ns - TICK_NS);
+        if let (Some(obs), Some(t), Some(x)) =
+            (self.observer.as_mut(), self.pending_t_ns, self.kf.state())
+        {
+            obs.sample(t, self.pending_a2, x[0], x[1]);
+        }
         if let Some(x) = self.kf.state().filter(|_| in_tick) {
             let n = self.pending_n;
             self.bx_kf_y.add_sum(x[0] * n, n);
@@ -1135,6 +1211,7 @@ impl FeaturePipeline {
         self.pending_t_ns = None;
         self.pending_n = 0.0;
         self.pending_a_sum = 0.0;
+        self.pending_a2 = f64::NAN;
     }
 
     /// Pushes the tick's within-tick `a_rel` variance, temperature residual
@@ -1184,6 +1261,10 @@ impl FeaturePipeline {
         let (oil_c, cyl_c) = self
             .thermal
             .map_or((f64::NAN, f64::NAN), |s| (s.oil_c, s.cyl_c));
+        let charge = self.observer.as_mut().map(|obs| {
+            obs.set_gas_temp_c(oil_c);
+            obs.estimate(t_k)
+        });
 
         let fb = self.force_model.force(v, a_corr, y, oil_c);
         let power_w = self.force_model.dissipative_power_w(v, oil_c);
@@ -1225,6 +1306,8 @@ impl FeaturePipeline {
             temp_resid_rate,
             force_resid_mean,
             force_resid_rms,
+            charge.map_or(f64::NAN, |c| c.mean_bar),
+            charge.map_or(f64::NAN, |c| c.sd_bar),
         ];
         for (value, keep) in values.iter_mut().zip(self.column_mask) {
             if !keep {
@@ -1309,6 +1392,40 @@ pub fn sorted_samples(log: &RunLog) -> Vec<Sample> {
     log.samples_sorted()
 }
 
+/// The gas-charge observer's fitted reversals over a whole run (for
+/// calibration and analysis): the [`FeaturePipeline`] on the observer
+/// group's topics, with `params.observer` or its defaults. An error names
+/// the run and the topics it lacks.
+pub fn compute_reversals(
+    log: &RunLog,
+    params: &PhysicsParams,
+) -> Result<(Vec<Reversal>, ObserverCounters), PhysicsError> {
+    let groups = [Group::Observer];
+    let available = TopicSet::from_log(log);
+    let missing = available.missing_for(&groups);
+    if !missing.is_empty() {
+        return Err(PhysicsError::MissingTopics {
+            run_id: log.metadata.run_id.clone(),
+            missing: missing.into_iter().map(str::to_owned).collect(),
+            groups: vec![Group::Observer.name().to_owned()],
+        });
+    }
+    let mut params = *params;
+    params.observer.get_or_insert_with(ObserverParams::default);
+    let mut pipe =
+        FeaturePipeline::new(&params, available.intersect(TopicSet::for_groups(&groups)))?;
+    pipe.record_reversals();
+    for s in &sorted_samples(log) {
+        pipe.push(s)?;
+        pipe.drain().for_each(drop);
+    }
+    pipe.finish();
+    let obs = pipe
+        .observer()
+        .expect("the observer group makes an observer");
+    Ok((obs.reversals().to_vec(), obs.counters()))
+}
+
 /// Batch features of one run: checks that the log has every topic `groups`
 /// need (an error names the run and the missing topics), then runs the
 /// [`FeaturePipeline`] over the log's samples in order and keeps the columns
@@ -1333,7 +1450,16 @@ pub fn compute_features(
         });
     }
     let suite = available.intersect(TopicSet::for_groups(groups));
-    let mut pipe = FeaturePipeline::new(params, suite)?;
+    // The observer is costly: it runs only when its group is asked for; without
+    // `params.observer` it runs with the defaults, whose uncalibrated
+    // measurement model keeps the prior (a wide interval, never a confident number).
+    let mut params = *params;
+    if groups.contains(&Group::Observer) {
+        params.observer.get_or_insert_with(ObserverParams::default);
+    } else {
+        params.observer = None;
+    }
+    let mut pipe = FeaturePipeline::new(&params, suite)?;
     let idx = column_indices(groups);
     let samples = sorted_samples(log);
     let n_ticks = samples.last().map_or(0, |last| {
@@ -2014,7 +2140,10 @@ mod tests {
     #[test]
     fn extra_permutations_are_ours() {
         let perms = extra_permutations();
-        assert_eq!(perms.iter().map(|p| p.id).collect::<Vec<_>>(), [14, 15, 16]);
+        assert_eq!(
+            perms.iter().map(|p| p.id).collect::<Vec<_>>(),
+            [14, 15, 16, 17, 18, 19]
+        );
         assert_eq!(
             perms[0].groups.as_ref(),
             [Group::Velocity, Group::Mechanical, Group::Signature]
@@ -2022,7 +2151,7 @@ mod tests {
         assert_eq!(perms[0].name, "Causal signature hybrid (no force)");
         assert_eq!(
             perms.iter().map(Permutation::cost_aud).collect::<Vec<_>>(),
-            [297, 4292, 4292]
+            [297, 4292, 4292, 297, 297, 4292]
         );
         assert_eq!(
             perms[1].columns(),
@@ -2037,6 +2166,7 @@ mod tests {
             ]
         );
         assert_eq!(perms[2].columns().len(), 11);
+        assert_eq!(perms[3].columns(), ["observer_bar", "observer_sd_bar"]);
         assert!(perms.iter().all(|p| paper_rmse_bar(p.id).is_none()));
         assert_eq!(paper_permutations().len(), 13);
         assert_eq!(Group::from_name("signature").unwrap(), Group::Signature);

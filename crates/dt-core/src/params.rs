@@ -14,6 +14,7 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use crate::charge::ObserverParams;
 use crate::error::PhysicsError;
 
 /// Standard atmospheric pressure, Pa (SPEC §3.3 `p_atm`).
@@ -241,6 +242,10 @@ pub struct PhysicsParams {
     pub thermal: ThermalParams,
     /// SPEC §3.3.
     pub force: ForceParams,
+    /// The gas-charge observer ([`crate::charge`]); absent in physics
+    /// calibrated before it existed (no observer columns then).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observer: Option<ObserverParams>,
 }
 
 impl PhysicsParams {
@@ -248,7 +253,10 @@ impl PhysicsParams {
     pub fn validate(&self) -> Result<(), PhysicsError> {
         self.kalman.validate()?;
         self.thermal.validate()?;
-        self.force.validate()
+        self.force.validate()?;
+        self.observer
+            .as_ref()
+            .map_or(Ok(()), ObserverParams::validate)
     }
 }
 

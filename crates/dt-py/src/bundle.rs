@@ -241,7 +241,9 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 ///
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
-/// ``pressure_avg_bar`` (1 s average), ``expected_bar``, ``velocity_mps``,
+/// ``pressure_avg_bar`` (1 s average), ``pressure_lo_bar`` and
+/// ``pressure_hi_bar`` (central 95 % interval, NaN without the charge
+/// observer), ``expected_bar``, ``velocity_mps``,
 /// ``force_model_n``, ``oil_temp_c`` (float64, NaN where the estimator has
 /// no value) and ``health`` (str: ``ok``, ``low``, ``leak``, ``unknown``).
 /// Raises ``MissingTopicsError`` when the log lacks a topic the bundle's
@@ -292,6 +294,14 @@ pub(crate) fn estimate<'py>(
     out.set_item(
         "pressure_avg_bar",
         to_numpy(py, column(|e| e.pressure_avg_bar)),
+    )?;
+    out.set_item(
+        "pressure_lo_bar",
+        to_numpy(py, column(|e| e.pressure_lo_bar)),
+    )?;
+    out.set_item(
+        "pressure_hi_bar",
+        to_numpy(py, column(|e| e.pressure_hi_bar)),
     )?;
     out.set_item("expected_bar", to_numpy(py, column(|e| e.expected_bar)))?;
     let health: Vec<&str> = estimates.iter().map(|e| e.health.as_str()).collect();

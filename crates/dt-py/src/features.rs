@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use dt_core::bundle::Bundle;
 use dt_core::features::{
-    compute_features, paper_permutations, paper_rmse_bar, suite_cost_aud, suite_sensors, Group,
-    Permutation, Sensor, COLUMNS,
+    compute_features, compute_reversals, paper_permutations, paper_rmse_bar, suite_cost_aud,
+    suite_sensors, Group, Permutation, Sensor, COLUMNS,
 };
 use dt_core::params::PhysicsParams;
 use numpy::ndarray::Array2;
@@ -102,16 +102,7 @@ pub(crate) fn features<'py>(
             ))
         }
     };
-    let run = if let Ok(log) = log.downcast::<PyLog>() {
-        log.get().run_log()
-    } else if log.is_instance_of::<PyString>() || log.hasattr("__fspath__")? {
-        read_log(py, log.extract()?)?.run_log()
-    } else {
-        return Err(PyTypeError::new_err(format!(
-            "log: expected a shocktwin.Log or a path, got {}",
-            log.get_type().name()?
-        )));
-    };
+    let run = run_from(py, log)?;
     let table = without_gil(py, move || compute_features(&run, &params, &groups))
         .map_err(CoreError::from)?;
     let shape = (table.n_rows(), table.columns.len());
@@ -119,6 +110,79 @@ pub(crate) fn features<'py>(
         .expect("dt-core returns n_rows × n_columns values");
     let t_s = ns_to_seconds(&table.t_ns, table.t_origin_ns);
     Ok((x.into_pyarray(py), table.columns, to_numpy(py, t_s)))
+}
+
+/// The gas-charge observer's fitted reversals over a run, one entry per
+/// fitted velocity reversal (for calibrating the observer's measurement
+/// model and for analysis); the GIL is released meanwhile.
+///
+/// ``log`` and ``bundle_or_params`` as in ``features``; the physics'
+/// ``observer`` section (or its defaults) configures the fit. Returns a dict
+/// of float64 arrays: ``t_s`` (reversal time, s since the run's first
+/// message), ``accel_mps2`` (velocity slope across it), ``extension_m``,
+/// ``gas_temp_c``, ``alpha_n`` (fitted friction amplitude), ``damping_ext_nspm``,
+/// ``damping_comp_nspm``, ``shift_s``, ``residual_mps2``, ``samples``,
+/// ``a_n``, ``b_n_per_bar`` (the measurement model ``alpha = a + b p``) and
+/// ``used`` (1.0 when the update took it), plus the counts ``detected``,
+/// ``skipped``, ``rejected``. Raises ``MissingTopicsError`` when the log lacks
+/// a topic the observer needs.
+#[pyfunction]
+pub(crate) fn charge_reversals<'py>(
+    py: Python<'py>,
+    log: &Bound<'py, PyAny>,
+    bundle_or_params: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (params, _) = physics_from(bundle_or_params)?;
+    let run = run_from(py, log)?;
+    let origin = run.samples_sorted().first().map_or(0, |s| s.t_ns());
+    let (revs, counters) =
+        without_gil(py, move || compute_reversals(&run, &params)).map_err(CoreError::from)?;
+    let out = PyDict::new(py);
+    let col = |f: &dyn Fn(&dt_core::charge::Reversal) -> f64| -> Vec<f64> {
+        revs.iter().map(f).collect()
+    };
+    out.set_item(
+        "t_s",
+        to_numpy(py, col(&|r| (r.t_ns - origin) as f64 * 1e-9)),
+    )?;
+    out.set_item("accel_mps2", to_numpy(py, col(&|r| r.accel_mps2)))?;
+    out.set_item("extension_m", to_numpy(py, col(&|r| r.extension_m)))?;
+    out.set_item("gas_temp_c", to_numpy(py, col(&|r| r.gas_temp_c)))?;
+    out.set_item("alpha_n", to_numpy(py, col(&|r| r.alpha_n)))?;
+    out.set_item(
+        "damping_ext_nspm",
+        to_numpy(py, col(&|r| r.damping_ext_nspm)),
+    )?;
+    out.set_item(
+        "damping_comp_nspm",
+        to_numpy(py, col(&|r| r.damping_comp_nspm)),
+    )?;
+    out.set_item("shift_s", to_numpy(py, col(&|r| r.shift_s)))?;
+    out.set_item("residual_mps2", to_numpy(py, col(&|r| r.residual_mps2)))?;
+    out.set_item("samples", to_numpy(py, col(&|r| r.samples as f64)))?;
+    out.set_item("a_n", to_numpy(py, col(&|r| r.a_n)))?;
+    out.set_item("b_n_per_bar", to_numpy(py, col(&|r| r.b_n_per_bar)))?;
+    out.set_item("used", to_numpy(py, col(&|r| f64::from(u8::from(r.used)))))?;
+    out.set_item("detected", counters.detected)?;
+    out.set_item("skipped", counters.skipped)?;
+    out.set_item("rejected", counters.rejected)?;
+    Ok(out)
+}
+
+fn run_from(
+    py: Python<'_>,
+    log: &Bound<'_, PyAny>,
+) -> PyResult<std::sync::Arc<dt_core::log::RunLog>> {
+    if let Ok(log) = log.downcast::<PyLog>() {
+        Ok(log.get().run_log())
+    } else if log.is_instance_of::<PyString>() || log.hasattr("__fspath__")? {
+        Ok(read_log(py, log.extract()?)?.run_log())
+    } else {
+        Err(PyTypeError::new_err(format!(
+            "log: expected a shocktwin.Log or a path, got {}",
+            log.get_type().name()?
+        )))
+    }
 }
 
 /// The feature columns of one input group, in order.
@@ -166,12 +230,14 @@ pub(crate) fn permutations(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
 }
 
 /// Our input permutations beyond the paper's (ids 14–16: its hybrids with
-/// the causal-window groups ``signature`` and ``residual``), as a fresh list
-/// of dicts like ``permutations()`` (``paper_rmse_bar`` is ``None``).
+/// the causal-window groups ``signature`` and ``residual``; 17–19: the
+/// charge observer alone and beside the thermomechanical hybrids), as a
+/// fresh list of dicts like ``permutations()`` (``paper_rmse_bar`` is
+/// ``None``).
 ///
 /// >>> import shocktwin
 /// >>> [(p["id"], p["cost_aud"]) for p in shocktwin.extra_permutations()]
-/// [(14, 297), (15, 4292), (16, 4292)]
+/// [(14, 297), (15, 4292), (16, 4292), (17, 297), (18, 297), (19, 4292)]
 #[pyfunction]
 pub(crate) fn extra_permutations(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
     permutation_dicts(py, dt_core::features::extra_permutations())

@@ -31,9 +31,11 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<thermal::PyThermalModel>()?;
     m.add_class::<force::PyForceModel>()?;
     m.add_function(wrap_pyfunction!(params::default_params, m)?)?;
+    m.add_function(wrap_pyfunction!(params::default_observer_params, m)?)?;
     m.add_class::<log::PyLog>()?;
     m.add_function(wrap_pyfunction!(log::read_log, m)?)?;
     m.add_function(wrap_pyfunction!(features::features, m)?)?;
+    m.add_function(wrap_pyfunction!(features::charge_reversals, m)?)?;
     m.add_function(wrap_pyfunction!(features::group_columns, m)?)?;
     m.add_function(wrap_pyfunction!(features::group_topics, m)?)?;
     m.add_function(wrap_pyfunction!(features::suite, m)?)?;

@@ -30,6 +30,16 @@ pub(crate) fn default_params(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     physics_dict(py, &PhysicsParams::default())
 }
 
+/// The gas-charge observer's default parameters (the ``observer`` section of
+/// a physics.json, SPEC §3 v2): the documented rig, an ADXL345-class filter,
+/// the datasheet geometry of the simulated damper and an uncalibrated
+/// measurement model (``step_per_bar_n`` 0: the observer keeps its prior).
+/// ``python -m train.observer fit`` calibrates it.
+#[pyfunction]
+pub(crate) fn default_observer_params(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    to_dict(py, &dt_core::charge::ObserverParams::default())
+}
+
 /// `params` as the physics.json dict.
 pub(crate) fn physics_dict<'py>(
     py: Python<'py>,
@@ -68,14 +78,14 @@ pub(crate) fn physics_from_file(path: &Path) -> PyResult<PhysicsParams> {
     physics_from_value(&what, value)
 }
 
-/// The `kalman`, `thermal` and `force` parts of a physics.json value (other
+/// The `kalman`, `thermal`, `force` and optional `observer` parts of a physics.json value (other
 /// top-level keys, such as `format` or `fit`, are ignored; inside each part
 /// every SPEC parameter is required and no other is allowed), validated.
 fn physics_from_value(what: &str, value: Value) -> PyResult<PhysicsParams> {
     let Value::Object(mut map) = value else {
         return Err(CoreError::Params(format!("{what}: expected a JSON object / dict")).into());
     };
-    let parts: Map<String, Value> = ["kalman", "thermal", "force"]
+    let parts: Map<String, Value> = ["kalman", "thermal", "force", "observer"]
         .into_iter()
         .filter_map(|k| map.remove(k).map(|v| (k.to_owned(), v)))
         .collect();

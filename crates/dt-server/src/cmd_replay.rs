@@ -201,12 +201,14 @@ fn t0(log: &RunLog) -> i64 {
     log.t0_ns().unwrap_or(0)
 }
 
-const FIELDS: [&str; 11] = [
+const FIELDS: [&str; 13] = [
     "run_id",
     "asset_id",
     "t_s",
     "pressure_bar",
     "pressure_avg_bar",
+    "pressure_lo_bar",
+    "pressure_hi_bar",
     "expected_bar",
     "health",
     "velocity_mps",
@@ -237,11 +239,13 @@ fn write_table(out: &Path, format: Format, runs: &[Replayed]) -> Result<()> {
             if format == Format::Csv {
                 let _ = write!(
                     line,
-                    "{},{},{t_s:.3},{},{},{},{},{},{},{},{}",
+                    "{},{},{t_s:.3},{},{},{},{},{},{},{},{},{},{}",
                     r.run_id,
                     r.asset_id,
                     num(e.pressure_bar),
                     num(e.pressure_avg_bar),
+                    num(e.pressure_lo_bar),
+                    num(e.pressure_hi_bar),
                     num(e.expected_bar),
                     e.health,
                     num(e.velocity_mps),

@@ -9,6 +9,8 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   (SPEC §3.1–3.3); ``default_params()`` their priors as a physics.json dict.
 - ``features(log, bundle_or_params, groups)``: the 50 Hz feature table
   (SPEC §4) that training and the streaming estimator share.
+- ``charge_reversals(log, bundle_or_params)``: the gas-charge observer's
+  per-reversal fits over a run (calibration and analysis).
 - ``Bundle(path)``: a model bundle (SPEC §5), checked; ``Bundle.predict(X)``
   runs its network on raw feature rows.
 - ``estimate(log, bundle)``: the streaming estimator (the daemon's code) over
@@ -45,7 +47,9 @@ from shocktwin._native import (
     Log,
     ThermalModel,
     __version__,
+    charge_reversals,
     default_params,
+    default_observer_params,
     estimate,
     features,
     group_columns,
@@ -83,8 +87,10 @@ __all__ = [
     "ThermalModel",
     "ForceModel",
     "default_params",
+    "default_observer_params",
     # features and suites
     "features",
+    "charge_reversals",
     "GROUPS",
     "COLUMNS",
     "group_columns",

@@ -20,6 +20,8 @@ __all__ = [
     "suite",
     "permutations",
     "extra_permutations",
+    "charge_reversals",
+    "default_observer_params",
     "Bundle",
     "estimate",
     "GROUPS",
@@ -127,12 +129,17 @@ class ForceModel:
     @property
     def params(self) -> dict[str, float]: ...
 
+def default_observer_params() -> dict[str, float]: ...
 def default_params() -> dict[str, dict[str, float]]: ...
 def features(
     log: Log | _Path,
     bundle_or_params: dict[str, Any] | Bundle | _Path,
     groups: Sequence[str] | None = None,
 ) -> tuple[npt.NDArray[np.float64], list[str], _F64]: ...
+def charge_reversals(
+    log: Log | _Path,
+    bundle_or_params: dict[str, Any] | Bundle | _Path,
+) -> dict[str, Any]: ...
 def group_columns(name: str) -> list[str]: ...
 def group_topics(name: str) -> list[str]: ...
 def suite(groups: Sequence[str]) -> tuple[list[str], int]: ...

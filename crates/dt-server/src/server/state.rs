@@ -78,6 +78,10 @@ pub struct AssetSummary {
     pub pressure_bar: Option<f64>,
     /// Latest 1 s average pressure, bar.
     pub pressure_avg_bar: Option<f64>,
+    /// Latest central 95 % interval of the pressure, bar (SPEC §2a).
+    pub pressure_lo_bar: Option<f64>,
+    /// See `pressure_lo_bar`.
+    pub pressure_hi_bar: Option<f64>,
     /// Nominal pressure, bar.
     pub expected_bar: f64,
     /// Latest health.
@@ -186,6 +190,8 @@ impl LiveState {
                     run_id: run.meta.run_id.clone(),
                     pressure_bar: None,
                     pressure_avg_bar: None,
+                    pressure_lo_bar: None,
+                    pressure_hi_bar: None,
                     expected_bar: run.asset.nominal_bar,
                     health: Health::Unknown,
                     last_t_ns: None,
@@ -252,6 +258,8 @@ impl Sink for LiveSink {
             s.run_id.clone_from(&run.meta.run_id);
             s.pressure_bar = finite(last.pressure_bar);
             s.pressure_avg_bar = finite(last.pressure_avg_bar);
+            s.pressure_lo_bar = finite(last.pressure_lo_bar);
+            s.pressure_hi_bar = finite(last.pressure_hi_bar);
             s.expected_bar = last.expected_bar;
             s.health = health;
             s.last_t_ns = Some(last.t_ns);

@@ -99,6 +99,8 @@ impl TickCounterTwin {
             t_ns,
             pressure_bar: f64::NAN,
             pressure_avg_bar: f64::NAN,
+            pressure_lo_bar: f64::NAN,
+            pressure_hi_bar: f64::NAN,
             expected_bar: self.expected_bar,
             health: Health::Unknown,
             velocity_mps: f64::NAN,
