@@ -44,14 +44,15 @@ setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python p
 
 build: $(BIN) ## build the shocktwin CLI (release)
 
-demo: setup ## simulate the quick campaign, inspect, calibrate, study, stream a leaking run through the daemon (simulated data)
+demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer), study, stream a leaking run through the daemon (simulated data)
 	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
 	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
 	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures
+	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
-	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-16 --out $(OUT)/serve-demo
-	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}' $(OUT)/study/report.md
+	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo
+	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run/{/^| set | run/!p}' $(OUT)/study/report.md
 	@echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures"
 
 study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)

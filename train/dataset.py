@@ -75,7 +75,7 @@ class CampaignData:
 
     campaign: Campaign
     physics: dict[str, Any]
-    _tables: dict[frozenset[str], list[RunTable]] = field(default_factory=dict)
+    _tables: dict[tuple[frozenset[str], bool], list[RunTable]] = field(default_factory=dict)
     _excited: list[np.ndarray] | None = None
 
     def __post_init__(self) -> None:
@@ -84,7 +84,9 @@ class CampaignData:
     def tables(self, groups: Sequence[str]) -> list[RunTable]:
         """Tables of every run for the suite of ``groups``; an error names runs lacking sensors."""
         topics = suite_topics(groups)
-        if topics not in self._tables:
+        # the charge observer is costly: computed only for suites that ask for it
+        key = (topics, "observer" in groups)
+        if key not in self._tables:
             lacking = [
                 f"{r.name} lacks {', '.join(sorted(topics - set(r.log.topics)))}"
                 for r in self.campaign.runs
@@ -92,13 +94,13 @@ class CampaignData:
             ]
             if lacking:
                 raise CampaignError(f"input groups {'+'.join(groups)}: " + "; ".join(lacking))
-            within = groups_within(topics)
+            within = [g for g in groups_within(topics) if g != "observer" or key[1]]
             tabs = []
             for run in self.campaign.runs:
                 x, columns, t_s = shocktwin.features(run.log, self.physics, within)
                 tabs.append(RunTable(run, np.asarray(t_s), list(columns), x, float(run.label_bar)))  # type: ignore[arg-type]
-            self._tables[topics] = tabs
-        return self._tables[topics]
+            self._tables[key] = tabs
+        return self._tables[key]
 
     def excited(self) -> list[np.ndarray]:
         """Per run, the excited ticks (full-suite Kalman velocity; see the module doc)."""

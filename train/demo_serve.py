@@ -128,6 +128,32 @@ def stream_run(addr: str, path: Path) -> dict[str, Any]:
     return json.loads(reply.decode().strip().splitlines()[-1])
 
 
+def print_convergence(record_dir: Path, t0_ns: int | None, every_s: float = 10.0) -> None:
+    """The daemon's recorded ``/estimate`` stream every ``every_s`` seconds: the 1 s average,
+    the 95 % interval (SPEC §2a) and the health — how the estimate converges."""
+    records = sorted(record_dir.rglob("*.mcap"))
+    if not records or t0_ns is None:
+        return
+    rows: list[tuple[float, dict[str, Any]]] = []
+    with open(records[-1], "rb") as fh:
+        for _, channel, message in make_reader(fh).iter_messages(topics=["/estimate"]):
+            rows.append(((message.log_time - t0_ns) * 1e-9, json.loads(message.data)))
+    if not rows:
+        return
+    print("  t (s)   1 s avg (bar)   95 % interval (bar)   health   [daemon's /estimate record]")
+    nxt = every_s
+    for t, e in rows:
+        if t < nxt and (t, e) != rows[-1]:
+            continue
+        nxt = t + every_s
+
+        def num(key: str) -> str:
+            v = e.get(key)
+            return "   –  " if v is None else f"{v:6.2f}"
+        print(f"  {t:5.0f}   {num('pressure_avg_bar')}          [{num('pressure_lo_bar')}, {num('pressure_hi_bar')}]"
+              f"      {e.get('health')}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m train.demo_serve", description=__doc__.split("\n")[0])
     p.add_argument("--bin", default="target/release/shocktwin")
@@ -185,6 +211,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"verdict for {asset_id}: {verdict} {when_s}; 1 s average "
           f"{detail.get('pressure_avg_bar') or float('nan'):.2f} bar against {detail.get('expected_bar')} bar nominal "
           f"(true charge {meta['charge_pressure_bar']} bar; simulated data)")
+    print_convergence(args.out / "records", t0_ns)
     (args.out / "verdict.json").write_text(json.dumps({"report": report, "health_changes": changes,
                                                          "asset": {k: v for k, v in detail.items() if k != "history"}},
                                                         indent=2) + "\n")

@@ -109,7 +109,7 @@ def write_bundle(
             "columns": list(trained.columns),
         },
         "normalisation": {"mean": trained.mean.tolist(), "std": trained.std.tolist()},
-        "physics": {k: physics[k] for k in ("kalman", "thermal", "force")},
+        "physics": {k: physics[k] for k in ("kalman", "thermal", "force", "observer") if k in physics},
         "nominal_bar": nominal_bar,
         "health": dict(health or DEFAULT_HEALTH),
         "onnx": {

@@ -1,6 +1,6 @@
 """Train the hybrid network for one permutation and write a model bundle (SPEC §5).
 
-    python -m train.train --campaign DIR --permutation N --out BUNDLE_DIR [--physics physics.json]
+    python -m train.train --campaign DIR (--permutation N | --sensors LIST) --out BUNDLE_DIR [--physics physics.json]
 
 The features come from the bindings (the daemon's pipeline). ``--split`` chooses what
 part of the campaign is kept out of training to report metrics in the bundle's
@@ -41,7 +41,28 @@ def find_permutation(spec: str) -> dict[str, Any]:
     for perm in [*shocktwin.permutations(), *shocktwin.extra_permutations()]:
         if str(perm["id"]) == spec:
             return perm
-    raise CampaignError(f"unknown permutation {spec!r} (built in: 1–13 paper, 14–16 causal, or groups:a,b,…)")
+    raise CampaignError(f"unknown permutation {spec!r} (built in: 1–13 paper, 14–16 causal, 17–19 observer, "
+                        "or groups:a,b,…)")
+
+
+# The project's models from best to worst held out (docs/study/report.md and the observer
+# report): the first whose sensors a unit carries is the one `--sensors` trains.
+# 19 and 18 add the charge observer to 13 and 12; 17 is the observer alone.
+PREFERENCE = [19, 16, 13, 11, 15, 9, 18, 17, 12, 10, 14, 8, 7, 6, 5, 3, 2, 1, 4]
+
+
+def permutation_for_sensors(spec: str) -> dict[str, Any]:
+    """The best built-in permutation whose sensors are all in ``spec`` (comma separated)."""
+    known = list(shocktwin.SENSOR_COSTS_AUD)
+    sensors = [s.strip() for s in spec.split(",") if s.strip()]
+    unknown = [s for s in sensors if s not in known]
+    if unknown or not sensors:
+        raise CampaignError(f"unknown sensors {unknown} in --sensors {spec!r} (known: {', '.join(known)})")
+    perms = {p["id"]: p for p in [*shocktwin.permutations(), *shocktwin.extra_permutations()]}
+    for pid in PREFERENCE:
+        if set(perms[pid]["sensors"]) <= set(sensors):
+            return perms[pid]
+    raise CampaignError(f"no model uses only {', '.join(sensors)}")
 
 
 def load_physics(path: Path | None, campaign: Campaign, nominal_bar: float) -> dict[str, Any]:
@@ -67,7 +88,10 @@ def split_runs(n_runs: int, seed: int, frac: float = 0.25) -> np.ndarray:
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m train.train", description=__doc__.split("\n")[0])
     p.add_argument("--campaign", required=True, type=Path)
-    p.add_argument("--permutation", required=True, help="1–13, or groups:a,b,… for a custom suite")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--permutation", help="1–19, or groups:a,b,… for a custom suite")
+    which.add_argument("--sensors", help="comma-separated sensors the unit carries (loadcell, potentiometer, "
+                       "accelerometers, thermocouples): trains the project's best model for them")
     p.add_argument("--out", required=True, type=Path, help="bundle directory to write")
     p.add_argument("--physics", type=Path, help="physics.json from train.fit_physics")
     p.add_argument("--split", choices=SPLITS, default="runs")
@@ -81,8 +105,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     campaign = load_campaign(args.campaign)
     campaign.require_labels()
-    perm = find_permutation(args.permutation)
+    perm = find_permutation(args.permutation) if args.permutation else permutation_for_sensors(args.sensors)
     physics = load_physics(args.physics, campaign, args.nominal_bar)
+    if "observer" in perm["groups"] and not (physics.get("observer") or {}).get("step_per_bar_n"):
+        raise CampaignError(f"permutation {perm['id']} reads the charge observer, which the physics "
+                            f"{args.physics or '(calibrated now)'} has not calibrated: run "
+                            "`python -m train.observer fit --campaign DIR --physics physics.json` first")
     data = dataset.CampaignData(campaign, physics)
     tables = data.tables(perm["groups"])
     excited = data.excited_for(tables)
