@@ -52,7 +52,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo
-	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run/{/^| set | run/!p}' $(OUT)/study/report.md
+	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
 	@echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures"
 
 study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)
