@@ -49,6 +49,8 @@ log = logging.getLogger("shocktwin.observer")
 P_ATM_BAR = 1.01325
 Z95 = 1.959963984540054
 T_REF_K = 293.15
+# An excitation whose leave-one-run-out charge RMS is worse than this is not used.
+CLUSTER_MAX_LORO_BAR = 2.0
 MIN_CLUSTER_REVERSALS = 20  # a run with fewer fitted reversals calibrates no excitation
 SKIP_AFTER_ONSET_S = 5.0  # the actuator's ramp
 WARN_BAR, FAULT_BAR, HYST_BAR, DWELL_S = 9.0, 5.0, 0.5, 3.0
@@ -96,16 +98,23 @@ def design(rev: dict[str, np.ndarray], p_bar: np.ndarray, obs: dict[str, float])
     return np.column_stack([np.ones_like(a), np.sign(a), np.abs(a), pg, np.abs(a) * pg])
 
 
-def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, float]) -> tuple[np.ndarray, float]:
-    """Robust LS of ``alpha`` on ``[1, sgn a, |a|, p_g, |a| p_g]``; returns coefficients and the MAD spread."""
+def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, float],
+                    with_accel: bool = True) -> tuple[np.ndarray, float]:
+    """Robust LS of ``alpha`` on ``[1, sgn a, |a|, p_g, |a| p_g]`` (without the ``|a|`` terms,
+    which one excitation cannot identify, when not ``with_accel``); returns the five
+    coefficients and the MAD spread."""
     x = np.vstack([design(r, r["label_bar"], obs) for r in revs])
     y = np.concatenate([r["alpha_n"] for r in revs])
-    c0, *_ = np.linalg.lstsq(x, y, rcond=None)
-    res0 = y - x @ c0
+    cols = [0, 1, 2, 3, 4] if with_accel else [0, 1, 3]
+    xs = x[:, cols]
+    c0, *_ = np.linalg.lstsq(xs, y, rcond=None)
+    res0 = y - xs @ c0
     scale = max(1.4826 * float(np.median(np.abs(res0 - np.median(res0)))), 1e-3)
-    sol = least_squares(lambda c: x @ c - y, c0, loss="soft_l1", f_scale=scale)
-    res = y - x @ sol.x
-    return sol.x, 1.4826 * float(np.median(np.abs(res - np.median(res))))
+    sol = least_squares(lambda c: xs @ c - y, c0, loss="soft_l1", f_scale=scale)
+    res = y - xs @ sol.x
+    coef = np.zeros(5)
+    coef[cols] = sol.x
+    return coef, 1.4826 * float(np.median(np.abs(res - np.median(res))))
 
 
 def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: dict[str, float]) -> tuple[float, float]:
@@ -148,26 +157,47 @@ def accel_clusters(revs: Sequence[dict[str, Any]], rel: float) -> list[float]:
 
 
 def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct: float) -> dict[str, Any]:
-    clusters = accel_clusters(revs, obs["accel_cluster_rel"])
-    centres = np.array([c for c in clusters if c > 0])
-    if not len(centres):
+    """The measurement model, validated run by run: leave-one-run-out charge errors per
+    excitation (reversal-acceleration cluster); an excitation whose LORO RMS exceeds
+    ``CLUSTER_MAX_LORO_BAR`` is dropped (the observer skips its reversals) and the rest refitted."""
+    clusters = [c for c in accel_clusters(revs, obs["accel_cluster_rel"]) if c > 0]
+    if not clusters:
         raise ValueError(f"no run has {MIN_CLUSTER_REVERSALS} fitted reversals: nothing to calibrate the observer on")
+    rel = obs["accel_cluster_rel"]
+    dropped: list[dict[str, float]] = []
+    while True:
+        centres = np.array(clusters)
 
-    def inside(r: dict[str, Any]) -> dict[str, Any]:  # the observer skips the others
-        a = np.abs(r["accel_mps2"])[:, None]
-        keep = (np.abs(a - centres) <= obs["accel_cluster_rel"] * centres).any(axis=1)
-        return {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+        def inside(r: dict[str, Any]) -> dict[str, Any]:  # the observer skips the others
+            a = np.abs(r["accel_mps2"])[:, None]
+            keep = (np.abs(a - centres) <= rel * centres).any(axis=1)
+            return {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
 
-    revs = [inside(r) for r in revs]
-    coef, sd_n = fit_measurement(revs, obs)
-    loro = []
-    for i, r in enumerate(revs):
-        others = [q for j, q in enumerate(revs) if j != i]
-        c_i, sd_i = fit_measurement(others, obs)
-        p_hat, p_sd = charge_from(r, c_i, sd_i, obs)
-        truth = r["truth_bar"]
-        loro.append({"run": r["run"], "truth_bar": truth, "estimate_bar": p_hat, "stat_sd_bar": p_sd,
-                     "error_bar": p_hat - truth, "reversals": int(len(r["alpha_n"]))})
+        used = [inside(r) for r in revs]
+        with_accel = len(clusters) > 1
+        coef, sd_n = fit_measurement(used, obs, with_accel)
+        loro = []
+        for i, r in enumerate(used):
+            others = [q for j, q in enumerate(used) if j != i]
+            c_i, sd_i = fit_measurement(others, obs, with_accel)
+            p_hat, p_sd = charge_from(r, c_i, sd_i, obs)
+            a_med = float(np.median(np.abs(r["accel_mps2"]))) if len(r["accel_mps2"]) else np.nan
+            loro.append({"run": r["run"], "truth_bar": r["truth_bar"], "estimate_bar": p_hat, "stat_sd_bar": p_sd,
+                         "error_bar": p_hat - r["truth_bar"], "reversals": int(len(r["alpha_n"])),
+                         "accel_mps2": a_med,
+                         "cluster": int(np.argmin(np.abs(centres - a_med))) if np.isfinite(a_med) else -1})
+        per_cluster = []
+        for k in range(len(clusters)):
+            e = np.array([row["error_bar"] for row in loro if row["cluster"] == k])
+            e = e[np.isfinite(e)]
+            per_cluster.append(float(np.sqrt(np.mean(e ** 2))) if len(e) else np.inf)
+        worst = int(np.argmax(per_cluster))
+        if len(clusters) == 1 or per_cluster[worst] <= CLUSTER_MAX_LORO_BAR:
+            break
+        log.warning("reversals at |a| = %.2f m/s² do not calibrate (leave-one-run-out RMS %.1f bar > %.1f): "
+                    "the observer will skip them", clusters[worst], per_cluster[worst], CLUSTER_MAX_LORO_BAR)
+        dropped.append({"accel_mps2": clusters[worst], "loro_rms_bar": per_cluster[worst]})
+        clusters.pop(worst)
     err = np.array([row["error_bar"] for row in loro])
     stat = np.array([row["stat_sd_bar"] for row in loro])
     ok = np.isfinite(err)
@@ -178,12 +208,13 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
         row.update({k: None for k, v in row.items() if isinstance(v, float) and not np.isfinite(v)})
     tol = unit_tol_pct / 100.0
     out = dict(obs)
-    out["accel_clusters_mps2"] = clusters
+    out["accel_clusters_mps2"] = clusters + [0.0] * (4 - len(clusters))
     out.update(step_offset_n=float(coef[0]), step_dir_n=float(coef[1]), step_per_accel_ns2pm=float(coef[2]),
                step_per_bar_n=float(coef[3]), step_per_bar_accel=float(coef[4]), step_sd_n=float(sd_n),
                systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
     out["systematic_rel"] = tol
     return {"observer": out, "loro": loro, "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))),
+            "loro_rms_per_cluster_bar": [v if np.isfinite(v) else None for v in per_cluster], "dropped_clusters": dropped,
             "systematic_loro_bar": sys_sd}
 
 

@@ -77,8 +77,9 @@ def test_window_fit_matches_scipy(run_4bar: Path) -> None:
         def resid(z: np.ndarray) -> np.ndarray:
             return window_model(z * scale, accel, o, times) - data
 
-        start = np.array([ours[0] * 1.2, 1.0, 1.0, 0.0, data[:5].mean()]) / scale * np.array([1, 1, 1, 1, 1])
-        start[0] = ours[0] * 1.2 / 10.0
+        # The window problem has more than one minimum (module docs): scipy starts near ours
+        # (amplitude +10 %, slopes +20 %, shift +0.5 ms, offset from the data) and must land on it.
+        start = np.array([ours[0] * 1.1, ours[1] * 1.2, ours[2] * 1.2, ours[3] + 5e-4, data[:5].mean()]) / scale
         ref = least_squares(resid, start, x_scale="jac").x * scale
         assert abs(ref[0] - ours[0]) < 0.02 * abs(ours[0]) + 0.2, (i, ref, ours)
         assert abs(ref[3] - ours[3]) < 2e-4, (i, ref, ours)
