@@ -1396,6 +1396,9 @@ pub fn sorted_samples(log: &RunLog) -> Vec<Sample> {
 /// calibration and analysis): the [`FeaturePipeline`] on the observer
 /// group's topics, with `params.observer` or its defaults. An error names
 /// the run and the topics it lacks.
+///
+/// # Panics
+/// Never: the observer group's pipeline always has an observer.
 pub fn compute_reversals(
     log: &RunLog,
     params: &PhysicsParams,
