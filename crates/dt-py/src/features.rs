@@ -134,7 +134,10 @@ pub(crate) fn charge_reversals<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let (params, _) = physics_from(bundle_or_params)?;
     let run = run_from(py, log)?;
-    let origin = run.samples_sorted().first().map_or(0, dt_core::log::Sample::t_ns);
+    let origin = run
+        .samples_sorted()
+        .first()
+        .map_or(0, dt_core::log::Sample::t_ns);
     let (revs, counters) =
         without_gil(py, move || compute_reversals(&run, &params)).map_err(CoreError::from)?;
     let out = PyDict::new(py);
