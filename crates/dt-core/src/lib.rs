@@ -17,3 +17,4 @@ pub mod kalman;
 pub mod log;
 pub mod params;
 pub mod thermal;
+pub mod trend;

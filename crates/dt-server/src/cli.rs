@@ -54,6 +54,16 @@ pub struct SimulateArgs {
     /// independent noise and room (0 = the first take; run ids get `-r<k>`).
     #[arg(long, default_value_t = 0)]
     pub repeat: u32,
+    /// A unit in service losing gas: one run a day for this many days
+    /// (at the first of --frequencies), instead of a campaign.
+    #[arg(long, requires = "leak_rate")]
+    pub days: Option<u32>,
+    /// With --days: charge lost per day, bar.
+    #[arg(long, requires = "days")]
+    pub leak_rate: Option<f64>,
+    /// With --days: the charge on day 0, bar gauge.
+    #[arg(long, default_value_t = 12.0, requires = "days")]
+    pub start_bar: f64,
 }
 
 /// `shocktwin inspect`.

@@ -2,7 +2,7 @@
 //! one MCAP log per run, runs in parallel.
 
 use anyhow::Context as _;
-use dt_sim::{simulate_campaign, CampaignSpec};
+use dt_sim::{simulate_campaign, simulate_leak_history, CampaignSpec, LeakHistorySpec};
 
 use crate::cli::SimulateArgs;
 
@@ -11,6 +11,31 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     if args.pressures.is_empty() || args.frequencies.is_empty() {
         anyhow::bail!("simulate: --pressures and --frequencies need at least one value each");
     }
+    let started = std::time::Instant::now();
+    let summaries = if let (Some(days), Some(leak)) = (args.days, args.leak_rate) {
+        let spec = LeakHistorySpec {
+            start_bar: args.start_bar,
+            leak_bar_per_day: leak,
+            days,
+            frequency_hz: args.frequencies[0],
+            seed: args.seed,
+            quick: args.quick,
+            unit: args.unit,
+        };
+        simulate_leak_history(&spec, &args.out).with_context(|| {
+            format!(
+                "simulate: {days} days of a unit losing {leak} bar/day into {}",
+                args.out.display()
+            )
+        })?
+    } else {
+        campaign(args)?
+    };
+    report(&summaries, started, args);
+    Ok(())
+}
+
+fn campaign(args: &SimulateArgs) -> anyhow::Result<Vec<dt_sim::RunSummary>> {
     let spec = CampaignSpec {
         pressures_bar: args.pressures.clone(),
         frequencies_hz: args.frequencies.clone(),
@@ -20,10 +45,12 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         repeat: args.repeat,
         ..CampaignSpec::paper(args.seed)
     };
-    let started = std::time::Instant::now();
-    let summaries = simulate_campaign(&spec, &args.out)
-        .with_context(|| format!("simulate: campaign into {}", args.out.display()))?;
-    for s in &summaries {
+    simulate_campaign(&spec, &args.out)
+        .with_context(|| format!("simulate: campaign into {}", args.out.display()))
+}
+
+fn report(summaries: &[dt_sim::RunSummary], started: std::time::Instant, args: &SimulateArgs) {
+    for s in summaries {
         let file = s
             .path
             .as_ref()
@@ -52,5 +79,4 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64(),
         args.out.display()
     );
-    Ok(())
 }

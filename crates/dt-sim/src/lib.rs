@@ -23,6 +23,8 @@
 //! * [`simulate_campaign`]`(&CampaignSpec, out_dir)` — a campaign in
 //!   parallel (rayon), one MCAP per run;
 //! * [`simulate_run`]`(&RunSpec, &PlantParams, out_path)` — one run to a file;
+//! * [`simulate_leak_history`]`(&LeakHistorySpec, out_dir)` — a unit losing gas,
+//!   one run a day on the calendar;
 //! * [`simulate_run_with`] — one run into any sample sink (in memory);
 //! * [`Plant`] — the truth plant, stepped by hand (tests, studies).
 //!
@@ -43,8 +45,8 @@ pub mod valve;
 pub use params::{parameter_table, ParamInfo, PlantParams};
 pub use plant::{Plant, PlantConfig, Truth};
 pub use run::{
-    simulate_campaign, simulate_run, simulate_run_with, CampaignSpec, RunSpec, RunSummary,
-    StopReason,
+    simulate_campaign, simulate_leak_history, simulate_run, simulate_run_with, CampaignSpec,
+    LeakHistorySpec, RunSpec, RunSummary, StopReason,
 };
 
 /// Everything that can go wrong in the simulator.

@@ -447,6 +447,100 @@ pub fn simulate_run(
     Ok(summary)
 }
 
+/// A unit in service losing gas: one run a day for `days` days, the charge
+/// falling linearly (`shocktwin simulate --leak-rate --days`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LeakHistorySpec {
+    /// Charge on day 0, bar gauge at 20 °C.
+    pub start_bar: f64,
+    /// Charge lost per day, bar (≥ 0).
+    pub leak_bar_per_day: f64,
+    /// Days (one run each).
+    pub days: u32,
+    /// Excitation of every run, Hz.
+    pub frequency_hz: f64,
+    /// Seed.
+    pub seed: u64,
+    /// Quick runs.
+    pub quick: bool,
+    /// Unit (`None` = nominal).
+    pub unit: Option<u64>,
+}
+
+/// Hour of the day (UTC) at which the day's run starts, before a jitter of
+/// up to ± 2 h drawn from the seed.
+pub const HISTORY_RUN_HOUR: f64 = 9.0;
+
+impl LeakHistorySpec {
+    /// Day `d`'s run: its spec (the day is the repeat take, so noise and
+    /// room differ from day to day), its start time and its charge.
+    #[must_use]
+    pub fn run(&self, day: u32) -> (RunSpec, i64) {
+        let charge_bar = (self.start_bar - self.leak_bar_per_day * f64::from(day)).max(0.0);
+        let spec = RunSpec {
+            charge_bar,
+            unit: self.unit,
+            quick: self.quick,
+            repeat: day,
+            ..RunSpec::paper(charge_bar, self.frequency_hz, self.seed)
+        };
+        let jitter =
+            mix_seed(&[self.seed, u64::from(day), 0x6a69_7474_6572]) as f64 / u64::MAX as f64;
+        let start_s =
+            f64::from(day) * 86_400.0 + (HISTORY_RUN_HOUR + 4.0 * (jitter - 0.5)) * 3600.0;
+        (spec, T0_NS + (start_s * 1e9) as i64)
+    }
+}
+
+/// Simulates a [`LeakHistorySpec`] into `out_dir`, one
+/// `d<day>-<run_id>.mcap` per day; each run's samples start at its day's
+/// time (Unix epoch, from `T0_NS`). The metadata adds `day` and
+/// `leak_bar_per_day`.
+pub fn simulate_leak_history(
+    spec: &LeakHistorySpec,
+    out_dir: &Path,
+) -> Result<Vec<RunSummary>, SimError> {
+    if !(spec.leak_bar_per_day.is_finite() && spec.leak_bar_per_day >= 0.0) {
+        return Err(SimError::InvalidSpec {
+            field: "leak_bar_per_day",
+            value: spec.leak_bar_per_day,
+            reason: "must be finite and ≥ 0",
+        });
+    }
+    std::fs::create_dir_all(out_dir).map_err(|source| SimError::Io {
+        path: out_dir.display().to_string(),
+        source,
+    })?;
+    let days: Vec<u32> = (0..spec.days).collect();
+    days.par_iter()
+        .map(|&day| {
+            let (run, start_ns) = spec.run(day);
+            let run_id = format!("d{day:03}-{}", run.run_id());
+            let mut meta = run.metadata();
+            meta.run_id.clone_from(&run_id);
+            meta.extra.insert("day".into(), day.to_string());
+            meta.extra
+                .insert("leak_bar_per_day".into(), spec.leak_bar_per_day.to_string());
+            let path = out_dir.join(format!("{run_id}.mcap"));
+            let log_err = |source: dt_core::log::LogError| SimError::Log {
+                run_id: run_id.clone(),
+                source: Box::new(source),
+            };
+            let mut writer =
+                LogWriter::create(&path, &meta, WriteOptions::default()).map_err(log_err)?;
+            let mut summary = simulate_run_with(&run, &run.params(), |s| {
+                writer
+                    .write_sample(&s.shifted(start_ns - T0_NS))
+                    .map_err(log_err)
+            })?;
+            writer.finish().map_err(log_err)?;
+            summary.run_id = run_id;
+            summary.path = Some(path);
+            Ok(summary)
+        })
+        .collect()
+}
+
 /// A campaign: every pressure × every frequency.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CampaignSpec {

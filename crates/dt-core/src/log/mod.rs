@@ -141,6 +141,21 @@ impl Sample {
         }
     }
 
+    /// The same sample `dt_ns` later.
+    #[must_use]
+    pub fn shifted(mut self, dt_ns: i64) -> Sample {
+        match &mut self {
+            Sample::Position { t_ns, .. }
+            | Sample::Acceleration { t_ns, .. }
+            | Sample::Force { t_ns, .. }
+            | Sample::TempShock { t_ns, .. }
+            | Sample::TempAmbient { t_ns, .. }
+            | Sample::TruthPressure { t_ns, .. }
+            | Sample::TruthVelocity { t_ns, .. } => *t_ns += dt_ns,
+        }
+        self
+    }
+
     /// Rank of the sample's topic for ordering samples with equal `t_ns`:
     /// acceleration (0), position, force, shock temperature, ambient
     /// temperature, truth pressure, truth velocity (6). The accelerometer

@@ -1,0 +1,371 @@
+//! Leak trend and time to threshold: the charge pressure of one asset
+//! against calendar time, across its runs.
+//!
+//! A leak takes days; one run says where the charge is, several runs say how
+//! fast it falls. Each excited run is summarised by the twin as one point
+//! `(t_i, p_i, s_i)`: calendar time (Unix s), charge estimate (bar) and its
+//! standard deviation (bar). The model is a straight line in time,
+//!
+//! ```text
+//! p_i = a + b·τ_i + e_i,   τ_i = (t_i − t_ref) / 86 400 s   (days),
+//! ```
+//!
+//! with `t_ref` the newest run (so `a` is the charge now and the covariance
+//! of `a` is small). `b` is the charge's rate of change in bar/day; the leak
+//! rate reported is `−b`.
+//!
+//! **Fit.** Weighted least squares with weights `1/s_i²`, made robust by
+//! iteratively reweighted least squares with Huber's weights (`k = 1.345`,
+//! scale from the median absolute standardised residual), so that one run
+//! whose estimate went wrong does not bend the line. The per-run `s_i` carry
+//! the estimator's systematic part (a unit's bias), which is the same in
+//! every run and does not scatter the points, so the covariance of `(a, b)`
+//! is *scaled* by the residual variance, `σ̂² = Σ wᵢ rᵢ² / (n − 2)` (as
+//! `scipy.optimize.curve_fit` with `absolute_sigma=False` and
+//! `numpy.polyfit(..., cov=True)` do), and intervals use Student's `t` with
+//! `n − 2` degrees of freedom.
+//!
+//! **Crossing.** The predicted time at which the line reaches a threshold
+//! `θ` is `τ* = (θ − a)/b`; its interval is Fieller's: the set of `τ` where
+//! `|a + bτ − θ| ≤ q·√(V_aa + 2τV_ab + τ²V_bb)` with `q` the central 95 %
+//! quantile of `t(n − 2)`. That set is a bounded interval exactly when `b`
+//! differs significantly from 0 (`b² > q² V_bb`); otherwise the crossing is
+//! not predicted ("no significant leak"), and if the charge rises or holds
+//! nothing is said but that.
+//!
+//! **Assumptions.** A constant leak rate over the fitted window (a leak that
+//! accelerates is fitted late); runs summarised at comparable excitation;
+//! the run times in the input are the samples' own times. Fewer than
+//! [`MIN_RUNS`] points, or points spanning less than [`MIN_SPAN_DAYS`], give
+//! `insufficient data` with the reason.
+
+use serde::Serialize;
+use statrs::distribution::{ContinuousCDF, StudentsT};
+
+/// Seconds per day.
+pub const DAY_S: f64 = 86_400.0;
+/// The fewest run summaries a trend is fitted from.
+pub const MIN_RUNS: usize = 3;
+/// The shortest span of run times a trend is fitted over, days.
+pub const MIN_SPAN_DAYS: f64 = 0.5;
+/// Huber's tuning constant (95 % efficiency under normal errors).
+pub const HUBER_K: f64 = 1.345;
+/// Central coverage of every interval.
+pub const COVERAGE: f64 = 0.95;
+/// IRLS iterations.
+const IRLS_ITERATIONS: usize = 20;
+
+/// One run's summary: where the charge was, when.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RunPoint {
+    /// Calendar time of the run's summary, Unix seconds.
+    pub t_unix_s: f64,
+    /// Charge-pressure estimate, bar gauge.
+    pub pressure_bar: f64,
+    /// Its standard deviation, bar (> 0).
+    pub sd_bar: f64,
+}
+
+/// A predicted threshold crossing, Unix seconds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Crossing {
+    /// Point prediction (`None`: not predicted, see the trend's reason).
+    pub t_unix_s: Option<f64>,
+    /// Lower end of the 95 % interval.
+    pub lo_unix_s: Option<f64>,
+    /// Upper end (`None`: unbounded).
+    pub hi_unix_s: Option<f64>,
+    /// Why there is no prediction, or a note (`already below`).
+    pub reason: Option<&'static str>,
+}
+
+/// The fitted line and what follows from it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Trend {
+    /// Run summaries used (after dropping non-finite ones).
+    pub runs_used: usize,
+    /// Reference time `t_ref` (the newest run), Unix seconds.
+    pub t_ref_unix_s: f64,
+    /// Charge at `t_ref`, bar.
+    pub intercept_bar: f64,
+    /// Rate of change, bar/day (negative: losing gas).
+    pub slope_bar_per_day: f64,
+    /// Covariance of `(intercept, slope)`, scaled (see the module doc).
+    pub cov: [[f64; 2]; 2],
+    /// Degrees of freedom of the residuals (`n − 2`).
+    pub dof: usize,
+    /// Central 95 % quantile of Student's `t(dof)`.
+    pub q: f64,
+    /// Final robust weight of each point, in input order (1 = full weight).
+    pub robust_weights: Vec<f64>,
+}
+
+/// Why no trend could be fitted.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, thiserror::Error)]
+pub enum TrendError {
+    /// Too few usable run summaries.
+    #[error("insufficient data: {have} excited run(s) with an estimate, {MIN_RUNS} needed")]
+    TooFewRuns {
+        /// How many there are.
+        have: usize,
+    },
+    /// The runs are too close together in time.
+    #[error("insufficient data: the runs span less than {MIN_SPAN_DAYS} day")]
+    ShortSpan,
+    /// The normal equations are singular.
+    #[error("insufficient data: the fit is singular")]
+    Singular,
+}
+
+impl Trend {
+    /// Fits the line to `points` (non-finite points and `sd_bar ≤ 0` are
+    /// dropped).
+    pub fn fit(points: &[RunPoint]) -> Result<Self, TrendError> {
+        let pts: Vec<RunPoint> = points
+            .iter()
+            .copied()
+            .filter(|p| {
+                p.t_unix_s.is_finite()
+                    && p.pressure_bar.is_finite()
+                    && p.sd_bar.is_finite()
+                    && p.sd_bar > 0.0
+            })
+            .collect();
+        let n = pts.len();
+        if n < MIN_RUNS {
+            return Err(TrendError::TooFewRuns { have: n });
+        }
+        let t_ref = pts.iter().map(|p| p.t_unix_s).fold(f64::MIN, f64::max);
+        let t_min = pts.iter().map(|p| p.t_unix_s).fold(f64::MAX, f64::min);
+        if (t_ref - t_min) / DAY_S < MIN_SPAN_DAYS {
+            return Err(TrendError::ShortSpan);
+        }
+        let tau: Vec<f64> = pts.iter().map(|p| (p.t_unix_s - t_ref) / DAY_S).collect();
+        let base_w: Vec<f64> = pts.iter().map(|p| 1.0 / (p.sd_bar * p.sd_bar)).collect();
+        let mut robust = vec![1.0; n];
+        let mut sol = wls(&tau, &pts, &base_w, &robust).ok_or(TrendError::Singular)?;
+        for _ in 0..IRLS_ITERATIONS {
+            // Standardised residuals and their robust scale (MAD / 0.6745).
+            let z: Vec<f64> = (0..n)
+                .map(|i| (pts[i].pressure_bar - sol.0 - sol.1 * tau[i]) * base_w[i].sqrt())
+                .collect();
+            let mut abs: Vec<f64> = z.iter().map(|v| v.abs()).collect();
+            abs.sort_by(f64::total_cmp);
+            let scale = median(&abs) / 0.6745;
+            if scale <= f64::EPSILON * 1e3 {
+                break;
+            }
+            let next: Vec<f64> = z
+                .iter()
+                .map(|v| {
+                    let u = v.abs() / scale;
+                    if u <= HUBER_K {
+                        1.0
+                    } else {
+                        HUBER_K / u
+                    }
+                })
+                .collect();
+            let change = next
+                .iter()
+                .zip(&robust)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            robust = next;
+            sol = wls(&tau, &pts, &base_w, &robust).ok_or(TrendError::Singular)?;
+            if change < 1e-9 {
+                break;
+            }
+        }
+        let (a, b, inv) = sol;
+        let dof = n - 2;
+        let chi2: f64 = (0..n)
+            .map(|i| {
+                let r = pts[i].pressure_bar - a - b * tau[i];
+                base_w[i] * robust[i] * r * r
+            })
+            .sum();
+        let s2 = if dof > 0 { chi2 / dof as f64 } else { f64::NAN };
+        let cov = [
+            [inv[0][0] * s2, inv[0][1] * s2],
+            [inv[1][0] * s2, inv[1][1] * s2],
+        ];
+        Ok(Self {
+            runs_used: n,
+            t_ref_unix_s: t_ref,
+            intercept_bar: a,
+            slope_bar_per_day: b,
+            cov,
+            dof,
+            q: t_quantile(dof),
+            robust_weights: robust,
+        })
+    }
+
+    /// The fitted charge at `t_unix_s`, bar.
+    #[must_use]
+    pub fn at(&self, t_unix_s: f64) -> f64 {
+        self.intercept_bar + self.slope_bar_per_day * (t_unix_s - self.t_ref_unix_s) / DAY_S
+    }
+
+    /// The 95 % interval of the slope, bar/day.
+    #[must_use]
+    pub fn slope_interval(&self) -> (f64, f64) {
+        let h = self.q * self.cov[1][1].sqrt();
+        (self.slope_bar_per_day - h, self.slope_bar_per_day + h)
+    }
+
+    /// Whether the charge falls significantly (the slope's interval lies
+    /// below 0).
+    #[must_use]
+    pub fn leaking(&self) -> bool {
+        self.slope_interval().1 < 0.0
+    }
+
+    /// When the fitted line reaches `threshold_bar` going down, with
+    /// Fieller's 95 % interval.
+    #[must_use]
+    pub fn crossing(&self, threshold_bar: f64) -> Crossing {
+        let none = |reason| Crossing {
+            t_unix_s: None,
+            lo_unix_s: None,
+            hi_unix_s: None,
+            reason: Some(reason),
+        };
+        if !self.leaking() {
+            return none("no significant leak: the rate's 95 % interval reaches 0");
+        }
+        let (a, b) = (self.intercept_bar - threshold_bar, self.slope_bar_per_day);
+        let [[vaa, vab], [_, vbb]] = self.cov;
+        let q2 = self.q * self.q;
+        // (a + bτ)² − q²(V_aa + 2τV_ab + τ²V_bb) = Aτ² + Bτ + C ≤ 0.
+        let qa = b * b - q2 * vbb;
+        let qb = 2.0 * (a * b - q2 * vab);
+        let qc = a * a - q2 * vaa;
+        let disc = qb * qb - 4.0 * qa * qc;
+        let to_unix = |tau: f64| self.t_ref_unix_s + tau * DAY_S;
+        let tau_star = -a / b;
+        // `leaking()` makes qa > 0, so the set is a bounded interval.
+        let (lo, hi) = if disc >= 0.0 && qa > 0.0 {
+            let r = disc.sqrt();
+            let (r1, r2) = ((-qb - r) / (2.0 * qa), (-qb + r) / (2.0 * qa));
+            (Some(to_unix(r1.min(r2))), Some(to_unix(r1.max(r2))))
+        } else {
+            (None, None)
+        };
+        Crossing {
+            t_unix_s: Some(to_unix(tau_star)),
+            lo_unix_s: lo,
+            hi_unix_s: hi,
+            reason: (tau_star < 0.0).then_some("already below"),
+        }
+    }
+}
+
+type Solution = (f64, f64, [[f64; 2]; 2]);
+
+/// Weighted least squares of `p = a + bτ`; returns `(a, b, (XᵀWX)⁻¹)`.
+fn wls(tau: &[f64], pts: &[RunPoint], w: &[f64], robust: &[f64]) -> Option<Solution> {
+    let (mut s0, mut s1, mut s2, mut y0, mut y1) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for i in 0..tau.len() {
+        let wi = w[i] * robust[i];
+        s0 += wi;
+        s1 += wi * tau[i];
+        s2 += wi * tau[i] * tau[i];
+        y0 += wi * pts[i].pressure_bar;
+        y1 += wi * tau[i] * pts[i].pressure_bar;
+    }
+    let det = s0 * s2 - s1 * s1;
+    if !(det.is_finite() && det > f64::EPSILON * s0 * s2) {
+        return None;
+    }
+    let inv = [[s2 / det, -s1 / det], [-s1 / det, s0 / det]];
+    Some((
+        inv[0][0] * y0 + inv[0][1] * y1,
+        inv[1][0] * y0 + inv[1][1] * y1,
+        inv,
+    ))
+}
+
+fn median(sorted: &[f64]) -> f64 {
+    let n = sorted.len();
+    if n % 2 == 1 {
+        sorted[n / 2]
+    } else {
+        0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
+    }
+}
+
+/// The central [`COVERAGE`] quantile of Student's `t(dof)` (`dof = 0`: NaN).
+fn t_quantile(dof: usize) -> f64 {
+    StudentsT::new(0.0, 1.0, dof as f64).map_or(f64::NAN, |t| t.inverse_cdf(0.5 + COVERAGE / 2.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn line(n: usize, a: f64, b: f64, noise: &[f64]) -> Vec<RunPoint> {
+        (0..n)
+            .map(|i| RunPoint {
+                t_unix_s: 1.7e9 + i as f64 * DAY_S,
+                pressure_bar: a + b * i as f64 + noise[i % noise.len()],
+                sd_bar: 0.5,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn ols_matches_the_closed_form_and_the_crossing_brackets_the_truth() {
+        // Equal weights: slope = Sxy/Sxx; the residuals are ±0.1.
+        let pts = line(10, 12.0, -0.3, &[0.1, -0.1]);
+        let tr = Trend::fit(&pts).unwrap();
+        let x: Vec<f64> = (0..10).map(|i| f64::from(i) - 9.0).collect();
+        let y: Vec<f64> = pts.iter().map(|p| p.pressure_bar).collect();
+        let (mx, my) = (x.iter().sum::<f64>() / 10.0, y.iter().sum::<f64>() / 10.0);
+        let sxx: f64 = x.iter().map(|v| (v - mx).powi(2)).sum();
+        let sxy: f64 = x.iter().zip(&y).map(|(a, b)| (a - mx) * (b - my)).sum();
+        approx::assert_abs_diff_eq!(tr.slope_bar_per_day, sxy / sxx, epsilon = 1e-12);
+        assert!(tr.leaking());
+        // True fault crossing: 12 − 0.3 d = 5 → d = 23.33.
+        let truth = 1.7e9 + 7.0 / 0.3 * DAY_S;
+        let c = tr.crossing(5.0);
+        assert!(
+            c.lo_unix_s.unwrap() < truth && truth < c.hi_unix_s.unwrap(),
+            "{c:?}"
+        );
+        assert!((c.t_unix_s.unwrap() - truth).abs() < DAY_S);
+    }
+
+    #[test]
+    fn a_flat_charge_predicts_no_crossing() {
+        let pts = line(8, 12.0, 0.0, &[0.2, -0.2, 0.1]);
+        let tr = Trend::fit(&pts).unwrap();
+        assert!(!tr.leaking());
+        assert!(tr.crossing(5.0).t_unix_s.is_none());
+    }
+
+    #[test]
+    fn one_wild_run_does_not_bend_the_line() {
+        let mut pts = line(12, 12.0, -0.2, &[0.05, -0.05, 0.0]);
+        pts[5].pressure_bar += 6.0;
+        let tr = Trend::fit(&pts).unwrap();
+        assert!(
+            (tr.slope_bar_per_day + 0.2).abs() < 0.02,
+            "{}",
+            tr.slope_bar_per_day
+        );
+        assert!(tr.robust_weights[5] < 0.1);
+    }
+
+    #[test]
+    fn too_little_data_says_why() {
+        let pts = line(2, 12.0, -0.3, &[0.0]);
+        assert_eq!(Trend::fit(&pts), Err(TrendError::TooFewRuns { have: 2 }));
+        let mut close = line(4, 12.0, -0.3, &[0.0, 0.1]);
+        for (i, p) in close.iter_mut().enumerate() {
+            p.t_unix_s = 1.7e9 + i as f64 * 60.0;
+        }
+        assert_eq!(Trend::fit(&close), Err(TrendError::ShortSpan));
+    }
+}
