@@ -53,7 +53,7 @@ class SocketStream:
 
 def start_daemon(binary: str, bundle: Path, record_dir: Path) -> tuple[subprocess.Popen[str], str, str]:
     cmd = [binary, "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(bundle),
-           "--record-dir", str(record_dir)]
+           "--record-dir", str(record_dir), "--db", str(record_dir.parent / "fleet.sqlite")]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None
     deadline = time.monotonic() + 30

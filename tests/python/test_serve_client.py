@@ -97,7 +97,7 @@ def daemon(shocktwin: Path, tmp_path: Path) -> Iterator[Daemon]:
     record_dir = tmp_path / "records"
     proc = subprocess.Popen(
         [str(shocktwin), "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
-         "--model", str(BUNDLE), "--record-dir", str(record_dir)],
+         "--model", str(BUNDLE), "--record-dir", str(record_dir), "--db", str(tmp_path / "fleet.sqlite")],
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )
     assert proc.stderr is not None

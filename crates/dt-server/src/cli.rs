@@ -97,6 +97,15 @@ pub struct ServeArgs {
     /// Directory for the recorded /estimate MCAP files.
     #[arg(long)]
     pub record_dir: Option<PathBuf>,
+    /// The fleet store (`SQLite` file: history, runs, trends). Default:
+    /// `$SHOCKTWIN_STATE_DIR`, else systemd's `$STATE_DIRECTORY`, else
+    /// `$XDG_STATE_HOME/shocktwin`, else
+    /// `~/.local/state/shocktwin`, then `/fleet.sqlite`.
+    #[arg(long, conflicts_with = "no_db")]
+    pub db: Option<PathBuf>,
+    /// Keep no fleet store (history only in memory).
+    #[arg(long)]
+    pub no_db: bool,
     /// Log format (also `SHOCKTWIN_LOG_FORMAT=json`).
     #[arg(long, value_enum)]
     pub log_format: Option<LogFormat>,

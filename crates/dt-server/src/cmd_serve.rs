@@ -19,12 +19,18 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         model: args.model.clone(),
         inbox: args.inbox.clone(),
         record_dir: args.record_dir.clone(),
+        db: args.db.clone(),
     };
-    let config = Config::load(
+    let mut config = Config::load(
         args.config.as_deref(),
         &|var| std::env::var(var).ok(),
         &overrides,
     )?;
+    if args.no_db {
+        config.store.path = None;
+    } else if config.store.path.is_none() {
+        config.store.path = default_db();
+    }
     let twins = twin_factory(&config)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -41,6 +47,20 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         server::run(config, listeners, twins, shutdown_signal()).await?;
         Ok(())
     })
+}
+
+/// `<state dir>/fleet.sqlite` (see `--db`); none without a home directory.
+fn default_db() -> Option<std::path::PathBuf> {
+    let var = |k: &str| {
+        std::env::var_os(k)
+            .filter(|v| !v.is_empty())
+            .map(std::path::PathBuf::from)
+    };
+    let dir = var("SHOCKTWIN_STATE_DIR")
+        .or_else(|| var("STATE_DIRECTORY")) // systemd's StateDirectory=
+        .or_else(|| var("XDG_STATE_HOME").map(|d| d.join("shocktwin")))
+        .or_else(|| var("HOME").map(|h| h.join(".local/state/shocktwin")))?;
+    Some(dir.join("fleet.sqlite"))
 }
 
 /// The estimator behind the daemon: the model bundle's, or without one the

@@ -23,6 +23,8 @@ pub struct Config {
     pub limits: Limits,
     /// `[record]`: rotation of the recorded `/estimate` files.
     pub record: RecordConfig,
+    /// `[store]`: the fleet store (history, runs, trends).
+    pub store: StoreConfig,
     /// `[defaults]`: health thresholds of assets not listed in `[assets]`.
     pub defaults: AssetConfig,
     /// `[assets.<id>]`: per-asset overrides of `[defaults]`.
@@ -113,6 +115,30 @@ impl Default for RecordConfig {
     }
 }
 
+/// `[store]`: the durable fleet store (`SQLite`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StoreConfig {
+    /// The database file. None: no store (history only in memory). `shocktwin
+    /// serve` fills in `<state dir>/fleet.sqlite` when left out (see the CLI).
+    pub path: Option<PathBuf>,
+    /// 1 s history and health changes older than this many days (wall
+    /// clock) are deleted; runs and their summaries are kept. None: keep all.
+    pub retention_days: Option<f64>,
+    /// The writer commits at least this often, ms (what a `kill -9` can lose).
+    pub flush_ms: u64,
+}
+
+impl Default for StoreConfig {
+    fn default() -> Self {
+        Self {
+            path: None,
+            retention_days: None,
+            flush_ms: 500,
+        }
+    }
+}
+
 /// Health settings of one asset (SPEC §6), bar gauge.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -161,6 +187,8 @@ pub struct ConfigOverrides {
     pub inbox: Option<PathBuf>,
     /// `--record-dir`.
     pub record_dir: Option<PathBuf>,
+    /// `--db`.
+    pub db: Option<PathBuf>,
 }
 
 /// Environment variables read by [`Config::load`], with the key each sets.
@@ -169,6 +197,7 @@ pub const ENV_VARS: &[(&str, &str)] = &[
     ("SHOCKTWIN_HTTP", "server.http"),
     ("SHOCKTWIN_INBOX", "server.inbox"),
     ("SHOCKTWIN_RECORD_DIR", "server.record_dir"),
+    ("SHOCKTWIN_DB", "store.path"),
     ("SHOCKTWIN_MODEL", "model.bundle"),
     ("SHOCKTWIN_MAX_CONNECTIONS", "limits.max_connections"),
     ("SHOCKTWIN_MAX_RECORD_BYTES", "limits.max_record_bytes"),
@@ -224,6 +253,7 @@ impl Config {
                 "SHOCKTWIN_HTTP" => self.server.http = parse(&value).map_err(bad)?,
                 "SHOCKTWIN_INBOX" => self.server.inbox = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_RECORD_DIR" => self.server.record_dir = Some(PathBuf::from(&value)),
+                "SHOCKTWIN_DB" => self.store.path = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_MODEL" => self.model.bundle = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_MAX_CONNECTIONS" => {
                     self.limits.max_connections = parse(&value).map_err(bad)?;
@@ -254,6 +284,9 @@ impl Config {
         if let Some(p) = &cli.record_dir {
             self.server.record_dir = Some(p.clone());
         }
+        if let Some(p) = &cli.db {
+            self.store.path = Some(p.clone());
+        }
     }
 
     /// Checks limits and thresholds; the error names the key.
@@ -280,6 +313,17 @@ impl Config {
         }
         if l.history_len == 0 {
             return Err(invalid("limits.history_len", "must be at least 1"));
+        }
+        if let Some(d) = self.store.retention_days {
+            if !(d.is_finite() && d > 0.0) {
+                return Err(invalid(
+                    "store.retention_days",
+                    "must be a positive number of days",
+                ));
+            }
+        }
+        if self.store.flush_ms == 0 || self.store.flush_ms > 60_000 {
+            return Err(invalid("store.flush_ms", "must be between 1 and 60000"));
         }
         if !(self.server.inbox_rescan_s.is_finite() && self.server.inbox_rescan_s > 0.0) {
             return Err(invalid(

@@ -78,6 +78,10 @@ pub struct Metrics {
     /// estimate, s. Time the bytes spent in the kernel's socket buffer
     /// before that read is not seen here (see `asset_lag_seconds`).
     pub estimate_delay_seconds: Family<AssetLabel, Histogram, fn() -> Histogram>,
+    /// Per asset: leak rate from the trend, bar/day (absent: no trend).
+    pub leak_rate_bar_per_day: Family<AssetLabel, Gauge<f64, AtomicU64>>,
+    /// Per asset: days from its newest run to the predicted fault crossing.
+    pub days_to_fault: Family<AssetLabel, Gauge<f64, AtomicU64>>,
     /// Per asset: `log_time` of the newest sample processed, and when (wall clock).
     last_sample_ns: Mutex<HashMap<String, (i64, SystemTime)>>,
 }
@@ -112,6 +116,8 @@ impl Metrics {
             input: Family::default(),
             asset_lag_seconds: Family::default(),
             estimate_delay_seconds: Family::new_with_constructor(delay_histogram),
+            leak_rate_bar_per_day: Family::default(),
+            days_to_fault: Family::default(),
             last_sample_ns: Mutex::new(HashMap::new()),
         };
         registry.register("messages", "Sensor samples decoded", m.messages.clone());
@@ -154,7 +160,37 @@ impl Metrics {
              being taken by every sink, per asset",
             m.estimate_delay_seconds.clone(),
         );
+        registry.register(
+            "leak_rate_bar_per_day",
+            "Charge lost per day from the asset's trend over its runs",
+            m.leak_rate_bar_per_day.clone(),
+        );
+        registry.register(
+            "days_to_fault",
+            "Days from the asset's newest run to the predicted crossing of its fault threshold",
+            m.days_to_fault.clone(),
+        );
         Self { registry, ..m }
+    }
+
+    /// Publishes an asset's trend (a `None` removes the series).
+    pub fn set_trend(&self, asset: &str, leak_rate: Option<f64>, days_to_fault: Option<f64>) {
+        let label = AssetLabel {
+            asset: asset.to_owned(),
+        };
+        for (family, value) in [
+            (&self.leak_rate_bar_per_day, leak_rate),
+            (&self.days_to_fault, days_to_fault),
+        ] {
+            match value {
+                Some(v) => {
+                    family.get_or_create(&label).set(v);
+                }
+                None => {
+                    family.remove(&label);
+                }
+            }
+        }
     }
 
     /// Counts one error of `kind`.

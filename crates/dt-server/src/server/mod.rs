@@ -5,7 +5,9 @@
 //! ```text
 //!  sources ──────────────► Ingest ──► AssetTwin per run ──► bounded queue ──► sink thread
 //!  (TcpSource: MCAP per    (LogDecoder,                     (backpressure)     ├─ LiveSink ─► HTTP API, SSE
-//!   connection; InboxSource) metadata → run)                                    └─ McapRecorder (rotating)
+//!   connection; InboxSource) metadata → run)                                    ├─ McapRecorder (rotating)
+//!                                                                                 └─ StoreSink ─► writer thread ─► SQLite
+//!                                                                                    (1 s history, runs, health changes, trends)
 //! ```
 //!
 //! Shutdown: the future resolves → `/readyz` turns 503, the sources'
@@ -25,6 +27,7 @@ pub mod record;
 pub mod sink;
 pub mod source;
 pub mod state;
+pub mod store;
 pub mod tcp;
 pub mod twin;
 
@@ -51,6 +54,7 @@ use self::record::McapRecorder;
 use self::sink::Sink;
 use self::source::{Source, SourceContext};
 use self::state::{LiveSink, LiveState};
+use self::store::{FleetStore, SqliteStore, StoreSink, Trends};
 
 /// The daemon's one error type (configuration and start-up; a bad input
 /// stream is not an error of the daemon, it closes that stream).
@@ -109,6 +113,9 @@ pub enum ServeError {
     /// A sink cannot be set up.
     #[error(transparent)]
     Sink(#[from] sink::SinkError),
+    /// The fleet store cannot be opened.
+    #[error(transparent)]
+    Store(#[from] store::StoreError),
 }
 
 /// The daemon's two listeners, bound by the caller (tests bind `127.0.0.1:0`).
@@ -135,6 +142,36 @@ impl Listeners {
     }
 }
 
+/// Opens the fleet store, if configured: restores the live view from it and
+/// adds its sink.
+fn open_store(
+    config: &Arc<Config>,
+    live: &LiveState,
+    trends: &Arc<Trends>,
+    metrics: &Arc<Metrics>,
+    sinks: &mut Vec<Box<dyn Sink>>,
+) -> Result<Option<Arc<dyn FleetStore>>, ServeError> {
+    let Some(path) = &config.store.path else {
+        return Ok(None);
+    };
+    let store: Arc<dyn FleetStore> = Arc::new(SqliteStore::open(path)?);
+    let states = store.asset_states()?;
+    tracing::info!(store = %path.display(), assets = states.len(), "fleet store opened");
+    live.restore(&states, config);
+    let sink = StoreSink::start(
+        Arc::clone(&store),
+        Arc::clone(trends),
+        Arc::clone(config),
+        Arc::clone(metrics),
+    )
+    .map_err(|source| ServeError::Io {
+        path: PathBuf::from("<store writer thread>"),
+        source,
+    })?;
+    sinks.push(Box::new(sink));
+    Ok(Some(store))
+}
+
 /// Runs the daemon until `shutdown` resolves, then drains and flushes.
 /// `twins` makes the estimator of each run.
 pub async fn run(
@@ -149,10 +186,12 @@ pub async fn run(
     let metrics = Arc::new(Metrics::new());
     let live = Arc::new(LiveState::new(limits.history_len, limits.queue_depth));
 
+    let trends = Arc::new(Trends::default());
     let mut sinks: Vec<Box<dyn Sink>> = vec![Box::new(LiveSink(Arc::clone(&live)))];
     if let Some(dir) = &config.server.record_dir {
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }
+    let store = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
     let mut sources: Vec<Box<dyn Source>> = vec![Box::new(tcp::TcpSource::new(
         listeners.ingest,
         limits.max_connections,
@@ -207,6 +246,9 @@ pub async fn run(
     let http_stop = CancellationToken::new();
     let app = http::router(AppState {
         live,
+        store,
+        trends,
+        config: Arc::clone(&config),
         metrics,
         ready: Arc::clone(&ready),
         stop: http_stop.clone(),

@@ -10,7 +10,9 @@ use dt_core::estimate::{Estimate, Health};
 use serde::Serialize;
 use tokio::sync::broadcast;
 
+use super::config::Config;
 use super::sink::{RunInfo, RunOutcome, Sink, SinkError};
+use super::store::{AssetState, HistoryPoint};
 
 /// One event of the live stream; the SSE event name is [`LiveEvent::name`].
 #[derive(Debug, Clone, Serialize)]
@@ -173,6 +175,44 @@ impl LiveState {
                 .copied()
                 .collect(),
         })
+    }
+
+    /// Seeds the view with what the fleet store remembers (at start-up):
+    /// every asset with its latest 1 s point and its last run.
+    pub fn restore(&self, states: &[AssetState], config: &Config) {
+        let mut assets = self.assets.write().unwrap_or_else(PoisonError::into_inner);
+        for st in states {
+            let last = st.last.as_ref();
+            let at = |f: fn(&HistoryPoint) -> Option<f64>| last.and_then(f);
+            let summary = AssetSummary {
+                asset_id: st.asset_id.clone(),
+                run_id: st.run_id.clone(),
+                pressure_bar: at(|p| p.pressure_bar),
+                pressure_avg_bar: at(|p| p.pressure_bar),
+                pressure_lo_bar: at(|p| p.pressure_lo_bar),
+                pressure_hi_bar: at(|p| p.pressure_hi_bar),
+                expected_bar: config.asset(&st.asset_id).nominal_bar,
+                health: last.map_or(Health::Unknown, |p| p.health),
+                last_t_ns: None,
+                last_update_unix_ms: last.map_or(0, |p| u64::try_from(p.t_ms).unwrap_or(0)),
+                ticks: st.ticks,
+                active_runs: 0,
+                last_run_status: Some(match st.last_run_status.as_str() {
+                    "completed" => "completed",
+                    "failed" => "failed",
+                    "running" => "running",
+                    _ => "interrupted",
+                }),
+                last_run_reason: st.last_run_reason.clone(),
+            };
+            assets.insert(
+                st.asset_id.clone(),
+                AssetView {
+                    summary,
+                    history: VecDeque::new(),
+                },
+            );
+        }
     }
 
     fn publish(&self, event: LiveEvent) {

@@ -1,0 +1,454 @@
+//! [`StoreSink`]: bins each run's estimates to 1 s, summarises each run, and
+//! hands the rows to the store's writer thread through a bounded queue; the
+//! writer commits a transaction per flush interval and refreshes the trends
+//! ([`Trends`]) of the assets whose runs ended.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::mpsc::{self, RecvTimeoutError, SyncSender};
+use std::sync::{Arc, PoisonError, RwLock};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use dt_core::estimate::{Estimate, Health};
+use dt_core::trend::RunPoint;
+
+use super::{
+    health_code, CalendarClock, FleetStore, HealthChange, HistoryPoint, StoreOp, TrendView,
+    SUMMARY_MIN_BINS, SUMMARY_SETTLE_S,
+};
+use crate::server::config::Config;
+use crate::server::metrics::Metrics;
+use crate::server::sink::{RunInfo, RunOutcome, Sink, SinkError};
+
+/// Ops queued for the writer at most (a full queue makes the sink thread
+/// wait: backpressure, nothing dropped).
+pub const QUEUE_OPS: usize = 8192;
+/// Ops committed in one transaction at most.
+const MAX_BATCH: usize = 20_000;
+/// How often the writer applies the retention, s.
+const PRUNE_EVERY_S: u64 = 600;
+
+/// The latest trend of every asset (computed by the writer thread, read by
+/// the HTTP handlers).
+#[derive(Debug, Default)]
+pub struct Trends {
+    map: RwLock<HashMap<String, Arc<TrendView>>>,
+}
+
+impl Trends {
+    /// The asset's trend, if the store has seen it.
+    #[must_use]
+    pub fn get(&self, asset_id: &str) -> Option<Arc<TrendView>> {
+        self.map
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .cloned()
+    }
+
+    fn set(&self, asset_id: &str, view: TrendView) {
+        self.map
+            .write()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(asset_id.to_owned(), Arc::new(view));
+    }
+
+    /// Recomputes the trend of `asset_id` from the store and publishes it
+    /// (also to the metrics).
+    pub fn refresh(
+        &self,
+        store: &dyn FleetStore,
+        config: &Config,
+        metrics: &Metrics,
+        asset_id: &str,
+    ) {
+        let runs = match store.runs(asset_id, usize::MAX) {
+            Ok(r) => r,
+            Err(e) => {
+                metrics.error("store");
+                tracing::error!(asset = asset_id, "trend: {e}");
+                return;
+            }
+        };
+        let points: Vec<(String, RunPoint)> = runs
+            .into_iter()
+            .filter_map(|r| r.summary.map(|s| (r.run_id, s)))
+            .collect();
+        let a = config.asset(asset_id);
+        let view = TrendView::compute(&points, a.warn_bar, a.fault_bar);
+        metrics.set_trend(asset_id, view.leak_rate_bar_per_day, view.days_to_fault);
+        self.set(asset_id, view);
+    }
+}
+
+#[derive(Debug, Default)]
+struct Mean {
+    sum: f64,
+    n: u32,
+}
+
+impl Mean {
+    fn add(&mut self, v: f64) {
+        if v.is_finite() {
+            self.sum += v;
+            self.n += 1;
+        }
+    }
+    fn get(&self) -> Option<f64> {
+        (self.n > 0).then(|| self.sum / f64::from(self.n))
+    }
+}
+
+#[derive(Debug)]
+struct Bin {
+    sec: i64,
+    n: u32,
+    pressure: Mean,
+    lo: Mean,
+    hi: Mean,
+    v2_sum: f64,
+    health: Health,
+}
+
+impl Bin {
+    fn new(sec: i64) -> Self {
+        Self {
+            sec,
+            n: 0,
+            pressure: Mean::default(),
+            lo: Mean::default(),
+            hi: Mean::default(),
+            v2_sum: 0.0,
+            health: Health::Ok,
+        }
+    }
+}
+
+#[derive(Debug)]
+struct RunAcc {
+    key: String,
+    clock: Option<CalendarClock>,
+    bin: Option<Bin>,
+    /// Excited bins: (`t_ms`, mean pressure, mean interval half-width).
+    excited: Vec<(i64, f64, Option<f64>)>,
+    ticks: u64,
+    health: Health,
+    last_ms: Option<i64>,
+}
+
+/// The [`Sink`] that feeds the fleet store.
+#[derive(Debug)]
+pub struct StoreSink {
+    tx: Option<SyncSender<StoreOp>>,
+    writer: Option<JoinHandle<()>>,
+    runs: HashMap<u64, RunAcc>,
+    boot_ms: i64,
+    min_excitation_mps: f64,
+    metrics: Arc<Metrics>,
+}
+
+fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+}
+
+fn wall_ms(t: SystemTime) -> i64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+}
+
+impl StoreSink {
+    /// Computes every known asset's trend, then starts the writer thread.
+    pub fn start(
+        store: Arc<dyn FleetStore>,
+        trends: Arc<Trends>,
+        config: Arc<Config>,
+        metrics: Arc<Metrics>,
+    ) -> std::io::Result<Self> {
+        match store.asset_states() {
+            Ok(states) => {
+                for s in &states {
+                    trends.refresh(store.as_ref(), &config, &metrics, &s.asset_id);
+                }
+            }
+            Err(e) => {
+                metrics.error("store");
+                tracing::error!("{e}");
+            }
+        }
+        let (tx, rx) = mpsc::sync_channel::<StoreOp>(QUEUE_OPS);
+        let writer_metrics = Arc::clone(&metrics);
+        let writer = std::thread::Builder::new()
+            .name("shocktwin-store".into())
+            .spawn(move || write_loop(&rx, store.as_ref(), &trends, &config, &writer_metrics))?;
+        Ok(Self {
+            tx: Some(tx),
+            writer: Some(writer),
+            runs: HashMap::new(),
+            boot_ms: now_ms(),
+            min_excitation_mps: dt_core::bundle::HealthConfig::default().min_excitation_mps,
+            metrics,
+        })
+    }
+
+    fn send(&self, op: StoreOp) {
+        if let Some(tx) = &self.tx {
+            if tx.send(op).is_err() {
+                self.metrics.error("store");
+                tracing::error!("the fleet store's writer thread is gone; history is not kept");
+            }
+        }
+    }
+
+    fn flush_bin(&self, run: &RunInfo, acc: &mut RunAcc) {
+        let Some(bin) = acc.bin.take() else { return };
+        let excited =
+            bin.n > 0 && (bin.v2_sum / f64::from(bin.n)).sqrt() >= self.min_excitation_mps;
+        let point = HistoryPoint {
+            t_ms: bin.sec * 1000,
+            pressure_bar: bin.pressure.get(),
+            pressure_lo_bar: bin.lo.get(),
+            pressure_hi_bar: bin.hi.get(),
+            health: bin.health,
+            excited,
+        };
+        if excited {
+            if let Some(p) = point.pressure_bar {
+                let half = point
+                    .pressure_lo_bar
+                    .zip(point.pressure_hi_bar)
+                    .map(|(lo, hi)| 0.5 * (hi - lo));
+                acc.excited.push((point.t_ms, p, half));
+            }
+        }
+        self.send(StoreOp::Sample {
+            asset_id: run.meta.asset_id.clone(),
+            point,
+        });
+    }
+}
+
+/// The run's summary (see the module doc of `store`).
+fn summarise(excited: &[(i64, f64, Option<f64>)]) -> Option<RunPoint> {
+    if excited.len() < SUMMARY_MIN_BINS {
+        return None;
+    }
+    let settle_ms = excited[0].0 + (SUMMARY_SETTLE_S * 1e3) as i64;
+    let mut used: Vec<&(i64, f64, Option<f64>)> =
+        excited.iter().filter(|b| b.0 >= settle_ms).collect();
+    if used.len() < SUMMARY_MIN_BINS {
+        let take = (excited.len() / 2).max(SUMMARY_MIN_BINS);
+        used = excited[excited.len() - take..].iter().collect();
+    }
+    let n = used.len() as f64;
+    let mean = used.iter().map(|b| b.1).sum::<f64>() / n;
+    let t_ms = used.iter().map(|b| b.0 as f64).sum::<f64>() / n;
+    let halves: Option<Vec<f64>> = used.iter().map(|b| b.2).collect();
+    let sd = match halves {
+        Some(h) if !h.is_empty() => h.iter().sum::<f64>() / h.len() as f64 / 1.96,
+        _ => (used.iter().map(|b| (b.1 - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt(),
+    };
+    Some(RunPoint {
+        t_unix_s: t_ms / 1e3,
+        pressure_bar: mean,
+        sd_bar: sd.max(0.01),
+    })
+}
+
+impl Sink for StoreSink {
+    fn name(&self) -> &'static str {
+        "store"
+    }
+
+    fn run_started(&mut self, run: &RunInfo) -> Result<(), SinkError> {
+        self.runs.insert(
+            run.seq,
+            RunAcc {
+                key: format!("{}-{}", self.boot_ms, run.seq),
+                clock: None,
+                bin: None,
+                excited: Vec::new(),
+                ticks: 0,
+                health: Health::Unknown,
+                last_ms: None,
+            },
+        );
+        Ok(())
+    }
+
+    fn estimates(&mut self, run: &RunInfo, batch: &[Estimate]) -> Result<(), SinkError> {
+        let Some(mut acc) = self.runs.remove(&run.seq) else {
+            return Ok(());
+        };
+        for e in batch {
+            let clock = *acc.clock.get_or_insert_with(|| {
+                let clock = CalendarClock::new(e.t_ns, run.started);
+                self.send(StoreOp::RunStarted {
+                    key: acc.key.clone(),
+                    asset_id: run.meta.asset_id.clone(),
+                    run_id: run.meta.run_id.clone(),
+                    source: run.source.clone(),
+                    start_ms: clock.ms(e.t_ns),
+                });
+                clock
+            });
+            let t_ms = clock.ms(e.t_ns);
+            let sec = t_ms.div_euclid(1000);
+            if acc.bin.as_ref().is_some_and(|b| b.sec != sec) {
+                self.flush_bin(run, &mut acc);
+            }
+            let bin = acc.bin.get_or_insert_with(|| Bin::new(sec));
+            bin.n += 1;
+            bin.pressure.add(e.pressure_bar);
+            bin.lo.add(e.pressure_lo_bar);
+            bin.hi.add(e.pressure_hi_bar);
+            if e.velocity_mps.is_finite() {
+                bin.v2_sum += e.velocity_mps * e.velocity_mps;
+            }
+            if health_code(e.health) > health_code(bin.health) || bin.n == 1 {
+                bin.health = e.health;
+            }
+            if e.health != acc.health {
+                self.send(StoreOp::Health {
+                    asset_id: run.meta.asset_id.clone(),
+                    change: HealthChange {
+                        t_ms,
+                        run_id: run.meta.run_id.clone(),
+                        from: acc.health,
+                        to: e.health,
+                    },
+                });
+                acc.health = e.health;
+            }
+            acc.ticks += 1;
+            acc.last_ms = Some(t_ms);
+        }
+        self.runs.insert(run.seq, acc);
+        Ok(())
+    }
+
+    fn run_ended(&mut self, run: &RunInfo, outcome: &RunOutcome) -> Result<(), SinkError> {
+        let Some(mut acc) = self.runs.remove(&run.seq) else {
+            return Ok(());
+        };
+        self.flush_bin(run, &mut acc);
+        let start_ms = wall_ms(run.started);
+        if acc.clock.is_none() {
+            self.send(StoreOp::RunStarted {
+                key: acc.key.clone(),
+                asset_id: run.meta.asset_id.clone(),
+                run_id: run.meta.run_id.clone(),
+                source: run.source.clone(),
+                start_ms,
+            });
+        }
+        self.send(StoreOp::RunEnded {
+            key: acc.key,
+            asset_id: run.meta.asset_id.clone(),
+            end_ms: acc.last_ms.unwrap_or(start_ms),
+            ticks: acc.ticks,
+            status: outcome.status().to_owned(),
+            reason: outcome.reason().map(str::to_owned),
+            summary: summarise(&acc.excited),
+        });
+        Ok(())
+    }
+
+    fn close(&mut self) -> Result<(), SinkError> {
+        // The queue closes: the writer commits what is left and stops.
+        self.tx = None;
+        if let Some(w) = self.writer.take() {
+            if w.join().is_err() {
+                return Err(SinkError {
+                    sink: "store",
+                    reason: "the writer thread panicked".into(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The writer thread: one transaction per `flush_ms` (or [`MAX_BATCH`]
+/// ops), then the trends of the assets whose runs ended; retention every
+/// [`PRUNE_EVERY_S`].
+fn write_loop(
+    rx: &mpsc::Receiver<StoreOp>,
+    store: &dyn FleetStore,
+    trends: &Trends,
+    config: &Config,
+    metrics: &Metrics,
+) {
+    let flush = Duration::from_millis(config.store.flush_ms);
+    let mut pending: Vec<StoreOp> = Vec::new();
+    let mut first_pending = Instant::now();
+    let mut last_prune: Option<Instant> = None;
+    loop {
+        let wait = if pending.is_empty() {
+            flush
+        } else {
+            flush.saturating_sub(first_pending.elapsed())
+        };
+        let closed = match rx.recv_timeout(wait) {
+            Ok(op) => {
+                if pending.is_empty() {
+                    first_pending = Instant::now();
+                }
+                pending.push(op);
+                if pending.len() < MAX_BATCH && first_pending.elapsed() < flush {
+                    continue;
+                }
+                false
+            }
+            Err(RecvTimeoutError::Timeout) => false,
+            Err(RecvTimeoutError::Disconnected) => true,
+        };
+        if !pending.is_empty() {
+            commit(&mut pending, store, trends, config, metrics);
+        }
+        if let Some(days) = config.store.retention_days {
+            if last_prune.is_none_or(|t| t.elapsed() >= Duration::from_secs(PRUNE_EVERY_S)) {
+                last_prune = Some(Instant::now());
+                let before = now_ms() - (days * 86_400_000.0) as i64;
+                match store.prune(before) {
+                    Ok(n) if n > 0 => tracing::info!(rows = n, "fleet store: retention applied"),
+                    Ok(_) => {}
+                    Err(e) => {
+                        metrics.error("store");
+                        tracing::error!("{e}");
+                    }
+                }
+            }
+        }
+        if closed {
+            break;
+        }
+    }
+}
+
+fn commit(
+    pending: &mut Vec<StoreOp>,
+    store: &dyn FleetStore,
+    trends: &Trends,
+    config: &Config,
+    metrics: &Metrics,
+) {
+    let ended: HashSet<String> = pending
+        .iter()
+        .filter_map(|op| match op {
+            StoreOp::RunEnded { asset_id, .. } => Some(asset_id.clone()),
+            _ => None,
+        })
+        .collect();
+    if let Err(e) = store.apply(pending) {
+        // Disk full, I/O error: said once per batch, the batch is lost, the
+        // daemon carries on (the live view and recordings are unaffected).
+        metrics.error("store");
+        tracing::error!(ops = pending.len(), "{e}; this batch of history is lost");
+    }
+    pending.clear();
+    for asset in ended {
+        trends.refresh(store, config, metrics, &asset);
+    }
+}

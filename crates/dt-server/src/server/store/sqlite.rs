@@ -1,0 +1,570 @@
+//! [`FleetStore`] on an embedded `SQLite` file (rusqlite, `SQLite` compiled
+//! in). WAL journal with `synchronous = NORMAL`: a crash of the process at
+//! any moment (`kill -9`) leaves the last committed transaction and a
+//! consistent file. One connection writes (the store's writer thread), one
+//! reads (the HTTP handlers); WAL lets them run at once.
+//!
+//! Schema migrations are a list applied in order inside one transaction;
+//! `PRAGMA user_version` holds the version reached. A file from a newer
+//! shocktwin is refused, not touched.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
+
+use dt_core::trend::RunPoint;
+use rusqlite::{params, Connection, OptionalExtension as _};
+
+use super::{
+    health_code, health_from_code, health_from_str, AssetState, FleetStore, HealthChange,
+    HistoryPoint, RunRecord, StoreError, StoreOp,
+};
+
+/// The schema version this build writes.
+pub const SCHEMA_VERSION: i64 = 1;
+
+/// Migration `i` takes the schema from version `i` to `i + 1`.
+const MIGRATIONS: [&str; 1] = [r"
+CREATE TABLE assets (
+    id       INTEGER PRIMARY KEY,
+    asset_id TEXT NOT NULL UNIQUE
+);
+CREATE TABLE runs (
+    key            TEXT PRIMARY KEY,
+    asset          INTEGER NOT NULL REFERENCES assets(id),
+    run_id         TEXT NOT NULL,
+    source         TEXT NOT NULL,
+    start_ms       INTEGER NOT NULL,
+    end_ms         INTEGER,
+    ticks          INTEGER NOT NULL DEFAULT 0,
+    status         TEXT NOT NULL,
+    reason         TEXT,
+    summary_t_ms   INTEGER,
+    summary_bar    REAL,
+    summary_sd_bar REAL
+);
+CREATE INDEX runs_by_asset ON runs(asset, start_ms);
+CREATE TABLE samples (
+    asset        INTEGER NOT NULL REFERENCES assets(id),
+    t_ms         INTEGER NOT NULL,
+    pressure_bar REAL,
+    lo_bar       REAL,
+    hi_bar       REAL,
+    health       INTEGER NOT NULL,
+    excited      INTEGER NOT NULL,
+    PRIMARY KEY (asset, t_ms)
+) WITHOUT ROWID;
+CREATE TABLE health_changes (
+    asset       INTEGER NOT NULL REFERENCES assets(id),
+    t_ms        INTEGER NOT NULL,
+    run_id      TEXT NOT NULL,
+    from_health TEXT NOT NULL,
+    to_health   TEXT NOT NULL
+);
+CREATE INDEX health_by_asset ON health_changes(asset, t_ms);
+"];
+
+const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
+
+/// The embedded fleet store.
+#[derive(Debug)]
+pub struct SqliteStore {
+    path: PathBuf,
+    writer: Mutex<Connection>,
+    reader: Mutex<Connection>,
+}
+
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+impl SqliteStore {
+    /// Opens (creating it and its directory if missing) and migrates the
+    /// store at `path`. Runs left `running` by a daemon that died are marked
+    /// `interrupted`.
+    pub fn open(path: &Path) -> Result<Self, StoreError> {
+        let open_err = |reason: String| StoreError::Open {
+            path: path.to_path_buf(),
+            reason,
+        };
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)
+                .map_err(|e| open_err(format!("cannot create {}: {e}", dir.display())))?;
+        }
+        let writer = Self::connect(path)?;
+        let version: i64 = writer
+            .query_row("PRAGMA user_version", [], |r| r.get(0))
+            .map_err(|e| open_err(format!("not a readable SQLite database ({e})")))?;
+        if version > SCHEMA_VERSION {
+            return Err(StoreError::NewerSchema {
+                path: path.to_path_buf(),
+                found: version,
+            });
+        }
+        if version == 0 {
+            let tables: i64 = writer
+                .query_row("SELECT count(*) FROM sqlite_master", [], |r| r.get(0))
+                .map_err(|e| open_err(e.to_string()))?;
+            if tables > 0 {
+                return Err(open_err(
+                    "an SQLite database of something else (tables, but no shocktwin schema version)"
+                        .into(),
+                ));
+            }
+        }
+        let store = Self {
+            path: path.to_path_buf(),
+            reader: Mutex::new(Self::connect(path)?),
+            writer: Mutex::new(writer),
+        };
+        store.migrate(version)?;
+        store.with_writer(|c| {
+            c.execute(
+                "UPDATE runs SET status = 'interrupted', \
+                 reason = 'the daemon stopped before the run ended' WHERE status = 'running'",
+                [],
+            )
+        })?;
+        Ok(store)
+    }
+
+    fn connect(path: &Path) -> Result<Connection, StoreError> {
+        let err = |e: rusqlite::Error| StoreError::Open {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        };
+        let c = Connection::open(path).map_err(err)?;
+        c.busy_timeout(Duration::from_secs(5)).map_err(err)?;
+        let mode: String = c
+            .query_row("PRAGMA journal_mode = WAL", [], |r| r.get(0))
+            .map_err(|e| StoreError::Open {
+                path: path.to_path_buf(),
+                reason: format!("not a readable SQLite database ({e})"),
+            })?;
+        if !mode.eq_ignore_ascii_case("wal") {
+            return Err(StoreError::Open {
+                path: path.to_path_buf(),
+                reason: format!("cannot use the WAL journal (got `{mode}`)"),
+            });
+        }
+        c.pragma_update(None, "synchronous", "NORMAL")
+            .map_err(err)?;
+        c.pragma_update(None, "foreign_keys", "ON").map_err(err)?;
+        Ok(c)
+    }
+
+    fn migrate(&self, from: i64) -> Result<(), StoreError> {
+        if from == SCHEMA_VERSION {
+            return Ok(());
+        }
+        self.with_writer(|c| {
+            let tx = c.transaction()?;
+            for (i, sql) in MIGRATIONS.iter().enumerate().skip(from as usize) {
+                tx.execute_batch(sql)?;
+                tx.pragma_update(None, "user_version", i as i64 + 1)?;
+            }
+            tx.commit()
+        })
+    }
+
+    fn sqlite_err(&self, source: rusqlite::Error) -> StoreError {
+        StoreError::Sqlite {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    fn with_writer<R>(
+        &self,
+        f: impl FnOnce(&mut Connection) -> rusqlite::Result<R>,
+    ) -> Result<R, StoreError> {
+        let mut c = self.writer.lock().unwrap_or_else(PoisonError::into_inner);
+        f(&mut c).map_err(|e| self.sqlite_err(e))
+    }
+
+    fn with_reader<R>(
+        &self,
+        f: impl FnOnce(&Connection) -> rusqlite::Result<R>,
+    ) -> Result<R, StoreError> {
+        let c = self.reader.lock().unwrap_or_else(PoisonError::into_inner);
+        f(&c).map_err(|e| self.sqlite_err(e))
+    }
+
+    fn apply_one(tx: &rusqlite::Transaction<'_>, op: &StoreOp) -> rusqlite::Result<()> {
+        let asset_id = match op {
+            StoreOp::RunStarted { asset_id, .. }
+            | StoreOp::Sample { asset_id, .. }
+            | StoreOp::Health { asset_id, .. }
+            | StoreOp::RunEnded { asset_id, .. } => asset_id,
+        };
+        tx.prepare_cached("INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)")?
+            .execute([asset_id])?;
+        match op {
+            StoreOp::RunStarted {
+                key,
+                run_id,
+                source,
+                start_ms,
+                ..
+            } => {
+                tx.prepare_cached(&format!(
+                    "INSERT OR REPLACE INTO runs (key, asset, run_id, source, start_ms, status) \
+                     VALUES (?2, {ASSET}, ?3, ?4, ?5, 'running')"
+                ))?
+                .execute(params![asset_id, key, run_id, source, start_ms])?;
+            }
+            StoreOp::Sample { point: p, .. } => {
+                tx.prepare_cached(&format!(
+                    "INSERT OR REPLACE INTO samples \
+                     (asset, t_ms, pressure_bar, lo_bar, hi_bar, health, excited) \
+                     VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7)"
+                ))?
+                .execute(params![
+                    asset_id,
+                    p.t_ms,
+                    p.pressure_bar.and_then(finite),
+                    p.pressure_lo_bar.and_then(finite),
+                    p.pressure_hi_bar.and_then(finite),
+                    health_code(p.health),
+                    p.excited
+                ])?;
+            }
+            StoreOp::Health { change: c, .. } => {
+                tx.prepare_cached(&format!(
+                    "INSERT INTO health_changes (asset, t_ms, run_id, from_health, to_health) \
+                     VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+                ))?
+                .execute(params![
+                    asset_id,
+                    c.t_ms,
+                    c.run_id,
+                    c.from.as_str(),
+                    c.to.as_str()
+                ])?;
+            }
+            StoreOp::RunEnded {
+                key,
+                end_ms,
+                ticks,
+                status,
+                reason,
+                summary,
+                ..
+            } => {
+                tx.prepare_cached(
+                    "UPDATE runs SET end_ms = ?2, ticks = ?3, status = ?4, reason = ?5, \
+                     summary_t_ms = ?6, summary_bar = ?7, summary_sd_bar = ?8 WHERE key = ?1",
+                )?
+                .execute(params![
+                    key,
+                    end_ms,
+                    i64::try_from(*ticks).unwrap_or(i64::MAX),
+                    status,
+                    reason,
+                    summary.map(|s| (s.t_unix_s * 1e3).round() as i64),
+                    summary.map(|s| s.pressure_bar),
+                    summary.map(|s| s.sd_bar),
+                ])?;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn point_from_row(r: &rusqlite::Row<'_>, at: usize) -> rusqlite::Result<HistoryPoint> {
+    Ok(HistoryPoint {
+        t_ms: r.get(at)?,
+        pressure_bar: r.get(at + 1)?,
+        pressure_lo_bar: r.get(at + 2)?,
+        pressure_hi_bar: r.get(at + 3)?,
+        health: health_from_code(r.get(at + 4)?),
+        excited: r.get::<_, i64>(at + 5)? != 0,
+    })
+}
+
+impl FleetStore for SqliteStore {
+    fn describe(&self) -> String {
+        format!("SQLite {}", self.path.display())
+    }
+
+    fn apply(&self, ops: &[StoreOp]) -> Result<(), StoreError> {
+        if ops.is_empty() {
+            return Ok(());
+        }
+        self.with_writer(|c| {
+            let tx = c.transaction()?;
+            for op in ops {
+                Self::apply_one(&tx, op)?;
+            }
+            tx.commit()
+        })
+    }
+
+    fn asset_states(&self) -> Result<Vec<AssetState>, StoreError> {
+        self.with_reader(|c| {
+            let mut stmt = c.prepare(
+                "SELECT a.asset_id, r.run_id, r.status, r.reason, \
+                   (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
+                   s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited \
+                 FROM assets a \
+                 LEFT JOIN runs r ON r.key = \
+                   (SELECT key FROM runs WHERE asset = a.id ORDER BY start_ms DESC LIMIT 1) \
+                 LEFT JOIN samples s ON s.asset = a.id AND s.t_ms = \
+                   (SELECT max(t_ms) FROM samples WHERE asset = a.id) \
+                 ORDER BY a.asset_id",
+            )?;
+            let rows = stmt.query_map([], |r| {
+                let t_ms: Option<i64> = r.get(5)?;
+                Ok(AssetState {
+                    asset_id: r.get(0)?,
+                    run_id: r.get::<_, Option<String>>(1)?.unwrap_or_default(),
+                    last_run_status: r
+                        .get::<_, Option<String>>(2)?
+                        .unwrap_or_else(|| "unknown".into()),
+                    last_run_reason: r.get(3)?,
+                    ticks: r.get::<_, i64>(4)?.max(0) as u64,
+                    last: if t_ms.is_some() {
+                        Some(point_from_row(r, 5)?)
+                    } else {
+                        None
+                    },
+                })
+            })?;
+            rows.collect()
+        })
+    }
+
+    fn history(
+        &self,
+        asset_id: &str,
+        since_ms: i64,
+        until_ms: i64,
+        step_ms: i64,
+    ) -> Result<Option<Vec<HistoryPoint>>, StoreError> {
+        self.with_reader(|c| {
+            let known = c
+                .prepare_cached("SELECT id FROM assets WHERE asset_id = ?1")?
+                .query_row([asset_id], |r| r.get::<_, i64>(0))
+                .optional()?;
+            let Some(id) = known else { return Ok(None) };
+            let points = if step_ms <= 1000 {
+                let mut stmt = c.prepare_cached(
+                    "SELECT t_ms, pressure_bar, lo_bar, hi_bar, health, excited FROM samples \
+                     WHERE asset = ?1 AND t_ms BETWEEN ?2 AND ?3 ORDER BY t_ms",
+                )?;
+                let rows =
+                    stmt.query_map(params![id, since_ms, until_ms], |r| point_from_row(r, 0))?;
+                rows.collect::<rusqlite::Result<Vec<_>>>()?
+            } else {
+                let mut stmt = c.prepare_cached(
+                    "SELECT (t_ms / ?4) * ?4 AS b, avg(pressure_bar), avg(lo_bar), avg(hi_bar), \
+                       max(health), max(excited) FROM samples \
+                     WHERE asset = ?1 AND t_ms BETWEEN ?2 AND ?3 GROUP BY b ORDER BY b",
+                )?;
+                let rows = stmt.query_map(params![id, since_ms, until_ms, step_ms], |r| {
+                    point_from_row(r, 0)
+                })?;
+                rows.collect::<rusqlite::Result<Vec<_>>>()?
+            };
+            Ok(Some(points))
+        })
+    }
+
+    fn newest_ms(&self, asset_id: &str) -> Result<Option<i64>, StoreError> {
+        self.with_reader(|c| {
+            c.prepare_cached(&format!(
+                "SELECT max(t_ms) FROM samples WHERE asset = {ASSET}"
+            ))?
+            .query_row([asset_id], |r| r.get(0))
+        })
+    }
+
+    fn runs(&self, asset_id: &str, limit: usize) -> Result<Vec<RunRecord>, StoreError> {
+        self.with_reader(|c| {
+            let mut stmt = c.prepare_cached(&format!(
+                "SELECT run_id, source, start_ms, end_ms, ticks, status, reason, \
+                   summary_t_ms, summary_bar, summary_sd_bar \
+                 FROM runs WHERE asset = {ASSET} ORDER BY start_ms DESC LIMIT ?2"
+            ))?;
+            let limit = i64::try_from(limit).unwrap_or(i64::MAX);
+            let rows = stmt.query_map(params![asset_id, limit], |r| {
+                let summary = match (
+                    r.get::<_, Option<i64>>(7)?,
+                    r.get::<_, Option<f64>>(8)?,
+                    r.get::<_, Option<f64>>(9)?,
+                ) {
+                    (Some(t_ms), Some(pressure_bar), Some(sd_bar)) => Some(RunPoint {
+                        t_unix_s: t_ms as f64 / 1e3,
+                        pressure_bar,
+                        sd_bar,
+                    }),
+                    _ => None,
+                };
+                Ok(RunRecord {
+                    run_id: r.get(0)?,
+                    source: r.get(1)?,
+                    start_ms: r.get(2)?,
+                    end_ms: r.get(3)?,
+                    ticks: r.get::<_, i64>(4)?.max(0) as u64,
+                    status: r.get(5)?,
+                    reason: r.get(6)?,
+                    summary,
+                })
+            })?;
+            rows.collect()
+        })
+    }
+
+    fn health_changes(
+        &self,
+        asset_id: &str,
+        limit: usize,
+    ) -> Result<Vec<HealthChange>, StoreError> {
+        self.with_reader(|c| {
+            let mut stmt = c.prepare_cached(&format!(
+                "SELECT t_ms, run_id, from_health, to_health FROM health_changes \
+                 WHERE asset = {ASSET} ORDER BY t_ms DESC LIMIT ?2"
+            ))?;
+            let limit = i64::try_from(limit).unwrap_or(i64::MAX);
+            let rows = stmt.query_map(params![asset_id, limit], |r| {
+                Ok(HealthChange {
+                    t_ms: r.get(0)?,
+                    run_id: r.get(1)?,
+                    from: health_from_str(&r.get::<_, String>(2)?),
+                    to: health_from_str(&r.get::<_, String>(3)?),
+                })
+            })?;
+            rows.collect()
+        })
+    }
+
+    fn prune(&self, before_ms: i64) -> Result<usize, StoreError> {
+        self.with_writer(|c| {
+            let tx = c.transaction()?;
+            let n = tx.execute("DELETE FROM samples WHERE t_ms < ?1", [before_ms])?
+                + tx.execute("DELETE FROM health_changes WHERE t_ms < ?1", [before_ms])?;
+            tx.commit()?;
+            Ok(n)
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use dt_core::estimate::Health;
+
+    use super::*;
+
+    fn sample(t_ms: i64, p: f64) -> StoreOp {
+        StoreOp::Sample {
+            asset_id: "a1".into(),
+            point: HistoryPoint {
+                t_ms,
+                pressure_bar: Some(p),
+                pressure_lo_bar: Some(p - 1.0),
+                pressure_hi_bar: None,
+                health: if p < 5.0 { Health::Leak } else { Health::Ok },
+                excited: true,
+            },
+        }
+    }
+
+    #[test]
+    fn writes_read_back_and_average_over_steps() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sub/fleet.sqlite");
+        let store = SqliteStore::open(&path).unwrap();
+        let mut ops = vec![StoreOp::RunStarted {
+            key: "k1".into(),
+            asset_id: "a1".into(),
+            run_id: "r1".into(),
+            source: "test".into(),
+            start_ms: 0,
+        }];
+        ops.extend((0..10).map(|i| sample(i * 1000, 12.0 - f64::from(i as i32))));
+        ops.push(StoreOp::RunEnded {
+            key: "k1".into(),
+            asset_id: "a1".into(),
+            end_ms: 9000,
+            ticks: 500,
+            status: "completed".into(),
+            reason: None,
+            summary: Some(RunPoint {
+                t_unix_s: 5.0,
+                pressure_bar: 7.5,
+                sd_bar: 0.5,
+            }),
+        });
+        store.apply(&ops).unwrap();
+        let h = store.history("a1", 0, 9000, 1000).unwrap().unwrap();
+        assert_eq!(h.len(), 10);
+        assert_eq!(h[3].pressure_bar, Some(9.0));
+        assert_eq!(h[3].pressure_hi_bar, None);
+        // 5 s steps: means of 12..8 and 7..3; the worst health of the bin.
+        let h5 = store.history("a1", 0, 9000, 5000).unwrap().unwrap();
+        assert_eq!(h5.len(), 2);
+        assert!((h5[0].pressure_bar.unwrap() - 10.0).abs() < 1e-12);
+        assert_eq!(h5[1].health, Health::Leak);
+        assert!(store.history("nobody", 0, 1, 1000).unwrap().is_none());
+        let runs = store.runs("a1", 10).unwrap();
+        assert_eq!(runs.len(), 1);
+        assert_eq!(runs[0].ticks, 500);
+        assert!((runs[0].summary.unwrap().pressure_bar - 7.5).abs() < 1e-12);
+        assert_eq!(store.newest_ms("a1").unwrap(), Some(9000));
+        assert_eq!(store.prune(5000).unwrap(), 5);
+        drop(store);
+        // Reopened: the same data, nothing migrated twice.
+        let again = SqliteStore::open(&path).unwrap();
+        assert_eq!(again.asset_states().unwrap()[0].ticks, 500);
+    }
+
+    #[test]
+    fn a_run_left_running_is_interrupted_on_reopen() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fleet.sqlite");
+        SqliteStore::open(&path)
+            .unwrap()
+            .apply(&[StoreOp::RunStarted {
+                key: "k".into(),
+                asset_id: "a1".into(),
+                run_id: "r".into(),
+                source: "s".into(),
+                start_ms: 1,
+            }])
+            .unwrap();
+        let runs = SqliteStore::open(&path).unwrap().runs("a1", 5).unwrap();
+        assert_eq!(runs[0].status, "interrupted");
+    }
+
+    #[test]
+    fn foreign_newer_and_broken_files_are_refused_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let newer = dir.path().join("newer.sqlite");
+        drop(SqliteStore::open(&newer).unwrap());
+        Connection::open(&newer)
+            .unwrap()
+            .pragma_update(None, "user_version", 99)
+            .unwrap();
+        let e = SqliteStore::open(&newer).unwrap_err().to_string();
+        assert!(e.contains("newer.sqlite") && e.contains("99"), "{e}");
+
+        let foreign = dir.path().join("foreign.sqlite");
+        Connection::open(&foreign)
+            .unwrap()
+            .execute_batch("CREATE TABLE t (x)")
+            .unwrap();
+        let e = SqliteStore::open(&foreign).unwrap_err().to_string();
+        assert!(
+            e.contains("foreign.sqlite") && e.contains("something else"),
+            "{e}"
+        );
+
+        let garbage = dir.path().join("garbage.sqlite");
+        std::fs::write(&garbage, vec![0x5a_u8; 8192]).unwrap();
+        let e = SqliteStore::open(&garbage).unwrap_err().to_string();
+        assert!(
+            e.contains("garbage.sqlite") && e.contains("not a readable"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,249 @@
+"""The fleet store and the leak trend, end to end through the real daemon.
+
+A unit losing 0.5 bar/day is simulated over 10 days (`shocktwin simulate --days
+--leak-rate`, one quick 1 Hz run a day), its runs dropped into the daemon's
+inbox, estimated by a cheap-suite bundle trained here (observer calibrated on a
+quick campaign, permutation 17), and kept in an SQLite store (`--db`). Checked:
+the predicted fault crossing's interval brackets the true crossing; the 1 s
+history equals `shocktwin replay`'s estimates binned by numpy; `kill -9` and a
+restart keep the fleet, its runs and its trend, and the file passes SQLite's
+integrity check; a daemon killed in the middle of a run leaves that run
+`interrupted` and processes it again; a store that is not one is refused with
+its name. Simulated data throughout.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import httpx
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+import shocktwin
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+LEAK_BAR_PER_DAY = 0.5
+DAYS = 10
+
+sys.path.insert(0, str(ROOT))
+from train import observer as obs_tool  # noqa: E402
+from train import train as train_tool  # noqa: E402
+
+sys.path.remove(str(ROOT))
+
+
+def simulate(out: Path, *args: str) -> None:
+    subprocess.run([str(BIN), "simulate", "--quick", "--out", str(out), *args], check=True,
+                   stdout=subprocess.DEVNULL)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A cheap-suite bundle and a leaking unit's 10 days of runs."""
+    if not BIN.exists():
+        pytest.fail(f"{BIN} is missing: run `make build`")
+    tmp = tmp_path_factory.mktemp("fleet")
+    campaign = tmp / "campaign"
+    simulate(campaign, "--frequencies", "1,2")
+    physics = tmp / "physics.json"
+    physics.write_text(json.dumps(shocktwin.default_params()))
+    assert obs_tool.main(["fit", "--campaign", str(campaign), "--physics", str(physics)]) == 0
+    bundle = tmp / "perm17"
+    assert train_tool.main(["--campaign", str(campaign), "--permutation", "17", "--physics", str(physics),
+                            "--out", str(bundle)]) == 0
+    runs = tmp / "leaking"
+    simulate(runs, "--days", str(DAYS), "--leak-rate", str(LEAK_BAR_PER_DAY), "--frequencies", "1")
+    return {"bundle": bundle, "runs": runs}
+
+
+class Daemon:
+    def __init__(self, bundle: Path, db: Path, inbox: Path) -> None:
+        self.proc = subprocess.Popen(
+            [str(BIN), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(bundle),
+             "--db", str(db), "--inbox", str(inbox)],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )
+        assert self.proc.stderr is not None
+        self.http = ""
+        for _ in range(200):
+            line = ANSI.sub("", self.proc.stderr.readline())
+            if not line and self.proc.poll() is not None:
+                break
+            m = re.search(r"http=(\S+)", line)
+            if m and "listening" in line:
+                self.http = m.group(1)
+                break
+        assert self.http, f"the daemon did not start (exit {self.proc.poll()})"
+        threading.Thread(target=lambda: [None for _ in self.proc.stderr], daemon=True).start()  # type: ignore[union-attr]
+
+    def get(self, path: str, **params: Any) -> Any:
+        r = httpx.get(f"http://{self.http}{path}", params=params, timeout=10)
+        r.raise_for_status()
+        return r.json()
+
+    def wait_runs(self, asset: str, n: int, timeout_s: float = 240) -> list[dict[str, Any]]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                runs = self.get(f"/v1/assets/{asset}/runs")["runs"]
+            except httpx.HTTPStatusError:
+                runs = []
+            if sum(r["status"] == "completed" for r in runs) >= n:
+                return runs
+            time.sleep(0.5)
+        raise AssertionError(f"{asset}: fewer than {n} runs completed in {timeout_s} s")
+
+    def kill9(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(timeout=10)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(timeout=30)
+
+
+@pytest.fixture()
+def daemons() -> Iterator[list[Daemon]]:
+    started: list[Daemon] = []
+    yield started
+    for d in started:
+        if d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.wait()
+
+
+def unix_s(rfc3339: str) -> float:
+    return float(np.datetime64(rfc3339.rstrip("Z"), "ms").astype("int64")) / 1e3
+
+
+def first_log_time_ns(path: Path) -> int:
+    with path.open("rb") as f:
+        for _schema, _channel, message in make_reader(f).iter_messages(log_time_order=True):
+            return int(message.log_time)
+    raise AssertionError(f"{path}: no messages")
+
+
+def test_trend_history_and_restart(world: dict[str, Path], tmp_path: Path, daemons: list[Daemon]) -> None:
+    inbox, db = tmp_path / "inbox", tmp_path / "state" / "fleet.sqlite"
+    inbox.mkdir()
+    files = sorted(world["runs"].glob("*.mcap"))
+    for f in files:
+        shutil.copy(f, inbox / f.name)
+    d = Daemon(world["bundle"], db, inbox)
+    daemons.append(d)
+    d.wait_runs("dyno-unit-A", DAYS)
+    time.sleep(1.5)  # the trend is refreshed after the last run's commit
+
+    # The true charge against calendar time: the labels at each run's start.
+    t_true = np.array([first_log_time_ns(f) / 1e9 for f in files])
+    p_true = np.array([shocktwin.read_log(f).label for f in files])
+    slope, icpt = np.polyfit(t_true, p_true, 1)
+    trend = d.get("/v1/assets/dyno-unit-A/trend")
+    assert trend["status"] == "ok", trend
+    assert trend["runs_used"] == DAYS
+    fault = trend["fault"]
+    truth = (trend["fault_bar"] - icpt) / slope
+    lo, hi = unix_s(fault["t_lo"]), unix_s(fault["t_hi"])
+    print(f"fault crossing: true {truth:.0f}, predicted {unix_s(fault['t']):.0f} [{lo:.0f}, {hi:.0f}] "
+          f"(±{(hi - lo) / 2 / 86400:.2f} d); leak rate {trend['leak_rate_bar_per_day']:.3f} "
+          f"[{trend['leak_rate_lo_bar_per_day']:.3f}, {trend['leak_rate_hi_bar_per_day']:.3f}] bar/day "
+          f"(true {LEAK_BAR_PER_DAY}) — simulated data")
+    assert lo <= truth <= hi, f"the fault interval [{lo}, {hi}] misses the true crossing {truth}"
+    assert trend["leak_rate_lo_bar_per_day"] > 0.0
+    assets = d.get("/v1/assets")["assets"]
+    assert assets[0]["trend"]["fault"] == fault
+
+    # The 1 s history of one run equals the replayed estimates binned to calendar seconds.
+    day3 = files[3]
+    replay_csv = tmp_path / "day3.csv"
+    subprocess.run([str(BIN), "replay", "--model", str(world["bundle"]), str(day3), "--out", str(replay_csv)],
+                   check=True, stdout=subprocess.DEVNULL)
+    with replay_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    t0 = first_log_time_ns(day3)
+    t_ms = (t0 + np.array([round(float(r["t_s"]) * 1e9) for r in rows])) // 1_000_000
+    pressure = np.array([float(r["pressure_bar"]) for r in rows])
+    sec = t_ms // 1000
+    start = f"{np.datetime64(int(sec[0]), 's')}Z"
+    end = f"{np.datetime64(int(sec[-1]), 's')}Z"
+    hist = d.get("/v1/assets/dyno-unit-A/history", since=start, until=end, step_s=1)["points"]
+    assert len(hist) == len(np.unique(sec))
+    for p in hist:
+        s = unix_s(p["t"])
+        expected = pressure[sec == int(s)].mean()
+        assert p["pressure_bar"] == pytest.approx(expected, abs=1e-9)
+    coarse = d.get("/v1/assets/dyno-unit-A/history", since=start, until=end, step_s=10)["points"]
+    assert len(coarse) < len(hist) / 5
+
+    # kill -9, restart on the same file: the same fleet, runs, history and trend.
+    before = {
+        "runs": d.get("/v1/assets/dyno-unit-A/runs")["runs"],
+        "hist": hist,
+        "trend": trend,
+    }
+    d.kill9()
+    with sqlite3.connect(db) as c:
+        assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    d2 = Daemon(world["bundle"], db, tmp_path / "inbox")
+    daemons.append(d2)
+    assert [a["asset_id"] for a in d2.get("/v1/assets")["assets"]] == ["dyno-unit-A"]
+    assert d2.get("/v1/assets/dyno-unit-A/runs")["runs"] == before["runs"]
+    assert d2.get("/v1/assets/dyno-unit-A/history", since=start, until=end, step_s=1)["points"] == before["hist"]
+    again = d2.get("/v1/assets/dyno-unit-A/trend")
+    assert again["fault"] == before["trend"]["fault"]
+    d2.stop()
+    assert d2.proc.returncode == 0
+
+
+def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], tmp_path: Path,
+                                                       daemons: list[Daemon]) -> None:
+    inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
+    inbox.mkdir()
+    f = sorted(world["runs"].glob("*.mcap"))[0]
+    shutil.copy(f, inbox / f.name)
+    d = Daemon(world["bundle"], db, inbox)
+    daemons.append(d)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # until some of the run's history is committed
+        try:
+            if d.get("/v1/assets/dyno-unit-A/history")["points"]:
+                break
+        except httpx.HTTPStatusError:
+            pass
+        time.sleep(0.1)
+    d.kill9()
+    with sqlite3.connect(db) as c:
+        assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        assert c.execute("SELECT count(*) FROM samples").fetchone()[0] > 0
+    d2 = Daemon(world["bundle"], db, inbox)
+    daemons.append(d2)
+    runs = d2.wait_runs("dyno-unit-A", 1)
+    statuses = sorted(r["status"] for r in runs if r["run_id"] == f.stem)
+    assert statuses == ["completed", "interrupted"], runs
+    d2.stop()
+
+
+def test_a_file_that_is_not_a_store_is_refused_by_name(tmp_path: Path) -> None:
+    bad = tmp_path / "fleet.sqlite"
+    bad.write_bytes(b"this is not a database\n" * 512)
+    proc = subprocess.run([str(BIN), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--db", str(bad)],
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 1
+    assert str(bad) in proc.stderr and "not a readable SQLite database" in proc.stderr, proc.stderr
