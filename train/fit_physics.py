@@ -37,6 +37,7 @@ from scipy.optimize import least_squares
 import shocktwin
 
 from train.campaign import Campaign, CampaignError, Run, load_campaign, main_wrapper, require_topics
+from train.progress import progress
 
 log = logging.getLogger("shocktwin.fit_physics")
 
@@ -337,7 +338,7 @@ def calibrate(campaign: Campaign, *, nominal_bar: float = 12.0) -> dict[str, Any
     params["kalman"] = fit_kalman(runs, params["kalman"])
     log.info("Kalman noise: %s", params["kalman"])
 
-    tabs = [table(run, params) for run in runs]
+    tabs = [table(run, params) for run in progress(runs, desc="features", unit="run")]
     params["thermal"] = fit_thermal(tabs, params["thermal"])
     log.info("thermal: %s", params["thermal"])
 

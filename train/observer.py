@@ -42,6 +42,7 @@ from scipy.optimize import least_squares
 import shocktwin
 
 from train.campaign import Run, load_campaign, main_wrapper
+from train.progress import progress
 from train.fit_physics import rest_end_s
 
 log = logging.getLogger("shocktwin.observer")
@@ -78,7 +79,8 @@ def _reversals(args: tuple[str, dict[str, Any]]) -> dict[str, Any]:
 def reversals(runs: Sequence[Run], params: dict[str, Any], jobs: int) -> list[dict[str, Any]]:
     """Per-run reversal fits, with each reversal's label and the run's excitation onset."""
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        revs = list(pool.map(_reversals, [(str(r.path), params) for r in runs]))
+        revs = list(progress(pool.map(_reversals, [(str(r.path), params) for r in runs]), total=len(runs),
+                             desc="reversal fits", unit="run"))
     out = []
     for run, rev in zip(runs, revs):
         onset = rest_end_s(run)

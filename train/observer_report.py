@@ -38,6 +38,7 @@ import shocktwin
 
 from train.campaign import load_campaign
 from train.fit_physics import rest_end_s
+from train.progress import progress
 from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95
 
 TICK_S = 0.02
@@ -215,7 +216,7 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
         for run in load_campaign(d).runs:
             tasks.append((str(run.path), name, physics, settle))
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        rows = list(pool.map(score_run, tasks))
+        rows = list(progress(pool.map(score_run, tasks), total=len(tasks), desc="scoring", unit="run"))
     out.mkdir(parents=True, exist_ok=True)
 
     sets: dict[str, Any] = {}

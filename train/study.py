@@ -76,20 +76,19 @@ def settings(quick: bool, seed: int, jobs: int) -> Settings:
                     suite_max_iter=40, seed=seed, jobs=jobs)
 
 
-def parallel(jobs: int):  # type: ignore[no-untyped-def]
-    from joblib import Parallel
-
-    return Parallel(n_jobs=jobs, backend="loky" if jobs > 1 else "sequential")
-
-
 def fit_many(
     cfg: Settings, tasks: list[tuple[np.ndarray, np.ndarray, list[str], int]], max_iter: int
 ) -> list[model.Trained]:
     from joblib import delayed
 
-    return parallel(cfg.jobs)(
-        delayed(evaluate.fit_job)(x, y, cols, seed, max_iter) for x, y, cols, seed in tasks
-    )
+    from .progress import progress
+
+    from joblib import Parallel
+
+    # Results in order as they finish (a live bar), the backend of `parallel`.
+    jobs = Parallel(n_jobs=cfg.jobs, backend="loky" if cfg.jobs > 1 else "sequential", return_as="generator")
+    results = jobs(delayed(evaluate.fit_job)(x, y, cols, seed, max_iter) for x, y, cols, seed in tasks)
+    return list(progress(results, total=len(tasks), desc="training", unit="fit"))
 
 
 # ---------------------------------------------------------------------------------------

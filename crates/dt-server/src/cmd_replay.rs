@@ -91,12 +91,14 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<(usize, Result<Replayed>)>> = Mutex::new(Vec::new());
     let started = Instant::now();
+    let bar = crate::progress::bar(args.files.len() as u64, "replay");
     std::thread::scope(|scope| {
         for _ in 0..workers {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(file) = args.files.get(i) else { break };
                 let res = replay_file(file, &bundle, cfg, format, &mcap_out);
+                bar.inc(1);
                 results
                     .lock()
                     .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -104,6 +106,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
             });
         }
     });
+    bar.finish_and_clear();
     let wall_s = started.elapsed().as_secs_f64();
     let mut results = results
         .into_inner()

@@ -2,7 +2,7 @@
 //! one MCAP log per run, runs in parallel.
 
 use anyhow::Context as _;
-use dt_sim::{simulate_campaign, simulate_leak_history, CampaignSpec, LeakHistorySpec};
+use dt_sim::{simulate_campaign_with, simulate_leak_history, CampaignSpec, LeakHistorySpec};
 
 use crate::cli::SimulateArgs;
 
@@ -22,12 +22,16 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             quick: args.quick,
             unit: args.unit,
         };
-        simulate_leak_history(&spec, &args.out).with_context(|| {
-            format!(
-                "simulate: {days} days of a unit losing {leak} bar/day into {}",
-                args.out.display()
-            )
-        })?
+        let bar = crate::progress::bar(u64::from(days), "simulate");
+        let done =
+            simulate_leak_history(&spec, &args.out, &|s| tick(&bar, s)).with_context(|| {
+                format!(
+                    "simulate: {days} days of a unit losing {leak} bar/day into {}",
+                    args.out.display()
+                )
+            })?;
+        bar.finish_and_clear();
+        done
     } else {
         campaign(args)?
     };
@@ -45,8 +49,17 @@ fn campaign(args: &SimulateArgs) -> anyhow::Result<Vec<dt_sim::RunSummary>> {
         repeat: args.repeat,
         ..CampaignSpec::paper(args.seed)
     };
-    simulate_campaign(&spec, &args.out)
-        .with_context(|| format!("simulate: campaign into {}", args.out.display()))
+    let bar = crate::progress::bar(spec.runs().len() as u64, "simulate");
+    let done = simulate_campaign_with(&spec, &args.out, &|s| tick(&bar, s))
+        .with_context(|| format!("simulate: campaign into {}", args.out.display()));
+    bar.finish_and_clear();
+    done
+}
+
+/// One run written: the bar moves on and names it.
+fn tick(bar: &indicatif::ProgressBar, s: &dt_sim::RunSummary) {
+    bar.set_message(s.run_id.clone());
+    bar.inc(1);
 }
 
 fn report(summaries: &[dt_sim::RunSummary], started: std::time::Instant, args: &SimulateArgs) {

@@ -8,4 +8,5 @@ pub mod cmd_inspect;
 pub mod cmd_replay;
 pub mod cmd_serve;
 pub mod cmd_simulate;
+pub mod progress;
 pub mod server;

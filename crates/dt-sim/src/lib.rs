@@ -45,8 +45,8 @@ pub mod valve;
 pub use params::{parameter_table, ParamInfo, PlantParams};
 pub use plant::{Plant, PlantConfig, Truth};
 pub use run::{
-    simulate_campaign, simulate_leak_history, simulate_run, simulate_run_with, CampaignSpec,
-    LeakHistorySpec, RunSpec, RunSummary, StopReason,
+    simulate_campaign, simulate_campaign_with, simulate_leak_history, simulate_run,
+    simulate_run_with, CampaignSpec, LeakHistorySpec, RunSpec, RunSummary, StopReason,
 };
 
 /// Everything that can go wrong in the simulator.

@@ -499,6 +499,7 @@ impl LeakHistorySpec {
 pub fn simulate_leak_history(
     spec: &LeakHistorySpec,
     out_dir: &Path,
+    on_run: &(dyn Fn(&RunSummary) + Sync),
 ) -> Result<Vec<RunSummary>, SimError> {
     if !(spec.leak_bar_per_day.is_finite() && spec.leak_bar_per_day >= 0.0) {
         return Err(SimError::InvalidSpec {
@@ -536,6 +537,7 @@ pub fn simulate_leak_history(
             writer.finish().map_err(log_err)?;
             summary.run_id = run_id;
             summary.path = Some(path);
+            on_run(&summary);
             Ok(summary)
         })
         .collect()
@@ -601,6 +603,16 @@ impl CampaignSpec {
 /// the order of [`CampaignSpec::runs`]; the files do not depend on the
 /// number of threads.
 pub fn simulate_campaign(spec: &CampaignSpec, out_dir: &Path) -> Result<Vec<RunSummary>, SimError> {
+    simulate_campaign_with(spec, out_dir, &|_| {})
+}
+
+/// [`simulate_campaign`], calling `on_run` as each run is written (from the
+/// worker threads, in completion order): a progress bar's hook.
+pub fn simulate_campaign_with(
+    spec: &CampaignSpec,
+    out_dir: &Path,
+    on_run: &(dyn Fn(&RunSummary) + Sync),
+) -> Result<Vec<RunSummary>, SimError> {
     std::fs::create_dir_all(out_dir).map_err(|source| SimError::Io {
         path: out_dir.display().to_string(),
         source,
@@ -631,11 +643,13 @@ pub fn simulate_campaign(spec: &CampaignSpec, out_dir: &Path) -> Result<Vec<RunS
         .map_or_else(PlantParams::nominal, RunSpec::params);
     runs.par_iter()
         .map(|run| {
-            simulate_run(
+            let summary = simulate_run(
                 run,
                 &params,
                 &out_dir.join(format!("{}.mcap", run.run_id())),
-            )
+            )?;
+            on_run(&summary);
+            Ok(summary)
         })
         .collect()
 }
