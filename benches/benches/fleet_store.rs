@@ -26,7 +26,7 @@ use axum::http::Request;
 use criterion::{criterion_group, criterion_main, Criterion};
 use dt_core::estimate::Health;
 use dt_core::trend::RunPoint;
-use dt_server::server::http::{router, AppState};
+use dt_server::server::http::{history_json, router, AppState};
 use dt_server::server::metrics::Metrics;
 use dt_server::server::state::LiveState;
 use dt_server::server::store::{
@@ -184,28 +184,11 @@ fn fleet(c: &mut Criterion) {
         });
     }
     let points: Vec<HistoryPoint> = store
-        .history(&id, T0_MS, T0_MS + days * DAY_MS, 1000)
+        .history(&id, (T0_MS, T0_MS + days * DAY_MS), 1000, usize::MAX)
         .expect("history")
         .expect("asset");
     g.bench_function("in_memory_30d_1s", |b| {
-        b.iter(|| {
-            let json: Vec<serde_json::Value> = points
-                .iter()
-                .map(|p| {
-                    serde_json::json!({
-                        "t": rfc3339_ms(p.t_ms),
-                        "pressure_bar": p.pressure_bar,
-                        "pressure_lo_bar": p.pressure_lo_bar,
-                        "pressure_hi_bar": p.pressure_hi_bar,
-                        "health": p.health,
-                        "excited": p.excited,
-                    })
-                })
-                .collect();
-            serde_json::to_vec(&serde_json::json!({ "asset_id": id, "points": json }))
-                .expect("json")
-                .len()
-        });
+        b.iter(|| history_json(&id, 1.0, &points).len());
     });
     g.finish();
 }

@@ -64,6 +64,9 @@ pub struct SimulateArgs {
     /// With --days: the charge on day 0, bar gauge.
     #[arg(long, default_value_t = 12.0, requires = "days")]
     pub start_bar: f64,
+    /// With --days: the asset id in the runs' metadata (default: the unit's).
+    #[arg(long, requires = "days")]
+    pub asset_id: Option<String>,
 }
 
 /// `shocktwin inspect`.

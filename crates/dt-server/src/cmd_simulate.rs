@@ -21,6 +21,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             seed: args.seed,
             quick: args.quick,
             unit: args.unit,
+            asset_id: args.asset_id.clone(),
         };
         let bar = crate::progress::bar(u64::from(days), "simulate");
         let done =

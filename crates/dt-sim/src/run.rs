@@ -465,6 +465,9 @@ pub struct LeakHistorySpec {
     pub quick: bool,
     /// Unit (`None` = nominal).
     pub unit: Option<u64>,
+    /// Asset id written to the metadata (`None`: the unit's, see
+    /// [`RunSpec::asset_id`]).
+    pub asset_id: Option<String>,
 }
 
 /// Hour of the day (UTC) at which the day's run starts, before a jitter of
@@ -519,6 +522,9 @@ pub fn simulate_leak_history(
             let run_id = format!("d{day:03}-{}", run.run_id());
             let mut meta = run.metadata();
             meta.run_id.clone_from(&run_id);
+            if let Some(a) = &spec.asset_id {
+                meta.asset_id.clone_from(a);
+            }
             meta.extra.insert("day".into(), day.to_string());
             meta.extra
                 .insert("leak_bar_per_day".into(), spec.leak_bar_per_day.to_string());

@@ -77,6 +77,10 @@ struct Args {
     /// Do not record estimates (the started daemon records into a temporary directory by default).
     #[arg(long)]
     no_record: bool,
+    /// Give the started daemon a fleet store (`--db`) in a temporary directory
+    /// (default: `--no-db`).
+    #[arg(long)]
+    store: bool,
     /// Ingest address of an already running daemon (without --serve).
     #[arg(long, default_value = "127.0.0.1:7410")]
     ingest: SocketAddr,
@@ -733,6 +737,7 @@ impl LoadResult {
             "send_period_ms": args.send_period_ms,
             "chunk_bytes": args.chunk_bytes,
             "record": args.serve.is_some() && !args.no_record,
+            "store": args.serve.is_some() && args.store,
             "nice": args.nice,
             "expected_ticks_per_asset": self.expected_ticks,
             "runs_complete_every_tick": self.completed_exact,
@@ -851,6 +856,13 @@ impl SpawnedDaemon {
         .stderr(Stdio::piped());
         if let Some(d) = &record_dir {
             cmd.arg("--record-dir").arg(d);
+        }
+        if args.store {
+            let db = std::env::temp_dir()
+                .join(format!("shocktwin-load-{}-{n}.sqlite", std::process::id()));
+            cmd.arg("--db").arg(db);
+        } else {
+            cmd.arg("--no-db");
         }
         let mut child = cmd
             .spawn()

@@ -2,8 +2,9 @@
 //!
 //! | route | answer |
 //! | --- | --- |
+//! | `GET /` | the dashboard (HTML; its script, styles and the vendored uPlot under `/assets/`, compiled into the binary) |
 //! | `GET /healthz` | `200 ok` while the process serves |
-//! | `GET /readyz` | `200 ready`, or `503` while starting or draining |
+//! | `GET /readyz` | `200 ready`, or `503` while starting or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
 //! | `GET /metrics` | Prometheus metrics (`OpenMetrics` text) |
 //! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update |
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
@@ -29,15 +30,20 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use futures_util::{Stream, StreamExt};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 use tokio_stream::wrappers::BroadcastStream;
 use tokio_util::sync::CancellationToken;
 
+use dt_core::estimate::Health;
+
 use super::config::Config;
 use super::metrics::Metrics;
-use super::state::LiveState;
-use super::store::{parse_time_ms, rfc3339_ms, FleetStore, StoreError, Trends};
+use super::state::{AssetSummary, LiveState};
+use super::store::{
+    parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, StoreError, TrendSummary, TrendView,
+    Trends,
+};
 
 /// What the handlers share.
 #[derive(Debug, Clone)]
@@ -58,9 +64,50 @@ pub struct AppState {
     pub stop: CancellationToken,
 }
 
+// The dashboard, compiled in (no build step; uPlot vendored from its npm
+// package, see assets/vendor/README.md).
+const DASHBOARD_HTML: &str = include_str!("../../assets/index.html");
+const DASHBOARD_JS: &str = include_str!("../../assets/app.js");
+const DASHBOARD_CSS: &str = include_str!("../../assets/app.css");
+const UPLOT_JS: &str = include_str!("../../assets/vendor/uplot.min.js");
+const UPLOT_CSS: &str = include_str!("../../assets/vendor/uplot.min.css");
+const JS: &str = "text/javascript; charset=utf-8";
+const CSS: &str = "text/css; charset=utf-8";
+
+fn static_file(content_type: &'static str, body: &'static str) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, content_type),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        body,
+    )
+        .into_response()
+}
+
 /// The API's routes.
 pub fn router(state: AppState) -> Router {
     Router::new()
+        .route(
+            "/",
+            get(|| async { static_file("text/html; charset=utf-8", DASHBOARD_HTML) }),
+        )
+        .route(
+            "/assets/app.js",
+            get(|| async { static_file(JS, DASHBOARD_JS) }),
+        )
+        .route(
+            "/assets/app.css",
+            get(|| async { static_file(CSS, DASHBOARD_CSS) }),
+        )
+        .route(
+            "/assets/uplot.min.js",
+            get(|| async { static_file(JS, UPLOT_JS) }),
+        )
+        .route(
+            "/assets/uplot.min.css",
+            get(|| async { static_file(CSS, UPLOT_CSS) }),
+        )
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
@@ -75,10 +122,16 @@ pub fn router(state: AppState) -> Router {
 }
 
 async fn readyz(State(app): State<AppState>) -> Response {
-    if app.ready.load(Ordering::Relaxed) {
-        (StatusCode::OK, "ready\n").into_response()
-    } else {
-        (StatusCode::SERVICE_UNAVAILABLE, "not ready\n").into_response()
+    if !app.ready.load(Ordering::Relaxed) {
+        return (StatusCode::SERVICE_UNAVAILABLE, "not ready\n").into_response();
+    }
+    match app.trends.store_problem() {
+        Some(problem) => (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("degraded: history is not being kept: {problem}\n"),
+        )
+            .into_response(),
+        None => (StatusCode::OK, "ready\n").into_response(),
     }
 }
 
@@ -93,33 +146,45 @@ async fn metrics(State(app): State<AppState>) -> Response {
         .into_response()
 }
 
+/// One asset of `GET /v1/assets`: its live summary, thresholds and trend summary.
+#[derive(Serialize)]
+struct AssetRow<'a> {
+    #[serde(flatten)]
+    summary: &'a AssetSummary,
+    warn_bar: f64,
+    fault_bar: f64,
+    trend: Option<TrendSummary<'a>>,
+}
+
 async fn assets(State(app): State<AppState>) -> Response {
-    let assets: Vec<serde_json::Value> = app
-        .live
-        .summaries()
-        .into_iter()
-        .map(|s| {
+    let summaries = app.live.summaries();
+    let trends: Vec<_> = summaries
+        .iter()
+        .map(|s| app.trends.get(&s.asset_id))
+        .collect();
+    let rows: Vec<AssetRow<'_>> = summaries
+        .iter()
+        .zip(&trends)
+        .map(|(s, t)| {
             let a = app.config.asset(&s.asset_id);
-            let trend = app.trends.get(&s.asset_id);
-            let mut v = serde_json::to_value(&s).unwrap_or_default();
-            if let Some(o) = v.as_object_mut() {
-                o.insert("warn_bar".into(), a.warn_bar.into());
-                o.insert("fault_bar".into(), a.fault_bar.into());
-                o.insert(
-                    "trend".into(),
-                    trend.map_or(serde_json::Value::Null, |t| {
-                        serde_json::to_value(&*t).unwrap_or_default()
-                    }),
-                );
+            AssetRow {
+                summary: s,
+                warn_bar: a.warn_bar,
+                fault_bar: a.fault_bar,
+                trend: t.as_deref().map(TrendView::summary),
             }
-            v
         })
         .collect();
-    Json(serde_json::json!({ "assets": assets })).into_response()
+    Json(Assets { assets: rows }).into_response()
+}
+
+#[derive(Serialize)]
+struct Assets<'a> {
+    assets: Vec<AssetRow<'a>>,
 }
 
 /// Most points one history request may return.
-pub const MAX_HISTORY_POINTS: i64 = 200_000;
+pub const MAX_HISTORY_POINTS: usize = 200_000;
 /// Default span of a history request, ms (one day back from the newest point).
 const DEFAULT_SPAN_MS: i64 = 86_400_000;
 
@@ -211,12 +276,7 @@ async fn history(
                 "until ({until} ms) is before since ({since} ms)"
             )));
         }
-        if (until - since) / step_ms > MAX_HISTORY_POINTS {
-            return Err(StoreError::Request(format!(
-                "more than {MAX_HISTORY_POINTS} points: raise step_s or narrow since/until"
-            )));
-        }
-        store.history(&asset, since, until, step_ms)
+        store.history(&asset, (since, until), step_ms, MAX_HISTORY_POINTS)
     })
     .await;
     match result {
@@ -225,24 +285,51 @@ async fn history(
             "asset_id": id, "step_s": step_s, "points": [] }))
         .into_response(),
         Ok(None) => unknown(&id),
-        Ok(Some(points)) => {
-            let points: Vec<serde_json::Value> = points
-                .iter()
-                .map(|p| {
-                    serde_json::json!({
-                        "t": rfc3339_ms(p.t_ms),
-                        "pressure_bar": p.pressure_bar,
-                        "pressure_lo_bar": p.pressure_lo_bar,
-                        "pressure_hi_bar": p.pressure_hi_bar,
-                        "health": p.health,
-                        "excited": p.excited,
-                    })
-                })
-                .collect();
-            Json(serde_json::json!({ "asset_id": id, "step_s": step_s, "points": points }))
-                .into_response()
-        }
+        Ok(Some(points)) => (
+            [(header::CONTENT_TYPE, "application/json")],
+            history_json(&id, step_s, &points),
+        )
+            .into_response(),
     }
+}
+
+/// One point of `GET /v1/assets/{id}/history`.
+#[derive(Serialize)]
+struct HistoryRow {
+    t: String,
+    pressure_bar: Option<f64>,
+    pressure_lo_bar: Option<f64>,
+    pressure_hi_bar: Option<f64>,
+    health: Health,
+    excited: bool,
+}
+
+#[derive(Serialize)]
+struct HistoryBody<'a> {
+    asset_id: &'a str,
+    step_s: f64,
+    points: Vec<HistoryRow>,
+}
+
+/// The body of `GET /v1/assets/{id}/history` for `points`.
+#[must_use]
+pub fn history_json(asset_id: &str, step_s: f64, points: &[HistoryPoint]) -> Vec<u8> {
+    let body = HistoryBody {
+        asset_id,
+        step_s,
+        points: points
+            .iter()
+            .map(|p| HistoryRow {
+                t: rfc3339_ms(p.t_ms),
+                pressure_bar: p.pressure_bar,
+                pressure_lo_bar: p.pressure_lo_bar,
+                pressure_hi_bar: p.pressure_hi_bar,
+                health: p.health,
+                excited: p.excited,
+            })
+            .collect(),
+    };
+    serde_json::to_vec(&body).unwrap_or_default()
 }
 
 async fn trend(State(app): State<AppState>, Path(id): Path<String>) -> Response {

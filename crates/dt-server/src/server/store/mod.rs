@@ -211,13 +211,14 @@ pub trait FleetStore: Send + Sync + Debug {
     /// Every asset's latest state.
     fn asset_states(&self) -> Result<Vec<AssetState>, StoreError>;
     /// The asset's history in `[since_ms, until_ms]`, averaged over
-    /// `step_ms` (≥ 1000); `None` for an unknown asset.
+    /// `step_ms` (≥ 1000); `None` for an unknown asset; a
+    /// [`StoreError::Request`] when it would be more than `max_points`.
     fn history(
         &self,
         asset_id: &str,
-        since_ms: i64,
-        until_ms: i64,
+        range_ms: (i64, i64),
         step_ms: i64,
+        max_points: usize,
     ) -> Result<Option<Vec<HistoryPoint>>, StoreError>;
     /// Calendar time of the asset's newest point, ms.
     fn newest_ms(&self, asset_id: &str) -> Result<Option<i64>, StoreError>;
@@ -378,7 +379,50 @@ pub struct TrendView {
     pub fit: Option<TrendFit>,
 }
 
+/// The part of a [`TrendView`] that `GET /v1/assets` gives per asset
+/// (without the points and the line).
+#[derive(Debug, Clone, Serialize)]
+pub struct TrendSummary<'a> {
+    /// See [`TrendView`].
+    pub status: &'static str,
+    /// See [`TrendView`].
+    pub reason: Option<&'a str>,
+    /// See [`TrendView`].
+    pub runs_used: usize,
+    /// See [`TrendView`].
+    pub leak_rate_bar_per_day: Option<f64>,
+    /// See [`TrendView`].
+    pub leak_rate_lo_bar_per_day: Option<f64>,
+    /// See [`TrendView`].
+    pub leak_rate_hi_bar_per_day: Option<f64>,
+    /// See [`TrendView`].
+    pub pressure_now_bar: Option<f64>,
+    /// See [`TrendView`].
+    pub warn: Option<&'a CrossingView>,
+    /// See [`TrendView`].
+    pub fault: Option<&'a CrossingView>,
+    /// See [`TrendView`].
+    pub days_to_fault: Option<f64>,
+}
+
 impl TrendView {
+    /// The summary `GET /v1/assets` gives.
+    #[must_use]
+    pub fn summary(&self) -> TrendSummary<'_> {
+        TrendSummary {
+            status: self.status,
+            reason: self.reason.as_deref(),
+            runs_used: self.runs_used,
+            leak_rate_bar_per_day: self.leak_rate_bar_per_day,
+            leak_rate_lo_bar_per_day: self.leak_rate_lo_bar_per_day,
+            leak_rate_hi_bar_per_day: self.leak_rate_hi_bar_per_day,
+            pressure_now_bar: self.pressure_now_bar,
+            warn: self.warn.as_ref(),
+            fault: self.fault.as_ref(),
+            days_to_fault: self.days_to_fault,
+        }
+    }
+
     /// The trend of run summaries `points` (`(run_id, point)`) against the
     /// thresholds.
     #[must_use]

@@ -28,14 +28,29 @@ const MAX_BATCH: usize = 20_000;
 /// How often the writer applies the retention, s.
 const PRUNE_EVERY_S: u64 = 600;
 
-/// The latest trend of every asset (computed by the writer thread, read by
-/// the HTTP handlers).
+/// What the writer thread publishes for the HTTP handlers: the latest trend
+/// of every asset, and the store's last write error while it lasts.
 #[derive(Debug, Default)]
 pub struct Trends {
     map: RwLock<HashMap<String, Arc<TrendView>>>,
+    problem: RwLock<Option<String>>,
 }
 
 impl Trends {
+    /// Why the last write to the store failed (disk full, I/O error), until
+    /// a write succeeds again: `/readyz` reports it.
+    #[must_use]
+    pub fn store_problem(&self) -> Option<String> {
+        self.problem
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    fn set_problem(&self, problem: Option<String>) {
+        *self.problem.write().unwrap_or_else(PoisonError::into_inner) = problem;
+    }
+
     /// The asset's trend, if the store has seen it.
     #[must_use]
     pub fn get(&self, asset_id: &str) -> Option<Arc<TrendView>> {
@@ -441,11 +456,16 @@ fn commit(
             _ => None,
         })
         .collect();
-    if let Err(e) = store.apply(pending) {
-        // Disk full, I/O error: said once per batch, the batch is lost, the
-        // daemon carries on (the live view and recordings are unaffected).
-        metrics.error("store");
-        tracing::error!(ops = pending.len(), "{e}; this batch of history is lost");
+    match store.apply(pending) {
+        Ok(()) => trends.set_problem(None),
+        Err(e) => {
+            // Disk full, I/O error: said once per batch, the batch is lost,
+            // `/readyz` says why until a write succeeds; the daemon carries on
+            // (the live view and recordings are unaffected).
+            metrics.error("store");
+            tracing::error!(ops = pending.len(), "{e}; this batch of history is lost");
+            trends.set_problem(Some(e.to_string()));
+        }
     }
     pending.clear();
     for asset in ended {

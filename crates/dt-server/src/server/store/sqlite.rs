@@ -337,11 +337,12 @@ impl FleetStore for SqliteStore {
     fn history(
         &self,
         asset_id: &str,
-        since_ms: i64,
-        until_ms: i64,
+        (since_ms, until_ms): (i64, i64),
         step_ms: i64,
+        max_points: usize,
     ) -> Result<Option<Vec<HistoryPoint>>, StoreError> {
-        self.with_reader(|c| {
+        let limit = i64::try_from(max_points).unwrap_or(i64::MAX - 1) + 1;
+        let points = self.with_reader(|c| {
             let known = c
                 .prepare_cached("SELECT id FROM assets WHERE asset_id = ?1")?
                 .query_row([asset_id], |r| r.get::<_, i64>(0))
@@ -350,24 +351,32 @@ impl FleetStore for SqliteStore {
             let points = if step_ms <= 1000 {
                 let mut stmt = c.prepare_cached(
                     "SELECT t_ms, pressure_bar, lo_bar, hi_bar, health, excited FROM samples \
-                     WHERE asset = ?1 AND t_ms BETWEEN ?2 AND ?3 ORDER BY t_ms",
+                     WHERE asset = ?1 AND t_ms BETWEEN ?2 AND ?3 ORDER BY t_ms LIMIT ?4",
                 )?;
-                let rows =
-                    stmt.query_map(params![id, since_ms, until_ms], |r| point_from_row(r, 0))?;
+                let rows = stmt.query_map(params![id, since_ms, until_ms, limit], |r| {
+                    point_from_row(r, 0)
+                })?;
                 rows.collect::<rusqlite::Result<Vec<_>>>()?
             } else {
                 let mut stmt = c.prepare_cached(
                     "SELECT (t_ms / ?4) * ?4 AS b, avg(pressure_bar), avg(lo_bar), avg(hi_bar), \
                        max(health), max(excited) FROM samples \
-                     WHERE asset = ?1 AND t_ms BETWEEN ?2 AND ?3 GROUP BY b ORDER BY b",
+                     WHERE asset = ?1 AND t_ms BETWEEN ?2 AND ?3 GROUP BY b ORDER BY b LIMIT ?5",
                 )?;
-                let rows = stmt.query_map(params![id, since_ms, until_ms, step_ms], |r| {
-                    point_from_row(r, 0)
-                })?;
+                let rows = stmt
+                    .query_map(params![id, since_ms, until_ms, step_ms, limit], |r| {
+                        point_from_row(r, 0)
+                    })?;
                 rows.collect::<rusqlite::Result<Vec<_>>>()?
             };
             Ok(Some(points))
-        })
+        })?;
+        if points.as_ref().is_some_and(|p| p.len() > max_points) {
+            return Err(StoreError::Request(format!(
+                "more than {max_points} points: raise step_s or narrow since/until"
+            )));
+        }
+        Ok(points)
     }
 
     fn newest_ms(&self, asset_id: &str) -> Result<Option<i64>, StoreError> {
@@ -496,16 +505,19 @@ mod tests {
             }),
         });
         store.apply(&ops).unwrap();
-        let h = store.history("a1", 0, 9000, 1000).unwrap().unwrap();
+        let h = store.history("a1", (0, 9000), 1000, 100).unwrap().unwrap();
         assert_eq!(h.len(), 10);
         assert_eq!(h[3].pressure_bar, Some(9.0));
         assert_eq!(h[3].pressure_hi_bar, None);
         // 5 s steps: means of 12..8 and 7..3; the worst health of the bin.
-        let h5 = store.history("a1", 0, 9000, 5000).unwrap().unwrap();
+        let h5 = store.history("a1", (0, 9000), 5000, 100).unwrap().unwrap();
         assert_eq!(h5.len(), 2);
         assert!((h5[0].pressure_bar.unwrap() - 10.0).abs() < 1e-12);
         assert_eq!(h5[1].health, Health::Leak);
-        assert!(store.history("nobody", 0, 1, 1000).unwrap().is_none());
+        assert!(store
+            .history("nobody", (0, 1), 1000, 100)
+            .unwrap()
+            .is_none());
         let runs = store.runs("a1", 10).unwrap();
         assert_eq!(runs.len(), 1);
         assert_eq!(runs[0].ticks, 500);
