@@ -1,0 +1,422 @@
+// shocktwin dashboard: the fleet sorted by risk, and for the selected asset its live
+// pressure (Server-Sent Events), its leak trend with the predicted crossings, its recent
+// runs and health changes. Plain ES2020, no build step; charts by the vendored uPlot.
+// Every URL is relative so that the page works behind a path prefix.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const DASH = "–";
+const DAY_S = 86400;
+const MAX_LIVE = 3000;           // points kept in the live chart (~60 s at 50 Hz)
+const REFRESH_MS = 5000;         // fleet poll
+const HEALTH_RANK = { leak: 0, low: 1, unknown: 2, ok: 3 };
+const COLORS = { p: "#2b6cb0", band: "rgba(43,108,176,0.16)", warn: "#b7791f", fault: "#c0392b", fit: "#1d232b" };
+
+const S = {
+  assets: new Map(),             // asset_id -> row of GET v1/assets (updated live)
+  selected: null,
+  live: { x: [], p: [], lo: [], hi: [] },
+  liveCount: 0, lastEvent: null, seeded: false,
+  fleetDirty: false, fleetDrawn: 0, liveDirty: false, detailTimer: null, refreshTimer: null,
+  liveChart: null, trendChart: null, trendKey: null,
+};
+
+// ---- formatting --------------------------------------------------------------------
+const esc = (s) => String(s).replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`);
+const fin = (v) => typeof v === "number" && Number.isFinite(v);
+const num = (v, d = 2) => (fin(v) ? v.toFixed(d).replace(/^-(0\.?0*)$/, "$1") : DASH);   // no "-0.00"
+const tsec = (iso) => (iso ? Date.parse(iso) / 1000 : null);   // RFC 3339 -> Unix s
+const iso = (s) => new Date(s * 1000).toISOString();
+const fmtDate = (s) => (fin(s) ? iso(s).slice(0, 10) : DASH);
+const fmtTime = (s) => (fin(s) ? iso(s).slice(0, 19).replace("T", " ") : DASH);
+function ago(ms) {
+  if (!fin(ms) || ms <= 0) return DASH;
+  const s = Math.max(0, (Date.now() - ms) / 1000);
+  if (s < 60) return `${Math.round(s)} s ago`;
+  if (s < 3600) return `${Math.round(s / 60)} min ago`;
+  if (s < DAY_S) return `${(s / 3600).toFixed(1)} h ago`;
+  return `${(s / DAY_S).toFixed(1)} d ago`;
+}
+function duration(t0, t1) {
+  if (!fin(t0) || !fin(t1)) return DASH;
+  const s = t1 - t0;
+  return s < 120 ? `${s.toFixed(0)} s` : s < 7200 ? `${(s / 60).toFixed(1)} min` : `${(s / 3600).toFixed(1)} h`;
+}
+const badge = (h) => `<span class="badge ${esc(h || "unknown")}">${esc(h || "unknown")}</span>`;
+
+async function getJSON(path) {
+  const r = await fetch(path, { cache: "no-store" });
+  if (!r.ok) {
+    let msg = r.statusText;
+    try { msg = (await r.json()).error || msg; } catch (_) { /* not JSON */ }
+    throw new Error(`${path}: ${r.status} ${msg}`);
+  }
+  return r.json();
+}
+function showError(el, err) {
+  el.hidden = !err;
+  el.textContent = err ? String(err.message || err) : "";
+}
+
+// ---- fleet table -------------------------------------------------------------------
+function riskOrder(a, b) {
+  const h = (HEALTH_RANK[a.health] ?? 2) - (HEALTH_RANK[b.health] ?? 2);
+  if (h) return h;
+  const da = a.trend?.days_to_fault, db = b.trend?.days_to_fault;
+  if (fin(da) !== fin(db)) return fin(da) ? -1 : 1;   // null last
+  if (fin(da) && da !== db) return da - db;
+  return a.asset_id.localeCompare(b.asset_id);
+}
+
+// A bar from 0 to a scale covering the nominal pressure: the 95 % interval, the estimate
+// and the warn/fault marks.
+function pressureCell(a) {
+  const max = Math.max(15, (fin(a.expected_bar) ? a.expected_bar : 12) * 1.25);
+  const pct = (v) => `${(100 * Math.min(Math.max(v, 0), max) / max).toFixed(1)}%`;
+  const p = fin(a.pressure_avg_bar) ? a.pressure_avg_bar : a.pressure_bar;
+  let bar = "";
+  if (fin(p)) bar += `<span class="fill" style="width:${pct(p)}"></span>`;
+  if (fin(a.pressure_lo_bar) && fin(a.pressure_hi_bar)) {
+    bar += `<span class="iv" style="left:${pct(a.pressure_lo_bar)};width:calc(${pct(a.pressure_hi_bar)} - ${pct(a.pressure_lo_bar)})"></span>`;
+  }
+  if (fin(p)) bar += `<span class="pt" style="left:${pct(p)}"></span>`;
+  if (fin(a.warn_bar)) bar += `<span class="th warn" style="left:${pct(a.warn_bar)}" title="warn ${a.warn_bar} bar"></span>`;
+  if (fin(a.fault_bar)) bar += `<span class="th fault" style="left:${pct(a.fault_bar)}" title="fault ${a.fault_bar} bar"></span>`;
+  const iv = fin(a.pressure_lo_bar) && fin(a.pressure_hi_bar)
+    ? `[${num(a.pressure_lo_bar)}, ${num(a.pressure_hi_bar)}]` : "";
+  return `<span class="pbar">${bar}</span><span class="num">${num(p)}</span> <span class="small">${iv}</span>`;
+}
+
+function leakCell(t) {
+  if (!t || t.status !== "ok" || !fin(t.leak_rate_bar_per_day)) {
+    return `<span class="small" title="${esc(t?.reason || "no trend yet")}">${DASH}</span>`;
+  }
+  const half = fin(t.leak_rate_lo_bar_per_day) && fin(t.leak_rate_hi_bar_per_day)
+    ? ` ± ${num((t.leak_rate_hi_bar_per_day - t.leak_rate_lo_bar_per_day) / 2, 3)}` : "";
+  return `${num(t.leak_rate_bar_per_day, 3)}<span class="small">${half}</span>`;
+}
+
+function faultCell(t) {
+  const c = t?.fault;
+  if (c && c.t) {
+    const days = fin(t.days_to_fault) ? ` <span class="small">in ${t.days_to_fault.toFixed(1)} d</span>` : "";
+    return `${fmtDate(tsec(c.t))}${days}`;
+  }
+  const why = c?.reason || (t && t.status !== "ok" ? t.reason : null);
+  return why ? `<span class="small">${esc(why)}</span>` : DASH;
+}
+
+function renderFleet() {
+  S.fleetDirty = false;
+  S.fleetDrawn = Date.now();
+  const rows = [...S.assets.values()].sort(riskOrder);
+  $("fleet-empty").hidden = rows.length > 0;
+  $("fleet").hidden = rows.length === 0;
+  $("fleet").tBodies[0].innerHTML = rows.map((a) => {
+    const run = a.active_runs > 0 ? `<span class="pill">● streaming</span>` : "";
+    const failed = a.last_run_status && a.last_run_status !== "completed"
+      ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
+    return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
+      <td class="id">${esc(a.asset_id)}${run}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td>${leakCell(a.trend)}</td><td>${faultCell(a.trend)}</td>
+      <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
+  }).join("");
+}
+
+async function refreshFleet() {
+  try {
+    const body = await getJSON("v1/assets");
+    S.assets = new Map(body.assets.map((a) => [a.asset_id, a]));
+    showError($("error"), null);
+    if (!S.selected && body.assets.length) {
+      const wanted = decodeURIComponent(location.hash.slice(1));
+      select(wanted || [...S.assets.values()].sort(riskOrder)[0].asset_id);
+    } else if (S.selected && S.assets.has(S.selected)) {
+      if ($("asset-body").hidden) select(S.selected);   // it was unknown until now
+      drawTrend(S.assets.get(S.selected).trend);
+      loadDetail();
+    }
+    renderFleet();
+  } catch (err) {
+    showError($("error"), err);
+  }
+  scheduleRefresh(REFRESH_MS);
+}
+function scheduleRefresh(ms) {   // one pending poll at most
+  clearTimeout(S.refreshTimer);
+  S.refreshTimer = setTimeout(refreshFleet, ms);
+}
+
+// ---- the selected asset --------------------------------------------------------------
+function select(id) {
+  if (!id) return;
+  S.selected = id;
+  history.replaceState(null, "", `#${encodeURIComponent(id)}`);
+  S.live = { x: [], p: [], lo: [], hi: [] };
+  S.seeded = false;
+  S.trendKey = null;
+  $("asset").hidden = false;
+  $("asset-title").textContent = id;
+  renderFleet();
+  const a = S.assets.get(id);
+  $("asset-body").hidden = !a;
+  if (!a) {
+    showError($("asset-error"), `unknown asset “${id}”: not in the fleet`);
+    $("asset-health").outerHTML = `<span id="asset-health"></span>`;
+    $("asset-sub").textContent = "";
+    return;
+  }
+  showError($("asset-error"), null);
+  headline(a);
+  drawLive();
+  drawTrend(a.trend);
+  loadDetail();
+}
+
+function headline(a) {
+  $("asset-health").outerHTML = `<span id="asset-health">${badge(a.health)}</span>`;
+  $("asset-sub").textContent = `run ${a.run_id || DASH} · nominal ${num(a.expected_bar, 1)} bar · ` +
+    `warn ${num(a.warn_bar, 1)} · fault ${num(a.fault_bar, 1)} bar · ${a.ticks ?? 0} estimates`;
+}
+
+// The store's view of the selected asset: its 1 s history (the live chart's seed, fetched
+// until it once succeeds), its runs and its health changes. Each part on its own, so that
+// one that fails leaves the others shown. (The trend comes with the fleet poll.)
+async function loadDetail() {
+  const id = S.selected, base = `v1/assets/${encodeURIComponent(id)}`;
+  const [hist, runs, changes] = await Promise.allSettled([
+    S.seeded ? null : getJSON(`${base}/history?step_s=1`), getJSON(`${base}/runs`), getJSON(`${base}/health`)]);
+  if (id !== S.selected) return;   // the user moved on meanwhile
+  if (hist.status === "fulfilled" && hist.value) { seedLive(hist.value.points); S.seeded = true; }
+  if (runs.status === "fulfilled") renderRuns(runs.value.runs);
+  if (changes.status === "fulfilled") renderChanges(changes.value.changes);
+  showError($("asset-error"), [hist, runs, changes].find((r) => r.status === "rejected")?.reason);
+}
+function scheduleDetail() {   // coalesces bursts of run/health events
+  clearTimeout(S.detailTimer);
+  S.detailTimer = setTimeout(() => S.selected && loadDetail(), 500);
+}
+
+function renderRuns(runs) {
+  const tb = $("runs").tBodies[0];
+  if (!runs.length) { tb.innerHTML = `<tr><td colspan="6" class="muted">no runs recorded</td></tr>`; return; }
+  tb.innerHTML = runs.slice(0, 20).map((r) => `<tr data-run-id="${esc(r.run_id)}">
+    <td>${esc(r.run_id)}</td><td class="small src">${esc(r.source || DASH)}</td>
+    <td>${fmtTime(tsec(r.start))}</td><td>${duration(tsec(r.start), tsec(r.end))}</td><td>${r.ticks ?? DASH}</td>
+    <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td></tr>` +
+    (r.reason ? `<tr><td></td><td colspan="5" class="reason">${esc(r.reason)}</td></tr>` : "")).join("");
+}
+
+function renderChanges(changes) {
+  $("health-changes").innerHTML = changes.length
+    ? changes.slice(0, 50).map((c) => `<li>${fmtTime(tsec(c.t))} &nbsp; ${badge(c.from)} → ${badge(c.to)}
+        <span class="small">run ${esc(c.run_id)}</span></li>`).join("")
+    : `<li class="muted">no health changes recorded</li>`;
+}
+
+// ---- live chart ----------------------------------------------------------------------
+function chartWidth(el) { return Math.max(300, el.clientWidth); }
+
+function seedLive(points) {
+  const L = S.live, first = L.x.length ? L.x[0] : Infinity;
+  const old = points.map((p) => [tsec(p.t), p]).filter(([t]) => t < first).slice(-MAX_LIVE);
+  L.x.unshift(...old.map(([t]) => t));
+  L.p.unshift(...old.map(([, p]) => p.pressure_bar));
+  L.lo.unshift(...old.map(([, p]) => p.pressure_lo_bar));
+  L.hi.unshift(...old.map(([, p]) => p.pressure_hi_bar));
+  S.liveDirty = true;
+}
+
+function pushLive(ev) {
+  const L = S.live, t = ev.t_ns / 1e9;
+  if (L.x.length && t <= L.x[L.x.length - 1]) {   // a new run on an earlier clock: start afresh
+    S.live = { x: [], p: [], lo: [], hi: [] };
+    return pushLive(ev);
+  }
+  L.x.push(t);
+  L.p.push(fin(ev.pressure_avg_bar) ? ev.pressure_avg_bar : ev.pressure_bar);
+  L.lo.push(ev.pressure_lo_bar);
+  L.hi.push(ev.pressure_hi_bar);
+  if (L.x.length > MAX_LIVE) for (const k of ["x", "p", "lo", "hi"]) L[k].splice(0, L.x.length - MAX_LIVE);
+  S.liveDirty = true;
+}
+
+function liveData() {
+  const L = S.live, a = S.assets.get(S.selected) || {};
+  const flat = (v) => L.x.map(() => (fin(v) ? v : null));
+  return [L.x, L.lo, L.hi, L.p, flat(a.warn_bar), flat(a.fault_bar)];
+}
+
+function drawLive() {
+  S.liveDirty = false;
+  const el = $("live-chart"), data = liveData();
+  $("live-note").textContent = S.live.x.length
+    ? `${S.live.x.length} points, ${fmtTime(S.live.x[0])} – ${fmtTime(S.live.x[S.live.x.length - 1])}`
+    : "no estimates yet for this asset";
+  if (S.liveChart) { S.liveChart.setData(data); return; }
+  const line = (label, stroke, extra = {}) =>
+    ({ label, stroke, width: 1, points: { show: false }, value: (u, v) => num(v), ...extra });
+  S.liveChart = new uPlot({
+    width: chartWidth(el), height: 260,
+    scales: { x: { time: true } },
+    series: [{ value: (u, v) => fmtTime(v) },
+      line("lo", "rgba(43,108,176,0.35)"), line("hi", "rgba(43,108,176,0.35)"),
+      line("pressure", COLORS.p, { width: 2 }),
+      line("warn", COLORS.warn, { dash: [6, 4] }), line("fault", COLORS.fault, { dash: [6, 4] })],
+    bands: [{ series: [2, 1], fill: COLORS.band }],   // hi down to lo
+    // HH:MM, or HH:MM:SS when the ticks are less than a minute apart
+    axes: [{ values: (u, xs) => xs.map((x) => fmtTime(x).slice(11, xs[1] - xs[0] < 60 ? 19 : 16)) },
+      { label: "bar", size: 50 }],
+  }, data, el);
+}
+
+// ---- trend chart ---------------------------------------------------------------------
+// Per-run points with ±2 sd bars against calendar time, the fitted line up to the fault
+// crossing (or the last run), the thresholds, and each crossing's interval shaded.
+function drawTrend(t) {
+  const key = JSON.stringify(t ?? null);
+  if (key === S.trendKey) return;   // unchanged since the last poll
+  S.trendKey = key;
+  const el = $("trend-chart");
+  if (S.trendChart) { S.trendChart.destroy(); S.trendChart = null; }
+  $("trend-text").innerHTML = t ? trendText(t) : `<span class="muted">no trend yet</span>`;
+  const pts = (t?.points || []).map((p) => ({ x: tsec(p.t), y: p.pressure_bar, sd: p.sd_bar }))
+    .filter((p) => fin(p.x) && fin(p.y)).sort((p, q) => p.x - q.x);
+  el.hidden = pts.length === 0;
+  if (!pts.length) return;
+  const cross = (c) => (c && c.t ? { t: tsec(c.t), lo: tsec(c.t_lo), hi: tsec(c.t_hi) } : null);
+  const warn = cross(t.warn), fault = cross(t.fault);
+  const first = pts[0].x, last = pts[pts.length - 1].x;
+  // up to the fault crossing, but not so far that the runs become a dot
+  const end = Math.min(Math.max(last, fault ? fault.t : last, warn ? warn.t : last),
+    last + Math.max(3 * (last - first), 30 * DAY_S));
+  const xmax = end + 0.15 * (end - first) + 0.5 * DAY_S;
+  const x0 = first - 0.5 * DAY_S;
+  // x values: the chart's edges (so that the thresholds span it), the runs, the fit's far end
+  const xs = [x0, ...pts.map((p) => p.x), ...(t.fit && end > last ? [end] : []), xmax];
+  const fitAt = (x) => (t.fit && x >= first && x <= end
+    ? t.fit.intercept_bar + t.fit.slope_bar_per_day * (x - tsec(t.fit.t0)) / DAY_S : null);
+  const yOf = new Map(pts.map((p) => [p.x, p]));
+  const data = [xs, xs.map((x) => yOf.get(x)?.y ?? null), xs.map(fitAt),
+    xs.map(() => t.warn_bar), xs.map(() => t.fault_bar)];
+  const ys = pts.flatMap((p) => [p.y - 2 * (p.sd || 0), p.y + 2 * (p.sd || 0)]).concat([t.warn_bar, t.fault_bar]);
+  const ymin = Math.min(...ys.filter(fin)) - 0.5, ymax = Math.max(...ys.filter(fin)) + 0.5;
+
+  const draw = (u) => {
+    const c = u.ctx, top = u.bbox.top, h = u.bbox.height, X = (v) => u.valToPos(v, "x", true);
+    const right = u.bbox.left + u.bbox.width;
+    c.save();
+    c.beginPath(); c.rect(u.bbox.left, top, u.bbox.width, h); c.clip();
+    for (const [cr, color] of [[warn, COLORS.warn], [fault, COLORS.fault]]) {
+      if (!cr) continue;
+      const x0 = fin(cr.lo) ? X(cr.lo) : X(cr.t), x1 = fin(cr.hi) ? Math.min(X(cr.hi), right) : right;
+      c.globalAlpha = 0.12; c.fillStyle = color; c.fillRect(x0, top, Math.max(1, x1 - x0), h);
+      c.globalAlpha = 0.9; c.strokeStyle = color; c.setLineDash([4, 3]); c.lineWidth = 1.5;
+      c.beginPath(); c.moveTo(X(cr.t), top); c.lineTo(X(cr.t), top + h); c.stroke();
+    }
+    c.setLineDash([]); c.globalAlpha = 1; c.strokeStyle = COLORS.p; c.lineWidth = 1.5;
+    for (const p of pts) {   // ±2 sd bars
+      const x = X(p.x), y0 = u.valToPos(p.y - 2 * p.sd, "y", true), y1 = u.valToPos(p.y + 2 * p.sd, "y", true);
+      c.beginPath(); c.moveTo(x, y0); c.lineTo(x, y1); c.moveTo(x - 3, y0); c.lineTo(x + 3, y0);
+      c.moveTo(x - 3, y1); c.lineTo(x + 3, y1); c.stroke();
+    }
+    c.restore();
+  };
+  S.trendChart = new uPlot({
+    width: chartWidth(el), height: 260,
+    scales: { x: { time: true, range: () => [x0, xmax] }, y: { range: () => [ymin, ymax] } },
+    series: [{ value: (u, v) => fmtTime(v) },
+      { label: "run mean", stroke: COLORS.p, paths: () => null, points: { show: true, size: 7, fill: COLORS.p },
+        value: (u, v) => num(v) },
+      { label: "fit", stroke: COLORS.fit, width: 1.5, points: { show: false }, value: (u, v) => num(v) },
+      { label: "warn", stroke: COLORS.warn, dash: [6, 4], width: 1, points: { show: false }, value: (u, v) => num(v) },
+      { label: "fault", stroke: COLORS.fault, dash: [6, 4], width: 1, points: { show: false }, value: (u, v) => num(v) }],
+    // MM-DD, or MM-DD HH:MM when the ticks are less than a day apart
+    axes: [{ space: 70, values: (u, xs) => xs.map((x) => fmtTime(x).slice(5, xs[1] - xs[0] < DAY_S ? 16 : 10)) },
+      { label: "bar", size: 50 }],
+    hooks: { draw: [draw] },
+  }, data, el);
+}
+
+function trendText(t) {
+  if (t.status !== "ok") return `<span class="muted">no trend: ${esc(t.reason || "insufficient data")}</span>`;
+  const half = fin(t.leak_rate_lo_bar_per_day) && fin(t.leak_rate_hi_bar_per_day)
+    ? (t.leak_rate_hi_bar_per_day - t.leak_rate_lo_bar_per_day) / 2 : null;
+  const c = (name, x) => {
+    if (!x || !x.t) return `${name}: ${esc(x?.reason || "not predicted")}`;
+    const hi = x.t_hi ? fmtDate(tsec(x.t_hi)) : "unbounded";
+    return `${name} ≈ <b>${fmtDate(tsec(x.t))}</b> [${x.t_lo ? fmtDate(tsec(x.t_lo)) : DASH} – ${hi}]`;
+  };
+  return `leak rate <b>${num(t.leak_rate_bar_per_day, 3)}</b>${half === null ? "" : ` ± ${num(half, 3)}`} bar/day; ` +
+    `${c("warn", t.warn)}; ${c("fault", t.fault)} <span class="small">(${t.runs_used} runs)</span>`;
+}
+
+// ---- live events ---------------------------------------------------------------------
+function onEstimate(ev) {
+  S.liveCount += 1;
+  S.lastEvent = ev;
+  let a = S.assets.get(ev.asset_id);
+  if (!a) {   // a new asset: its row now, the rest (and a first selection) with a poll soon
+    a = { asset_id: ev.asset_id, ticks: 0, active_runs: 1, trend: null };
+    S.assets.set(ev.asset_id, a);
+    scheduleRefresh(1500);
+  }
+  for (const k of ["run_id", "pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar",
+    "expected_bar", "health"]) a[k] = ev[k];
+  a.last_t_ns = ev.t_ns;
+  a.last_update_unix_ms = Date.now();
+  a.ticks = (a.ticks || 0) + 1;
+  S.fleetDirty = true;
+  if (ev.asset_id === S.selected) pushLive(ev);
+}
+
+function connect() {
+  const es = new EventSource("v1/events");
+  const conn = (text, cls) => { $("conn").textContent = text; $("conn").className = `conn ${cls}`; };
+  es.onopen = () => conn("live", "up");
+  es.onerror = () => conn("reconnecting…", "down");   // EventSource retries by itself
+  es.addEventListener("estimate", (e) => onEstimate(JSON.parse(e.data)));
+  es.addEventListener("health", (e) => {
+    const h = JSON.parse(e.data), a = S.assets.get(h.asset_id);
+    if (a) { a.health = h.to; S.fleetDirty = true; }
+    if (h.asset_id === S.selected) scheduleDetail();
+  });
+  es.addEventListener("run", (e) => {
+    const r = JSON.parse(e.data);
+    if (r.asset_id === S.selected) scheduleDetail();
+    if (r.status !== "started") scheduleRefresh(700);   // its trend may have moved
+  });
+  es.addEventListener("lagged", (e) => conn(`live (skipped ${e.data} events)`, "up"));
+}
+
+// Redraws at most 4 times a second however fast the events come.
+function frame() {
+  $("live-count").textContent = String(S.liveCount);
+  const e = S.lastEvent;
+  if (e) $("last-event").textContent = `${e.asset_id} @ ${fmtTime(e.t_ns / 1e9)}`;
+  if (S.fleetDirty && Date.now() - S.fleetDrawn > 1000) renderFleet();   // rows stay clickable
+  if (S.liveDirty && S.selected) drawLive();
+  const a = S.assets.get(S.selected);
+  if (a) headline(a);
+}
+
+function init() {
+  $("fleet").tBodies[0].addEventListener("click", (e) => {
+    const tr = e.target.closest("tr[data-asset-id]");
+    if (tr && tr.dataset.assetId !== S.selected) select(tr.dataset.assetId);
+  });
+  window.addEventListener("resize", () => {
+    for (const [chart, el] of [[S.liveChart, "live-chart"], [S.trendChart, "trend-chart"]]) {
+      if (chart) chart.setSize({ width: chartWidth($(el)), height: 260 });
+    }
+  });
+  window.addEventListener("hashchange", () => {
+    const id = decodeURIComponent(location.hash.slice(1));
+    if (id && id !== S.selected) select(id);
+  });
+  connect();
+  refreshFleet();
+  setInterval(frame, 250);
+}
+
+init();
