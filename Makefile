@@ -16,10 +16,10 @@ BIN      := target/release/shocktwin
 OUT      ?= out
 CAMPAIGN ?= $(OUT)/campaign
 
-RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) Cargo.toml
+RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
-.PHONY: help setup build demo test test-rust test-python lint bench bench-python load-test study clean
+.PHONY: help setup build browser demo test test-rust test-python lint bench bench-python load-test study clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -44,7 +44,8 @@ setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python p
 
 build: $(BIN) ## build the shocktwin CLI (release)
 
-demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer), study, stream a leaking run through the daemon (simulated data)
+demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer), study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
+	@$(MAKE) --no-print-directory browser || echo "(without Chromium the demo skips the dashboard screenshot)"
 	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
 	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
@@ -53,7 +54,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
-	@echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures"
+	@echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures, dashboard $(OUT)/serve-demo/dashboard.png (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
 
 study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)
 	rm -rf $(OUT)/full-campaign
@@ -63,7 +64,20 @@ study: setup ## the full study on the default campaign (docs/study; ~20 min on 2
 test-rust: ## Rust unit and integration tests
 	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py
 
-test-python: setup $(BIN) ## pytest: the Python contract, references and interop
+# The dashboard test drives Debian's Chromium through chromedriver (tests/python/test_dashboard.py).
+# CI (CI=true, as root) installs them; elsewhere this says which command to run.
+CHROMIUM_BIN     := /usr/bin/chromium
+CHROMEDRIVER_BIN := /usr/bin/chromedriver
+browser: ## check for (in CI as root: install) chromium and chromium-driver, for the dashboard test
+	@if [ -x $(CHROMIUM_BIN) ] && [ -x $(CHROMEDRIVER_BIN) ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && [ "$${CI:-}" = true ]; then \
+	  apt-get update && apt-get install -y --no-install-recommends chromium chromium-driver; \
+	else \
+	  echo "chromium and chromedriver are needed for the dashboard test: sudo apt-get install chromium chromium-driver" >&2; \
+	  exit 1; \
+	fi
+
+test-python: setup $(BIN) browser ## pytest: the Python contract, references and interop, the dashboard in Chromium
 	$(PY) -m pytest -q tests/python
 
 test: setup test-rust test-python ## set up, then run every test

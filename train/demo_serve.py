@@ -9,7 +9,13 @@
    vehicle gateway would (the messages re-encoded incrementally onto the socket), while
    listening to the daemon's Server-Sent Events for health changes.
 4. Prints the verdict the daemon reached and when (seconds since the run's first
-   message), and what ``GET /v1/assets/{id}`` says. The data are simulated.
+   message), and what ``GET /v1/assets/{id}`` says.
+5. The fleet's memory: before the live run, a small simulated fleet's past
+   (``shocktwin simulate --days --leak-rate``: one run a day per van, one of them
+   leaking) goes through the daemon's inbox into its store (``--db``); the trend
+   of each van and its predicted crossing dates are printed, and the dashboard
+   (``GET /``) is saved as ``dashboard.png`` by headless Chromium (when installed).
+The data are simulated.
 """
 
 from __future__ import annotations
@@ -51,9 +57,17 @@ class SocketStream:
         pass
 
 
-def start_daemon(binary: str, bundle: Path, record_dir: Path) -> tuple[subprocess.Popen[str], str, str]:
+# The demo fleet's past: (asset id, charge lost per day in bar); one 1 Hz quick run a day.
+FLEET = (("van-07", 0.6), ("van-12", 0.0), ("van-03", 0.25))
+FLEET_DAYS = 10
+
+
+def start_daemon(binary: str, bundle: Path, record_dir: Path,
+                 inbox: Path | None = None) -> tuple[subprocess.Popen[str], str, str]:
     cmd = [binary, "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(bundle),
            "--record-dir", str(record_dir), "--db", str(record_dir.parent / "fleet.sqlite")]
+    if inbox is not None:
+        cmd += ["--inbox", str(inbox)]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None
     deadline = time.monotonic() + 30
@@ -128,10 +142,10 @@ def stream_run(addr: str, path: Path) -> dict[str, Any]:
     return json.loads(reply.decode().strip().splitlines()[-1])
 
 
-def print_convergence(record_dir: Path, t0_ns: int | None, every_s: float = 10.0) -> None:
-    """The daemon's recorded ``/estimate`` stream every ``every_s`` seconds: the 1 s average,
-    the 95 % interval (SPEC §2a) and the health — how the estimate converges."""
-    records = sorted(record_dir.rglob("*.mcap"))
+def print_convergence(record_dir: Path, t0_ns: int | None, every_s: float = 10.0, run_id: str = "*") -> None:
+    """The daemon's recorded ``/estimate`` stream of ``run_id`` every ``every_s`` seconds: the 1 s
+    average, the 95 % interval (SPEC §2a) and the health — how the estimate converges."""
+    records = sorted(record_dir.rglob(f"{run_id}.*.mcap"))
     if not records or t0_ns is None:
         return
     rows: list[tuple[float, dict[str, Any]]] = []
@@ -152,6 +166,87 @@ def print_convergence(record_dir: Path, t0_ns: int | None, every_s: float = 10.0
             return "   –  " if v is None else f"{v:6.2f}"
         print(f"  {t:5.0f}   {num('pressure_avg_bar')}          [{num('pressure_lo_bar')}, {num('pressure_hi_bar')}]"
               f"      {e.get('health')}")
+
+
+def simulate_fleet(binary: str, inbox: Path) -> int:
+    """Writes the demo fleet's past runs into ``inbox``; returns how many."""
+    inbox.mkdir(parents=True, exist_ok=True)
+    for asset, leak in FLEET:
+        subprocess.run([binary, "simulate", "--quick", "--days", str(FLEET_DAYS), "--leak-rate", f"{leak:g}",
+                        "--frequencies", "1", "--asset-id", asset, "--out", str(inbox / asset)],
+                       check=True, stdout=subprocess.DEVNULL)
+        for f in (inbox / asset).glob("*.mcap"):  # the inbox is not recursive
+            f.rename(inbox / f"{asset}-{f.name}")
+        (inbox / asset).rmdir()
+    return len(FLEET) * FLEET_DAYS
+
+
+def wait_fleet(http: str, n_runs: int, timeout_s: float = 600.0) -> None:
+    """Until the store holds ``n_runs`` completed runs of the fleet."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        done = 0
+        for asset, _ in FLEET:
+            r = httpx.get(f"http://{http}/v1/assets/{asset}/runs", timeout=10)
+            if r.status_code == 200:
+                done += sum(run["status"] == "completed" for run in r.json()["runs"])
+        if done >= n_runs:
+            time.sleep(1.0)  # the trends follow the last commit
+            return
+        time.sleep(1.0)
+    raise RuntimeError(f"the daemon did not process the fleet's {n_runs} runs in {timeout_s:.0f} s")
+
+
+def print_fleet(http: str) -> None:
+    """The fleet as the maintainer sees it: leak rate and predicted crossings per van."""
+    assets = httpx.get(f"http://{http}/v1/assets", timeout=10).json()["assets"]
+    print("fleet memory (simulated data; one quick 1 Hz run a day per van, true leak in brackets):")
+    truth = dict(FLEET)
+    for a in assets:
+        tr = a.get("trend") or {}
+        name = a["asset_id"]
+        true = f" [true {truth[name]:g} bar/day]" if name in truth else ""
+        if tr.get("status") != "ok":
+            print(f"  {name:12s} {tr.get('reason') or 'no trend'}")
+            continue
+        rate = tr["leak_rate_bar_per_day"]
+        lo, hi = tr["leak_rate_lo_bar_per_day"], tr["leak_rate_hi_bar_per_day"]
+        fault = tr.get("fault") or {}
+        when = (f"fault at {fault['t'][:10]} [{(fault.get('t_lo') or '?')[:10]} .. {(fault.get('t_hi') or 'open')[:10]}]"
+                if fault.get("t") else (fault.get("reason") or "no prediction"))
+        print(f"  {name:12s} leak {rate:+.2f} bar/day [{lo:+.2f}, {hi:+.2f}]{true}; {when}")
+
+
+def screenshot(url: str, path: Path, select: str | None = None) -> bool:
+    """Saves the dashboard at ``url`` as seen by headless Chromium, with asset ``select``
+    selected; False if Chromium is not installed."""
+    chromium, driver_bin = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
+    if not (chromium.exists() and driver_bin.exists()):
+        print("dashboard screenshot skipped: chromium and chromedriver are needed "
+              "(sudo apt-get install chromium chromium-driver)")
+        return False
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(chromium)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--window-size=1400,1300"):
+        options.add_argument(arg)
+    drv = webdriver.Chrome(service=Service(executable_path=str(driver_bin)), options=options)
+    try:
+        drv.get(url)
+        time.sleep(3.0)  # the page's first fetches and charts
+        if select is not None:
+            from selenium.webdriver.common.by import By
+
+            rows = drv.find_elements(By.CSS_SELECTOR, f'tr[data-asset-id="{select}"]')
+            if rows:
+                rows[0].click()
+                time.sleep(2.0)
+        return bool(drv.save_screenshot(str(path)))
+    finally:
+        drv.quit()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -175,8 +270,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"streaming {run_file.name} (simulated: true charge {meta['charge_pressure_bar']} bar, "
           f"{meta['excitation']}) into shocktwin serve with {args.bundle}")
 
-    proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records")
+    inbox = args.out / "inbox"
+    n_fleet = simulate_fleet(args.bin, inbox)
+    proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records", inbox)
     try:
+        print(f"the fleet's past: {n_fleet} runs of {len(FLEET)} vans through the inbox into the store ...")
+        wait_fleet(http, n_fleet)
+        print_fleet(http)
         events: list[dict[str, Any]] = []
         ready = threading.Event()
         watcher = threading.Thread(target=watch_events, args=(http, asset_id, events, ready), daemon=True)
@@ -187,6 +287,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         watcher.join(10)
         detail = httpx.get(f"http://{http}/v1/assets/{asset_id}", timeout=10).json()
         wall = time.perf_counter() - started
+        shot = args.out / "dashboard.png"
+        leaking = max(FLEET, key=lambda a: a[1])[0]
+        if screenshot(f"http://{http}/", shot, select=leaking):
+            print(f"dashboard: http://{http}/ (saved as {shot}; to browse it again: "
+                  f"{args.bin} serve --db {args.out / 'fleet.sqlite'} --model {args.bundle}, "
+                  "then open http://127.0.0.1:7411/)")
     finally:
         proc.terminate()
         proc.wait(30)
@@ -211,7 +317,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"verdict for {asset_id}: {verdict} {when_s}; 1 s average "
           f"{detail.get('pressure_avg_bar') or float('nan'):.2f} bar against {detail.get('expected_bar')} bar nominal "
           f"(true charge {meta['charge_pressure_bar']} bar; simulated data)")
-    print_convergence(args.out / "records", t0_ns)
+    print_convergence(args.out / "records" / asset_id, t0_ns, run_id=meta["run_id"])
     (args.out / "verdict.json").write_text(json.dumps({"report": report, "health_changes": changes,
                                                          "asset": {k: v for k, v in detail.items() if k != "history"}},
                                                         indent=2) + "\n")

@@ -133,8 +133,7 @@ async function refreshFleet() {
       select(wanted || [...S.assets.values()].sort(riskOrder)[0].asset_id);
     } else if (S.selected && S.assets.has(S.selected)) {
       if ($("asset-body").hidden) select(S.selected);   // it was unknown until now
-      drawTrend(S.assets.get(S.selected).trend);
-      loadDetail();
+      else loadDetail();
     }
     renderFleet();
   } catch (err) {
@@ -169,7 +168,7 @@ function select(id) {
   showError($("asset-error"), null);
   headline(a);
   drawLive();
-  drawTrend(a.trend);
+  drawTrend(null);
   loadDetail();
 }
 
@@ -179,18 +178,24 @@ function headline(a) {
     `warn ${num(a.warn_bar, 1)} · fault ${num(a.fault_bar, 1)} bar · ${a.ticks ?? 0} estimates`;
 }
 
-// The store's view of the selected asset: its 1 s history (the live chart's seed, fetched
-// until it once succeeds), its runs and its health changes. Each part on its own, so that
-// one that fails leaves the others shown. (The trend comes with the fleet poll.)
+// The store's view of the selected asset, on selection and with every fleet poll: its 1 s
+// history (the live chart's seed, until it once arrives), its trend with the run points
+// (the fleet list carries only a summary), its runs and its health changes. Each part on
+// its own, so that one that fails leaves the others shown. The trend is asked for once the
+// fleet list shows one (an asset's first trend comes a little after its first run).
 async function loadDetail() {
   const id = S.selected, base = `v1/assets/${encodeURIComponent(id)}`;
-  const [hist, runs, changes] = await Promise.allSettled([
-    S.seeded ? null : getJSON(`${base}/history?step_s=1`), getJSON(`${base}/runs`), getJSON(`${base}/health`)]);
+  const hasTrend = S.assets.get(id)?.trend != null;
+  const parts = await Promise.allSettled([
+    S.seeded ? null : getJSON(`${base}/history?step_s=1`), hasTrend ? getJSON(`${base}/trend`) : null,
+    getJSON(`${base}/runs`), getJSON(`${base}/health`)]);
   if (id !== S.selected) return;   // the user moved on meanwhile
-  if (hist.status === "fulfilled" && hist.value) { seedLive(hist.value.points); S.seeded = true; }
-  if (runs.status === "fulfilled") renderRuns(runs.value.runs);
-  if (changes.status === "fulfilled") renderChanges(changes.value.changes);
-  showError($("asset-error"), [hist, runs, changes].find((r) => r.status === "rejected")?.reason);
+  const [hist, trend, runs, changes] = parts.map((r) => (r.status === "fulfilled" ? r.value : null));
+  if (hist) { seedLive(hist.points); S.seeded = true; }
+  if (trend || !hasTrend) drawTrend(trend);   // a failed request keeps the chart shown
+  if (runs) renderRuns(runs.runs);
+  if (changes) renderChanges(changes.changes);
+  showError($("asset-error"), parts.find((r) => r.status === "rejected")?.reason);
 }
 function scheduleDetail() {   // coalesces bursts of run/health events
   clearTimeout(S.detailTimer);
@@ -217,9 +222,14 @@ function renderChanges(changes) {
 // ---- live chart ----------------------------------------------------------------------
 function chartWidth(el) { return Math.max(300, el.clientWidth); }
 
+const RUN_GAP_S = 60;   // history points further apart than this belong to different runs
 function seedLive(points) {
   const L = S.live, first = L.x.length ? L.x[0] : Infinity;
-  const old = points.map((p) => [tsec(p.t), p]).filter(([t]) => t < first).slice(-MAX_LIVE);
+  let old = points.map((p) => [tsec(p.t), p]).filter(([t]) => t < first).slice(-MAX_LIVE);
+  // Only the latest run's stretch: a line drawn across the hours between runs says nothing.
+  for (let i = old.length - 1; i > 0; i--) {
+    if (old[i][0] - old[i - 1][0] > RUN_GAP_S) { old = old.slice(i); break; }
+  }
   L.x.unshift(...old.map(([t]) => t));
   L.p.unshift(...old.map(([, p]) => p.pressure_bar));
   L.lo.unshift(...old.map(([, p]) => p.pressure_lo_bar));
@@ -297,9 +307,10 @@ function drawTrend(t) {
   const fitAt = (x) => (t.fit && x >= first && x <= end
     ? t.fit.intercept_bar + t.fit.slope_bar_per_day * (x - tsec(t.fit.t0)) / DAY_S : null);
   const yOf = new Map(pts.map((p) => [p.x, p]));
-  const data = [xs, xs.map((x) => yOf.get(x)?.y ?? null), xs.map(fitAt),
-    xs.map(() => t.warn_bar), xs.map(() => t.fault_bar)];
-  const ys = pts.flatMap((p) => [p.y - 2 * (p.sd || 0), p.y + 2 * (p.sd || 0)]).concat([t.warn_bar, t.fault_bar]);
+  const asset = S.assets.get(S.selected) || {};
+  const warnBar = t.warn_bar ?? asset.warn_bar ?? null, faultBar = t.fault_bar ?? asset.fault_bar ?? null;
+  const data = [xs, xs.map((x) => yOf.get(x)?.y ?? null), xs.map(fitAt), xs.map(() => warnBar), xs.map(() => faultBar)];
+  const ys = pts.flatMap((p) => [p.y - 2 * (p.sd || 0), p.y + 2 * (p.sd || 0)]).concat([warnBar, faultBar]);
   const ymin = Math.min(...ys.filter(fin)) - 0.5, ymax = Math.max(...ys.filter(fin)) + 0.5;
 
   const draw = (u) => {
@@ -339,7 +350,7 @@ function drawTrend(t) {
 }
 
 function trendText(t) {
-  if (t.status !== "ok") return `<span class="muted">no trend: ${esc(t.reason || "insufficient data")}</span>`;
+  if (t.status !== "ok") return `<span class="muted">${esc(t.reason || "insufficient data")}</span>`;
   const half = fin(t.leak_rate_lo_bar_per_day) && fin(t.leak_rate_hi_bar_per_day)
     ? (t.leak_rate_hi_bar_per_day - t.leak_rate_lo_bar_per_day) / 2 : null;
   const c = (name, x) => {

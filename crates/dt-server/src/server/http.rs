@@ -344,6 +344,16 @@ async fn trend(State(app): State<AppState>, Path(id): Path<String>) -> Response 
             }
             Json(v).into_response()
         }
+        // Known live, no run ended yet: no trend, said as such.
+        None if known(&app, &id) => {
+            let a = app.config.asset(&id);
+            let mut v = serde_json::to_value(TrendView::compute(&[], a.warn_bar, a.fault_bar))
+                .unwrap_or_default();
+            if let Some(o) = v.as_object_mut() {
+                o.insert("asset_id".into(), id.into());
+            }
+            Json(v).into_response()
+        }
         None => unknown(&id),
     }
 }

@@ -83,8 +83,12 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
     // wake-up, so the watcher's thread can never queue without bound.
     let wake = Arc::new(Notify::new());
     let waker = Arc::clone(&wake);
-    let watcher = notify::recommended_watcher(move |_event: notify::Result<notify::Event>| {
-        waker.notify_one();
+    let watcher = notify::recommended_watcher(move |event: notify::Result<notify::Event>| {
+        // Listing the directory opens it, which inotify reports as an access:
+        // waking on those made the loop rescan forever (a core busy while idle).
+        if !matches!(&event, Ok(e) if e.kind.is_access()) {
+            waker.notify_one();
+        }
     })
     .and_then(|mut w| {
         notify::Watcher::watch(&mut w, &src.dir, notify::RecursiveMode::NonRecursive)?;

@@ -1,0 +1,274 @@
+"""The dashboard (`GET /`) in a real browser, against the real daemon.
+
+`shocktwin serve` runs on loopback ephemeral ports with the fixture bundle and a
+fresh fleet store (`--db`); a small simulated fleet (`shocktwin simulate --quick
+--unit N`, three units) is streamed over the TCP ingest with Python's `mcap`
+writer, two runs at a time. Headless Chromium from Debian's packages
+(`/usr/bin/chromium`, driven through `/usr/bin/chromedriver` by selenium) loads
+the page and the test checks: the page and its compiled-in assets are served
+with their content types and equal the files in `crates/dt-server/assets`; the
+fleet table lists the assets (`data-asset-id`), riskiest first; the live
+estimate counter (`#live-count`, fed by Server-Sent Events) grows while runs
+stream, and an asset first seen while the page is open appears without a
+reload; a click selects an asset; the browser console holds no error or
+warning. A screenshot is saved to `out/dashboard.png` and to the test's tmp
+directory. Simulated data throughout.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import IO, Any, Callable, Iterator, cast
+
+import httpx
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
+BUNDLE = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+ASSETS = ROOT / "crates" / "dt-server" / "assets"
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+INSTALL = "sudo apt-get install chromium chromium-driver"
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+UNITS = (1, 2, 3)
+TICKS_PER_QUICK_RUN = 3500
+
+sys.path.insert(0, str(ROOT))
+from train.demo_serve import SocketStream, copy_log  # noqa: E402  (the demo's socket writer, shared)
+
+sys.path.remove(str(ROOT))
+
+# URL -> (file served, content type it must carry)
+SERVED = {
+    "/": ("index.html", "text/html"),
+    "/assets/app.js": ("app.js", "javascript"),
+    "/assets/app.css": ("app.css", "text/css"),
+    "/assets/uplot.min.js": ("vendor/uplot.min.js", "javascript"),
+    "/assets/uplot.min.css": ("vendor/uplot.min.css", "text/css"),
+}
+
+
+def wait_for(what: str, cond: Callable[[], Any], timeout: float = 20.0, every: float = 0.1,
+             explain: Callable[[], str] = lambda: "") -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = cond()
+        if value:
+            return value
+        time.sleep(every)
+    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}{explain()}")
+
+
+@pytest.fixture(scope="module")
+def browser_binaries() -> None:
+    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
+    if missing:
+        pytest.fail(f"{', '.join(missing)} missing: the dashboard test needs Debian's browser: {INSTALL}")
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> dict[int, dict[float, Path]]:
+    """unit -> charge pressure -> its quick 2 Hz run (asset `dyno-unit-U<unit>`)."""
+    if not BIN.exists():
+        pytest.fail(f"{BIN} is missing: build it with `make build`")
+    runs: dict[int, dict[float, Path]] = {}
+    for unit in UNITS:
+        out = tmp_path_factory.mktemp(f"unit{unit}")
+        subprocess.run([str(BIN), "simulate", "--quick", "--pressures", "3,12", "--frequencies", "2",
+                        "--unit", str(unit), "--out", str(out)], check=True, stdout=subprocess.DEVNULL, timeout=120)
+        runs[unit] = {3.0: next(out.glob("p3.0-*.mcap")), 12.0: next(out.glob("p12.0-*.mcap"))}
+    return runs
+
+
+@pytest.fixture()
+def daemon(tmp_path: Path) -> Iterator[tuple[str, str]]:
+    """`shocktwin serve` with a fresh store; yields (ingest address, HTTP address)."""
+    proc = subprocess.Popen(
+        [str(BIN), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(BUNDLE),
+         "--record-dir", str(tmp_path / "records"), "--db", str(tmp_path / "fleet.sqlite")],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    assert proc.stderr is not None
+    head: list[str] = []
+    addrs = None
+    for _ in range(200):  # bounded: the line comes among the first few
+        line = ANSI.sub("", proc.stderr.readline())
+        if not line and proc.poll() is not None:
+            break
+        head.append(line)
+        m = re.search(r"listening listen=(\S+) http=(\S+)", line)
+        if m:
+            addrs = (m.group(1), m.group(2))
+            break
+    if addrs is None:
+        proc.kill()
+        proc.wait(10)
+        pytest.fail("shocktwin serve did not log its addresses:\n" + "".join(head))
+    threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()  # type: ignore[union-attr]
+    try:
+        yield addrs
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+
+
+@pytest.fixture()
+def driver(browser_binaries: None) -> Iterator[Any]:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--window-size=1400,1300"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
+    try:
+        yield drv
+    finally:
+        drv.quit()
+
+
+def stream_run(addr: str, path: Path) -> dict[str, Any]:
+    """Re-encodes ``path`` onto the ingest socket; returns the daemon's one-line report."""
+    host, port = addr.rsplit(":", 1)
+    with socket.create_connection((host, int(port)), timeout=120) as sock, open(path, "rb") as fh:
+        writer = Writer(cast(IO[bytes], SocketStream(sock)), compression=CompressionType.ZSTD, chunk_size=64 * 1024)
+        writer.start(profile="", library="shocktwin dashboard test (python mcap)")
+        copy_log(make_reader(fh), writer)
+        writer.finish()
+        sock.shutdown(socket.SHUT_WR)
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    return cast(dict[str, Any], json.loads(reply.decode().strip().splitlines()[-1]))
+
+
+def stream_concurrently(addr: str, paths: list[Path]) -> tuple[list[threading.Thread], list[dict[str, Any]]]:
+    reports: list[dict[str, Any]] = []
+    threads = [threading.Thread(target=lambda p=p: reports.append(stream_run(addr, p))) for p in paths]
+    for t in threads:
+        t.start()
+    return threads, reports
+
+
+def check_reports(reports: list[dict[str, Any]], n: int) -> None:
+    assert len(reports) == n, reports
+    for r in reports:
+        assert r["status"] == "completed" and r["ticks"] == TICKS_PER_QUICK_RUN, r
+
+
+def test_dashboard_in_chromium(daemon: tuple[str, str], driver: Any, fleet: dict[int, dict[float, Path]],
+                               tmp_path: Path) -> None:
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.common.by import By
+
+    listen, http = daemon
+    base = f"http://{http}"
+
+    # The page and its compiled-in assets, as the repository has them.
+    for url, (name, ctype) in SERVED.items():
+        resp = httpx.get(base + url, timeout=10)
+        assert resp.status_code == 200, f"GET {url}: {resp.status_code} {resp.text[:200]}"
+        assert ctype in resp.headers.get("content-type", ""), f"GET {url}: {resp.headers.get('content-type')}"
+        if resp.content != (ASSETS / name).read_bytes():  # compiled in: the binary is older than the file
+            pytest.fail(f"GET {url} is not crates/dt-server/assets/{name}: rebuild the binary (`make build`)")
+
+    # Two units known before the page opens.
+    threads, reports = stream_concurrently(listen, [fleet[1][12.0], fleet[2][12.0]])
+    for t in threads:
+        t.join(120)
+    check_reports(reports, 2)
+
+    # The table is redrawn as events arrive: read it in one script, not element by element.
+    def rows() -> list[dict[str, str]]:
+        return cast(list[dict[str, str]], driver.execute_script(
+            "return [...document.querySelectorAll('#fleet tr[data-asset-id]')].map((tr) => ({id: tr.dataset.assetId,"
+            " cls: tr.className, health: tr.querySelector('.badge').textContent.trim().toLowerCase()}))"))
+
+    def row_ids() -> list[str]:
+        return [r["id"] for r in rows()]
+
+    def click_row(asset_id: str) -> None:
+        for _ in range(10):
+            try:
+                driver.find_element(By.CSS_SELECTOR, f'#fleet tr[data-asset-id="{asset_id}"]').click()
+                return
+            except StaleElementReferenceException:  # redrawn between the find and the click
+                time.sleep(0.05)
+        pytest.fail(f"could not click {asset_id}'s row")
+
+    def live_count() -> int:
+        return int(driver.find_element(By.ID, "live-count").text or 0)
+
+    def page_state() -> str:  # for a failure's message: what the page says, and its console
+        shown = {k: driver.find_element(By.ID, k).get_attribute("textContent") for k in ("error", "asset-error", "conn")}
+        return f"\npage: {shown}\nconsole: {driver.get_log('browser')}"
+
+    def wait(what: str, cond: Callable[[], Any], timeout: float = 20.0, every: float = 0.1) -> Any:
+        return wait_for(what, cond, timeout, every, explain=page_state)
+
+    driver.get(base + "/")
+    wait("the fleet table", lambda: len(row_ids()) >= 2)
+    assert sorted(row_ids()) == ["dyno-unit-U1", "dyno-unit-U2"], row_ids()
+    wait("the event stream to open", lambda: driver.find_element(By.ID, "conn").text == "live")
+    wait("the first asset's runs", lambda: driver.find_elements(By.CSS_SELECTOR, "#runs tr[data-run-id]"))
+    before = live_count()
+
+    # Two more runs while the page is open; dyno-unit-U3 is new to the daemon.
+    threads, reports = stream_concurrently(listen, [fleet[3][3.0], fleet[1][3.0]])
+
+    def grown() -> str | None:  # "streaming" or "ended" once the counter has grown
+        if live_count() <= before:
+            return None
+        return "streaming" if any(t.is_alive() for t in threads) else "ended"
+
+    when = wait("#live-count to grow", grown, timeout=60, every=0.05)
+    for t in threads:
+        t.join(120)
+    check_reports(reports, 2)
+    assert when == "streaming", "#live-count grew only after the runs had ended"
+    wait("dyno-unit-U3 in the table", lambda: "dyno-unit-U3" in row_ids())
+    last = driver.find_element(By.ID, "last-event").text
+    assert "dyno-unit-" in last, last
+
+    # A click selects an asset: its row is marked and its section shows it.
+    click_row("dyno-unit-U2")
+    wait("dyno-unit-U2 selected", lambda: driver.find_element(By.ID, "asset-title").text == "dyno-unit-U2")
+    wait("dyno-unit-U2's row marked", lambda: [r["id"] for r in rows() if "sel" in r["cls"]] == ["dyno-unit-U2"])
+    click_row("dyno-unit-U1")
+    wait("dyno-unit-U1's runs", lambda: len(driver.find_elements(By.CSS_SELECTOR, "#runs tr[data-run-id]")) >= 2)
+    time.sleep(1.5)  # let the charts draw the selection
+
+    # Sorted by risk: every health rank is no better than the next row's.
+    rank = {"leak": 0, "low": 1, "unknown": 2, "ok": 3}
+    healths = [r["health"] for r in rows()]
+    assert [rank[h] for h in healths] == sorted(rank[h] for h in healths), healths
+    assert sorted(row_ids()) == ["dyno-unit-U1", "dyno-unit-U2", "dyno-unit-U3"], row_ids()
+
+    out = ROOT / "out"
+    out.mkdir(exist_ok=True)
+    for path in (out / "dashboard.png", tmp_path / "dashboard.png"):
+        assert driver.save_screenshot(str(path)), path
+
+    logs = driver.get_log("browser")
+    bad = [entry for entry in logs if entry.get("level") in ("SEVERE", "WARNING")]
+    assert not bad, "browser console:\n" + "\n".join(f"{e['level']}: {e['message']}" for e in bad)
