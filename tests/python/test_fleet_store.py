@@ -247,3 +247,37 @@ def test_a_file_that_is_not_a_store_is_refused_by_name(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=30)
     assert proc.returncode == 1
     assert str(bad) in proc.stderr and "not a readable SQLite database" in proc.stderr, proc.stderr
+
+
+def test_a_full_disk_degrades_readyz_and_the_daemon_carries_on(world: dict[str, Path], tmp_path: Path,
+                                                               daemons: list[Daemon]) -> None:
+    small = tmp_path / "small"
+    small.mkdir()
+    mount = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=96k", "tmpfs", str(small)],
+                           capture_output=True, text=True)
+    if mount.returncode != 0:
+        pytest.skip(f"a full disk needs a small tmpfs, which this machine does not let us mount: {mount.stderr.strip()}")
+    try:
+        inbox = tmp_path / "inbox"
+        inbox.mkdir()
+        d = Daemon(world["bundle"], small / "fleet.sqlite", inbox)
+        daemons.append(d)
+        files = sorted(world["runs"].glob("*.mcap"))
+        for f in files:
+            shutil.copy(f, inbox / f.name)
+        deadline = time.monotonic() + 240
+        ready = httpx.get(f"http://{d.http}/readyz", timeout=10)
+        while time.monotonic() < deadline and ready.status_code == 200:
+            time.sleep(0.5)
+            ready = httpx.get(f"http://{d.http}/readyz", timeout=10)
+        assert ready.status_code == 503 and "degraded" in ready.text, ready.text
+        assert "full" in ready.text.lower(), ready.text
+        # The runs are still estimated and served live; every file is done.
+        while time.monotonic() < deadline and len(list((inbox / "done").glob("*.mcap"))) < len(files):
+            time.sleep(0.5)
+        assert len(list((inbox / "done").glob("*.mcap"))) == len(files)
+        assert d.get("/v1/assets")["assets"][0]["ticks"] > 0
+        d.stop()
+        assert d.proc.returncode == 0
+    finally:
+        subprocess.run(["umount", "-l", str(small)], check=False)
