@@ -33,8 +33,10 @@ def one_round(runs: list[Path], tmp: Path, store: bool) -> float:
     db = tmp / "fleet.sqlite"
     for p in tmp.glob("fleet.sqlite*"):
         p.unlink()
-    cmd = [str(BIN), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(BUNDLE),
-           "--inbox", str(inbox), *(["--db", str(db)] if store else ["--no-db"])]
+    config = tmp / "serve.toml"
+    config.write_text("[server]\ninbox_settle_s = 0.0\n")  # files arrive by rename: no need to wait
+    cmd = [str(BIN), "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
+           "--model", str(BUNDLE), "--inbox", str(inbox), *(["--db", str(db)] if store else ["--no-db"])]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None
     for line in proc.stderr:

@@ -45,6 +45,9 @@ pub struct ServerConfig {
     pub record_dir: Option<PathBuf>,
     /// Seconds between inbox rescans (a fallback to file-system events).
     pub inbox_rescan_s: f64,
+    /// An inbox file is taken once unchanged for this many seconds (a copy
+    /// in progress is not processed half-written).
+    pub inbox_settle_s: f64,
 }
 
 impl Default for ServerConfig {
@@ -55,6 +58,7 @@ impl Default for ServerConfig {
             inbox: None,
             record_dir: None,
             inbox_rescan_s: 2.0,
+            inbox_settle_s: 10.0,
         }
     }
 }
@@ -324,6 +328,12 @@ impl Config {
         }
         if self.store.flush_ms == 0 || self.store.flush_ms > 60_000 {
             return Err(invalid("store.flush_ms", "must be between 1 and 60000"));
+        }
+        if !(self.server.inbox_settle_s.is_finite() && self.server.inbox_settle_s >= 0.0) {
+            return Err(invalid(
+                "server.inbox_settle_s",
+                "must be a number of seconds ≥ 0",
+            ));
         }
         if !(self.server.inbox_rescan_s.is_finite() && self.server.inbox_rescan_s > 0.0) {
             return Err(invalid(

@@ -8,14 +8,18 @@
 //! are deterministic, so that rewrites the same recordings.
 //!
 //! Only `*.mcap` files not starting with `.` are taken: write a file under
-//! another name (e.g. `run.mcap.tmp`) and rename it when complete. The
-//! directory is rescanned on every file-system event (`notify`) and every
-//! `inbox_rescan_s` seconds, in case an event is missed.
+//! another name (e.g. `run.mcap.part`) and rename it when complete. A file
+//! written in place (a plain `scp`, an upload that stalls) is taken only once
+//! it has settled: unchanged in size and modification time for
+//! `inbox_settle_s` seconds (default 10), so that a copy in progress is not
+//! processed half-written and lost to `failed/`. The directory is rescanned
+//! on every file-system event (`notify`) and every `inbox_rescan_s` seconds,
+//! in case an event is missed.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant, SystemTime};
 
 use futures_util::future::BoxFuture;
 use tokio::sync::Notify;
@@ -35,17 +39,20 @@ pub const FAILED_DIR: &str = "failed";
 pub struct InboxSource {
     dir: PathBuf,
     rescan: Duration,
+    settle: Duration,
 }
 
 impl InboxSource {
-    /// Watches `dir` (created with `done/` and `failed/` if missing).
-    pub fn new(dir: &Path, rescan: Duration) -> Result<Self, ServeError> {
+    /// Watches `dir` (created with `done/` and `failed/` if missing); takes
+    /// a file once it has not changed for `settle`.
+    pub fn new(dir: &Path, rescan: Duration, settle: Duration) -> Result<Self, ServeError> {
         for d in [dir.to_owned(), dir.join(DONE_DIR), dir.join(FAILED_DIR)] {
             std::fs::create_dir_all(&d).map_err(|source| ServeError::Io { path: d, source })?;
         }
         Ok(Self {
             dir: dir.to_owned(),
             rescan,
+            settle,
         })
     }
 }
@@ -107,6 +114,8 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
     };
     // Files that could not be moved are not retried until restart.
     let mut stuck: HashSet<PathBuf> = HashSet::new();
+    // Files still changing: (size, modification time) when first seen so, and when.
+    let mut unsettled: HashMap<PathBuf, ((u64, Option<SystemTime>), Instant)> = HashMap::new();
     loop {
         let files = match pending_files(&src.dir) {
             Ok(f) => f,
@@ -120,18 +129,58 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             if ctx.cancel.is_cancelled() {
                 return Ok(());
             }
-            if stuck.contains(&path) {
+            if stuck.contains(&path) || !settled(&path, src.settle, &mut unsettled) {
                 continue;
             }
             if !process_file(&ctx, &src.dir, &path).await {
                 stuck.insert(path);
             }
         }
+        // A file waiting to settle is looked at again when it may have.
+        let next = if unsettled.is_empty() {
+            src.rescan
+        } else {
+            src.rescan
+                .min(src.settle / 2)
+                .max(Duration::from_millis(50))
+        };
         tokio::select! {
             () = ctx.cancel.cancelled() => return Ok(()),
             () = wake.notified() => {}
-            () = tokio::time::sleep(src.rescan) => {}
+            () = tokio::time::sleep(next) => {}
         }
+    }
+}
+
+/// Whether `path` has settled: last modified at least `settle` ago, or
+/// unchanged in size and modification time for `settle` (a clock that puts
+/// its modification time in the future cannot hold it back for ever).
+fn settled(
+    path: &Path,
+    settle: Duration,
+    unsettled: &mut HashMap<PathBuf, ((u64, Option<SystemTime>), Instant)>,
+) -> bool {
+    let Ok(meta) = std::fs::metadata(path) else {
+        unsettled.remove(path);
+        return false;
+    };
+    let modified = meta.modified().ok();
+    let quiet = modified
+        .and_then(|m| SystemTime::now().duration_since(m).ok())
+        .is_some_and(|age| age >= settle);
+    let key = (meta.len(), modified);
+    let steady = match unsettled.get(path) {
+        Some((seen, since)) if *seen == key => since.elapsed() >= settle,
+        _ => {
+            unsettled.insert(path.to_owned(), (key, Instant::now()));
+            false
+        }
+    };
+    if quiet || steady {
+        unsettled.remove(path);
+        true
+    } else {
+        false
     }
 }
 

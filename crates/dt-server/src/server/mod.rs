@@ -201,6 +201,7 @@ pub async fn run(
         sources.push(Box::new(inbox::InboxSource::new(
             dir,
             Duration::from_secs_f64(config.server.inbox_rescan_s),
+            Duration::from_secs_f64(config.server.inbox_settle_s),
         )?));
     }
 

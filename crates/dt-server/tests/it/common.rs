@@ -41,6 +41,7 @@ pub fn test_config() -> Config {
     c.limits.queue_depth = 64;
     c.limits.history_len = 50;
     c.server.inbox_rescan_s = 0.2;
+    c.server.inbox_settle_s = 0.3;
     c
 }
 

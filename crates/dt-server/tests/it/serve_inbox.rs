@@ -155,3 +155,36 @@ async fn nothing_is_lost_across_a_restart() {
         .iter()
         .all(|p| p.extension().unwrap() == "mcap"));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_file_still_being_copied_waits_until_it_settles() {
+    // Issue 13's defect: half a run written in place, the rest appended
+    // later; both halves used to end in failed/.
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.clone());
+    config.server.inbox_settle_s = 2.0;
+    let d = Daemon::start(config).await;
+    let run = good_stream("inb-slow", "rslow", 0, 1500);
+    let (head, tail) = run.bytes.split_at(run.bytes.len() / 2);
+    let path = inbox.join("slow.mcap");
+    std::fs::write(&path, head).unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(1200)).await;
+    assert!(path.exists(), "taken before it settled");
+    {
+        use std::io::Write as _;
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .unwrap();
+        f.write_all(tail).unwrap();
+    }
+    wait_until("the settled file", || async {
+        names(&inbox.join("done")) == ["slow.mcap"]
+    })
+    .await;
+    assert!(files_in(&inbox.join("failed")).is_empty());
+    d.stop().await;
+}
