@@ -79,13 +79,11 @@ def settings(quick: bool, seed: int, jobs: int) -> Settings:
 def fit_many(
     cfg: Settings, tasks: list[tuple[np.ndarray, np.ndarray, list[str], int]], max_iter: int
 ) -> list[model.Trained]:
-    from joblib import delayed
+    from joblib import Parallel, delayed
 
     from .progress import progress
 
-    from joblib import Parallel
-
-    # Results in order as they finish (a live bar), the backend of `parallel`.
+    # Results in order, each as it finishes: the bar moves while the fits run.
     jobs = Parallel(n_jobs=cfg.jobs, backend="loky" if cfg.jobs > 1 else "sequential", return_as="generator")
     results = jobs(delayed(evaluate.fit_job)(x, y, cols, seed, max_iter) for x, y, cols, seed in tasks)
     return list(progress(results, total=len(tasks), desc="training", unit="fit"))
