@@ -238,3 +238,18 @@ def test_bad_stream_gets_a_failed_report(daemon: Daemon) -> None:
     assert report["kind"] and report["reason"]
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(30) == 0
+
+
+def test_sigterm_right_after_start_is_a_clean_stop(shocktwin: Path, tmp_path: Path) -> None:
+    # The handlers are installed before the daemon says it listens: a SIGTERM
+    # sent the moment it does must not kill it by the default action.
+    for _ in range(5):
+        proc = subprocess.Popen([str(shocktwin), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
+                                 "--db", str(tmp_path / "fleet.sqlite")],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "listening" in line:
+                proc.send_signal(signal.SIGTERM)
+                break
+        assert proc.wait(30) == 0
