@@ -19,7 +19,7 @@ CAMPAIGN ?= $(OUT)/campaign
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
-.PHONY: help setup build browser demo test test-rust test-python lint bench bench-python load-test study clean
+.PHONY: help setup build wheel browser demo test test-rust test-python lint bench bench-python load-test study clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -41,6 +41,10 @@ $(BIN): $(RUST_SRC) Cargo.lock
 	$(CARGO) build $(CARGO_PROFILE) --workspace --exclude dt-py --all-targets
 
 setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python package
+
+wheel: $(VENV)/.deps ## build the abi3 wheel of the bindings into dist/ (maturin; manylinux tag of this machine's glibc)
+	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH \
+	  $(VENV)/bin/maturin build --release -m crates/dt-py/Cargo.toml --out dist
 
 build: $(BIN) ## build the shocktwin CLI (release)
 
@@ -97,5 +101,5 @@ load-test: $(BIN) ## load test of shocktwin serve over loopback (a bench, minute
 	mkdir -p $(OUT)
 	target/release/shocktwin-load --serve $(BIN) --model crates/dt-core/tests/fixtures/bundle-mlp13 --assets $(LOAD_ASSETS) --duration-s 60 --json-out $(OUT)/load-test.jsonl
 
-clean: ## remove build outputs, the venv and out/
-	rm -rf target $(VENV) $(OUT)
+clean: ## remove build outputs, the venv, dist/ and out/
+	rm -rf target $(VENV) $(OUT) dist
