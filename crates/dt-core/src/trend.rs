@@ -21,8 +21,8 @@
 //! the estimator's systematic part (a unit's bias), which is the same in
 //! every run and does not scatter the points, so the covariance of `(a, b)`
 //! is *scaled* by the residual variance, `σ̂² = Σ wᵢ rᵢ² / (n − 2)` (as
-//! `scipy.optimize.curve_fit` with `absolute_sigma=False` and
-//! `numpy.polyfit(..., cov=True)` do), and intervals use Student's `t` with
+//! `scipy.optimize.curve_fit` with `absolute_sigma=False` does), and
+//! intervals use Student's `t` with
 //! `n − 2` degrees of freedom.
 //!
 //! **Crossing.** The predicted time at which the line reaches a threshold
