@@ -1462,8 +1462,37 @@ pub fn compute_features(
     } else {
         params.observer = None;
     }
-    let mut pipe = FeaturePipeline::new(&params, suite)?;
-    let idx = column_indices(groups);
+    run_pipeline(log, &params, suite, &column_indices(groups))
+}
+
+/// The twin's state at every tick of a run, from every sensor topic the log
+/// has — the twin's *reduced models* when sensors are missing: the
+/// position-only Kalman filter without `/acceleration` (step 3), the first
+/// shock temperature as ambient without `/temperature/ambient` (step 6).
+/// Unlike [`compute_features`] it asks for no group and never fails for a
+/// missing topic: the table has every column of [`COLUMNS`] but the
+/// observer's, NaN where the log lacks what the column's group needs (as in
+/// the streaming pipeline), and [`FeatureTable::twin`] holds the Kalman
+/// estimates and the modelled force and temperatures, which need only
+/// `/position` (and `/temperature/shock` for the thermal model). For
+/// calibrating the physics on a campaign without the full suite
+/// (`train.fit_physics`).
+pub fn compute_twin(log: &RunLog, params: &PhysicsParams) -> Result<FeatureTable, PhysicsError> {
+    let mut params = *params;
+    params.observer = None;
+    let idx: Vec<usize> = (0..col::OBSERVER_BAR).collect();
+    run_pipeline(log, &params, TopicSet::from_log(log), &idx)
+}
+
+/// Runs a [`FeaturePipeline`] given `suite` over the log's samples in order,
+/// keeping the columns `idx` of each row.
+fn run_pipeline(
+    log: &RunLog,
+    params: &PhysicsParams,
+    suite: TopicSet,
+    idx: &[usize],
+) -> Result<FeatureTable, PhysicsError> {
+    let mut pipe = FeaturePipeline::new(params, suite)?;
     let samples = sorted_samples(log);
     let n_ticks = samples.last().map_or(0, |last| {
         ((last.t_ns() - samples[0].t_ns()) / TICK_NS + 1) as usize
@@ -2138,6 +2167,52 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn twin_of_a_reduced_log_runs_the_reduced_models() {
+        let params = PhysicsParams::default();
+        // With every topic, the twin is the full suite's.
+        let log = synth_log(3, TopicSet::all());
+        let full = compute_features(&log, &params, &Group::PAPER).unwrap();
+        let twin = compute_twin(&log, &params).unwrap();
+        assert_eq!(twin.columns.len(), col::OBSERVER_BAR);
+        assert_eq!(format!("{:?}", full.twin), format!("{:?}", twin.twin));
+        for name in &full.columns {
+            let (a, b) = (full.column(name).unwrap(), twin.column(name).unwrap());
+            assert!(a.iter().zip(&b).all(|(x, y)| same(*x, *y)), "{name}");
+        }
+
+        // No accelerometers, no ambient thermocouple: compute_features refuses
+        // the mechanical group, compute_twin runs the position-only filter and
+        // the thermal model with the first shock temperature (25 °C) as ambient —
+        // exactly as with an ambient thermocouple reading 25 °C throughout.
+        let reduced = TopicSet {
+            acceleration: false,
+            temp_ambient: false,
+            ..TopicSet::all()
+        };
+        let log = synth_log(3, reduced);
+        assert!(compute_features(&log, &params, &[Group::Mechanical]).is_err());
+        let twin = compute_twin(&log, &params).unwrap();
+        let mut at_25 = log.clone();
+        at_25.temp_ambient = log.temp_shock.iter().map(|s| (s.0, 25.0)).collect();
+        let with_ambient = compute_twin(&at_25, &params).unwrap();
+        assert_eq!(twin.n_rows(), 150);
+        let tw = &twin.twin[149];
+        assert!(tw.position_only);
+        let w = omega();
+        let tc = (twin.t_ns[149] - T0 - TICK_NS / 2) as f64 / 1e9;
+        assert!((tw.velocity_mps - AMP_M * w * (w * tc).cos()).abs() < 0.05);
+        assert!(tw.force_model_n.is_finite() && tw.oil_temp_c > 25.0);
+        for (a, b) in twin.twin.iter().zip(&with_ambient.twin) {
+            assert!(same(a.oil_temp_c, b.oil_temp_c) && same(a.cyl_temp_c, b.cyl_temp_c));
+            assert!(same(a.force_model_n, b.force_model_n));
+        }
+        // Columns whose group lacks a sensor stay NaN, as in the estimator.
+        let v = twin.column("velocity_mps").unwrap();
+        assert!(v.iter().all(|x| x.is_nan()));
+        assert!(twin.column("force_n").unwrap()[100].is_finite());
     }
 
     #[test]

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use dt_core::bundle::Bundle;
 use dt_core::features::{
-    compute_features, compute_reversals, paper_permutations, paper_rmse_bar, suite_cost_aud,
-    suite_sensors, Group, Permutation, Sensor, COLUMNS,
+    compute_features, compute_reversals, compute_twin, paper_permutations, paper_rmse_bar,
+    suite_cost_aud, suite_sensors, Group, Permutation, Sensor, COLUMNS,
 };
 use dt_core::params::PhysicsParams;
 use numpy::ndarray::Array2;
@@ -169,6 +169,60 @@ pub(crate) fn charge_reversals<'py>(
     out.set_item("detected", counters.detected)?;
     out.set_item("skipped", counters.skipped)?;
     out.set_item("rejected", counters.rejected)?;
+    Ok(out)
+}
+
+/// The twin's state at every 50 Hz tick of a run, from every sensor topic
+/// the log has: the *reduced models* where sensors are missing (the
+/// position-only Kalman filter without ``/acceleration``; the first shock
+/// temperature as ambient without ``/temperature/ambient``), as the streaming
+/// pipeline runs them. For calibrating the physics on a campaign without the
+/// full suite; the GIL is released meanwhile.
+///
+/// ``log`` and ``bundle_or_params`` as in ``features`` (a bundle's groups
+/// are ignored). Returns a dict: ``t_s`` (tick times, s since the run's first
+/// message), ``force_n`` (loadcell boxcar, NaN without ``/force``),
+/// ``position_m``, ``velocity_mps``, ``accel_mps2`` (the Kalman position,
+/// velocity and bias-corrected acceleration — the position-only filter's
+/// acceleration without accelerometers), ``force_model_n``,
+/// ``oil_temp_model_c``, ``cyl_temp_model_c``, ``heat_rate_model_w``,
+/// ``velocity_rms_mps`` (float64 arrays) and ``position_only`` (bool).
+#[pyfunction]
+pub(crate) fn twin_trace<'py>(
+    py: Python<'py>,
+    log: &Bound<'py, PyAny>,
+    bundle_or_params: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (params, _) = physics_from(bundle_or_params)?;
+    let run = run_from(py, log)?;
+    let table = without_gil(py, move || compute_twin(&run, &params)).map_err(CoreError::from)?;
+    let out = PyDict::new(py);
+    let tw = |f: &dyn Fn(&dt_core::features::TwinState) -> f64| -> Vec<f64> {
+        table.twin.iter().map(f).collect()
+    };
+    out.set_item(
+        "t_s",
+        to_numpy(py, ns_to_seconds(&table.t_ns, table.t_origin_ns)),
+    )?;
+    out.set_item(
+        "force_n",
+        to_numpy(py, table.column("force_n").unwrap_or_default()),
+    )?;
+    out.set_item("position_m", to_numpy(py, tw(&|t| t.position_m)))?;
+    out.set_item("velocity_mps", to_numpy(py, tw(&|t| t.velocity_mps)))?;
+    out.set_item("accel_mps2", to_numpy(py, tw(&|t| t.accel_mps2)))?;
+    out.set_item("force_model_n", to_numpy(py, tw(&|t| t.force_model_n)))?;
+    out.set_item("oil_temp_model_c", to_numpy(py, tw(&|t| t.oil_temp_c)))?;
+    out.set_item("cyl_temp_model_c", to_numpy(py, tw(&|t| t.cyl_temp_c)))?;
+    out.set_item("heat_rate_model_w", to_numpy(py, tw(&|t| t.heat_rate_w)))?;
+    out.set_item(
+        "velocity_rms_mps",
+        to_numpy(py, tw(&|t| t.velocity_rms_1s_mps)),
+    )?;
+    out.set_item(
+        "position_only",
+        table.twin.first().is_some_and(|t| t.position_only),
+    )?;
     Ok(out)
 }
 

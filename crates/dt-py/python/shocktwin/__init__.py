@@ -11,6 +11,9 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   (SPEC §4) that training and the streaming estimator share.
 - ``charge_reversals(log, bundle_or_params)``: the gas-charge observer's
   per-reversal fits over a run (calibration and analysis).
+- ``twin_trace(log, bundle_or_params)``: the twin's state per 50 Hz tick from
+  whatever sensors the log has (the reduced models without accelerometers or
+  ambient thermocouple; calibration on a reduced campaign).
 - ``Bundle(path)``: a model bundle (SPEC §5), checked; ``Bundle.predict(X)``
   runs its network on raw feature rows.
 - ``estimate(log, bundle)``: the streaming estimator (the daemon's code) over
@@ -48,6 +51,7 @@ from shocktwin._native import (
     ThermalModel,
     __version__,
     charge_reversals,
+    twin_trace,
     default_params,
     default_observer_params,
     estimate,
@@ -91,6 +95,7 @@ __all__ = [
     # features and suites
     "features",
     "charge_reversals",
+    "twin_trace",
     "GROUPS",
     "COLUMNS",
     "group_columns",

@@ -21,6 +21,7 @@ __all__ = [
     "permutations",
     "extra_permutations",
     "charge_reversals",
+    "twin_trace",
     "default_observer_params",
     "Bundle",
     "estimate",
@@ -137,6 +138,10 @@ def features(
     groups: Sequence[str] | None = None,
 ) -> tuple[npt.NDArray[np.float64], list[str], _F64]: ...
 def charge_reversals(
+    log: Log | _Path,
+    bundle_or_params: dict[str, Any] | Bundle | _Path,
+) -> dict[str, Any]: ...
+def twin_trace(
     log: Log | _Path,
     bundle_or_params: dict[str, Any] | Bundle | _Path,
 ) -> dict[str, Any]: ...
