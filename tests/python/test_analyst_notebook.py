@@ -38,7 +38,7 @@ def shocktwin_bin() -> Path:
 @pytest.fixture(scope="module")
 def executed(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFactory):
     """(the executed notebook, its output directory)."""
-    jupytext = pytest.importorskip("jupytext")
+    import jupytext  # requirements.txt: jupytext, nbclient, ipykernel (a missing one fails, not skips)
     from nbclient import NotebookClient
 
     tmp = tmp_path_factory.mktemp("analyst")
