@@ -23,6 +23,10 @@ pub enum Command {
     /// Run logs through the streaming estimator and write the `/estimate`
     /// stream (MCAP, JSON lines or CSV); prints per-run RMSE for labelled logs.
     Replay(ReplayArgs),
+    /// Turn tabular dyno exports (CSV) into run logs (SPEC §2), one MCAP per
+    /// file: columns mapped by flags or a TOML file, units and sign
+    /// conventions converted, resampled (anti-aliased) to the nominal rates.
+    Import(Box<ImportArgs>),
     /// Run the fleet-gateway daemon (MCAP over TCP and an inbox in, HTTP API
     /// and recorded estimates out); flags override the file and environment.
     Serve(ServeArgs),
@@ -67,6 +71,105 @@ pub struct SimulateArgs {
     /// With --days: the asset id in the runs' metadata (default: the unit's).
     #[arg(long, requires = "days")]
     pub asset_id: Option<String>,
+    /// What to write: shocktwin run logs, or a crank dyno's CSV export of
+    /// each run (for trying `shocktwin import`; see dt-sim's `export`).
+    #[arg(long, value_enum, default_value_t = SimFormat::Mcap, conflicts_with = "days")]
+    pub format: SimFormat,
+    /// With `--format dyno-csv`: the export's sample rate, Hz.
+    #[arg(long, default_value_t = 300.0)]
+    pub csv_rate_hz: f64,
+}
+
+/// Output of `shocktwin simulate`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimFormat {
+    /// One shocktwin log (MCAP, SPEC §2) per run.
+    Mcap,
+    /// One crank-dyno CSV export per run (simulated; no accelerometers or ambient).
+    DynoCsv,
+}
+
+/// `shocktwin import` (column flags override `--map`; see
+/// `docs/import.example.toml` for every key).
+#[derive(Debug, Args)]
+pub struct ImportArgs {
+    /// Output directory for the run logs (`<run_id>.mcap`).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// TOML column mapping.
+    #[arg(long)]
+    pub map: Option<PathBuf>,
+    /// The exports to import.
+    #[arg(required = true)]
+    pub files: Vec<PathBuf>,
+    /// Leave out bad rows (unparseable, empty, time not increasing), counted
+    /// and reported by reason, instead of failing the file.
+    #[arg(long)]
+    pub skip_bad_rows: bool,
+    /// 1-based line of the header row (default: the first row naming every mapped column).
+    #[arg(long)]
+    pub header_line: Option<usize>,
+    /// Field delimiter (default `,`).
+    #[arg(long)]
+    pub delimiter: Option<char>,
+    /// Time column.
+    #[arg(long)]
+    pub time: Option<String>,
+    /// Time format: iso8601 (UTC), `epoch_s`, `epoch_ms`, `elapsed_s`, `elapsed_ms`, auto.
+    #[arg(long)]
+    pub time_format: Option<String>,
+    /// Position / displacement column.
+    #[arg(long)]
+    pub position: Option<String>,
+    /// Position unit: mm, cm, m, in.
+    #[arg(long)]
+    pub position_unit: Option<String>,
+    /// Which way the position column counts positive: extension (SPEC) or compression.
+    #[arg(long)]
+    pub position_positive: Option<String>,
+    /// The position column's reading at mid-stroke, in its unit.
+    #[arg(long, allow_hyphen_values = true)]
+    pub mid_stroke: Option<f64>,
+    /// Force column.
+    #[arg(long)]
+    pub force: Option<String>,
+    /// Force unit: N, kN, lbf, kgf.
+    #[arg(long)]
+    pub force_unit: Option<String>,
+    /// Which way the force column counts positive: tension (SPEC) or compression.
+    #[arg(long)]
+    pub force_positive: Option<String>,
+    /// Shock-body temperature column.
+    #[arg(long)]
+    pub temp_shock: Option<String>,
+    /// Ambient temperature column.
+    #[arg(long)]
+    pub temp_ambient: Option<String>,
+    /// Temperature unit: C, F, K.
+    #[arg(long)]
+    pub temp_unit: Option<String>,
+    /// Rod-end accelerometer column.
+    #[arg(long)]
+    pub a1: Option<String>,
+    /// Body-end accelerometer column.
+    #[arg(long)]
+    pub a2: Option<String>,
+    /// Acceleration unit: g, m/s2.
+    #[arg(long)]
+    pub accel_unit: Option<String>,
+    /// Asset id of the runs.
+    #[arg(long)]
+    pub asset_id: Option<String>,
+    /// Run id (one file only; default: the file's stem).
+    #[arg(long)]
+    pub run_id: Option<String>,
+    /// Charge label, e.g. "150 psi" or "10.3 bar" (psia/bara absolute, else gauge),
+    /// or "from-name" to read it from each file's name.
+    #[arg(long)]
+    pub charge: Option<String>,
+    /// Dyno excitation frequency, Hz (metadata).
+    #[arg(long)]
+    pub frequency_hz: Option<f64>,
 }
 
 /// `shocktwin inspect`.

@@ -2,9 +2,12 @@
 //! one MCAP log per run, runs in parallel.
 
 use anyhow::Context as _;
-use dt_sim::{simulate_campaign_with, simulate_leak_history, CampaignSpec, LeakHistorySpec};
+use dt_sim::{
+    simulate_campaign_with, simulate_dyno_csv_campaign, simulate_leak_history, CampaignSpec,
+    LeakHistorySpec,
+};
 
-use crate::cli::SimulateArgs;
+use crate::cli::{SimFormat, SimulateArgs};
 
 /// Runs `shocktwin simulate`.
 pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
@@ -51,8 +54,13 @@ fn campaign(args: &SimulateArgs) -> anyhow::Result<Vec<dt_sim::RunSummary>> {
         ..CampaignSpec::paper(args.seed)
     };
     let bar = crate::progress::bar(spec.runs().len() as u64, "simulate");
-    let done = simulate_campaign_with(&spec, &args.out, &|s| tick(&bar, s))
-        .with_context(|| format!("simulate: campaign into {}", args.out.display()));
+    let done = match args.format {
+        SimFormat::Mcap => simulate_campaign_with(&spec, &args.out, &|s| tick(&bar, s)),
+        SimFormat::DynoCsv => {
+            simulate_dyno_csv_campaign(&spec, args.csv_rate_hz, &args.out, &|s| tick(&bar, s))
+        }
+    }
+    .with_context(|| format!("simulate: campaign into {}", args.out.display()));
     bar.finish_and_clear();
     done
 }
@@ -70,13 +78,14 @@ fn report(summaries: &[dt_sim::RunSummary], started: std::time::Instant, args: &
             .as_ref()
             .map_or_else(|| s.run_id.clone(), |p| p.display().to_string());
         println!(
-            "{file}: {:.0} s ({:.0} s excitation, ended by {}), shock thermocouple {:.1} C, oil {:.1} C, {} messages{}",
+            "{file}: {:.0} s ({:.0} s excitation, ended by {}), shock thermocouple {:.1} C, oil {:.1} C, {} {}{}",
             s.duration_s,
             s.excitation_s,
             s.stop,
             s.final_shock_reading_c,
             s.final_oil_c,
             s.messages,
+            if args.format == SimFormat::DynoCsv { "rows" } else { "messages" },
             if s.cavitation_s > 0.0 {
                 format!(", cavitating {:.0} s", s.cavitation_s)
             } else {

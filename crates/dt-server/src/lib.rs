@@ -4,6 +4,7 @@
 //! parses arguments and dispatches.
 
 pub mod cli;
+pub mod cmd_import;
 pub mod cmd_inspect;
 pub mod cmd_replay;
 pub mod cmd_serve;

@@ -32,6 +32,7 @@
 //! (`simulated = "true"`).
 
 pub mod dyno;
+pub mod export;
 pub mod gas;
 pub mod hydraulics;
 pub mod oil;
@@ -42,6 +43,7 @@ pub mod sensors;
 pub mod thermal;
 pub mod valve;
 
+pub use export::{simulate_dyno_csv, simulate_dyno_csv_campaign};
 pub use params::{parameter_table, ParamInfo, PlantParams};
 pub use plant::{Plant, PlantConfig, Truth};
 pub use run::{

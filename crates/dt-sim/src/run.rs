@@ -251,6 +251,28 @@ pub fn simulate_run_with<F>(
 where
     F: FnMut(&Sample) -> Result<(), SimError>,
 {
+    drive(spec, params, |ms, truth, sensors, summary| {
+        emit_tick(ms, truth, sensors, summary, &mut sink)
+    })
+}
+
+/// Runs the plant of `spec` through its dyno procedure, calling `tick` once
+/// per millisecond with the truth and the sensors; `tick` samples what is
+/// due and returns the shock thermocouple reading on whole seconds (the
+/// procedure's stop rule reads it).
+pub(crate) fn drive<E>(
+    spec: &RunSpec,
+    params: &PlantParams,
+    mut tick: E,
+) -> Result<RunSummary, SimError>
+where
+    E: FnMut(
+        u64,
+        &crate::plant::Truth,
+        &mut Sensors,
+        &mut RunSummary,
+    ) -> Result<Option<f64>, SimError>,
+{
     let (rest_s, max_exc_s) = schedule(spec, params);
     let config = PlantConfig {
         charge_bar: spec.charge_bar,
@@ -303,7 +325,7 @@ where
         summary.max_void_m3 = summary.max_void_m3.max(truth.void_m3);
         if i % n_sub == 0 {
             let ms = i / n_sub;
-            let shock_c = emit_tick(ms, &truth, &mut sensors, &mut summary, &mut sink)?;
+            let shock_c = tick(ms, &truth, &mut sensors, &mut summary)?;
             if let (Some(shock_c), true) = (shock_c, ms > rest_ms) {
                 shock_history.push(shock_c);
                 let at_cap = ms >= max_ms;
@@ -619,6 +641,26 @@ pub fn simulate_campaign_with(
     out_dir: &Path,
     on_run: &(dyn Fn(&RunSummary) + Sync),
 ) -> Result<Vec<RunSummary>, SimError> {
+    let (runs, params) = prepare(spec, out_dir)?;
+    runs.par_iter()
+        .map(|run| {
+            let summary = simulate_run(
+                run,
+                &params,
+                &out_dir.join(format!("{}.mcap", run.run_id())),
+            )?;
+            on_run(&summary);
+            Ok(summary)
+        })
+        .collect()
+}
+
+/// Checks `spec`, creates `out_dir`, and returns the runs and their unit's
+/// plant parameters.
+pub(crate) fn prepare(
+    spec: &CampaignSpec,
+    out_dir: &Path,
+) -> Result<(Vec<RunSpec>, PlantParams), SimError> {
     std::fs::create_dir_all(out_dir).map_err(|source| SimError::Io {
         path: out_dir.display().to_string(),
         source,
@@ -647,15 +689,5 @@ pub fn simulate_campaign_with(
     let params = runs
         .first()
         .map_or_else(PlantParams::nominal, RunSpec::params);
-    runs.par_iter()
-        .map(|run| {
-            let summary = simulate_run(
-                run,
-                &params,
-                &out_dir.join(format!("{}.mcap", run.run_id())),
-            )?;
-            on_run(&summary);
-            Ok(summary)
-        })
-        .collect()
+    Ok((runs, params))
 }

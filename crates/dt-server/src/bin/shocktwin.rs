@@ -32,6 +32,7 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Simulate(args) => dt_server::cmd_simulate::run(args).map(|()| ExitCode::SUCCESS),
         Command::Inspect(args) => dt_server::cmd_inspect::run(args),
+        Command::Import(args) => dt_server::cmd_import::run(args),
         Command::Replay(args) => dt_server::cmd_replay::run(args),
         Command::Serve(args) => dt_server::cmd_serve::run(args).map(|()| ExitCode::SUCCESS),
     };

@@ -1,0 +1,584 @@
+//! The column mapping of `shocktwin import`: a TOML file (`--map`), column
+//! flags on top (a flag wins over the file), resolved into affine unit
+//! conversions to SPEC §1's units and conventions.
+//!
+//! ```toml
+//! # header_line = 3        # 1-based; default: the first row naming every mapped column
+//! # delimiter = ","
+//! [time]
+//! column = "Timestamp"
+//! format = "iso8601"       # iso8601 (UTC) | epoch_s | epoch_ms | elapsed_s | elapsed_ms | auto (default)
+//! [position]
+//! column = "Displacement [mm]"
+//! unit = "mm"              # mm | m | in
+//! positive = "compression" # extension (SPEC, default) | compression
+//! mid_stroke = 40.0        # the column's reading at mid-stroke, in its unit (default 0)
+//! [force]
+//! column = "Force [N]"
+//! unit = "N"               # N | kN | lbf
+//! positive = "compression" # tension (SPEC, default) | compression
+//! [temperature_shock]
+//! column = "Temperature [°C]"
+//! unit = "C"               # C | F | K
+//! # [temperature_ambient]  column, unit
+//! # [acceleration]         a1 = "...", a2 = "...", unit = "g" | "m/s2"
+//! [run]
+//! asset_id = "shock-A"
+//! # run_id = "..."         # default: the file's stem
+//! charge = "from-name"     # a label such as "150 psi", or "from-name": <number> psi|bar|kPa|MPa in the file name
+//! # frequency_hz = 2.0
+//! # stroke_pp_mm = 80.0
+//! ```
+
+use std::path::Path;
+
+use anyhow::{bail, Context as _};
+use serde::Deserialize;
+
+use crate::cli::ImportArgs;
+
+/// Standard gravity, m/s² (accelerations given in g).
+const G_MPS2: f64 = 9.806_65;
+/// Standard atmosphere, bar (labels in psia / bara are absolute).
+const ATM_BAR: f64 = 1.013_25;
+
+/// The mapping file, as written.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapFile {
+    /// 1-based line of the header row.
+    pub header_line: Option<usize>,
+    /// Field delimiter (one character).
+    pub delimiter: Option<char>,
+    /// The time column.
+    pub time: Option<TimeMap>,
+    /// Displacement / position.
+    pub position: Option<PositionMap>,
+    /// Loadcell force.
+    pub force: Option<ForceMap>,
+    /// Shock-body thermocouple.
+    pub temperature_shock: Option<TempMap>,
+    /// Ambient thermocouple.
+    pub temperature_ambient: Option<TempMap>,
+    /// Accelerometers (rod end `a1`, body end `a2`).
+    pub acceleration: Option<AccelMap>,
+    /// Run metadata.
+    pub run: Option<RunMap>,
+}
+
+/// `[time]`.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TimeMap {
+    /// Column name.
+    pub column: Option<String>,
+    /// `iso8601`, `epoch_s`, `epoch_ms`, `elapsed_s`, `elapsed_ms` or `auto`.
+    pub format: Option<String>,
+}
+
+/// `[position]`.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PositionMap {
+    /// Column name.
+    pub column: Option<String>,
+    /// `mm`, `m` or `in`.
+    pub unit: Option<String>,
+    /// `extension` or `compression`.
+    pub positive: Option<String>,
+    /// The column's reading at mid-stroke, in its unit.
+    pub mid_stroke: Option<f64>,
+}
+
+/// `[force]`.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ForceMap {
+    /// Column name.
+    pub column: Option<String>,
+    /// `N`, `kN` or `lbf`.
+    pub unit: Option<String>,
+    /// `tension` or `compression`.
+    pub positive: Option<String>,
+}
+
+/// `[temperature_shock]`, `[temperature_ambient]`.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TempMap {
+    /// Column name.
+    pub column: Option<String>,
+    /// `C`, `F` or `K`.
+    pub unit: Option<String>,
+}
+
+/// `[acceleration]`.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AccelMap {
+    /// Rod-end accelerometer column.
+    pub a1: Option<String>,
+    /// Body-end accelerometer column.
+    pub a2: Option<String>,
+    /// `g` or `m/s2`.
+    pub unit: Option<String>,
+}
+
+/// `[run]`.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunMap {
+    /// Asset id (SPEC §2 charset).
+    pub asset_id: Option<String>,
+    /// Run id (default: the file stem, made to fit the charset).
+    pub run_id: Option<String>,
+    /// Charge label (`150 psi`) or `from-name`.
+    pub charge: Option<String>,
+    /// Dyno excitation frequency, Hz.
+    pub frequency_hz: Option<f64>,
+    /// Dyno stroke peak to peak, mm.
+    pub stroke_pp_mm: Option<f64>,
+}
+
+/// How the time column is written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimeFormat {
+    /// RFC 3339 / ISO-8601 in UTC (`2024-05-01T10:00:00.125Z`, `T` or space, `Z` optional).
+    Iso8601,
+    /// Seconds since 1970-01-01 UTC.
+    EpochS,
+    /// Milliseconds since 1970-01-01 UTC.
+    EpochMs,
+    /// Seconds since the start of the test.
+    ElapsedS,
+    /// Milliseconds since the start of the test.
+    ElapsedMs,
+    /// Decided from the first data row: a number above 1e8 is epoch seconds,
+    /// another number elapsed seconds, anything else ISO-8601.
+    Auto,
+}
+
+/// A column converted by `si = scale · raw + offset`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Column {
+    /// Header name in the file.
+    pub name: String,
+    /// Multiplier to SPEC units.
+    pub scale: f64,
+    /// Offset in SPEC units.
+    pub offset: f64,
+}
+
+impl Column {
+    fn new(name: String, scale: f64, offset: f64) -> Self {
+        Column {
+            name,
+            scale,
+            offset,
+        }
+    }
+}
+
+/// The charge label of a run.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Charge {
+    /// No label.
+    None,
+    /// As written (e.g. `150 psi`).
+    Label(String),
+    /// Read from each file's name.
+    FromName,
+}
+
+/// The resolved mapping: every mapped column with its conversion.
+#[derive(Debug, Clone)]
+pub struct Mapping {
+    /// Header line (1-based), or `None` to find it.
+    pub header_line: Option<usize>,
+    /// Field delimiter.
+    pub delimiter: u8,
+    /// Time column name.
+    pub time: String,
+    /// Time format.
+    pub time_format: TimeFormat,
+    /// `/position`.
+    pub position: Option<Column>,
+    /// `/force`.
+    pub force: Option<Column>,
+    /// `/temperature/shock`.
+    pub temp_shock: Option<Column>,
+    /// `/temperature/ambient`.
+    pub temp_ambient: Option<Column>,
+    /// `/acceleration` (a1, a2).
+    pub acceleration: Option<(Column, Column)>,
+    /// Asset id.
+    pub asset_id: Option<String>,
+    /// Run id (one file only).
+    pub run_id: Option<String>,
+    /// Charge label.
+    pub charge: Charge,
+    /// Excitation frequency, Hz.
+    pub frequency_hz: Option<f64>,
+    /// Stroke, m.
+    pub stroke_pp_m: Option<f64>,
+}
+
+impl Mapping {
+    /// Every mapped column name (time first, then [`Mapping::value_columns`]).
+    #[must_use]
+    pub fn columns(&self) -> Vec<&str> {
+        let mut out = vec![self.time.as_str()];
+        out.extend(self.value_columns().iter().map(|c| c.name.as_str()));
+        out
+    }
+
+    /// The mapped value columns: position, force, shock and ambient
+    /// temperature, a1, a2 — those present, in this order.
+    #[must_use]
+    pub fn value_columns(&self) -> Vec<&Column> {
+        let mut out: Vec<&Column> = [
+            &self.position,
+            &self.force,
+            &self.temp_shock,
+            &self.temp_ambient,
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        if let Some((a1, a2)) = &self.acceleration {
+            out.push(a1);
+            out.push(a2);
+        }
+        out
+    }
+}
+
+/// Reads `--map` (if any) and lays the flags over it.
+pub fn resolve(args: &ImportArgs) -> anyhow::Result<Mapping> {
+    let mut file = match &args.map {
+        Some(path) => read_map(path)?,
+        None => MapFile::default(),
+    };
+    overlay(&mut file, args);
+    let what = args.map.as_ref().map_or_else(
+        || "the flags".to_owned(),
+        |p| format!("{} and the flags", p.display()),
+    );
+    resolve_file(&file).with_context(|| format!("import: the column mapping ({what})"))
+}
+
+fn read_map(path: &Path) -> anyhow::Result<MapFile> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("import: cannot read the mapping file {}", path.display()))?;
+    toml::from_str(&text).with_context(|| format!("import: mapping file {}", path.display()))
+}
+
+/// Flags win over the file.
+fn overlay(f: &mut MapFile, a: &ImportArgs) {
+    fn set<T: Clone>(slot: &mut Option<T>, flag: Option<&T>) {
+        if let Some(v) = flag {
+            *slot = Some(v.clone());
+        }
+    }
+    set(&mut f.header_line, a.header_line.as_ref());
+    set(&mut f.delimiter, a.delimiter.as_ref());
+    let t = f.time.get_or_insert_with(TimeMap::default);
+    set(&mut t.column, a.time.as_ref());
+    set(&mut t.format, a.time_format.as_ref());
+    if a.position.is_some() || f.position.is_some() {
+        let p = f.position.get_or_insert_with(PositionMap::default);
+        set(&mut p.column, a.position.as_ref());
+        set(&mut p.unit, a.position_unit.as_ref());
+        set(&mut p.positive, a.position_positive.as_ref());
+        set(&mut p.mid_stroke, a.mid_stroke.as_ref());
+    }
+    if a.force.is_some() || f.force.is_some() {
+        let p = f.force.get_or_insert_with(ForceMap::default);
+        set(&mut p.column, a.force.as_ref());
+        set(&mut p.unit, a.force_unit.as_ref());
+        set(&mut p.positive, a.force_positive.as_ref());
+    }
+    for (slot, column) in [
+        (&mut f.temperature_shock, &a.temp_shock),
+        (&mut f.temperature_ambient, &a.temp_ambient),
+    ] {
+        if column.is_some() || slot.is_some() {
+            let p = slot.get_or_insert_with(TempMap::default);
+            set(&mut p.column, column.as_ref());
+            set(&mut p.unit, a.temp_unit.as_ref());
+        }
+    }
+    if a.a1.is_some() || a.a2.is_some() || f.acceleration.is_some() {
+        let p = f.acceleration.get_or_insert_with(AccelMap::default);
+        set(&mut p.a1, a.a1.as_ref());
+        set(&mut p.a2, a.a2.as_ref());
+        set(&mut p.unit, a.accel_unit.as_ref());
+    }
+    let r = f.run.get_or_insert_with(RunMap::default);
+    set(&mut r.asset_id, a.asset_id.as_ref());
+    set(&mut r.run_id, a.run_id.as_ref());
+    set(&mut r.charge, a.charge.as_ref());
+    set(&mut r.frequency_hz, a.frequency_hz.as_ref());
+}
+
+fn need(column: Option<&String>, key: &str) -> anyhow::Result<String> {
+    column
+        .cloned()
+        .with_context(|| format!("`{key}` needs a column name"))
+}
+
+#[allow(clippy::too_many_lines)] // one flat table of keys, read top to bottom
+fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
+    let time = f.time.clone().unwrap_or_default();
+    let Some(time_column) = time.column else {
+        bail!("no time column: give --time COLUMN or [time] column");
+    };
+    let time_format = match time.format.as_deref().unwrap_or("auto") {
+        "iso8601" => TimeFormat::Iso8601,
+        "epoch_s" => TimeFormat::EpochS,
+        "epoch_ms" => TimeFormat::EpochMs,
+        "elapsed_s" => TimeFormat::ElapsedS,
+        "elapsed_ms" => TimeFormat::ElapsedMs,
+        "auto" => TimeFormat::Auto,
+        other => bail!(
+            "[time] format = {other:?}: not one of iso8601, epoch_s, epoch_ms, elapsed_s, elapsed_ms, auto"
+        ),
+    };
+    let position = match &f.position {
+        None => None,
+        Some(p) => {
+            let unit = length_unit(p.unit.as_deref().unwrap_or("m"))?;
+            let sign = sign(
+                p.positive.as_deref(),
+                "extension",
+                "compression",
+                "[position] positive",
+            )?;
+            let zero = p.mid_stroke.unwrap_or(0.0);
+            Some(Column::new(
+                need(p.column.as_ref(), "[position] column")?,
+                sign * unit,
+                -sign * unit * zero,
+            ))
+        }
+    };
+    let force = match &f.force {
+        None => None,
+        Some(p) => {
+            let unit = force_unit(p.unit.as_deref().unwrap_or("N"))?;
+            let sign = sign(
+                p.positive.as_deref(),
+                "tension",
+                "compression",
+                "[force] positive",
+            )?;
+            Some(Column::new(
+                need(p.column.as_ref(), "[force] column")?,
+                sign * unit,
+                0.0,
+            ))
+        }
+    };
+    let temp = |m: &Option<TempMap>, key: &str| -> anyhow::Result<Option<Column>> {
+        let Some(m) = m else { return Ok(None) };
+        let (scale, offset) = temperature_unit(m.unit.as_deref().unwrap_or("C"))?;
+        Ok(Some(Column::new(
+            need(m.column.as_ref(), &format!("[{key}] column"))?,
+            scale,
+            offset,
+        )))
+    };
+    let acceleration = match &f.acceleration {
+        None => None,
+        Some(a) => {
+            let scale = match a.unit.as_deref().unwrap_or("m/s2") {
+                "g" => G_MPS2,
+                "m/s2" | "m/s^2" | "mps2" => 1.0,
+                other => bail!("[acceleration] unit = {other:?}: not one of g, m/s2"),
+            };
+            Some((
+                Column::new(need(a.a1.as_ref(), "[acceleration] a1")?, scale, 0.0),
+                Column::new(need(a.a2.as_ref(), "[acceleration] a2")?, scale, 0.0),
+            ))
+        }
+    };
+    let run = f.run.clone().unwrap_or_default();
+    let charge = match run.charge.as_deref() {
+        None => Charge::None,
+        Some("from-name") => Charge::FromName,
+        Some(label) => {
+            charge_bar(label)?;
+            Charge::Label(label.to_owned())
+        }
+    };
+    let delimiter = match f.delimiter {
+        None => b',',
+        Some(c) if c.is_ascii() => c as u8,
+        Some(c) => bail!("delimiter {c:?}: must be one ASCII character"),
+    };
+    Ok(Mapping {
+        header_line: f.header_line,
+        delimiter,
+        time: time_column,
+        time_format,
+        position,
+        force,
+        temp_shock: temp(&f.temperature_shock, "temperature_shock")?,
+        temp_ambient: temp(&f.temperature_ambient, "temperature_ambient")?,
+        acceleration,
+        asset_id: run.asset_id,
+        run_id: run.run_id,
+        charge,
+        frequency_hz: run.frequency_hz,
+        stroke_pp_m: run.stroke_pp_mm.map(|mm| mm * 1e-3),
+    })
+}
+
+fn sign(value: Option<&str>, spec: &str, opposite: &str, key: &str) -> anyhow::Result<f64> {
+    match value {
+        None => Ok(1.0),
+        Some(v) if v == spec => Ok(1.0),
+        Some(v) if v == opposite => Ok(-1.0),
+        Some(v) => bail!("{key} = {v:?}: not one of {spec}, {opposite}"),
+    }
+}
+
+/// Metres per unit.
+fn length_unit(unit: &str) -> anyhow::Result<f64> {
+    Ok(match unit {
+        "m" => 1.0,
+        "mm" => 1e-3,
+        "cm" => 1e-2,
+        "in" => 0.0254,
+        other => bail!("position unit {other:?}: not one of mm, cm, m, in"),
+    })
+}
+
+/// Newtons per unit.
+fn force_unit(unit: &str) -> anyhow::Result<f64> {
+    Ok(match unit {
+        "N" => 1.0,
+        "kN" => 1e3,
+        "lbf" => 4.448_221_615_260_5,
+        "kgf" => G_MPS2,
+        other => bail!("force unit {other:?}: not one of N, kN, lbf, kgf"),
+    })
+}
+
+/// `(scale, offset)` to °C.
+fn temperature_unit(unit: &str) -> anyhow::Result<(f64, f64)> {
+    Ok(match unit {
+        "C" | "°C" | "degC" => (1.0, 0.0),
+        "F" | "°F" | "degF" => (5.0 / 9.0, -32.0 * 5.0 / 9.0),
+        "K" => (1.0, -273.15),
+        other => bail!("temperature unit {other:?}: not one of C, F, K"),
+    })
+}
+
+/// A charge label (`150 psi`, `10.3 bar`, `1.03 MPa`, `1030 kPa`; `psia` /
+/// `bara` absolute, the rest gauge) in bar gauge.
+pub fn charge_bar(label: &str) -> anyhow::Result<f64> {
+    let text = label.trim();
+    let split = text
+        .find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-' || c == '+' || c == 'e'))
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let value: f64 = number.trim().parse().map_err(|_| {
+        anyhow::anyhow!("charge {label:?}: expected a number and a unit, e.g. \"150 psi\"")
+    })?;
+    let unit = unit.trim().to_ascii_lowercase();
+    let bar = match unit.as_str() {
+        "bar" | "barg" => value,
+        "bara" => value - ATM_BAR,
+        "psi" | "psig" => value / dt_sim::export::PSI_PER_BAR,
+        "psia" => value / dt_sim::export::PSI_PER_BAR - ATM_BAR,
+        "kpa" => value / 100.0,
+        "mpa" => value * 10.0,
+        _ => bail!("charge {label:?}: unit {unit:?} is not one of psi, psia, bar, bara, kPa, MPa"),
+    };
+    if !bar.is_finite() {
+        bail!("charge {label:?}: not a finite pressure");
+    }
+    Ok(bar)
+}
+
+/// The charge label in a file name: the first `<number> <unit>` with a
+/// pressure unit, e.g. `damper_150psi_2Hz.csv`.
+///
+/// # Panics
+/// Never: the pattern is a constant that compiles.
+#[must_use]
+pub fn charge_in_name(name: &str) -> Option<(String, f64)> {
+    let pattern = regex::Regex::new(r"(?i)(\d+(?:\.\d+)?)\s*(psia|psig|psi|bara|barg|bar|kpa|mpa)")
+        .expect("a valid pattern");
+    let found = pattern.captures_iter(name).find_map(|c| {
+        let label = format!("{} {}", &c[1], &c[2]);
+        charge_bar(&label).ok().map(|bar| (label, bar))
+    });
+    found
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn charge_labels_in_every_unit() {
+        let psi = charge_bar("145.0377 psi").unwrap();
+        assert!((psi - 10.0).abs() < 1e-5, "{psi}");
+        assert!((charge_bar("10 bar").unwrap() - 10.0).abs() < 1e-12);
+        assert!((charge_bar("1 MPa").unwrap() - 10.0).abs() < 1e-12);
+        assert!((charge_bar("1000kPa").unwrap() - 10.0).abs() < 1e-12);
+        assert!((charge_bar("11.01325 bara").unwrap() - 10.0).abs() < 1e-12);
+        let err = charge_bar("150 atm").unwrap_err().to_string();
+        assert!(err.contains("\"atm\"") && err.contains("psi"), "{err}");
+        assert!(charge_bar("lots psi").is_err());
+    }
+
+    #[test]
+    fn charge_from_file_names() {
+        let (label, bar) = charge_in_name("dyno-unit-A_101.5psi_2Hz_s1").unwrap();
+        assert_eq!(label, "101.5 psi");
+        assert!((bar - 7.0).abs() < 0.01);
+        assert_eq!(charge_in_name("run_12bar").unwrap().0, "12 bar");
+        assert!(charge_in_name("run_2Hz").is_none());
+    }
+
+    #[test]
+    fn units_and_conventions_are_affine_maps() {
+        let mut f = MapFile {
+            time: Some(TimeMap {
+                column: Some("t".into()),
+                format: Some("elapsed_s".into()),
+            }),
+            position: Some(PositionMap {
+                column: Some("d".into()),
+                unit: Some("mm".into()),
+                positive: Some("compression".into()),
+                mid_stroke: Some(40.0),
+            }),
+            force: Some(ForceMap {
+                column: Some("f".into()),
+                unit: Some("lbf".into()),
+                positive: Some("compression".into()),
+            }),
+            temperature_shock: Some(TempMap {
+                column: Some("T".into()),
+                unit: Some("F".into()),
+            }),
+            ..MapFile::default()
+        };
+        let m = resolve_file(&f).unwrap();
+        let p = m.position.unwrap();
+        // 40 mm from full extension = mid-stroke; 20 mm = 20 mm extended.
+        assert!((p.scale * 40.0 + p.offset).abs() < 1e-15);
+        assert!((p.scale * 20.0 + p.offset - 0.020).abs() < 1e-15);
+        let force = m.force.unwrap();
+        assert!((force.scale * 1.0 + 4.448_221_615_260_5).abs() < 1e-12);
+        let t = m.temp_shock.unwrap();
+        assert!((t.scale * 212.0 + t.offset - 100.0).abs() < 1e-12);
+        f.position.as_mut().unwrap().unit = Some("furlong".into());
+        let err = resolve_file(&f).unwrap_err().to_string();
+        assert!(err.contains("furlong"), "{err}");
+    }
+}

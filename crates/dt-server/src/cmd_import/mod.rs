@@ -1,0 +1,339 @@
+//! `shocktwin import`: tabular dyno exports (CSV) into shocktwin run logs
+//! (SPEC §2), one MCAP per file.
+//!
+//! Per file: the header is found ([`table`]), every mapped cell parsed and
+//! converted to SPEC units and conventions ([`map`]), the rows put on a
+//! uniform grid and each topic resampled, anti-aliased, to its nominal rate
+//! ([`resample`]), then written with the `shocktwin.run` metadata (asset,
+//! run, the charge label converted to bar gauge, the source file's name
+//! and rate). A file that fails is reported (file, line, column) and the
+//! others are still imported; the exit status is 1 if any failed. The log
+//! is written to `<run_id>.mcap.part` and renamed when complete.
+
+pub mod map;
+pub mod resample;
+pub mod table;
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{bail, Context as _};
+use dt_core::log::{is_valid_id, LogWriter, RunMetadata, Sample, WriteOptions};
+
+use crate::cli::ImportArgs;
+use map::{Charge, Mapping};
+
+/// A step between rows longer than this many mean steps is a gap the
+/// import will not interpolate across.
+const GAP_STEPS: f64 = 10.0;
+
+/// Runs `shocktwin import`.
+pub fn run(args: &ImportArgs) -> anyhow::Result<ExitCode> {
+    let map = map::resolve(args)?;
+    if map.run_id.is_some() && args.files.len() > 1 {
+        bail!(
+            "import: a run id names one run: give one file, or let each run take its file's name"
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("import: cannot create {}", args.out.display()))?;
+    let bar = crate::progress::bar(args.files.len() as u64, "import");
+    let mut written: BTreeMap<String, PathBuf> = BTreeMap::new();
+    let (mut failed, mut skipped) = (0usize, 0u64);
+    for file in &args.files {
+        bar.set_message(file.display().to_string());
+        match import_file(file, &map, args, &written) {
+            Ok(done) => {
+                bar.suspend(|| println!("{}", done.report));
+                skipped += done.skipped;
+                written.insert(done.run_id, file.clone());
+            }
+            Err(err) => {
+                bar.suspend(|| eprintln!("shocktwin: import: {err:#}"));
+                failed += 1;
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    println!(
+        "imported {} of {} files into {}{}",
+        written.len(),
+        args.files.len(),
+        args.out.display(),
+        if skipped > 0 {
+            format!(" ({skipped} bad rows skipped)")
+        } else {
+            String::new()
+        }
+    );
+    Ok(if failed == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+/// One file imported.
+struct Imported {
+    run_id: String,
+    report: String,
+    skipped: u64,
+}
+
+/// A topic's series at its output rate.
+struct Series {
+    topic: &'static str,
+    rate_hz: u32,
+    nominal_hz: u32,
+    /// Time of sample 0 after the file's first row, s.
+    start_s: f64,
+    values: Vec<Vec<f64>>,
+}
+
+fn import_file(
+    path: &Path,
+    map: &Mapping,
+    args: &ImportArgs,
+    written: &BTreeMap<String, PathBuf>,
+) -> anyhow::Result<Imported> {
+    let file = path.display().to_string();
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let metadata = metadata(path, &stem, map)?;
+    if let Some(other) = written.get(&metadata.run_id) {
+        bail!(
+            "{file}: run id {:?} was already written from {} (give each file its own name, or import them separately with --run-id)",
+            metadata.run_id,
+            other.display()
+        );
+    }
+    let table = table::read(path, map, args.skip_bad_rows)?;
+    check_gaps(&file, &table)?;
+    let rate = resample::grid_rate_hz(&table.t_ns);
+    let series = resample_topics(map, &table, rate).with_context(|| file.clone())?;
+
+    let out = args.out.join(format!("{}.mcap", metadata.run_id));
+    let part = args.out.join(format!("{}.mcap.part", metadata.run_id));
+    let t0 = table.t_ns[0];
+    let mut samples = samples(&series, t0);
+    samples.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
+    let mut writer = LogWriter::create(&part, &metadata, WriteOptions::default())
+        .with_context(|| format!("{file}: writing {}", part.display()))?;
+    for s in &samples {
+        writer
+            .write_sample(s)
+            .with_context(|| format!("{file}: writing {}", part.display()))?;
+    }
+    writer
+        .finish()
+        .with_context(|| format!("{file}: writing {}", part.display()))?;
+    std::fs::rename(&part, &out)
+        .with_context(|| format!("{file}: renaming to {}", out.display()))?;
+
+    let duration_s = (table.t_ns[table.t_ns.len() - 1] - t0) as f64 * 1e-9;
+    let mut report = format!(
+        "{file} -> {}: {} rows, {duration_s:.1} s at {rate} Hz;",
+        out.display(),
+        table.rows
+    );
+    for s in &series {
+        let _ = write!(report, " {} {} Hz", s.topic, s.rate_hz);
+        if s.rate_hz < s.nominal_hz {
+            let _ = write!(
+                report,
+                " (source slower than the nominal {} Hz: not upsampled)",
+                s.nominal_hz
+            );
+        }
+        report.push(',');
+    }
+    report.pop();
+    if let Some(bar) = metadata.charge_pressure_bar {
+        let label = metadata
+            .extra
+            .get("charge_label")
+            .map_or("", String::as_str);
+        let _ = write!(report, "; charge {label} = {bar:.3} bar");
+    }
+    for (reason, (n, first)) in &table.skipped {
+        let _ = write!(
+            report,
+            "\n  skipped {n} rows: {reason} (first at line {first})"
+        );
+    }
+    for (topic, what) in [
+        (
+            "/acceleration",
+            "no accelerometers: the twin runs its position-only Kalman filter",
+        ),
+        ("/temperature/ambient", "no ambient thermocouple"),
+        ("/force", "no loadcell force"),
+    ] {
+        if !series.iter().any(|s| s.topic == topic) {
+            let _ = write!(report, "\n  note: {what}");
+        }
+    }
+    Ok(Imported {
+        run_id: metadata.run_id,
+        report,
+        skipped: table.skipped_rows(),
+    })
+}
+
+fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadata> {
+    let file = path.display().to_string();
+    let Some(asset_id) = map.asset_id.clone() else {
+        bail!("{file}: no asset id: give --asset-id or [run] asset_id");
+    };
+    if !is_valid_id(&asset_id) {
+        bail!("asset id {asset_id:?}: must be 1-64 of [A-Za-z0-9._-]");
+    }
+    let run_id = match &map.run_id {
+        Some(id) => id.clone(),
+        None => stem
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || "._-".contains(c) {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .take(64)
+            .collect(),
+    };
+    if !is_valid_id(&run_id) {
+        bail!("{file}: run id {run_id:?}: must be 1-64 of [A-Za-z0-9._-]");
+    }
+    let (label, bar) = match &map.charge {
+        Charge::None => (None, None),
+        Charge::Label(label) => (Some(label.clone()), Some(map::charge_bar(label)?)),
+        Charge::FromName => {
+            let (label, bar) = map::charge_in_name(stem).with_context(|| {
+                format!(
+                    "{file}: charge \"from-name\": the file name has no <number> psi|bar|kPa|MPa"
+                )
+            })?;
+            (Some(label), Some(bar))
+        }
+    };
+    let mut meta = RunMetadata {
+        asset_id,
+        run_id,
+        charge_pressure_bar: bar,
+        frequency_hz: map.frequency_hz,
+        stroke_pp_m: map.stroke_pp_m,
+        ..RunMetadata::default()
+    };
+    if let Some(label) = label {
+        meta.extra.insert("charge_label".into(), label);
+    }
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    meta.extra.insert("source_file".into(), name);
+    meta.extra.insert(
+        "imported_by".into(),
+        format!("shocktwin {}", env!("CARGO_PKG_VERSION")),
+    );
+    Ok(meta)
+}
+
+/// Steps longer than [`GAP_STEPS`] mean steps are not interpolated across.
+fn check_gaps(file: &str, table: &table::Table) -> anyhow::Result<()> {
+    let t = &table.t_ns;
+    let mean_ns = (t[t.len() - 1] - t[0]) as f64 / (t.len() - 1) as f64;
+    if let Some(k) = (1..t.len()).find(|&k| (t[k] - t[k - 1]) as f64 > GAP_STEPS * mean_ns) {
+        bail!(
+            "{file}:{}: a gap of {:.3} s after line {} (more than {GAP_STEPS} mean steps of {:.4} s; split the file there)",
+            table.lines[k],
+            (t[k] - t[k - 1]) as f64 * 1e-9,
+            table.lines[k - 1],
+            mean_ns * 1e-9
+        );
+    }
+    Ok(())
+}
+
+fn resample_topics(map: &Mapping, table: &table::Table, rate: u32) -> anyhow::Result<Vec<Series>> {
+    let topics: Vec<(&'static str, u32, usize)> = {
+        let mut v = Vec::new();
+        for (present, topic, nominal, width) in [
+            (map.position.is_some(), "/position", 100, 1),
+            (map.force.is_some(), "/force", 50, 1),
+            (map.temp_shock.is_some(), "/temperature/shock", 1, 1),
+            (map.temp_ambient.is_some(), "/temperature/ambient", 1, 1),
+            (map.acceleration.is_some(), "/acceleration", 1000, 2),
+        ] {
+            if present {
+                v.push((topic, nominal, width));
+            }
+        }
+        v
+    };
+    let mut out = Vec::new();
+    let mut column = 0;
+    for (topic, nominal_hz, width) in topics {
+        let mut values = Vec::with_capacity(width);
+        let mut start_s = 0.0;
+        for _ in 0..width {
+            let grid = resample::to_grid(&table.t_ns, &table.values[column], rate);
+            column += 1;
+            values.push(if rate > nominal_hz {
+                let d = resample::downsample(&grid, rate, nominal_hz)
+                    .with_context(|| format!("topic {topic}"))?;
+                start_s = -d.lag_in_samples / f64::from(rate);
+                d.values
+            } else {
+                grid
+            });
+        }
+        out.push(Series {
+            topic,
+            rate_hz: rate.min(nominal_hz),
+            nominal_hz,
+            start_s,
+            values,
+        });
+    }
+    Ok(out)
+}
+
+fn samples(series: &[Series], t0_ns: i64) -> Vec<Sample> {
+    let mut out = Vec::new();
+    for s in series {
+        let at =
+            |j: usize| t0_ns + ((s.start_s + j as f64 / f64::from(s.rate_hz)) * 1e9).round() as i64;
+        let n = s.values.iter().map(Vec::len).min().unwrap_or(0);
+        for j in 0..n {
+            let t_ns = at(j);
+            let v = s.values[0][j];
+            out.push(match s.topic {
+                "/position" => Sample::Position {
+                    t_ns,
+                    position_m: v,
+                },
+                "/force" => Sample::Force { t_ns, force_n: v },
+                "/temperature/shock" => Sample::TempShock {
+                    t_ns,
+                    temperature_c: v,
+                },
+                "/temperature/ambient" => Sample::TempAmbient {
+                    t_ns,
+                    temperature_c: v,
+                },
+                _ => Sample::Acceleration {
+                    t_ns,
+                    a1_mps2: v,
+                    a2_mps2: s.values[1][j],
+                },
+            });
+        }
+    }
+    out
+}

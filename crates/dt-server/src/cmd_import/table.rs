@@ -1,0 +1,263 @@
+//! Reading one tabular export: find the header, parse every mapped cell,
+//! convert to SPEC units. A bad row is an error naming the file, the line
+//! and the column, unless rows may be skipped — then it is counted by
+//! reason (with the first line) and left out.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{bail, Context as _};
+
+use super::map::{Mapping, TimeFormat};
+
+/// The mapped columns of one file, in SPEC units, rows in time order.
+#[derive(Debug, Default)]
+pub struct Table {
+    /// Sample times, ns (UTC epoch for absolute formats, else since 0).
+    pub t_ns: Vec<i64>,
+    /// One vector per mapped value column, in [`Mapping::columns`] order
+    /// after the time.
+    pub values: Vec<Vec<f64>>,
+    /// Line number of each kept row.
+    pub lines: Vec<u64>,
+    /// Skipped rows by reason: (count, first line).
+    pub skipped: BTreeMap<String, (u64, u64)>,
+    /// Data rows read (kept + skipped).
+    pub rows: u64,
+}
+
+impl Table {
+    fn skip(&mut self, reason: String, line: u64) {
+        self.skipped.entry(reason).or_insert((0, line)).0 += 1;
+    }
+
+    /// Total skipped rows.
+    #[must_use]
+    pub fn skipped_rows(&self) -> u64 {
+        self.skipped.values().map(|(n, _)| n).sum()
+    }
+}
+
+/// Reads `path` with `map`; `skip_bad` counts bad rows instead of failing.
+#[allow(clippy::too_many_lines)] // header search, then the row loop with its two error paths
+pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table> {
+    let file = path.display().to_string();
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .delimiter(map.delimiter)
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .with_context(|| format!("{file}: cannot open"))?;
+    let wanted = map.columns();
+    let mut records = reader.records();
+    // The header: the given line, or the first row naming every mapped column.
+    let (header, header_line) = loop {
+        let Some(record) = records.next() else {
+            match map.header_line {
+                Some(n) => bail!("{file}: the file ends before header line {n}"),
+                None => bail!(
+                    "{file}: no header row names all the mapped columns {wanted:?} (give header_line if the names differ)"
+                ),
+            }
+        };
+        let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
+        let line = record.position().map_or(0, csv::Position::line);
+        let found = match map.header_line {
+            Some(n) => line as usize == n,
+            None => wanted.iter().all(|w| record.iter().any(|c| c == *w)),
+        };
+        if found {
+            break (record, line);
+        }
+    };
+    let mut index = Vec::with_capacity(wanted.len());
+    for w in &wanted {
+        let i = header.iter().position(|c| c == *w).with_context(|| {
+            format!(
+                "{file}:{header_line}: no column {w:?} in the header (columns: {:?})",
+                header.iter().collect::<Vec<_>>()
+            )
+        })?;
+        index.push(i);
+    }
+    let scales: Vec<(f64, f64)> = map
+        .value_columns()
+        .into_iter()
+        .map(|c| (c.scale, c.offset))
+        .collect();
+    let mut table = Table {
+        values: vec![Vec::new(); wanted.len() - 1],
+        ..Table::default()
+    };
+    let mut time_format = map.time_format;
+    let mut row = vec![0.0; wanted.len() - 1];
+    for record in records {
+        let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
+        let line = record.position().map_or(0, csv::Position::line);
+        if record.iter().all(str::is_empty) {
+            continue; // blank line
+        }
+        table.rows += 1;
+        match parse_row(
+            &record,
+            &wanted,
+            &index,
+            &scales,
+            &mut time_format,
+            &mut row,
+        ) {
+            Ok(t_ns) => {
+                if let Some(&prev) = table.t_ns.last() {
+                    if t_ns <= prev {
+                        let prev_line = table.lines.last().copied().unwrap_or(0);
+                        let reason = format!("column {:?}: time not increasing", wanted[0]);
+                        if skip_bad {
+                            table.skip(reason, line);
+                            continue;
+                        }
+                        bail!(
+                            "{file}:{line}: column {:?}: time {:?} is not after line {prev_line}'s ({:.6} s earlier or equal)",
+                            wanted[0],
+                            record.get(index[0]).unwrap_or(""),
+                            (prev - t_ns) as f64 * 1e-9
+                        );
+                    }
+                }
+                table.t_ns.push(t_ns);
+                table.lines.push(line);
+                for (col, v) in table.values.iter_mut().zip(&row) {
+                    col.push(*v);
+                }
+            }
+            Err(bad) => {
+                if skip_bad {
+                    table.skip(bad.reason, line);
+                } else {
+                    bail!("{file}:{line}: {}", bad.message);
+                }
+            }
+        }
+    }
+    if table.t_ns.len() < 2 {
+        bail!(
+            "{file}: {} usable data rows after the header at line {header_line}: nothing to import",
+            table.t_ns.len()
+        );
+    }
+    Ok(table)
+}
+
+/// Why a row was rejected: a full message and a short reason to count.
+struct BadRow {
+    message: String,
+    reason: String,
+}
+
+fn parse_row(
+    record: &csv::StringRecord,
+    names: &[&str],
+    index: &[usize],
+    scales: &[(f64, f64)],
+    time_format: &mut TimeFormat,
+    row: &mut [f64],
+) -> Result<i64, BadRow> {
+    let cell = |k: usize| -> Result<&str, BadRow> {
+        record.get(index[k]).ok_or_else(|| BadRow {
+            message: format!(
+                "column {:?}: missing (the row has {} fields, the column is field {})",
+                names[k],
+                record.len(),
+                index[k] + 1
+            ),
+            reason: format!("column {:?}: missing field", names[k]),
+        })
+    };
+    let time_text = cell(0)?;
+    let t_ns = parse_time(time_text, time_format).map_err(|why| BadRow {
+        message: format!("column {:?}: {why}", names[0]),
+        reason: format!("column {:?}: unreadable time", names[0]),
+    })?;
+    for k in 1..names.len() {
+        let text = cell(k)?;
+        let v: f64 = text.parse().unwrap_or(f64::NAN);
+        if !v.is_finite() {
+            let what = if text.is_empty() {
+                "empty".to_owned()
+            } else {
+                format!("{text:?} is not a finite number")
+            };
+            return Err(BadRow {
+                message: format!("column {:?}: {what}", names[k]),
+                reason: format!("column {:?}: empty or not a number", names[k]),
+            });
+        }
+        let (scale, offset) = scales[k - 1];
+        row[k - 1] = scale * v + offset;
+    }
+    Ok(t_ns)
+}
+
+/// Parses one time cell; `Auto` settles on the first row's format.
+fn parse_time(text: &str, format: &mut TimeFormat) -> Result<i64, String> {
+    if *format == TimeFormat::Auto {
+        *format = match text.parse::<f64>() {
+            Ok(x) if x > 1e8 => TimeFormat::EpochS,
+            Ok(_) => TimeFormat::ElapsedS,
+            Err(_) => TimeFormat::Iso8601,
+        };
+    }
+    let number = |scale: f64| -> Result<i64, String> {
+        let x: f64 = text
+            .parse()
+            .map_err(|_| format!("{text:?} is not a number ({format:?} time)"))?;
+        if !x.is_finite() {
+            return Err(format!("{text:?} is not a finite time"));
+        }
+        Ok((x * scale).round() as i64)
+    };
+    match format {
+        TimeFormat::EpochS | TimeFormat::ElapsedS => number(1e9),
+        TimeFormat::EpochMs | TimeFormat::ElapsedMs => number(1e6),
+        TimeFormat::Iso8601 | TimeFormat::Auto => {
+            let t = humantime::parse_rfc3339_weak(text).map_err(|e| {
+                format!(
+                    "{text:?} is not an ISO-8601 UTC time ({e}; offsets other than Z are not read)"
+                )
+            })?;
+            let d = t
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_err(|_| format!("{text:?} is before 1970"))?;
+            i64::try_from(d.as_nanos()).map_err(|_| format!("{text:?} is out of range"))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn times_in_every_format() {
+        let mut f = TimeFormat::Auto;
+        assert_eq!(
+            parse_time("2023-11-14T22:13:20.003Z", &mut f),
+            Ok(1_700_000_000_003_000_000)
+        );
+        assert_eq!(f, TimeFormat::Iso8601);
+        let mut f = TimeFormat::Auto;
+        assert_eq!(
+            parse_time("1700000000.5", &mut f),
+            Ok(1_700_000_000_500_000_000)
+        );
+        assert_eq!(f, TimeFormat::EpochS);
+        let mut f = TimeFormat::Auto;
+        assert_eq!(parse_time("0.25", &mut f), Ok(250_000_000));
+        let mut f = TimeFormat::ElapsedMs;
+        assert_eq!(parse_time("3", &mut f), Ok(3_000_000));
+        let mut f = TimeFormat::Iso8601;
+        assert!(parse_time("2023-11-14T22:13:20+02:00", &mut f)
+            .unwrap_err()
+            .contains("offsets"));
+    }
+}
