@@ -70,12 +70,20 @@ class Campaign:
         self.require_labels()
         runs = [r for r in self.runs if abs(r.label_bar - nominal_bar) <= tol_bar]  # type: ignore[operator]
         if not runs:
-            labelled = ", ".join(f"{r.name} {r.label_bar:g} bar" for r in self.runs)
+            charges = ", ".join(f"{c:g}" for c in sorted({float(r.label_bar) for r in self.runs}))  # type: ignore[arg-type]
+            labelled = ", ".join(f"{r.name} {r.label_bar:g} bar" for r in self.runs[:12])
+            more = f" and {len(self.runs) - 12} more" if len(self.runs) > 12 else ""
             raise CampaignError(
-                f"{self.root}: no nominal runs at {nominal_bar:g} bar "
-                f"(calibration needs them; the runs are labelled: {labelled})"
+                f"{self.root}: no nominal runs at {nominal_bar:g} bar (±{tol_bar:g}); the charges present are "
+                f"{charges} bar: give the nominal one with --nominal-bar or --nominal "
+                f"(the runs are labelled: {labelled}{more})"
             )
         return runs
+
+    @property
+    def simulated(self) -> bool:
+        """Whether every run says it was simulated (``simulated = true`` in its metadata)."""
+        return all(str(r.log.metadata.get("simulated", "")).lower() == "true" for r in self.runs)
 
 
 def _meta_float(meta: dict[str, Any], key: str) -> float | None:

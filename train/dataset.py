@@ -10,7 +10,10 @@ carries no information about its gas charge beyond the static rod force. Samples
 used for training and scored only where the damper is excited: the causal RMS of the
 full-suite Kalman velocity over the last second is at least ``EXCITED_MPS`` (the
 daemon's health is ``unknown`` below it). The same samples are scored for every
-suite, so suites are compared on equal terms.
+suite, so suites are compared on equal terms. A run without accelerometers has no
+full-suite velocity: its excitation is the twin's own measure, the 1 s RMS of the
+position-only Kalman velocity (``shocktwin.twin_trace``), as the daemon computes it
+for such a unit.
 """
 
 from __future__ import annotations
@@ -105,10 +108,17 @@ class CampaignData:
     def excited(self) -> list[np.ndarray]:
         """Per run, the excited ticks (full-suite Kalman velocity; see the module doc)."""
         if self._excited is None:
-            tabs = self.tables(["velocity"])
-            self._excited = [
-                excitation(t.select(["velocity_mps"])[:, 0]) >= EXCITED_MPS for t in tabs
-            ]
+            if all("/acceleration" in r.log.topics for r in self.campaign.runs):
+                tabs = self.tables(["velocity"])
+                velocities = [t.select(["velocity_mps"])[:, 0] for t in tabs]
+            else:  # the reduced model where a run lacks accelerometers (see the module doc)
+                velocities = [
+                    shocktwin.features(r.log, self.physics, ["velocity"])[0][:, 0]
+                    if "/acceleration" in r.log.topics
+                    else np.asarray(shocktwin.twin_trace(r.log, self.physics)["velocity_mps"])
+                    for r in self.campaign.runs
+                ]
+            self._excited = [excitation(v) >= EXCITED_MPS for v in velocities]
         return self._excited
 
     def excited_for(self, tabs: Sequence[RunTable]) -> list[np.ndarray]:

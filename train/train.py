@@ -24,6 +24,7 @@ import shocktwin
 
 from train import dataset, evaluate, model
 from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper
+from train.datasheet import parse_pressure_bar
 
 log = logging.getLogger("shocktwin.train")
 
@@ -78,6 +79,14 @@ def load_physics(path: Path | None, campaign: Campaign, nominal_bar: float) -> d
     return calibrate(campaign, nominal_bar=nominal_bar)
 
 
+def scaled_health(nominal_bar: float) -> dict[str, float]:
+    """The paper's thresholds (warn 9, fault 5 bar for a 12 bar damper, SPEC §6) as
+    fractions of the nominal charge: a 9 bar damper warns below 6.75 bar, not at its nominal."""
+    scale = nominal_bar / 12.0
+    return {**model.DEFAULT_HEALTH, "warn_bar": model.DEFAULT_HEALTH["warn_bar"] * scale,
+            "fault_bar": model.DEFAULT_HEALTH["fault_bar"] * scale}
+
+
 def split_runs(n_runs: int, seed: int, frac: float = 0.25) -> np.ndarray:
     """Indices of the runs held out (at least one)."""
     rng = np.random.default_rng(seed)
@@ -98,7 +107,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--per-run", type=int, default=3000, help="training rows per run (evenly spaced excited ticks)")
     p.add_argument("--max-iter", type=int, default=80, help="training epochs at most (Adam, early stopping)")
-    p.add_argument("--nominal-bar", type=float, default=12.0)
+    nominal = p.add_mutually_exclusive_group()
+    nominal.add_argument("--nominal-bar", type=float,
+                         help="nominal charge, bar gauge (default: the physics.json's, else 12)")
+    nominal.add_argument("--nominal", help='nominal charge with a unit, e.g. "150 psi" (see train.fit_physics)')
     p.add_argument("--no-augment", action="store_true",
                    help="train without the temperature-offset augmentation (see train.evaluate)")
     args = p.parse_args(argv)
@@ -106,7 +118,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     campaign = load_campaign(args.campaign)
     campaign.require_labels()
     perm = find_permutation(args.permutation) if args.permutation else permutation_for_sensors(args.sensors)
-    physics = load_physics(args.physics, campaign, args.nominal_bar)
+    nominal_bar = args.nominal_bar
+    if args.nominal is not None:
+        try:
+            nominal_bar = parse_pressure_bar(args.nominal)
+        except ValueError as err:
+            raise ValueError(f"--nominal: {err}") from None
+    physics = load_physics(args.physics, campaign, 12.0 if nominal_bar is None else nominal_bar)
+    calibrated_bar = float(physics.get("nominal_bar", 12.0))
+    if nominal_bar is None or args.physics is None or abs(nominal_bar - calibrated_bar) <= 0.05:
+        # the charge the physics was calibrated at (the bundle's expected_bar, SPEC §6)
+        nominal_bar = calibrated_bar
     if "observer" in perm["groups"] and not (physics.get("observer") or {}).get("step_per_bar_n"):
         raise CampaignError(f"permutation {perm['id']} reads the charge observer, which the physics "
                             f"{args.physics or '(calibrated now)'} has not calibrated: run "
@@ -142,7 +164,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         trained,
         permutation=perm,
         physics=physics,
-        nominal_bar=args.nominal_bar,
+        nominal_bar=nominal_bar,
+        health=scaled_health(nominal_bar),
         provenance={
             "campaign": campaign.root.name,
             "campaign_digest": campaign.digest(),
@@ -153,13 +176,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             "max_iter": args.max_iter,
             "augmentation": None if args.no_augment else evaluate.AUGMENTATION,
             "metrics": metrics,
-            "simulated_data": True,
+            "simulated_data": campaign.simulated,
         },
     )
     what = f"permutation {perm['id']} ({perm['name']}): {len(columns)} inputs"
     if "rmse_bar" in metrics:
         what += (f", test RMSE {metrics['rmse_bar']:.3f} bar instantaneous, "
-                 f"{metrics['rmse_avg_bar']:.3f} bar 1 s average ({args.split} split, simulated data)")
+                 f"{metrics['rmse_avg_bar']:.3f} bar 1 s average ({args.split} split, "
+                 f"{'simulated' if campaign.simulated else 'dyno'} data)")
     print(what)
     print(f"wrote bundle {args.out}")
     return 0

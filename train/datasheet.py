@@ -1,0 +1,138 @@
+"""What a test engineer knows about a damper before the dyno: its nominal charge, in
+whatever unit the workshop uses, and its geometry from the datasheet.
+
+- :func:`parse_pressure_bar` reads ``"150 psi"``, ``"10.3 bar"``, ``"1.03 MPa"``,
+  ``"1030 kPa"`` (gauge, as charges are quoted) into bar gauge (SPEC §1).
+- :func:`load_datasheet` reads a damper datasheet (TOML; keys, units and an example in
+  ``docs/datasheet.example.toml``): the geometric constants of the force model
+  (SPEC §3.3 ``a_rod``, ``v_gas``), which calibration then holds fixed instead of
+  fitting them, and optionally the nominal charge.
+
+Errors are ``ValueError`` with a message that names the value, key or file at fault.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+#: Pressure units (case-insensitive) -> bar. All gauge: a charge is quoted above atmosphere.
+PRESSURE_UNITS_BAR: dict[str, float] = {
+    "bar": 1.0,
+    "barg": 1.0,
+    "mbar": 1e-3,
+    "psi": 0.0689475729316836,  # 1 lbf/in² = 6894.757 Pa
+    "psig": 0.0689475729316836,
+    "pa": 1e-5,
+    "kpa": 1e-2,
+    "mpa": 10.0,  # megapascal (nobody charges a damper in millipascal)
+}
+_UNITS_HELP = "bar, mbar, psi, Pa, kPa, MPa (gauge)"
+_PRESSURE = re.compile(r"^\s*([-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z]+)\s*$")
+
+
+def parse_pressure_bar(text: str) -> float:
+    """``"150 psi"`` -> 10.342… (bar gauge); an error names the value it cannot read.
+
+    >>> round(parse_pressure_bar("150 psi"), 4), parse_pressure_bar("1.03 MPa"), parse_pressure_bar("900kPa")
+    (10.3421, 10.3, 9.0)
+    """
+    m = _PRESSURE.match(text)
+    if not m:
+        raise ValueError(f"cannot read the pressure {text!r}: expected a number and a unit, "
+                         f"e.g. '150 psi' or '10.3 bar' (units: {_UNITS_HELP})")
+    value, unit = float(m.group(1)), m.group(2)
+    factor = PRESSURE_UNITS_BAR.get(unit.lower())
+    if factor is None:
+        raise ValueError(f"unknown pressure unit {unit!r} in {text!r} (units: {_UNITS_HELP})")
+    bar = value * factor
+    if not math.isfinite(bar) or bar <= -1.01325:
+        raise ValueError(f"the pressure {text!r} is below vacuum")
+    return bar
+
+
+# ---------------------------------------------------------------------------------------
+# Datasheet
+# ---------------------------------------------------------------------------------------
+
+#: Keys a datasheet may hold, by table: key -> (unit, meaning).
+DATASHEET_KEYS: dict[str, dict[str, tuple[str, str]]] = {
+    "damper": {
+        "name": ("text", "model / part number, recorded in physics.json"),
+        "nominal_charge": ("text with a unit", "nominal gas charge, e.g. \"150 psi\" (used when the "
+                                               "command line gives none)"),
+    },
+    "geometry": {
+        "a_rod_m2": ("m²", "piston-rod cross-section (force model a_rod)"),
+        "rod_diameter_mm": ("mm", "piston-rod diameter; a_rod = π d²/4 (instead of a_rod_m2)"),
+        "v_gas_m3": ("m³", "gas volume at mid-stroke (force model v_gas)"),
+        "gas_volume_cm3": ("cm³", "gas volume at mid-stroke, cm³ = ml (instead of v_gas_m3)"),
+    },
+}
+
+
+@dataclass
+class Datasheet:
+    """A damper datasheet: the force model's geometric constants it fixes, and what it said."""
+
+    path: Path
+    name: str | None = None
+    nominal_charge: str | None = None
+    #: Force-model parameters it fixes (SPEC §3.3 names, SI units).
+    geometry: dict[str, float] = field(default_factory=dict)
+    #: The file's tables as read (recorded in physics.json).
+    values: dict[str, Any] = field(default_factory=dict)
+
+
+def _positive(path: Path, table: str, key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{path}: [{table}] {key} = {value!r}: expected a positive number "
+                         f"({DATASHEET_KEYS[table][key][0]})")
+    return float(value)
+
+
+def load_datasheet(path: str | Path) -> Datasheet:
+    """Read and check a datasheet (see ``DATASHEET_KEYS`` and docs/datasheet.example.toml)."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"{path}: not valid TOML: {err}") from None
+    for table, content in raw.items():
+        if table not in DATASHEET_KEYS or not isinstance(content, dict):
+            raise ValueError(f"{path}: unknown entry {table!r} (tables: "
+                             f"{', '.join(f'[{t}]' for t in DATASHEET_KEYS)})")
+        unknown = [k for k in content if k not in DATASHEET_KEYS[table]]
+        if unknown:
+            raise ValueError(f"{path}: unknown key {', '.join(unknown)} in [{table}] "
+                             f"(known: {', '.join(DATASHEET_KEYS[table])})")
+    sheet = Datasheet(path=path, values=raw)
+    damper = raw.get("damper", {})
+    for key in ("name", "nominal_charge"):
+        if key in damper and not isinstance(damper[key], str):
+            raise ValueError(f"{path}: [damper] {key} = {damper[key]!r}: expected a string")
+    sheet.name = damper.get("name")
+    sheet.nominal_charge = damper.get("nominal_charge")
+    if sheet.nominal_charge is not None:
+        try:
+            parse_pressure_bar(sheet.nominal_charge)
+        except ValueError as err:
+            raise ValueError(f"{path}: [damper] nominal_charge: {err}") from None
+
+    geo = raw.get("geometry", {})
+    for si, alt, convert in (
+        ("a_rod_m2", "rod_diameter_mm", lambda d: math.pi * (d * 1e-3) ** 2 / 4.0),
+        ("v_gas_m3", "gas_volume_cm3", lambda v: v * 1e-6),
+    ):
+        if si in geo and alt in geo:
+            raise ValueError(f"{path}: [geometry] gives both {si} and {alt}; give one")
+        param = si.rsplit("_", 1)[0]  # a_rod, v_gas
+        if si in geo:
+            sheet.geometry[param] = _positive(path, "geometry", si, geo[si])
+        elif alt in geo:
+            sheet.geometry[param] = convert(_positive(path, "geometry", alt, geo[alt]))
+    return sheet
