@@ -1,8 +1,11 @@
 """Calibrate the twin's physics on the nominal runs of a campaign (paper §5.2.3, §5.3.6).
 
-    python -m train.fit_physics --campaign DIR --out physics.json [--figures DIR]
+    python -m train.fit_physics --campaign DIR --out physics.json
+        [--nominal-bar BAR | --nominal "150 psi"] [--datasheet FILE.toml] [--figures DIR]
 
-Steps, all on the runs at the nominal charge pressure (12 bar by default):
+Steps, all on the runs at the nominal charge pressure (12 bar by default; ``--nominal``
+takes any unit of ``train.datasheet.PRESSURE_UNITS_BAR``, and the runs' own label is
+then used as the nominal charge):
 
 1. Kalman filter noise (SPEC §3.1) from the minute at rest before excitation: the
    position noise is the potentiometer's standard deviation at rest, the acceleration
@@ -18,8 +21,24 @@ Steps, all on the runs at the nominal charge pressure (12 bar by default):
 4. Closed loop: the twin's own 50 Hz pipeline (``shocktwin.features``, the code the
    daemon runs) is run with the fitted parameters; the per-run RMSE of temperature (°C)
    and force (N) reported and written to ``physics.json`` come from it.
+5. Baseline: the force model against what a test engineer makes in five minutes, a
+   piecewise-linear damping curve per direction (:class:`PiecewiseLinearDamping`), both
+   held out the same way: leave one nominal run out, fit steps 1–3 and the baseline on
+   the others, score both on it (the physics through the closed loop of step 4, the
+   baseline on the same pipeline velocity and the same ticks).
 
-The data are simulated (``shocktwin simulate``); the figures say so.
+Geometry: the force model's ``a_rod`` and ``v_gas`` are fitted from their priors
+(``shocktwin.default_params``) unless ``--datasheet`` fixes them (``train.datasheet``).
+
+Reduced models (a campaign with only ``/position``, ``/force``, ``/temperature/shock``,
+like a crank-dyno rig's): without ``/acceleration`` the Kalman filter is the
+position-only one (SPEC §3.1 last sentence; dt-core ``KalmanFilter::position_only``,
+a constant-acceleration model driven by white jerk); without ``/temperature/ambient``
+each run's first shock temperature stands in for ambient (the unit starts at ambient).
+Both are what the twin's pipeline does with such a log (``shocktwin.twin_trace``), a
+warning says which is used and ``physics.json`` records it under ``reduced_model``.
+
+Whether the data are simulated is read from the runs' metadata (``simulated``).
 """
 
 from __future__ import annotations
@@ -37,6 +56,7 @@ from scipy.optimize import least_squares
 import shocktwin
 
 from train.campaign import Campaign, CampaignError, Run, load_campaign, main_wrapper, require_topics
+from train.datasheet import Datasheet, load_datasheet, parse_pressure_bar
 from train.progress import progress
 
 log = logging.getLogger("shocktwin.fit_physics")
@@ -52,7 +72,9 @@ FORCE_FIT_NAMES = [
     "k_spring_com", "k_main_reb", "k_main_com", "k_tr", "k_hys", "beta", "a_rod", "v_gas",
 ]
 FORCE_LINEAR = {"k_hys"}  # may be zero: fitted in linear space, bounded below by 0; the rest in log space
-NEEDED_TOPICS = ["/position", "/acceleration", "/force", "/temperature/shock", "/temperature/ambient"]
+#: What calibration cannot do without; accelerometers and the ambient thermocouple have reduced models.
+NEEDED_TOPICS = ["/position", "/force", "/temperature/shock"]
+ACCEL, AMBIENT = "/acceleration", "/temperature/ambient"
 
 
 # ---------------------------------------------------------------------------------------
@@ -72,24 +94,30 @@ def rest_end_s(run: Run) -> float:
 
 
 def fit_kalman(runs: Sequence[Run], prior: dict[str, float]) -> dict[str, Any]:
+    """Noise from the rest periods; without accelerometers only ``sigma_position`` (the one
+    the position-only filter uses; ``sigma_accel`` keeps its prior)."""
     sz, sa = [], []
     for run in runs:
         t_end = rest_end_s(run) - 1.0
         pos = run.log.topic("/position")
-        acc = run.log.topic("/acceleration")
         z = pos["position_m"][pos["t_s"] < t_end]
-        a = (acc["a1_mps2"] - acc["a2_mps2"])[acc["t_s"] < t_end]
-        z, a = z[np.isfinite(z)], a[np.isfinite(a)]
-        if len(z) > 50 and len(a) > 500:
+        z = z[np.isfinite(z)]
+        if len(z) > 50:
             sz.append(np.std(z))
-            sa.append(np.std(a))
+        if ACCEL in run.log.topics:
+            acc = run.log.topic(ACCEL)
+            a = (acc["a1_mps2"] - acc["a2_mps2"])[acc["t_s"] < t_end]
+            a = a[np.isfinite(a)]
+            if len(a) > 500:
+                sa.append(np.std(a))
+    fitted = dict(prior)
     if not sz:
         log.warning("no rest period found; Kalman noise stays at its prior")
-        return dict(prior)
-    fitted = dict(prior)
+        return fitted
     # Quantisation alone can give a zero std at rest: floors of 1 µm and 1 mm/s².
     fitted["sigma_position"] = max(float(np.median(sz)), 1e-6)
-    fitted["sigma_accel"] = max(float(np.median(sa)), 1e-3)
+    if sa:
+        fitted["sigma_accel"] = max(float(np.median(sa)), 1e-3)
     return fitted
 
 
@@ -100,11 +128,51 @@ def fit_kalman(runs: Sequence[Run], prior: dict[str, float]) -> dict[str, Any]:
 FIT_GROUPS = ["force", "position", "acceleration", "velocity", "mechanical", "thermal"]
 
 
+def is_reduced(run: Run) -> bool:
+    return ACCEL not in run.log.topics or AMBIENT not in run.log.topics
+
+
 def table(run: Run, params: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The run's 50 Hz table through the twin's pipeline: the feature groups with the
+    full suite, the twin's state with its reduced models otherwise (same keys)."""
+    if is_reduced(run):
+        return reduced_table(run, params)
     x, columns, t_s = shocktwin.features(run.log, params, FIT_GROUPS)
     out = {name: x[:, i] for i, name in enumerate(columns)}
     out["t_s"] = np.asarray(t_s)
     return out
+
+
+def _held(topic: dict[str, np.ndarray], t_s: np.ndarray) -> np.ndarray:
+    """A 1 Hz temperature zero-order held at ``t_s`` (last sample at or before; NaN before)."""
+    ok = np.isfinite(topic["temperature_c"])
+    ts, tc = topic["t_s"][ok], topic["temperature_c"][ok]
+    i = np.searchsorted(ts, t_s, side="right") - 1
+    return np.where(i >= 0, tc[np.maximum(i, 0)], np.nan) if len(ts) else np.full(len(t_s), np.nan)
+
+
+def reduced_table(run: Run, params: dict[str, Any]) -> dict[str, np.ndarray]:
+    """``table`` for a run without accelerometers or ambient thermocouple, from
+    ``shocktwin.twin_trace`` (the pipeline's position-only Kalman filter and its
+    first-shock-temperature ambient); the thermocouples are held as the pipeline holds them."""
+    tr = shocktwin.twin_trace(run.log, params)
+    t_s = np.asarray(tr["t_s"])
+    shock = _held(run.log.topic("/temperature/shock"), t_s)
+    first = shock[np.isfinite(shock)][0] if np.isfinite(shock).any() else np.nan
+    ambient = _held(run.log.topic(AMBIENT), t_s) if AMBIENT in run.log.topics else np.full(len(t_s), np.nan)
+    ambient = np.where(np.isfinite(ambient), ambient, first)
+    return {
+        "t_s": t_s,
+        "force_n": tr["force_n"],
+        "position_m": tr["position_m"],  # the Kalman position, as the pipeline's force model uses
+        "accel_rel_mps2": tr["accel_mps2"],  # the filter's acceleration
+        "velocity_mps": tr["velocity_mps"],
+        "force_model_n": tr["force_model_n"],
+        "temp_shock_c": shock,
+        "temp_ambient_c": ambient,
+        "oil_temp_model_c": tr["oil_temp_model_c"],
+        "cyl_temp_model_c": tr["cyl_temp_model_c"],
+    }
 
 
 # ---------------------------------------------------------------------------------------
@@ -161,22 +229,25 @@ def oil_temperature(tab: dict[str, np.ndarray], thermal: dict[str, float]) -> np
     return oil
 
 
-def _pack(force: dict[str, float]) -> np.ndarray:
-    return np.array(
-        [force[n] if n in FORCE_LINEAR else np.log(force[n]) for n in FORCE_FIT_NAMES]
-    )
+def _pack(force: dict[str, float], names: Sequence[str]) -> np.ndarray:
+    return np.array([force[n] if n in FORCE_LINEAR else np.log(force[n]) for n in names])
 
 
-def _unpack(theta: np.ndarray, base: dict[str, float]) -> dict[str, float]:
+def _unpack(theta: np.ndarray, base: dict[str, float], names: Sequence[str]) -> dict[str, float]:
     out = dict(base)
-    for n, v in zip(FORCE_FIT_NAMES, theta):
+    for n, v in zip(names, theta):
         out[n] = float(v if n in FORCE_LINEAR else np.exp(v))
     return out
 
 
 def fit_force(
-    tabs: Sequence[dict[str, np.ndarray]], oils: Sequence[np.ndarray], prior: dict[str, float]
+    tabs: Sequence[dict[str, np.ndarray]],
+    oils: Sequence[np.ndarray],
+    prior: dict[str, float],
+    fixed: Sequence[str] = (),
 ) -> dict[str, float]:
+    """The force parameters of ``FORCE_FIT_NAMES`` but ``fixed`` (kept at ``prior``'s value)."""
+    names = [n for n in FORCE_FIT_NAMES if n not in fixed]
     stride = 2
     cols = []
     for tab, oil in zip(tabs, oils):
@@ -190,15 +261,15 @@ def fit_force(
     a = np.nan_to_num(a)
 
     def residuals(theta: np.ndarray) -> np.ndarray:
-        model = shocktwin.ForceModel(**_unpack(theta, prior))
+        model = shocktwin.ForceModel(**_unpack(theta, prior, names))
         return model.force(v, a, y, oil) - f
 
-    theta0 = _pack(prior)
-    linear = np.array([n in FORCE_LINEAR for n in FORCE_FIT_NAMES])
+    theta0 = _pack(prior, names)
+    linear = np.array([n in FORCE_LINEAR for n in names])
     lo = np.where(linear, 0.0, theta0 - np.log(50.0))
     hi = np.where(linear, np.inf, theta0 + np.log(50.0))
     sol = least_squares(residuals, theta0, bounds=(lo, hi), loss="soft_l1", f_scale=100.0)
-    return _unpack(sol.x, prior)
+    return _unpack(sol.x, prior, names)
 
 
 # ---------------------------------------------------------------------------------------
@@ -238,13 +309,17 @@ def velocity_rmse(run: Run, params: dict[str, Any]) -> float | None:
 
 
 def kalman_trace(run: Run, params: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The Kalman velocity at sensor rate (at the 50 Hz ticks for the position-only filter)."""
+    if ACCEL not in run.log.topics:
+        tr = shocktwin.twin_trace(run.log, params)
+        return {"t_s": tr["t_s"], "velocity_mps": tr["velocity_mps"]}
     acc = run.log.topic("/acceleration")
     pos = run.log.topic("/position")
     kf = shocktwin.KalmanFilter(**params["kalman"])
     return kf.run(acc["t_s"], acc["a1_mps2"] - acc["a2_mps2"], pos["t_s"], pos["position_m"])
 
 
-def save_figures(runs: Sequence[Run], params: dict[str, Any], out_dir: Path) -> list[Path]:
+def save_figures(runs: Sequence[Run], params: dict[str, Any], out_dir: Path, *, simulated: bool = True) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -253,7 +328,7 @@ def save_figures(runs: Sequence[Run], params: dict[str, Any], out_dir: Path) -> 
     out_dir.mkdir(parents=True, exist_ok=True)
     by_freq = sorted(runs, key=lambda r: r.frequency_hz or 0.0)
     slow = by_freq[0]
-    note = "simulated dyno data (shocktwin simulate)"
+    note = "simulated dyno data (shocktwin simulate)" if simulated else "dyno data"
     paths = []
 
     # Fig. 2: KF velocity vs time-differenced potentiometer, 1 Hz nominal run.
@@ -327,26 +402,145 @@ def save_figures(runs: Sequence[Run], params: dict[str, Any], out_dir: Path) -> 
 # ---------------------------------------------------------------------------------------
 
 
-def calibrate(campaign: Campaign, *, nominal_bar: float = 12.0) -> dict[str, Any]:
-    runs = campaign.nominal(nominal_bar)
-    require_topics(runs, NEEDED_TOPICS, "calibration needs the full sensor suite on the nominal runs")
-    prior = shocktwin.default_params()
-    params: dict[str, Any] = {k: dict(v) for k, v in prior.items()}
-    params["force"]["charge_bar"] = nominal_bar
-    started = time.perf_counter()
+class PiecewiseLinearDamping:
+    """The five-minute baseline: force against Kalman velocity, one continuous piecewise-linear
+    curve of |v| per direction (rebound ``v >= 0``, compression ``v < 0``; the two may differ
+    at ``v = 0``), each an offset, a slope and slope changes at ``n_knots`` knots (quantiles of
+    the direction's |v|), fitted together by ordinary least squares (``numpy.linalg.lstsq``).
+    Linear beyond the outer knots; no temperature, position or acceleration."""
 
+    DESCRIPTION = "piecewise-linear damping force vs Kalman velocity, per direction (OLS)"
+    N_KNOTS = 3
+
+    def __init__(self, knots: dict[str, np.ndarray], coef: np.ndarray) -> None:
+        self.knots, self.coef = knots, coef
+
+    @staticmethod
+    def _design(v: np.ndarray, knots: dict[str, np.ndarray]) -> np.ndarray:
+        cols: list[np.ndarray] = []
+        for side, k in ((v >= 0, knots["rebound"]), (v < 0, knots["compression"])):
+            s = np.abs(v) * side
+            cols += [side.astype(float), s] + [np.maximum(s - kj, 0.0) * side for kj in k]
+        return np.column_stack(cols)
+
+    @classmethod
+    def fit(cls, v: np.ndarray, f: np.ndarray, n_knots: int = N_KNOTS) -> "PiecewiseLinearDamping":
+        q = np.linspace(0, 1, n_knots + 2)[1:-1]
+        knots = {
+            "rebound": np.quantile(v[v >= 0], q) if np.any(v >= 0) else np.zeros(0),
+            "compression": np.quantile(-v[v < 0], q) if np.any(v < 0) else np.zeros(0),
+        }
+        coef, *_ = np.linalg.lstsq(cls._design(v, knots), f, rcond=None)
+        return cls(knots, coef)
+
+    def predict(self, v: np.ndarray) -> np.ndarray:
+        return self._design(v, self.knots) @ self.coef
+
+
+def fit_models(
+    runs: Sequence[Run], base: dict[str, Any], fixed: Sequence[str]
+) -> tuple[dict[str, Any], list[dict[str, np.ndarray]]]:
+    """Steps 1–3 on ``runs``: Kalman noise, thermal model, force model. Returns the
+    parameters and the runs' tables (with the fitted Kalman filter, prior thermal/force)."""
+    params: dict[str, Any] = {k: dict(v) for k, v in base.items()}
     params["kalman"] = fit_kalman(runs, params["kalman"])
-    log.info("Kalman noise: %s", params["kalman"])
-
     tabs = [table(run, params) for run in progress(runs, desc="features", unit="run")]
     params["thermal"] = fit_thermal(tabs, params["thermal"])
-    log.info("thermal: %s", params["thermal"])
-
     oils = [oil_temperature(tab, params["thermal"]) for tab in tabs]
-    params["force"] = fit_force(tabs, oils, params["force"])
-    log.info("force: %s", params["force"])
+    params["force"] = fit_force(tabs, oils, params["force"], fixed)
+    return params, tabs
 
+
+def _force_pairs(tab: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    ok = np.isfinite(tab["velocity_mps"]) & np.isfinite(tab["force_n"])
+    return tab["velocity_mps"][ok], tab["force_n"][ok]
+
+
+def held_out_comparison(runs: Sequence[Run], base: dict[str, Any], fixed: Sequence[str]) -> dict[str, Any]:
+    """Physics force model vs :class:`PiecewiseLinearDamping`, leave one nominal run out.
+
+    Each fold fits steps 1–3 and the baseline on the other nominal runs only; on the left-out
+    run the physics is scored through the twin's pipeline with the fold's parameters, the
+    baseline on that pipeline's velocity, both on the same ticks (loadcell and both models
+    finite). RMSEs pool the squared errors of every held-out tick."""
+    protocol = "leave one nominal run out: fit on the others, score on it (50 Hz ticks)"
+    if len(runs) < 2:
+        log.warning("one nominal run: no held-out comparison with the piecewise-linear baseline")
+        return {"protocol": protocol, "skipped": "needs two nominal runs or more"}
+    folds, se_phys, se_base = [], [], []
+    for k, run in enumerate(runs):
+        train = [r for i, r in enumerate(runs) if i != k]
+        params, tabs = fit_models(train, base, fixed)
+        pairs = [_force_pairs(tab) for tab in tabs]
+        baseline = PiecewiseLinearDamping.fit(np.concatenate([v for v, _ in pairs]),
+                                              np.concatenate([f for _, f in pairs]))
+        test = table(run, params)
+        ok = np.isfinite(test["force_n"]) & np.isfinite(test["force_model_n"]) & np.isfinite(test["velocity_mps"])
+        e_phys = (test["force_model_n"] - test["force_n"])[ok]
+        e_base = (baseline.predict(test["velocity_mps"][ok]) - test["force_n"][ok])
+        se_phys.append(e_phys**2)
+        se_base.append(e_base**2)
+        folds.append({"held_out": run.name, "trained_on": [r.name for r in train], "ticks": int(ok.sum()),
+                      "physics_rmse_n": rmse(e_phys), "baseline_rmse_n": rmse(e_base)})
+    phys = float(np.sqrt(np.mean(np.concatenate(se_phys))))
+    base_rmse = float(np.sqrt(np.mean(np.concatenate(se_base))))
+    return {
+        "protocol": protocol,
+        "baseline": {"model": PiecewiseLinearDamping.DESCRIPTION, "knots_per_direction": PiecewiseLinearDamping.N_KNOTS},
+        "folds": folds,
+        "physics_rmse_n": phys,
+        "baseline_rmse_n": base_rmse,
+        # > 0: the physics model's held-out RMSE is this much lower than the baseline's
+        "physics_improvement_pct": 100.0 * (1.0 - phys / base_rmse),
+        "physics_beats_baseline": phys < base_rmse,
+    }
+
+
+def reduced_model(runs: Sequence[Run]) -> dict[str, Any]:
+    """Which of the twin's reduced models the nominal runs need (and warn about them)."""
+    no_acc = [r.name for r in runs if ACCEL not in r.log.topics]
+    no_amb = [r.name for r in runs if AMBIENT not in r.log.topics]
+    if no_acc:
+        log.warning("reduced model: no %s on %s: position-only Kalman filter (constant-acceleration "
+                    "model on the potentiometer alone, SPEC §3.1)", ACCEL, ", ".join(no_acc))
+    if no_amb:
+        log.warning("reduced model: no %s on %s: each run's first shock temperature stands in for "
+                    "ambient in the thermal model", AMBIENT, ", ".join(no_amb))
+    return {
+        "kalman": "position_only" if no_acc else "accelerometers",
+        "ambient": "first_shock_temperature" if no_amb else "thermocouple",
+        "runs_without_acceleration": no_acc,
+        "runs_without_ambient": no_amb,
+    }
+
+
+def calibrate(
+    campaign: Campaign,
+    *,
+    nominal_bar: float = 12.0,
+    datasheet: Datasheet | None = None,
+    nominal_input: str | None = None,
+) -> dict[str, Any]:
+    """Steps 1–5 on the campaign's nominal runs; the ``physics.json`` content."""
+    runs = campaign.nominal(nominal_bar)
+    # The runs' label is the nominal charge (a value converted from psi is within the tolerance).
+    nominal_bar = float(np.median([r.label_bar for r in runs]))
+    require_topics(runs, NEEDED_TOPICS,
+                   "calibration needs the potentiometer, loadcell and shock thermocouple on the nominal runs")
+    reduced = reduced_model(runs)
+    prior = shocktwin.default_params()
+    base: dict[str, Any] = {k: dict(v) for k, v in prior.items()}
+    base["force"]["charge_bar"] = nominal_bar
+    geometry = dict(datasheet.geometry) if datasheet else {}
+    base["force"].update(geometry)
+    started = time.perf_counter()
+
+    params, _ = fit_models(runs, base, fixed=list(geometry))
+    log.info("Kalman noise: %s", params["kalman"])
+    log.info("thermal: %s", params["thermal"])
+    log.info("force: %s", params["force"])
     per_run = evaluate(runs, params)
+    comparison = held_out_comparison(runs, base, fixed=list(geometry))
     elapsed = time.perf_counter() - started
     return {
         "format": PHYSICS_FORMAT,
@@ -354,43 +548,97 @@ def calibrate(campaign: Campaign, *, nominal_bar: float = 12.0) -> dict[str, Any
         "thermal": params["thermal"],
         "force": params["force"],
         "nominal_bar": nominal_bar,
+        "nominal_input": nominal_input or f"{nominal_bar:g} bar",
+        "reduced_model": reduced,
+        "geometry": {
+            "source": f"datasheet {datasheet.path}" if datasheet else "fitted from the priors",
+            "fixed": geometry,
+            "datasheet": datasheet.values if datasheet else None,
+        },
+        "baseline_comparison": comparison,
         "fit": {
             "campaign": str(campaign.root.name),
             "campaign_digest": campaign.digest(),
             "runs": [r.name for r in runs],
             "per_run": per_run,
             "seconds": round(elapsed, 2),
-            "simulated_data": True,
+            "simulated_data": campaign.simulated,
         },
     }
 
 
 def print_report(physics: dict[str, Any]) -> None:
-    print("Calibration on the nominal runs (simulated data) — closed loop through the twin's pipeline")
+    data = "simulated data" if physics["fit"].get("simulated_data", True) else "dyno data"
+    red = physics.get("reduced_model") or {}
+    models = []
+    if red.get("kalman") == "position_only":
+        models.append("position-only Kalman filter")
+    if red.get("ambient") == "first_shock_temperature":
+        models.append("first shock temperature as ambient")
+    print(f"Calibration on the nominal runs at {physics.get('nominal_bar', 12.0):g} bar ({data}) — closed loop "
+          "through the twin's pipeline" + (f"; reduced model: {', '.join(models)}" if models else ""))
     print(f"{'run':<32} {'T RMSE (°C)':>12} {'F RMSE (N)':>11} {'v RMSE (m/s)':>13}")
     for row in physics["fit"]["per_run"]:
         v = row["velocity_rmse_mps"]
         print(f"{row['run']:<32} {row['temperature_rmse_c']:>12.2f} {row['force_rmse_n']:>11.1f} "
               f"{'n/a' if v is None else f'{v:.4f}':>13}")
+    geo = physics.get("geometry") or {}
+    if geo.get("fixed"):
+        print(f"geometry from {geo['source']}: " + ", ".join(f"{k} = {v:.6g}" for k, v in geo["fixed"].items()))
+    cmp = physics.get("baseline_comparison") or {}
+    if "physics_rmse_n" in cmp:
+        print(f"Force on held-out nominal runs ({cmp['protocol']}):")
+        print(f"{'held-out run':<32} {'physics (N)':>12} {'piecewise-linear (N)':>21}")
+        for fold in cmp["folds"]:
+            print(f"{fold['held_out']:<32} {fold['physics_rmse_n']:>12.1f} {fold['baseline_rmse_n']:>21.1f}")
+        print(f"{'pooled':<32} {cmp['physics_rmse_n']:>12.1f} {cmp['baseline_rmse_n']:>21.1f}")
+        pct = cmp["physics_improvement_pct"]
+        if cmp["physics_beats_baseline"]:
+            print(f"the physics model's held-out force RMSE is {pct:.0f} % lower than the piecewise-linear baseline's")
+        else:
+            print(f"the physics model does NOT beat the piecewise-linear baseline: its held-out force RMSE is "
+                  f"{-pct:.0f} % higher")
+    elif cmp:
+        print(f"no held-out comparison with the baseline: {cmp.get('skipped')}")
     print(f"calibration took {physics['fit']['seconds']:.1f} s")
+
+
+def resolve_nominal(args: argparse.Namespace, datasheet: Datasheet | None) -> tuple[float, str | None]:
+    """The nominal charge (bar) from --nominal-bar, --nominal, the datasheet, or 12 bar."""
+    if args.nominal_bar is not None:
+        return args.nominal_bar, None
+    text = args.nominal or (datasheet.nominal_charge if datasheet else None)
+    if text is None:
+        return 12.0, None
+    try:
+        return parse_pressure_bar(text), text
+    except ValueError as err:
+        raise ValueError(f"--nominal: {err}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m train.fit_physics", description=__doc__.split("\n")[0])
     parser.add_argument("--campaign", required=True, type=Path, help="campaign directory of *.mcap runs")
     parser.add_argument("--out", required=True, type=Path, help="physics.json to write")
-    parser.add_argument("--nominal-bar", type=float, default=12.0, help="nominal charge pressure (bar)")
+    nominal = parser.add_mutually_exclusive_group()
+    nominal.add_argument("--nominal-bar", type=float, help="nominal charge pressure, bar gauge (default 12)")
+    nominal.add_argument("--nominal", help='nominal charge with a unit: "150 psi", "10.3 bar", "1.03 MPa", '
+                         '"1030 kPa" (gauge)')
+    parser.add_argument("--datasheet", type=Path, help="damper datasheet (TOML, see docs/datasheet.example.toml): "
+                        "fixes the geometry (a_rod, v_gas) instead of fitting it")
     parser.add_argument("--figures", type=Path, help="directory for Fig. 2, 3 and 6 (PNG)")
     args = parser.parse_args(argv)
 
+    datasheet = load_datasheet(args.datasheet) if args.datasheet else None
+    nominal_bar, nominal_input = resolve_nominal(args, datasheet)
     campaign = load_campaign(args.campaign)
-    physics = calibrate(campaign, nominal_bar=args.nominal_bar)
+    physics = calibrate(campaign, nominal_bar=nominal_bar, datasheet=datasheet, nominal_input=nominal_input)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(physics, indent=2) + "\n")
     print_report(physics)
     if args.figures:
-        runs = campaign.nominal(args.nominal_bar)
-        for path in save_figures(runs, physics, args.figures):
+        runs = campaign.nominal(physics["nominal_bar"])
+        for path in save_figures(runs, physics, args.figures, simulated=campaign.simulated):
             print(f"figure: {path}")
     print(f"wrote {args.out}")
     return 0
