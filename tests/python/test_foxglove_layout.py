@@ -235,11 +235,6 @@ def foxglove_schema_problems(schema: dict[str, Any], where: str) -> list[str]:
     return problems
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the writer declares numeric fields as {\"type\": [\"number\", \"null\"]}, which Foxglove's "
-    "JSON-schema parser rejects; see docs/foxglove/README.md (fix in dt-core, then drop this mark)",
-)
 def test_foxglove_can_parse_every_channel_schema(replay: dict[str, dict[str, Any]]):
     problems: dict[str, list[str]] = defaultdict(list)
     for topic, channel in replay.items():

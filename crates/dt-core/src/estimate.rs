@@ -84,7 +84,7 @@ pub struct Estimate {
 }
 
 /// JSON schema (`jsonschema` encoding) of the `/estimate` topic's messages.
-pub const ESTIMATE_SCHEMA_JSON: &str = r#"{"type":"object","title":"shocktwin estimate","properties":{"t_ns":{"type":"integer"},"pressure_bar":{"type":["number","null"]},"pressure_avg_bar":{"type":["number","null"]},"pressure_lo_bar":{"type":["number","null"]},"pressure_hi_bar":{"type":["number","null"]},"expected_bar":{"type":["number","null"]},"health":{"type":"string","enum":["ok","low","leak","unknown"]},"velocity_mps":{"type":["number","null"]},"force_model_n":{"type":["number","null"]},"oil_temp_c":{"type":["number","null"]}},"required":["pressure_bar","pressure_avg_bar","expected_bar","health","velocity_mps","force_model_n","oil_temp_c"]}"#;
+pub const ESTIMATE_SCHEMA_JSON: &str = r#"{"type":"object","title":"shocktwin estimate","properties":{"t_ns":{"type":"integer"},"pressure_bar":{"type":"number"},"pressure_avg_bar":{"type":"number"},"pressure_lo_bar":{"type":"number"},"pressure_hi_bar":{"type":"number"},"expected_bar":{"type":"number"},"health":{"type":"string","enum":["ok","low","leak","unknown"]},"velocity_mps":{"type":"number"},"force_model_n":{"type":"number"},"oil_temp_c":{"type":"number"}},"required":["pressure_bar","pressure_avg_bar","expected_bar","health","velocity_mps","force_model_n","oil_temp_c"]}"#;
 
 fn nan() -> f64 {
     f64::NAN

@@ -287,13 +287,16 @@ pub fn topic_spec(topic: &str) -> Option<(u8, &'static TopicSpec)> {
 }
 
 /// The JSON schema (encoding `jsonschema`) the writer uses for a sensor topic:
-/// an object whose fields are numbers (or `null` for a missing value).
+/// an object whose fields are numbers. A message may carry `null` for a missing
+/// value; the schema still says `"number"`, because Foxglove's JSON-schema
+/// parser accepts only a single type name per field (a `["number","null"]`
+/// union makes it drop the whole topic).
 #[must_use]
 pub fn json_schema(spec: &TopicSpec) -> String {
     let props = spec
         .fields
         .iter()
-        .map(|field| format!("\"{field}\":{{\"type\":[\"number\",\"null\"]}}"))
+        .map(|field| format!("\"{field}\":{{\"type\":\"number\"}}"))
         .collect::<Vec<_>>()
         .join(",");
     let required = spec
