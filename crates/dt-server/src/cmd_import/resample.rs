@@ -13,7 +13,8 @@
 //!    carried in the output's timestamps. As in `resample_poly`'s
 //!    `padtype="line"`, the straight line through the first and last sample
 //!    is removed before and restored after, so the zero padding at the ends
-//!    adds no step.
+//!    adds no step; what is left is the ringing of a band-limited filter at
+//!    a cut end, about ten output samples long (0.2 s at 50 Hz).
 //! 3. **Never upsampled.** A topic whose source is slower than its nominal
 //!    rate is written at the source's rate (SPEC §2 rates are nominal), and
 //!    the import says so.
