@@ -151,6 +151,7 @@ fn fleet(c: &mut Criterion) {
         metrics,
         ready: Arc::new(AtomicBool::new(true)),
         stop: CancellationToken::new(),
+        tokens: Arc::new(dt_server::server::security::Tokens::default()),
     });
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -153,3 +153,53 @@ def assert_releases_gil(name: str, call: Callable[[], object]) -> None:
     max_gap = max(max_gap, time.perf_counter() - last)
     assert duration[0] > 0.05, f"{name} too short to tell ({duration[0]:.3f} s)"
     assert max_gap < 0.5 * duration[0], f"{name}: longest pause {max_gap:.3f} s of a {duration[0]:.3f} s call"
+
+
+# --- a `shocktwin serve` process on loopback ephemeral ports ---
+
+import re as _re
+import subprocess as _subprocess
+import threading as _threading
+
+_ANSI = _re.compile(r"\x1b\[[0-9;]*m")
+
+
+class ServeProcess:
+    """A running ``shocktwin serve``: its addresses (from the ``listening`` log line) and
+    its log (drained in a thread so that the daemon never blocks on a full pipe)."""
+
+    def __init__(self, argv: Sequence[str]) -> None:
+        self.proc = _subprocess.Popen(list(argv), stdin=_subprocess.DEVNULL, stdout=_subprocess.DEVNULL,
+                                      stderr=_subprocess.PIPE, text=True)
+        assert self.proc.stderr is not None
+        self.log: list[str] = []
+        self.listen = self.http = ""
+        for _ in range(200):  # bounded: the line comes among the first few
+            line = _ANSI.sub("", self.proc.stderr.readline())
+            if not line and self.proc.poll() is not None:
+                break
+            self.log.append(line)
+            m = _re.search(r"listening listen=(\S+) http=(\S+)", line)
+            if m:
+                self.listen, self.http = m.group(1), m.group(2)
+                break
+        if not self.listen:
+            self.stop()
+            raise AssertionError("shocktwin serve did not log its addresses:\n" + "".join(self.log))
+        stderr = self.proc.stderr
+        self._drain = _threading.Thread(target=lambda: self.log.extend(_ANSI.sub("", l) for l in stderr), daemon=True)
+        self._drain.start()
+
+    def stop(self) -> int:
+        """SIGTERM, then the exit status (killed after 20 s)."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except _subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        return self.proc.returncode
+
+    def text(self) -> str:
+        return "".join(self.log)

@@ -44,8 +44,22 @@ function duration(t0, t1) {
 }
 const badge = (h) => `<span class="badge ${esc(h || "unknown")}">${esc(h || "unknown")}</span>`;
 
+// With bearer tokens on (docs/daemon.md, "Exposing the daemon"), open the dashboard as
+// /#token=<read token>: the fragment never reaches the server or its logs; it is kept in
+// this tab's sessionStorage and removed from the address bar.
+const TOKEN = (() => {
+  const m = /(?:^#|&)token=([^&]+)/.exec(location.hash);
+  if (m) {
+    sessionStorage.setItem("shocktwin-token", decodeURIComponent(m[1]));
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+  return sessionStorage.getItem("shocktwin-token");
+})();
+
 async function getJSON(path) {
-  const r = await fetch(path, { cache: "no-store" });
+  const headers = TOKEN ? { Authorization: `Bearer ${TOKEN}` } : {};
+  const r = await fetch(path, { cache: "no-store", headers });
+  if (r.status === 401) throw new Error(`${path}: 401 — this daemon needs a read token: open /#token=<token>`);
   if (!r.ok) {
     let msg = r.statusText;
     try { msg = (await r.json()).error || msg; } catch (_) { /* not JSON */ }
@@ -382,7 +396,8 @@ function onEstimate(ev) {
 }
 
 function connect() {
-  const es = new EventSource("v1/events");
+  // EventSource cannot set headers: the token goes as access_token (RFC 6750 §2.3).
+  const es = new EventSource(TOKEN ? `v1/events?access_token=${encodeURIComponent(TOKEN)}` : "v1/events");
   const conn = (text, cls) => { $("conn").textContent = text; $("conn").className = `conn ${cls}`; };
   es.onopen = () => conn("live", "up");
   es.onerror = () => conn("reconnecting…", "down");   // EventSource retries by itself

@@ -212,6 +212,10 @@ pub struct ServeArgs {
     /// Keep no fleet store (history only in memory).
     #[arg(long)]
     pub no_db: bool,
+    /// Start even when a listener off loopback lacks TLS and authentication
+    /// (`[tls]`, `[auth]`): anyone who reaches it can read or feed the fleet.
+    #[arg(long)]
+    pub insecure: bool,
     /// Log format (also `SHOCKTWIN_LOG_FORMAT=json`).
     #[arg(long, value_enum)]
     pub log_format: Option<LogFormat>,

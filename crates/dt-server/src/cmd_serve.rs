@@ -26,6 +26,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         &|var| std::env::var(var).ok(),
         &overrides,
     )?;
+    config.insecure = args.insecure;
     if args.no_db {
         config.store.path = None;
     } else if config.store.path.is_none() {

@@ -29,6 +29,38 @@ pub struct Config {
     pub defaults: AssetConfig,
     /// `[assets.<id>]`: per-asset overrides of `[defaults]`.
     pub assets: BTreeMap<String, AssetOverrides>,
+    /// `[tls]`: certificates of the listeners (see `server::security`).
+    pub tls: TlsConfig,
+    /// `[auth]`: bearer tokens of the HTTP API.
+    pub auth: AuthConfig,
+    /// `--insecure`: start off loopback without TLS and authentication
+    /// (a flag only, never read from the file).
+    #[serde(skip)]
+    pub insecure: bool,
+}
+
+/// `[tls]`: PEM files; both listeners speak TLS when `cert` and `key` are set.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TlsConfig {
+    /// Server certificate chain (PEM).
+    pub cert: Option<PathBuf>,
+    /// Server private key (PEM: PKCS#8, PKCS#1 or SEC1).
+    pub key: Option<PathBuf>,
+    /// CA of the vehicles' client certificates: the ingest listener then
+    /// requires one (mTLS).
+    pub client_ca: Option<PathBuf>,
+}
+
+/// `[auth]`: token files, one token per line (`#` comments); keep them
+/// readable by the daemon only.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthConfig {
+    /// Tokens of the read role (API, dashboard data, events, metrics).
+    pub read_tokens_file: Option<PathBuf>,
+    /// Tokens of the ingest role (`POST /v1/runs`).
+    pub ingest_tokens_file: Option<PathBuf>,
 }
 
 /// `[server]`.
@@ -328,6 +360,15 @@ impl Config {
         }
         if self.store.flush_ms == 0 || self.store.flush_ms > 60_000 {
             return Err(invalid("store.flush_ms", "must be between 1 and 60000"));
+        }
+        if self.tls.cert.is_some() != self.tls.key.is_some() {
+            return Err(invalid("tls", "`cert` and `key` go together"));
+        }
+        if self.tls.client_ca.is_some() && self.tls.cert.is_none() {
+            return Err(invalid(
+                "tls.client_ca",
+                "needs `cert` and `key` (mTLS is TLS)",
+            ));
         }
         if !(self.server.inbox_settle_s.is_finite() && self.server.inbox_settle_s >= 0.0) {
             return Err(invalid(

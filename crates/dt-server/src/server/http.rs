@@ -14,6 +14,10 @@
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
 //!
+//! With bearer tokens configured (`[auth]`, see [`super::security`]) every
+//! route but `/healthz` and the dashboard's static files (`/`, `/assets/…`,
+//! which carry no fleet data) answers `401` without a read token.
+//!
 //! Values the estimator could not give are `null`. The store-backed routes
 //! answer 404 for an unknown asset and 503 when the daemon runs without a
 //! store.
@@ -39,6 +43,7 @@ use dt_core::estimate::Health;
 
 use super::config::Config;
 use super::metrics::Metrics;
+use super::security::{Role, Tokens};
 use super::state::{AssetSummary, LiveState};
 use super::store::{
     parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, StoreError, TrendSummary, TrendView,
@@ -62,6 +67,8 @@ pub struct AppState {
     pub ready: Arc<AtomicBool>,
     /// Cancelled when the HTTP server stops: ends the event streams.
     pub stop: CancellationToken,
+    /// Bearer tokens (none configured: the API is open).
+    pub tokens: Arc<Tokens>,
 }
 
 // The dashboard, compiled in (no build step; uPlot vendored from its npm
@@ -118,7 +125,70 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/assets/{id}/runs", get(runs))
         .route("/v1/assets/{id}/health", get(health_changes))
         .route("/v1/events", get(events))
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            require_token,
+        ))
         .with_state(state)
+}
+
+/// Routes open without a token: liveness and the dashboard's static files.
+fn is_open(path: &str) -> bool {
+    path == "/healthz" || path == "/" || path.starts_with("/assets/")
+}
+
+/// The bearer token of a request: `Authorization: Bearer …`, else the
+/// `access_token` query parameter (for `EventSource`). Never logged.
+fn bearer(req: &axum::extract::Request) -> Option<String> {
+    if let Some(value) = req.headers().get(header::AUTHORIZATION) {
+        let value = value.to_str().ok()?;
+        let (scheme, token) = value.split_once(' ')?;
+        return scheme
+            .eq_ignore_ascii_case("bearer")
+            .then(|| token.trim().to_owned());
+    }
+    form_urlencoded::parse(req.uri().query()?.as_bytes())
+        .find(|(k, _)| k == "access_token")
+        .map(|(_, v)| v.into_owned())
+}
+
+fn unauthorized(error: Option<&str>) -> Response {
+    let challenge = match error {
+        Some(e) => format!("Bearer realm=\"shocktwin\", error=\"{e}\""),
+        None => "Bearer realm=\"shocktwin\"".to_owned(),
+    };
+    (
+        StatusCode::UNAUTHORIZED,
+        [(header::WWW_AUTHENTICATE, challenge)],
+        "a bearer token is needed (Authorization: Bearer <token>)\n",
+    )
+        .into_response()
+}
+
+/// Token check in front of every route (a no-op while auth is off).
+async fn require_token(
+    State(app): State<AppState>,
+    req: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    if !app.tokens.enabled() || is_open(req.uri().path()) {
+        return next.run(req).await;
+    }
+    let Some(token) = bearer(&req) else {
+        return unauthorized(None);
+    };
+    match app.tokens.role(&token) {
+        Some(Role::Read) => next.run(req).await,
+        Some(Role::Ingest) => (
+            StatusCode::FORBIDDEN,
+            "this token may ingest runs, not read the API\n",
+        )
+            .into_response(),
+        None => {
+            app.metrics.error("auth");
+            unauthorized(Some("invalid_token"))
+        }
+    }
 }
 
 async fn readyz(State(app): State<AppState>) -> Response {

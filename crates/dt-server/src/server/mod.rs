@@ -24,6 +24,7 @@ pub mod inbox;
 pub mod ingest;
 pub mod metrics;
 pub mod record;
+pub mod security;
 pub mod sink;
 pub mod source;
 pub mod state;
@@ -116,6 +117,9 @@ pub enum ServeError {
     /// The fleet store cannot be opened.
     #[error(transparent)]
     Store(#[from] store::StoreError),
+    /// A listener would be exposed without TLS and authentication.
+    #[error("refusing to start: {0}. Configure TLS and authentication (see docs/daemon.md, \"Exposing the daemon\"), or give --insecure to serve anyway")]
+    Insecure(String),
 }
 
 /// The daemon's two listeners, bound by the caller (tests bind `127.0.0.1:0`).
@@ -140,6 +144,33 @@ impl Listeners {
             http: bind(config.server.http).await?,
         })
     }
+}
+
+/// HTTPS through axum-server's rustls acceptor (handshakes run per
+/// connection, not in the accept loop); stops gracefully with `stop`.
+fn spawn_https(
+    listener: TcpListener,
+    app: axum::Router,
+    tls: Arc<rustls::ServerConfig>,
+    stop: CancellationToken,
+) -> Result<tokio::task::JoinHandle<std::io::Result<()>>, ServeError> {
+    let io = |source| ServeError::Io {
+        path: PathBuf::from("<https listener>"),
+        source,
+    };
+    let listener = listener.into_std().map_err(io)?;
+    let handle = axum_server::Handle::new();
+    let server = axum_server::from_tcp_rustls(
+        listener,
+        axum_server::tls_rustls::RustlsConfig::from_config(tls),
+    )
+    .map_err(io)?
+    .handle(handle.clone());
+    tokio::spawn(async move {
+        stop.cancelled().await;
+        handle.graceful_shutdown(Some(Duration::from_secs(5)));
+    });
+    Ok(tokio::spawn(server.serve(app.into_make_service())))
 }
 
 /// Opens the fleet store, if configured: restores the live view from it and
@@ -181,6 +212,21 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
     config.validate()?;
+    let tokens = Arc::new(security::Tokens::load(&config)?);
+    let addr = |l: &TcpListener| {
+        l.local_addr().map_err(|source| ServeError::Io {
+            path: PathBuf::from("<listener>"),
+            source,
+        })
+    };
+    security::check_exposure(
+        &config,
+        addr(&listeners.ingest)?,
+        addr(&listeners.http)?,
+        &tokens,
+        config.insecure,
+    )?;
+    let tls = security::server_configs(&config)?;
     let config = Arc::new(config);
     let limits = &config.limits;
     let metrics = Arc::new(Metrics::new());
@@ -192,11 +238,14 @@ pub async fn run(
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }
     let store = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
-    let mut sources: Vec<Box<dyn Source>> = vec![Box::new(tcp::TcpSource::new(
-        listeners.ingest,
-        limits.max_connections,
-        Duration::from_secs_f64(limits.idle_timeout_s),
-    ))];
+    let mut sources: Vec<Box<dyn Source>> = vec![Box::new(
+        tcp::TcpSource::new(
+            listeners.ingest,
+            limits.max_connections,
+            Duration::from_secs_f64(limits.idle_timeout_s),
+        )
+        .with_tls(tls.as_ref().map(|(ingest, _)| Arc::clone(ingest))),
+    )];
     if let Some(dir) = &config.server.inbox {
         sources.push(Box::new(inbox::InboxSource::new(
             dir,
@@ -253,16 +302,20 @@ pub async fn run(
         metrics,
         ready: Arc::clone(&ready),
         stop: http_stop.clone(),
+        tokens,
     });
     let http_addr = listeners
         .http
         .local_addr()
         .map_or_else(|e| e.to_string(), |a| a.to_string());
-    let http_task = tokio::spawn(
-        axum::serve(listeners.http, app)
-            .with_graceful_shutdown(http_stop.clone().cancelled_owned())
-            .into_future(),
-    );
+    let http_task = match tls.map(|(_, http)| http) {
+        None => tokio::spawn(
+            axum::serve(listeners.http, app)
+                .with_graceful_shutdown(http_stop.clone().cancelled_owned())
+                .into_future(),
+        ),
+        Some(tls) => spawn_https(listeners.http, app, tls, http_stop.clone())?,
+    };
     ready.store(true, Ordering::Relaxed);
     tracing::info!(http = %http_addr, twin = %twins.describe(), "serving");
 

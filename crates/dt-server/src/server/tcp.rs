@@ -3,14 +3,18 @@
 //! any MCAP writer. A semaphore caps concurrent connections (others wait in
 //! the accept backlog). When the run is processed and flushed the daemon
 //! writes one JSON line (a [`super::ingest::RunReport`]) back and closes.
+//! With TLS ([`super::security`]) each connection's handshake runs in its
+//! own task, bounded by the idle timeout, and the same stream follows over
+//! TLS; with a client CA a connection without a valid client certificate
+//! fails its handshake and is counted, never decoded.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
 use futures_util::future::BoxFuture;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 
 use super::sink::SourceKind;
@@ -23,6 +27,7 @@ pub struct TcpSource {
     listener: TcpListener,
     max_connections: usize,
     idle: Duration,
+    tls: Option<Arc<rustls::ServerConfig>>,
 }
 
 impl TcpSource {
@@ -34,7 +39,15 @@ impl TcpSource {
             listener,
             max_connections,
             idle,
+            tls: None,
         }
+    }
+
+    /// Speaks TLS with `config` (none: plaintext).
+    #[must_use]
+    pub fn with_tls(mut self, config: Option<Arc<rustls::ServerConfig>>) -> Self {
+        self.tls = config;
+        self
     }
 }
 
@@ -86,22 +99,41 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
         let ingest = ctx.ingest.clone();
         let cancel = ctx.cancel.clone();
         let idle = src.idle;
+        let tls = src.tls.clone();
         ctx.tracker.spawn(async move {
-            serve_connection(&ingest, socket, peer, &cancel, idle).await;
+            match tls {
+                None => serve_connection(&ingest, socket, peer, &cancel, idle).await,
+                Some(config) => {
+                    let acceptor = tokio_rustls::TlsAcceptor::from(config);
+                    match tokio::time::timeout(idle, acceptor.accept(socket)).await {
+                        Ok(Ok(stream)) => {
+                            serve_connection(&ingest, stream, peer, &cancel, idle).await;
+                        }
+                        Ok(Err(e)) => {
+                            ingest.metrics().error("tls_handshake");
+                            tracing::warn!(%peer, "TLS handshake failed: {e}");
+                        }
+                        Err(_) => {
+                            ingest.metrics().error("tls_handshake");
+                            tracing::warn!(%peer, "TLS handshake timed out");
+                        }
+                    }
+                }
+            }
             ingest.metrics().connections_active.dec();
             drop(permit);
         });
     }
 }
 
-async fn serve_connection(
+async fn serve_connection<S: AsyncRead + AsyncWrite + Unpin>(
     ingest: &super::ingest::Ingest,
-    mut socket: TcpStream,
+    socket: S,
     peer: SocketAddr,
     cancel: &tokio_util::sync::CancellationToken,
     idle: Duration,
 ) {
-    let (mut reader, mut writer) = socket.split();
+    let (mut reader, mut writer) = tokio::io::split(socket);
     let report = ingest
         .ingest_stream(
             SourceKind::Tcp,

@@ -1,0 +1,162 @@
+"""`shocktwin serve` exposed: TLS on both listeners (rustls), client certificates for
+vehicles on the ingest listener (mTLS), bearer tokens with two roles on the HTTP API,
+and the refusal to start off loopback without them unless ``--insecure``.
+
+Certificates are made in the test (trustme: a server CA and a vehicles' CA); the clients
+are real and independent of the daemon: httpx over HTTPS, Python's ssl with the mcap
+writer for the ingest stream."""
+
+from __future__ import annotations
+
+import json
+import secrets
+import socket
+import ssl
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import IO, Any, Iterator, cast
+
+import httpx
+import pytest
+import trustme
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from conftest import ServeProcess
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = ROOT / "target" / "release" / "shocktwin"
+BUNDLE = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+
+sys.path.insert(0, str(ROOT))
+from train.demo_serve import SocketStream, copy_log  # noqa: E402
+
+sys.path.remove(str(ROOT))
+
+
+class Pki:
+    def __init__(self, root: Path) -> None:
+        self.server_ca = trustme.CA()
+        self.vehicle_ca = trustme.CA()
+        server = self.server_ca.issue_cert("127.0.0.1", "localhost")
+        self.vehicle = self.vehicle_ca.issue_cert("vehicle-1.fleet.example")
+        self.stranger = trustme.CA().issue_cert("stranger.example")  # signed by an unknown CA
+        self.ca_pem = root / "server-ca.pem"
+        self.server_ca.cert_pem.write_to_path(str(self.ca_pem))
+        self.cert = root / "server.pem"
+        self.key = root / "server.key"
+        server.cert_chain_pems[0].write_to_path(str(self.cert))
+        server.private_key_pem.write_to_path(str(self.key))
+        self.client_ca = root / "vehicle-ca.pem"
+        self.vehicle_ca.cert_pem.write_to_path(str(self.client_ca))
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    root = tmp_path_factory.mktemp("tls")
+    pki = Pki(root)
+    read, ingest = "r-" + secrets.token_hex(16), "i-" + secrets.token_hex(16)
+    (root / "read.tokens").write_text(f"# dashboard\n{read}\n")
+    (root / "ingest.tokens").write_text(f"{ingest}\n")
+    config = root / "shocktwin.toml"
+    config.write_text(
+        f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\nclient_ca = "{pki.client_ca}"\n'
+        f'[auth]\nread_tokens_file = "{root / "read.tokens"}"\ningest_tokens_file = "{root / "ingest.tokens"}"\n'
+        "[limits]\nidle_timeout_s = 10.0\n"
+    )
+    sim = root / "sim"
+    done = subprocess.run([str(BIN), "simulate", "--quick", "--pressures", "7", "--frequencies", "2", "--out", str(sim)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return {"root": root, "pki": pki, "read": read, "ingest": ingest, "config": config,
+            "run": next(sim.glob("*.mcap"))}
+
+
+@pytest.fixture(scope="module")
+def daemon(setup: dict[str, Any]) -> Iterator[ServeProcess]:
+    d = ServeProcess([str(BIN), "serve", "--config", str(setup["config"]), "--listen", "127.0.0.1:0",
+                      "--http", "127.0.0.1:0", "--model", str(BUNDLE), "--no-db"])
+    yield d
+    assert d.stop() == 0, d.text()
+    # Tokens are never logged.
+    assert setup["read"] not in d.text() and setup["ingest"] not in d.text()
+
+
+def client(setup: dict[str, Any]) -> httpx.Client:
+    return httpx.Client(verify=ssl.create_default_context(cafile=str(setup["pki"].ca_pem)), timeout=20)
+
+
+def test_https_api_needs_a_read_token(daemon: ServeProcess, setup: dict[str, Any]) -> None:
+    base = f"https://{daemon.http}"
+    with client(setup) as http:
+        assert http.get(f"{base}/healthz").status_code == 200
+        assert http.get(f"{base}/").status_code == 200  # the dashboard page: no fleet data
+        for path in ["/v1/assets", "/metrics", "/readyz", "/v1/events"]:
+            r = http.get(f"{base}{path}")
+            assert r.status_code == 401, path
+            assert r.headers["www-authenticate"].startswith("Bearer")
+        r = http.get(f"{base}/v1/assets", headers={"Authorization": "Bearer not-a-token"})
+        assert r.status_code == 401 and "invalid_token" in r.headers["www-authenticate"]
+        assert http.get(f"{base}/v1/assets", headers={"Authorization": f"Bearer {setup['ingest']}"}).status_code == 403
+        ok = http.get(f"{base}/v1/assets", headers={"Authorization": f"Bearer {setup['read']}"})
+        assert ok.status_code == 200 and "assets" in ok.json()
+        assert http.get(f"{base}/metrics", params={"access_token": setup["read"]}).status_code == 200
+    # Plain HTTP on the TLS port gets nothing.
+    with pytest.raises(httpx.HTTPError):
+        httpx.get(f"http://{daemon.http}/healthz", timeout=5)
+
+
+def stream_tls(addr: str, run: Path, context: ssl.SSLContext, asset_id: str) -> dict[str, Any]:
+    host, port = addr.rsplit(":", 1)
+    with socket.create_connection((host, int(port)), timeout=60) as raw:
+        with context.wrap_socket(raw, server_hostname="localhost") as sock, open(run, "rb") as fh:
+            writer = Writer(cast(IO[bytes], SocketStream(cast(socket.socket, sock))), compression=CompressionType.ZSTD,
+                            chunk_size=4096)
+            writer.start(profile="", library="shocktwin test client (python ssl + mcap)")
+            copy_log(make_reader(fh), writer, {"asset_id": asset_id, "run_id": "tls-run"})
+            writer.finish()
+            reply = b""
+            while chunk := sock.recv(65536):
+                reply += chunk
+    return json.loads(reply.decode().strip())
+
+
+def test_vehicles_stream_over_mtls(daemon: ServeProcess, setup: dict[str, Any]) -> None:
+    pki = setup["pki"]
+    vehicle = ssl.create_default_context(cafile=str(pki.ca_pem))
+    pki.vehicle.configure_cert(vehicle)
+    report = stream_tls(daemon.listen, setup["run"], vehicle, "tls-unit-1")
+    assert report["ticks"] > 1000, report
+
+    # A client without a certificate, or with one from an unknown CA, is refused at the handshake.
+    for name, ctx in [("no certificate", ssl.create_default_context(cafile=str(pki.ca_pem))),
+                      ("unknown CA", ssl.create_default_context(cafile=str(pki.ca_pem)))]:
+        if name == "unknown CA":
+            pki.stranger.configure_cert(ctx)
+        with pytest.raises((ssl.SSLError, ConnectionError, json.JSONDecodeError)):
+            stream_tls(daemon.listen, setup["run"], ctx, "intruder")
+
+    with client(setup) as http:
+        assets = http.get(f"https://{daemon.http}/v1/assets",
+                          headers={"Authorization": f"Bearer {setup['read']}"}).json()["assets"]
+    ids = {a["asset_id"] for a in assets}
+    assert "tls-unit-1" in ids and "intruder" not in ids
+    assert "TLS handshake failed" in daemon.text()
+
+
+def test_refuses_to_expose_without_tls_unless_insecure(tmp_path: Path) -> None:
+    argv = [str(BIN), "serve", "--listen", "0.0.0.0:0", "--http", "127.0.0.1:0", "--no-db"]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1
+    assert "TLS" in done.stderr and "--insecure" in done.stderr and "0.0.0.0:" in done.stderr
+    d = ServeProcess([*argv, "--insecure"])
+    try:
+        for _ in range(100):  # the warning follows the listening line
+            if "--insecure:" in d.text():
+                break
+            time.sleep(0.05)
+        assert "--insecure:" in d.text() and "0.0.0.0:" in d.text()
+    finally:
+        assert d.stop() == 0
