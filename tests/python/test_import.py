@@ -56,7 +56,7 @@ def exports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 def test_dyno_export_imports_with_the_example_map(exports: dict[str, Path], tmp_path: Path) -> None:
     files = sorted(exports["csv"].glob("*.csv"))
     assert [f.name for f in files] == ["dyno-unit-A_101.5psi_2Hz_s1.csv", "dyno-unit-A_43.5psi_2Hz_s1.csv"]
-    done = shocktwin("import", "--map", MAP, "--out", tmp_path, *files)
+    done = shocktwin("import", "--map", MAP, "--meta", "simulated=true", "--out", tmp_path, *files)
     assert "imported 2 of 2 files" in done.stdout
     assert "no accelerometers" in done.stdout
     meta, topics = read_mcap(tmp_path / "dyno-unit-A_101.5psi_2Hz_s1.mcap")
@@ -64,6 +64,7 @@ def test_dyno_export_imports_with_the_example_map(exports: dict[str, Path], tmp_
     assert meta["charge_label"] == "101.5 psi"
     assert float(meta["charge_pressure_bar"]) == pytest.approx(101.5 / PSI_PER_BAR, abs=1e-9)
     assert meta["source_file"] == "dyno-unit-A_101.5psi_2Hz_s1.csv"
+    assert meta["simulated"] == "true"
     assert set(topics) == {"/position", "/force", "/temperature/shock"}
     for topic, rate in [("/position", 100), ("/force", 50), ("/temperature/shock", 1)]:
         t = topics[topic][0]

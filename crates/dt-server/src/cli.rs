@@ -170,6 +170,10 @@ pub struct ImportArgs {
     /// Dyno excitation frequency, Hz (metadata).
     #[arg(long)]
     pub frequency_hz: Option<f64>,
+    /// Extra run metadata, KEY=VALUE (repeatable), e.g. `simulated=true`
+    /// for exports of a simulated dyno.
+    #[arg(long = "meta", value_name = "KEY=VALUE")]
+    pub meta: Vec<String>,
 }
 
 /// `shocktwin inspect`.

@@ -30,6 +30,7 @@
 //! # stroke_pp_mm = 80.0
 //! ```
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, Context as _};
@@ -138,6 +139,9 @@ pub struct RunMap {
     pub frequency_hz: Option<f64>,
     /// Dyno stroke peak to peak, mm.
     pub stroke_pp_mm: Option<f64>,
+    /// Extra metadata keys, kept verbatim.
+    #[serde(default)]
+    pub metadata: BTreeMap<String, String>,
 }
 
 /// How the time column is written.
@@ -221,6 +225,8 @@ pub struct Mapping {
     pub frequency_hz: Option<f64>,
     /// Stroke, m.
     pub stroke_pp_m: Option<f64>,
+    /// Extra metadata.
+    pub metadata: BTreeMap<String, String>,
 }
 
 impl Mapping {
@@ -260,6 +266,23 @@ pub fn resolve(args: &ImportArgs) -> anyhow::Result<Mapping> {
         None => MapFile::default(),
     };
     overlay(&mut file, args);
+    for kv in &args.meta {
+        let Some((k, v)) = kv.split_once('=') else {
+            bail!("import: --meta {kv:?}: expected KEY=VALUE");
+        };
+        let reserved = [
+            "asset_id",
+            "run_id",
+            "charge_pressure_bar",
+            "frequency_hz",
+            "stroke_pp_m",
+        ];
+        if k.is_empty() || reserved.contains(&k) {
+            bail!("import: --meta {kv:?}: the key must be non-empty and not one of {reserved:?} (they have their own flags)");
+        }
+        let run = file.run.get_or_insert_with(RunMap::default);
+        run.metadata.insert(k.to_owned(), v.to_owned());
+    }
     let what = args.map.as_ref().map_or_else(
         || "the flags".to_owned(),
         |p| format!("{} and the flags", p.display()),
@@ -431,6 +454,7 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         charge,
         frequency_hz: run.frequency_hz,
         stroke_pp_m: run.stroke_pp_mm.map(|mm| mm * 1e-3),
+        metadata: run.metadata,
     })
 }
 

@@ -230,6 +230,7 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
         stroke_pp_m: map.stroke_pp_m,
         ..RunMetadata::default()
     };
+    meta.extra.extend(map.metadata.clone());
     if let Some(label) = label {
         meta.extra.insert("charge_label".into(), label);
     }
