@@ -224,7 +224,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     campaign = load_campaign(args.campaign)
     obs = dict(shocktwin.default_observer_params())
-    if args.datasheet:
+    if args.datasheet and args.datasheet.suffix == ".toml":
+        # The same datasheet file as fit_physics (docs/datasheet.example.toml).
+        from train.datasheet import load_datasheet
+
+        geometry = load_datasheet(args.datasheet).geometry
+        obs.update({f"{k}_m2" if k == "a_rod" else f"{k}_m3": v for k, v in geometry.items()
+                    if k in ("a_rod", "v_gas")})
+    elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
     params = {**physics, "observer": obs}
     log.info("fitting reversals of %d runs", len(campaign.runs))
@@ -254,7 +261,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--campaign", required=True, type=Path)
     f.add_argument("--physics", required=True, type=Path, help="physics.json from train.fit_physics")
     f.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
-    f.add_argument("--datasheet", type=Path, help="JSON with the damper's a_rod_m2 and v_gas_m3")
+    f.add_argument("--datasheet", type=Path, help="the damper's datasheet: TOML as for fit_physics (docs/datasheet.example.toml), or JSON with a_rod_m2 and v_gas_m3")
     f.add_argument("--unit-tolerance-pct", type=float, default=10.0,
                    help="one-sigma unit-to-unit tolerance of the seal friction (datasheet), %%")
     f.add_argument("--jobs", type=int, default=2)
