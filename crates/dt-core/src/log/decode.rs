@@ -186,7 +186,9 @@ fn parse_flat_object(
             return Err(whole(format!("expected `:` after key {key:?}")));
         }
         p.ws();
-        let value = p.value().map_err(|reason| (key.clone(), reason))?;
+        let value = p
+            .value()
+            .map_err(|reason| (key.clone(), format!("malformed JSON: {reason}")))?;
         f(&key, value)?;
         p.ws();
         if p.eat(b',') {
@@ -386,6 +388,17 @@ mod tests {
             "",
         ] {
             assert!(fields(bad).is_err(), "{bad}");
+        }
+    }
+
+    /// Found by the fuzzer: a malformed value under an empty key gave
+    /// "field ``: unterminated string"; the reason now says it is malformed JSON.
+    #[test]
+    fn a_malformed_value_is_named_malformed_json_with_its_key() {
+        for (bad, key) in [(r#"{"": "abc"#, ""), (r#"{"a1_mps2": -x}"#, "a1_mps2")] {
+            let (field, reason) = fields(bad).unwrap_err();
+            assert_eq!(field, key);
+            assert!(reason.starts_with("malformed JSON: "), "{reason}");
         }
     }
 }

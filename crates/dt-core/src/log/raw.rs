@@ -218,6 +218,8 @@ pub struct RawDecoder {
     schemas: BTreeMap<u16, Arc<RawSchema>>,
     channels: Vec<Option<Arc<RawChannel>>>,
     scratch: Vec<u8>,
+    /// A size-limit or magic error the scanner found ahead of the reader.
+    deferred: Option<LogError>,
     eof: bool,
     eof_notified: bool,
     failed: bool,
@@ -254,6 +256,10 @@ impl RawDecoder {
         let record_limit = usize::try_from(limits.max_record_bytes).unwrap_or(usize::MAX);
         let options = LinearReaderOptions::default()
             .with_validate_chunk_crcs(true)
+            // a chunk with a CRC is checked whole before any of its records
+            // is yielded: a corrupt chunk yields nothing, whatever pieces
+            // the stream comes in (found by the fuzzer)
+            .with_prevalidate_chunk_crcs(true)
             .with_validate_data_section_crc(true)
             .with_validate_summary_section_crc(true)
             .with_record_length_limit(record_limit);
@@ -265,6 +271,7 @@ impl RawDecoder {
             schemas: BTreeMap::new(),
             channels: Vec::new(),
             scratch: Vec::new(),
+            deferred: None,
             eof: false,
             eof_notified: false,
             failed: false,
@@ -324,15 +331,26 @@ impl RawDecoder {
                         }
                         return None;
                     }
-                    let n = need.max(FEED_STEP).min(input.len());
-                    let (head, rest) = input.split_at(n);
-                    if let Err(err) = self.scanner.scan(&self.file, head, &self.limits) {
+                    if let Some(err) = self.deferred.take() {
                         self.failed = true;
                         return Some(Err(err));
                     }
-                    self.reader.insert(n).copy_from_slice(head);
-                    self.reader.notify_read(n);
-                    *input = rest;
+                    let mut n = need.max(FEED_STEP).min(input.len());
+                    if let Err((before, err)) =
+                        self.scanner.scan(&self.file, &input[..n], &self.limits)
+                    {
+                        // Reported when the reader asks for the record at
+                        // fault, after every record before it: the same
+                        // events whatever the pieces the input came in.
+                        self.deferred = Some(err);
+                        n = before;
+                    }
+                    if n > 0 {
+                        let (head, rest) = input.split_at(n);
+                        self.reader.insert(n).copy_from_slice(head);
+                        self.reader.notify_read(n);
+                        *input = rest;
+                    }
                 }
                 Some(Ok(LinearReadEvent::Record { opcode, data })) => {
                     match parse(&self.file, opcode, data, &mut self.scratch) {
@@ -622,7 +640,27 @@ impl Scanner {
         }
     }
 
-    fn scan(&mut self, file: &str, mut bytes: &[u8], limits: &ReadLimits) -> Result<(), LogError> {
+    /// Scans `bytes`; an error comes with the number of them before the
+    /// record (or magic) at fault.
+    fn scan(
+        &mut self,
+        file: &str,
+        bytes: &[u8],
+        limits: &ReadLimits,
+    ) -> Result<(), (usize, LogError)> {
+        let start = self.offset;
+        self.scan_inner(file, bytes, limits).map_err(|err| {
+            let at_fault = self.offset - self.head.len() as u64;
+            (at_fault.saturating_sub(start) as usize, err)
+        })
+    }
+
+    fn scan_inner(
+        &mut self,
+        file: &str,
+        mut bytes: &[u8],
+        limits: &ReadLimits,
+    ) -> Result<(), LogError> {
         while !bytes.is_empty() {
             match self.state {
                 ScanState::Done => {
@@ -693,10 +731,17 @@ impl Scanner {
                             });
                         }
                     }
+                    if self.head.len() == RECORD_HEAD + CHUNK_FIXED
+                        && self.head[0] == mcap::records::op::CHUNK
+                    {
+                        // before the compression name: the MCAP reader
+                        // cannot have found anything wrong with the chunk yet
+                        self.check_chunk_size(file, limits)?;
+                    }
                     if self.head_len() > self.head.len() {
                         continue; // a chunk: collect its header and compression name
                     }
-                    self.finish_head(file, limits)?;
+                    self.finish_head();
                 }
             }
         }
@@ -722,26 +767,31 @@ impl Scanner {
         (fixed + name_len).min(RECORD_HEAD + usize::try_from(len).unwrap_or(usize::MAX))
     }
 
-    fn finish_head(&mut self, file: &str, limits: &ReadLimits) -> Result<(), LogError> {
+    /// Checks the uncompressed size a chunk declares (its fixed fields are in `head`).
+    fn check_chunk_size(&self, file: &str, limits: &ReadLimits) -> Result<(), LogError> {
+        let uncompressed = u64::from_le_bytes(
+            self.head[RECORD_HEAD + 16..RECORD_HEAD + 24]
+                .try_into()
+                .unwrap_or([0; 8]),
+        );
+        if uncompressed > limits.max_chunk_uncompressed_bytes {
+            return Err(LogError::TooLarge {
+                file: file.to_owned(),
+                what: format!(
+                    "chunk at offset {} (uncompressed size)",
+                    self.offset - self.head.len() as u64
+                ),
+                len: uncompressed,
+                limit: limits.max_chunk_uncompressed_bytes,
+            });
+        }
+        Ok(())
+    }
+
+    fn finish_head(&mut self) {
         let opcode = self.head[0];
         let len = u64::from_le_bytes(self.head[1..9].try_into().unwrap_or([0; 8]));
         if opcode == mcap::records::op::CHUNK && self.head.len() >= RECORD_HEAD + CHUNK_FIXED {
-            let uncompressed = u64::from_le_bytes(
-                self.head[RECORD_HEAD + 16..RECORD_HEAD + 24]
-                    .try_into()
-                    .unwrap_or([0; 8]),
-            );
-            if uncompressed > limits.max_chunk_uncompressed_bytes {
-                return Err(LogError::TooLarge {
-                    file: file.to_owned(),
-                    what: format!(
-                        "chunk at offset {} (uncompressed size)",
-                        self.offset - self.head.len() as u64
-                    ),
-                    len: uncompressed,
-                    limit: limits.max_chunk_uncompressed_bytes,
-                });
-            }
             let name = &self.head[RECORD_HEAD + CHUNK_FIXED..];
             *self
                 .chunks
@@ -761,6 +811,80 @@ impl Scanner {
         } else {
             ScanState::Body { remaining, footer }
         };
-        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::Cursor;
+
+    use super::{RawDecoder, RawEvent, ReadLimits};
+    use crate::log::{Compression, LogError, LogWriter, RunMetadata, Sample, WriteOptions};
+
+    /// Opcodes of the events and the error, feeding `bytes` in `piece`-byte pieces.
+    fn decode(bytes: &[u8], piece: usize, limits: ReadLimits) -> (Vec<u8>, Option<LogError>) {
+        let mut decoder = RawDecoder::new("ahead.mcap", limits);
+        let mut opcodes = Vec::new();
+        for chunk in bytes.chunks(piece) {
+            let mut input = chunk;
+            while let Some(event) = decoder.next_event(&mut input) {
+                match event {
+                    Ok(RawEvent::Message { .. }) => opcodes.push(0x05),
+                    Ok(RawEvent::Channel(_)) => opcodes.push(0x04),
+                    Ok(_) => opcodes.push(0),
+                    Err(err) => return (opcodes, Some(err)),
+                }
+            }
+            assert!(input.is_empty());
+        }
+        (opcodes, None)
+    }
+
+    /// A size error the scanner sees ahead of the reader (found by the
+    /// fuzzer): every record before the one at fault is still yielded,
+    /// whatever the pieces the input comes in.
+    #[test]
+    fn a_size_error_ahead_comes_after_the_records_before_it() {
+        let meta = RunMetadata {
+            asset_id: "a".into(),
+            run_id: "r".into(),
+            ..RunMetadata::default()
+        };
+        let options = WriteOptions {
+            compression: Compression::None,
+            chunk_size: None,
+        };
+        let mut w = LogWriter::new(Cursor::new(Vec::new()), &meta, options).unwrap();
+        for i in 0..5 {
+            w.write_sample(&Sample::Force {
+                t_ns: i,
+                force_n: 1.0,
+            })
+            .unwrap();
+        }
+        let mut bytes = w.finish().unwrap().into_inner();
+        // cut at the data end record, then a channel declaring 1 KiB + 1
+        let mut pos = 8;
+        while bytes[pos] != 0x0F {
+            pos += 9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+        }
+        bytes.truncate(pos);
+        bytes.push(0x04);
+        bytes.extend_from_slice(&1025_u64.to_le_bytes());
+        let limits = ReadLimits {
+            max_record_bytes: 1024,
+            max_chunk_uncompressed_bytes: 4096,
+        };
+        let (whole, err) = decode(&bytes, bytes.len(), limits);
+        assert_eq!(whole.iter().filter(|&&op| op == 0x05).count(), 5);
+        assert!(
+            matches!(err, Some(LogError::TooLarge { len: 1025, .. })),
+            "{err:?}"
+        );
+        for piece in [1, 9, 100] {
+            let (events, err) = decode(&bytes, piece, limits);
+            assert_eq!(events, whole, "pieces of {piece}");
+            assert!(matches!(err, Some(LogError::TooLarge { .. })), "{err:?}");
+        }
     }
 }
