@@ -2,6 +2,8 @@
 
 mod bundle;
 mod estimator;
+mod fuzz_decode;
+mod fuzz_driver;
 mod log_conformance;
 mod log_python;
 mod log_reader;
