@@ -120,7 +120,8 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
                             "{file}:{line}: column {:?}: time {:?} is not after line {prev_line}'s ({:.6} s earlier or equal)",
                             wanted[0],
                             record.get(index[0]).unwrap_or(""),
-                            (prev - t_ns) as f64 * 1e-9
+                            // i128: saturated times (±9.2e9 s) must not overflow
+                            (i128::from(prev) - i128::from(t_ns)) as f64 * 1e-9
                         );
                     }
                 }
@@ -236,6 +237,42 @@ fn parse_time(text: &str, format: &mut TimeFormat) -> Result<i64, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Found by the fuzzer: an elapsed time of -7.7e18 s saturates to
+    /// `i64::MIN` ns, and the "earlier by" figure overflowed (a panic in a
+    /// debug build, a negative number in release).
+    #[test]
+    fn a_saturated_time_going_backwards_is_reported_without_overflow() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        std::fs::write(&path, "t,x\n0.1,1\n-7742193463672171491,2\n").unwrap();
+        let map = Mapping {
+            header_line: None,
+            delimiter: b',',
+            time: "t".into(),
+            time_format: TimeFormat::ElapsedS,
+            position: Some(super::super::map::Column {
+                name: "x".into(),
+                scale: 1.0,
+                offset: 0.0,
+            }),
+            force: None,
+            temp_shock: None,
+            temp_ambient: None,
+            acceleration: None,
+            asset_id: None,
+            run_id: None,
+            charge: super::super::map::Charge::None,
+            frequency_hz: None,
+            stroke_pp_m: None,
+            metadata: BTreeMap::new(),
+        };
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(
+            err.contains(":3: column \"t\"") && err.contains("(9223372036.954"),
+            "{err}"
+        );
+    }
 
     #[test]
     fn times_in_every_format() {
