@@ -850,6 +850,8 @@ impl SpawnedDaemon {
         ])
         .arg(&args.model)
         .env("SHOCKTWIN_MAX_CONNECTIONS", (n + 16).to_string())
+        // Every simulated vehicle connects from loopback.
+        .env("SHOCKTWIN_MAX_CONNECTIONS_PER_PEER", (n + 16).to_string())
         .env("RUST_LOG", "warn,dt_server::cmd_serve=info")
         .stdin(Stdio::null())
         .stdout(Stdio::null())

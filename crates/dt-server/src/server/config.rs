@@ -107,8 +107,14 @@ pub struct ModelConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Limits {
-    /// Concurrent ingest connections; further clients wait in the accept backlog.
+    /// Concurrent ingest connections; a client beyond them is refused at once.
     pub max_connections: usize,
+    /// Concurrent ingest connections from one IP address (a depot's NAT may
+    /// need more); beyond them a client is refused at once.
+    pub max_connections_per_peer: usize,
+    /// An ingest connection must send its first bytes (or finish its TLS
+    /// handshake) within this many seconds, else it is closed.
+    pub first_data_timeout_s: f64,
     /// Largest MCAP record (e.g. a chunk) a stream may declare, bytes.
     pub max_record_bytes: u64,
     /// Depth of the queue from the ingest tasks to the sinks (batches) and of
@@ -124,6 +130,8 @@ impl Default for Limits {
     fn default() -> Self {
         Self {
             max_connections: 64,
+            max_connections_per_peer: 16,
+            first_data_timeout_s: 10.0,
             max_record_bytes: 64 << 20,
             queue_depth: 1024,
             idle_timeout_s: 120.0,
@@ -236,6 +244,10 @@ pub const ENV_VARS: &[(&str, &str)] = &[
     ("SHOCKTWIN_DB", "store.path"),
     ("SHOCKTWIN_MODEL", "model.bundle"),
     ("SHOCKTWIN_MAX_CONNECTIONS", "limits.max_connections"),
+    (
+        "SHOCKTWIN_MAX_CONNECTIONS_PER_PEER",
+        "limits.max_connections_per_peer",
+    ),
     ("SHOCKTWIN_MAX_RECORD_BYTES", "limits.max_record_bytes"),
     ("SHOCKTWIN_QUEUE_DEPTH", "limits.queue_depth"),
 ];
@@ -291,6 +303,9 @@ impl Config {
                 "SHOCKTWIN_RECORD_DIR" => self.server.record_dir = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_DB" => self.store.path = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_MODEL" => self.model.bundle = Some(PathBuf::from(&value)),
+                "SHOCKTWIN_MAX_CONNECTIONS_PER_PEER" => {
+                    self.limits.max_connections_per_peer = parse(&value).map_err(bad)?;
+                }
                 "SHOCKTWIN_MAX_CONNECTIONS" => {
                     self.limits.max_connections = parse(&value).map_err(bad)?;
                 }
@@ -334,6 +349,18 @@ impl Config {
         let l = &self.limits;
         if l.max_connections == 0 {
             return Err(invalid("limits.max_connections", "must be at least 1"));
+        }
+        if l.max_connections_per_peer == 0 {
+            return Err(invalid(
+                "limits.max_connections_per_peer",
+                "must be at least 1",
+            ));
+        }
+        if !(l.first_data_timeout_s.is_finite() && l.first_data_timeout_s > 0.0) {
+            return Err(invalid(
+                "limits.first_data_timeout_s",
+                "must be a positive number",
+            ));
         }
         if l.queue_depth == 0 {
             return Err(invalid("limits.queue_depth", "must be at least 1"));

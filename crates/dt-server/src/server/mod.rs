@@ -239,12 +239,8 @@ pub async fn run(
     }
     let store = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
     let mut sources: Vec<Box<dyn Source>> = vec![Box::new(
-        tcp::TcpSource::new(
-            listeners.ingest,
-            limits.max_connections,
-            Duration::from_secs_f64(limits.idle_timeout_s),
-        )
-        .with_tls(tls.as_ref().map(|(ingest, _)| Arc::clone(ingest))),
+        tcp::TcpSource::new(listeners.ingest, tcp::ConnectionLimits::from_config(limits))
+            .with_tls(tls.as_ref().map(|(ingest, _)| Arc::clone(ingest))),
     )];
     if let Some(dir) = &config.server.inbox {
         sources.push(Box::new(inbox::InboxSource::new(

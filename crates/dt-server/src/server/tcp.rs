@@ -1,15 +1,20 @@
 //! TCP ingest: each connection carries one MCAP byte stream, one run of one
 //! asset (named by its `shocktwin.run` metadata), written incrementally by
-//! any MCAP writer. A semaphore caps concurrent connections (others wait in
-//! the accept backlog). When the run is processed and flushed the daemon
+//! any MCAP writer. A semaphore caps concurrent connections and a count per
+//! IP address caps each peer's share; a connection beyond either is
+//! answered `{"status":"refused",…}` at once and closed (a flood of silent
+//! sockets cannot leave vehicles waiting in the backlog), and a connection
+//! that sends nothing within `first_data_timeout_s` gives its slot back. When the run is processed and flushed the daemon
 //! writes one JSON line (a [`super::ingest::RunReport`]) back and closes.
 //! With TLS ([`super::security`]) each connection's handshake runs in its
 //! own task, bounded by the idle timeout, and the same stream follows over
 //! TLS; with a client CA a connection without a valid client certificate
 //! fails its handshake and is counted, never decoded.
 
-use std::net::SocketAddr;
+use std::collections::HashMap;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
+use std::sync::Mutex;
 use std::time::Duration;
 
 use futures_util::future::BoxFuture;
@@ -25,20 +30,43 @@ use super::ServeError;
 #[derive(Debug)]
 pub struct TcpSource {
     listener: TcpListener,
-    max_connections: usize,
-    idle: Duration,
+    limits: ConnectionLimits,
     tls: Option<Arc<rustls::ServerConfig>>,
 }
 
-impl TcpSource {
-    /// Serves `listener` with at most `max_connections` at once; a connection
-    /// silent for `idle` is closed.
+/// What one listener allows (from `[limits]`).
+#[derive(Debug, Clone, Copy)]
+pub struct ConnectionLimits {
+    /// Connections served at once; more are refused at once.
+    pub max_connections: usize,
+    /// Connections served at once from one IP address.
+    pub max_per_peer: usize,
+    /// A connection must send its first bytes (or finish its TLS handshake) this soon.
+    pub first_data: Duration,
+    /// A connection silent for this long is closed.
+    pub idle: Duration,
+}
+
+impl ConnectionLimits {
+    /// The `[limits]` of the configuration.
     #[must_use]
-    pub fn new(listener: TcpListener, max_connections: usize, idle: Duration) -> Self {
+    pub fn from_config(l: &super::config::Limits) -> Self {
+        Self {
+            max_connections: l.max_connections,
+            max_per_peer: l.max_connections_per_peer,
+            first_data: Duration::from_secs_f64(l.first_data_timeout_s),
+            idle: Duration::from_secs_f64(l.idle_timeout_s),
+        }
+    }
+}
+
+impl TcpSource {
+    /// Serves `listener` within `limits`.
+    #[must_use]
+    pub fn new(listener: TcpListener, limits: ConnectionLimits) -> Self {
         Self {
             listener,
-            max_connections,
-            idle,
+            limits,
             tls: None,
         }
     }
@@ -64,14 +92,58 @@ impl Source for TcpSource {
     }
 }
 
+/// Connections per peer address; a slot gives its place back when dropped.
+#[derive(Debug, Default)]
+struct Peers(Mutex<HashMap<IpAddr, usize>>);
+
+struct PeerSlot {
+    peers: Arc<Peers>,
+    ip: IpAddr,
+}
+
+impl Peers {
+    fn take(self: &Arc<Self>, ip: IpAddr, max: usize) -> Option<PeerSlot> {
+        let mut map = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let n = map.entry(ip).or_insert(0);
+        if *n >= max {
+            return None;
+        }
+        *n += 1;
+        Some(PeerSlot {
+            peers: Arc::clone(self),
+            ip,
+        })
+    }
+}
+
+impl Drop for PeerSlot {
+    fn drop(&mut self) {
+        let mut map = self
+            .peers
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(n) = map.get_mut(&self.ip) {
+            *n -= 1;
+            if *n == 0 {
+                map.remove(&self.ip);
+            }
+        }
+    }
+}
+
+/// Accepts every connection at once: one within the limits is served, one
+/// beyond them is answered `refused` (one JSON line) and closed, so that a
+/// flood never leaves good clients hanging in the backlog.
 async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeError> {
-    let permits = Arc::new(Semaphore::new(src.max_connections));
+    let limits = src.limits;
+    let permits = Arc::new(Semaphore::new(limits.max_connections));
+    let peers = Arc::new(Peers::default());
     let mut backoff = Duration::from_millis(10);
     loop {
-        let permit = tokio::select! {
-            () = ctx.cancel.cancelled() => return Ok(()),
-            p = Arc::clone(&permits).acquire_owned() => p.expect("the semaphore is never closed"),
-        };
         let accepted = tokio::select! {
             () = ctx.cancel.cancelled() => return Ok(()),
             a = src.listener.accept() => a,
@@ -95,19 +167,56 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
         };
         let m = ctx.ingest.metrics();
         m.connections.inc();
+        let slot = peers.take(peer.ip(), limits.max_per_peer);
+        let permit = Arc::clone(&permits).try_acquire_owned().ok();
+        let (Some(slot), Some(permit)) = (slot, permit) else {
+            let (kind, reason) = if peers_full(&peers, peer.ip(), limits.max_per_peer) {
+                (
+                    "refused_per_peer",
+                    format!(
+                        "{} already has {} connections, the most one address may have; retry later",
+                        peer.ip(),
+                        limits.max_per_peer
+                    ),
+                )
+            } else {
+                (
+                    "refused_max_connections",
+                    format!(
+                        "the daemon is serving its limit of {} connections; retry later",
+                        limits.max_connections
+                    ),
+                )
+            };
+            m.error(kind);
+            tracing::warn!(%peer, "connection refused: {reason}");
+            ctx.tracker.spawn(refuse(socket, reason));
+            continue;
+        };
         m.connections_active.inc();
         let ingest = ctx.ingest.clone();
         let cancel = ctx.cancel.clone();
-        let idle = src.idle;
         let tls = src.tls.clone();
         ctx.tracker.spawn(async move {
             match tls {
-                None => serve_connection(&ingest, socket, peer, &cancel, idle).await,
+                None => {
+                    // Silent connections do not hold a slot for the whole idle timeout.
+                    let mut first = [0u8; 1];
+                    if tokio::time::timeout(limits.first_data, socket.peek(&mut first))
+                        .await
+                        .is_err()
+                    {
+                        ingest.metrics().error("first_data_timeout");
+                        tracing::warn!(%peer, "closed: nothing sent within {:?}", limits.first_data);
+                    } else {
+                        serve_connection(&ingest, socket, peer, &cancel, limits.idle).await;
+                    }
+                }
                 Some(config) => {
                     let acceptor = tokio_rustls::TlsAcceptor::from(config);
-                    match tokio::time::timeout(idle, acceptor.accept(socket)).await {
+                    match tokio::time::timeout(limits.first_data, acceptor.accept(socket)).await {
                         Ok(Ok(stream)) => {
-                            serve_connection(&ingest, stream, peer, &cancel, idle).await;
+                            serve_connection(&ingest, stream, peer, &cancel, limits.idle).await;
                         }
                         Ok(Err(e)) => {
                             ingest.metrics().error("tls_handshake");
@@ -122,8 +231,27 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
             }
             ingest.metrics().connections_active.dec();
             drop(permit);
+            drop(slot);
         });
     }
+}
+
+fn peers_full(peers: &Peers, ip: IpAddr, max: usize) -> bool {
+    let map = peers
+        .0
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    map.get(&ip).is_some_and(|&n| n >= max)
+}
+
+/// Answers a connection beyond the limits with one `refused` line and closes it.
+async fn refuse(mut socket: tokio::net::TcpStream, reason: String) {
+    let line = serde_json::json!({ "status": "refused", "reason": reason }).to_string() + "\n";
+    let _ = tokio::time::timeout(Duration::from_secs(2), async {
+        let _ = socket.write_all(line.as_bytes()).await;
+        let _ = socket.shutdown().await;
+    })
+    .await;
 }
 
 async fn serve_connection<S: AsyncRead + AsyncWrite + Unpin>(

@@ -229,8 +229,19 @@ async fn concurrent_streams_good_and_bad() {
     d.stop().await;
 }
 
+/// Reads the one reply line of a refused connection.
+async fn refused_reply(addr: std::net::SocketAddr) -> serde_json::Value {
+    let mut c = TcpStream::connect(addr).await.unwrap();
+    let mut reply = String::new();
+    tokio::time::timeout(Duration::from_secs(5), c.read_to_string(&mut reply))
+        .await
+        .expect("a refused client is answered at once, not left waiting")
+        .unwrap();
+    serde_json::from_str(reply.trim()).unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn connection_limit_makes_clients_wait() {
+async fn connections_beyond_the_limit_are_refused_at_once() {
     let mut config = test_config();
     config.limits.max_connections = 1;
     let d = Daemon::start(config).await;
@@ -245,18 +256,16 @@ async fn connection_limit_makes_clients_wait() {
         metric(&d.metrics().await, "shocktwin_connections_active") == Some(1.0)
     })
     .await;
-    let second = good_stream("queued", "r1", 0, 600);
-    let addr = d.ingest;
-    let bytes = second.bytes.clone();
-    let queued = tokio::spawn(async move { send(addr, &bytes, 1000).await });
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    let r = refused_reply(d.ingest).await;
+    assert_eq!(r["status"], "refused", "{r}");
     assert!(
-        !queued.is_finished(),
-        "the second client must wait for a permit"
+        r["reason"]
+            .as_str()
+            .unwrap()
+            .contains("limit of 1 connections"),
+        "{r}"
     );
-    let m = d.metrics().await;
-    assert_eq!(metric(&m, "shocktwin_connections_total"), Some(1.0), "{m}");
-    // The first client finishes; the second is served.
+    // The first client finishes; the next one is served.
     holder
         .write_all(&first.bytes[first.bytes.len() / 2..])
         .await
@@ -265,9 +274,55 @@ async fn connection_limit_makes_clients_wait() {
     let mut reply = String::new();
     holder.read_to_string(&mut reply).await.unwrap();
     assert!(reply.contains("\"completed\""), "{reply}");
-    let r = queued.await.unwrap();
+    let next = good_stream("next", "r1", 0, 600);
+    let r = send(d.ingest, &next.bytes, 1000).await;
     assert_eq!(r["status"], "completed", "{r}");
-    assert_eq!(r["ticks"], second.ticks);
+    assert_eq!(r["ticks"], next.ticks);
+    let m = d.metrics().await;
+    assert!(m.contains("kind=\"refused_max_connections\""), "{m}");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_connections_neither_lock_out_vehicles_nor_keep_their_slots() {
+    // The attack, scaled down: as many silent sockets as the daemon allows
+    // one address, from one address.
+    let mut config = test_config();
+    config.limits.max_connections = 8;
+    config.limits.max_connections_per_peer = 4;
+    config.limits.first_data_timeout_s = 1.0;
+    let d = Daemon::start(config).await;
+    let mut silent = Vec::new();
+    for _ in 0..4 {
+        silent.push(TcpStream::connect(d.ingest).await.unwrap());
+    }
+    crate::common::wait_until("the silent connections", || async {
+        metric(&d.metrics().await, "shocktwin_connections_active") == Some(4.0)
+    })
+    .await;
+    // A fifth from the same address is refused at once, naming the per-peer limit ...
+    let r = refused_reply(d.ingest).await;
+    assert!(
+        r["reason"]
+            .as_str()
+            .unwrap()
+            .contains("the most one address may have"),
+        "{r}"
+    );
+    // ... and the silent ones are closed after first_data_timeout_s, freeing their slots.
+    for mut c in silent {
+        let mut buf = Vec::new();
+        let n = tokio::time::timeout(Duration::from_secs(10), c.read_to_end(&mut buf))
+            .await
+            .expect("a silent connection is closed after first_data_timeout_s");
+        assert!(n.is_ok());
+    }
+    let s = good_stream("vehicle", "r1", 0, 600);
+    let r = send(d.ingest, &s.bytes, 1000).await;
+    assert_eq!(r["status"], "completed", "{r}");
+    let m = d.metrics().await;
+    assert!(m.contains("kind=\"first_data_timeout\""), "{m}");
+    assert!(m.contains("kind=\"refused_per_peer\""), "{m}");
     d.stop().await;
 }
 
