@@ -194,7 +194,18 @@ fn parse_row(
             });
         }
         let (scale, offset) = scales[k - 1];
-        row[k - 1] = scale * v + offset;
+        let si = scale * v + offset;
+        if !si.is_finite() {
+            // e.g. 1e308 kN, or a non-finite mid_stroke in the mapping (found by fuzzing)
+            return Err(BadRow {
+                message: format!(
+                    "column {:?}: {text:?} is out of range in SPEC units",
+                    names[k]
+                ),
+                reason: format!("column {:?}: out of range", names[k]),
+            });
+        }
+        row[k - 1] = si;
     }
     Ok(t_ns)
 }
@@ -270,6 +281,21 @@ mod tests {
         let err = format!("{:#}", read(&path, &map, false).unwrap_err());
         assert!(
             err.contains(":3: column \"t\"") && err.contains("(9223372036.954"),
+            "{err}"
+        );
+        // a finite cell out of range once converted (found by fuzzing)
+        std::fs::write(&path, "t,x\n0.1,1\n0.2,1e308\n").unwrap();
+        let map = Mapping {
+            position: Some(super::super::map::Column {
+                name: "x".into(),
+                scale: 1e3,
+                offset: 0.0,
+            }),
+            ..map
+        };
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(
+            err.contains(":3: column \"x\": \"1e308\" is out of range"),
             "{err}"
         );
     }
