@@ -392,7 +392,8 @@ mod tests {
     }
 
     /// Found by the fuzzer: a malformed value under an empty key gave
-    /// "field ``: unterminated string"; the reason now says it is malformed JSON.
+    /// an empty field name and "unterminated string"; the reason now says
+    /// it is malformed JSON.
     #[test]
     fn a_malformed_value_is_named_malformed_json_with_its_key() {
         for (bad, key) in [(r#"{"": "abc"#, ""), (r#"{"a1_mps2": -x}"#, "a1_mps2")] {
