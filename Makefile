@@ -19,7 +19,7 @@ CAMPAIGN ?= $(OUT)/campaign
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
-.PHONY: help setup build wheel browser demo test test-rust test-python lint bench bench-python load-test study clean
+.PHONY: help setup build wheel browser demo test test-rust test-python lint fuzz bench bench-python load-test study clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -89,6 +89,18 @@ test: setup test-rust test-python ## set up, then run every test
 lint: ## rustfmt and clippy (pedantic, workspace allow-list)
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy $(CARGO_PROFILE) --workspace --all-targets -- -D warnings
+
+# The fuzz harnesses of `cargo test` (dt-core: MCAP/JSON decoders; dt-server: config,
+# import CSV/map/labels), run with a large budget: FUZZ_SECS per harness, 7 harnesses.
+FUZZ_SECS ?= 85
+fuzz: ## fuzz every decoder a remote party reaches, ~10 min (FUZZ_SECS per harness; SHOCKTWIN_FUZZ_SEED replays)
+	mkdir -p $(OUT)
+	$(CARGO) build $(CARGO_PROFILE) -p dt-core -p dt-server --tests
+	SHOCKTWIN_FUZZ_CASES=1000000000 SHOCKTWIN_FUZZ_SECS=$(FUZZ_SECS) \
+	  $(CARGO) test $(CARGO_PROFILE) -p dt-core -p dt-server --no-fail-fast --test it fuzz_ -- --nocapture --test-threads 1 2>&1 \
+	  | tee $(OUT)/fuzz.log | grep -E '^(fuzz |crash:|minimal input|test result)' || true
+	@echo "executions: $$(grep -E '^fuzz ' $(OUT)/fuzz.log | sort -u | awk '{s += $$3} END {print s}'), crashes: $$(grep -E '^fuzz ' $(OUT)/fuzz.log | sort -u | awk '{s += $$5} END {print s}') (log: $(OUT)/fuzz.log)"
+	@! grep -q '^crash:' $(OUT)/fuzz.log
 
 bench: ## criterion benches (see README for the figures)
 	$(CARGO) bench -p dt-bench
