@@ -98,8 +98,9 @@ fuzz: ## fuzz every decoder a remote party reaches, ~10 min (FUZZ_SECS per harne
 	$(CARGO) build $(CARGO_PROFILE) -p dt-core -p dt-server --tests
 	SHOCKTWIN_FUZZ_CASES=1000000000 SHOCKTWIN_FUZZ_SECS=$(FUZZ_SECS) \
 	  $(CARGO) test $(CARGO_PROFILE) -p dt-core -p dt-server --no-fail-fast --test it fuzz_ -- --nocapture --test-threads 1 2>&1 \
-	  | tee $(OUT)/fuzz.log | grep -E '^(fuzz |crash:|minimal input|test result)' || true
-	@echo "executions: $$(grep -E '^fuzz ' $(OUT)/fuzz.log | sort -u | awk '{s += $$3} END {print s}'), crashes: $$(grep -E '^fuzz ' $(OUT)/fuzz.log | sort -u | awk '{s += $$5} END {print s}') (log: $(OUT)/fuzz.log)"
+	  | tee $(OUT)/fuzz.log | grep -oE '(fuzz [a-z_/]+: [0-9]+ executions.*|^crash:.*|^minimal input.*|^test result.*)' || true
+	@grep -ohE 'fuzz [a-z_/]+: [0-9]+ executions, [0-9]+ crashes' $(OUT)/fuzz.log | sort -u > $(OUT)/fuzz.summary
+	@echo "executions: $$(awk '{s += $$3} END {print s}' $(OUT)/fuzz.summary), crashes: $$(awk '{s += $$5} END {print s}' $(OUT)/fuzz.summary) (log: $(OUT)/fuzz.log)"
 	@! grep -q '^crash:' $(OUT)/fuzz.log
 
 bench: ## criterion benches (see README for the figures)
