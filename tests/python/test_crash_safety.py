@@ -16,7 +16,10 @@ What the daemon promises, and what is asserted here:
   `running` row so when it reopens the store), and the re-processing adds a new `completed`
   row (keys are per boot and run, not per file). "Processed twice" therefore means two
   `completed` rows for one file: that must never happen. A file in `done/` must have exactly
-  one `completed` row — the store is the only record that it was processed.
+  one `completed` row — the store is the only record that it was processed. The store sink
+  commits a run's end before it returns (`StoreSink::run_ended`), and the inbox moves the file
+  only then; what remains is the gap between that commit and the rename (microseconds), where
+  a kill would make the file's run be processed, and recorded, once more.
 * Recordings: names are deterministic (`<asset>/<run_id>.<part>.mcap`), so re-processing
   rewrites the same files and no `.part` is left once every file is done. A `.part` cut by a
   kill is a valid MCAP prefix: its complete chunks read back (no summary, no footer) and hold
@@ -185,18 +188,12 @@ def test_kill9_at_random_moments_never_loses_or_doubles_an_inbox_file(
             assert ticks < full_ticks[run_id], f"an interrupted run has every tick: {source} {ticks}"
     doubled = {n: k for n, k in completed.items() if k > 1}
     assert not doubled, f"processed to completion more than once: {doubled}"
-    # Every file in done/ should also have its completed row; a kill within `flush_ms` of the
-    # move loses it (the xfail test below provokes that window on purpose).
+    # Every file in done/ has its completed row: a run's end is committed before the move.
     unrecorded = sorted(names - set(completed))
-    print(f"store: {len(rows)} rows, {sum(s == 'interrupted' for _, _, s, _ in rows)} interrupted; "
-          f"{len(unrecorded)} files in done/ without a completed row (known defect)")
+    print(f"store: {len(rows)} rows, {sum(s == 'interrupted' for _, _, s, _ in rows)} interrupted")
+    assert not unrecorded, f"in done/ without a completed run in the store: {unrecorded}"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "defect: StoreSink::run_ended (crates/dt-server/src/server/store/sink.rs) only queues the "
-    "run's RunEnded op; the writer commits up to flush_ms (500 ms) later, but the inbox moves "
-    "the file to done/ as soon as run_ended returns, so a kill -9 in that window leaves a file "
-    "in done/ with no completed run (or no row at all) in the fleet store"))
 def test_a_file_in_done_has_its_completed_run_in_the_store_even_after_kill9(
         runs: list[Path], tmp_path: Path, started: list[ServeProcess]) -> None:
     """Kills the daemon right after its first move to done/ (well within `flush_ms`), up to

@@ -1,11 +1,15 @@
 //! [`StoreSink`]: bins each run's estimates to 1 s, summarises each run, and
 //! hands the rows to the store's writer thread through a bounded queue; the
 //! writer commits a transaction per flush interval and refreshes the trends
-//! ([`Trends`]) of the assets whose runs ended.
+//! ([`Trends`]) of the assets whose runs ended. A run's end is committed at
+//! once, and [`StoreSink::run_ended`] returns only when it is: the inbox
+//! moves a file to `done/` after that, so a `kill -9` can never leave a file
+//! in `done/` whose run the store does not have.
 
 use std::collections::{HashMap, HashSet};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{self, RecvTimeoutError, SyncSender};
-use std::sync::{Arc, PoisonError, RwLock};
+use std::sync::{Arc, Condvar, Mutex, PoisonError, RwLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -156,11 +160,43 @@ struct RunAcc {
 pub struct StoreSink {
     tx: Option<SyncSender<StoreOp>>,
     writer: Option<JoinHandle<()>>,
+    /// Ops sent to the writer so far.
+    sent: AtomicU64,
+    /// Ops the writer has committed (or given up on), with a wake-up.
+    committed: Arc<Committed>,
     runs: HashMap<u64, RunAcc>,
     boot_ms: i64,
     min_excitation_mps: f64,
     metrics: Arc<Metrics>,
 }
+
+/// How many ops the writer has handled, for [`StoreSink::run_ended`] to wait on.
+#[derive(Debug, Default)]
+struct Committed {
+    ops: Mutex<u64>,
+    cv: Condvar,
+}
+
+impl Committed {
+    fn set(&self, ops: u64) {
+        *self.ops.lock().unwrap_or_else(PoisonError::into_inner) = ops;
+        self.cv.notify_all();
+    }
+
+    /// Waits until `ops` are handled; false after `timeout`.
+    fn wait_for(&self, ops: u64, timeout: Duration) -> bool {
+        let guard = self.ops.lock().unwrap_or_else(PoisonError::into_inner);
+        let (guard, _) = self
+            .cv
+            .wait_timeout_while(guard, timeout, |n| *n < ops)
+            .unwrap_or_else(PoisonError::into_inner);
+        *guard >= ops
+    }
+}
+
+/// How long a run's end waits for its commit before the sink gives up
+/// (a store that slow is reported; the run is not held forever).
+const COMMIT_WAIT: Duration = Duration::from_secs(30);
 
 fn now_ms() -> i64 {
     SystemTime::now()
@@ -194,12 +230,25 @@ impl StoreSink {
         }
         let (tx, rx) = mpsc::sync_channel::<StoreOp>(QUEUE_OPS);
         let writer_metrics = Arc::clone(&metrics);
+        let committed = Arc::new(Committed::default());
+        let writer_committed = Arc::clone(&committed);
         let writer = std::thread::Builder::new()
             .name("shocktwin-store".into())
-            .spawn(move || write_loop(&rx, store.as_ref(), &trends, &config, &writer_metrics))?;
+            .spawn(move || {
+                write_loop(
+                    &rx,
+                    store.as_ref(),
+                    &trends,
+                    &config,
+                    &writer_metrics,
+                    &writer_committed,
+                );
+            })?;
         Ok(Self {
             tx: Some(tx),
             writer: Some(writer),
+            sent: AtomicU64::new(0),
+            committed,
             runs: HashMap::new(),
             boot_ms: now_ms(),
             min_excitation_mps: dt_core::bundle::HealthConfig::default().min_excitation_mps,
@@ -209,7 +258,9 @@ impl StoreSink {
 
     fn send(&self, op: StoreOp) {
         if let Some(tx) = &self.tx {
-            if tx.send(op).is_err() {
+            if tx.send(op).is_ok() {
+                self.sent.fetch_add(1, Ordering::Relaxed);
+            } else {
                 self.metrics.error("store");
                 tracing::error!("the fleet store's writer thread is gone; history is not kept");
             }
@@ -367,6 +418,15 @@ impl Sink for StoreSink {
             reason: outcome.reason().map(str::to_owned),
             summary: summarise(&acc.excited),
         });
+        // Durable before the source takes the run as done (SPEC of `Sink`).
+        let ops = self.sent.load(Ordering::Relaxed);
+        if self.tx.is_some() && !self.committed.wait_for(ops, COMMIT_WAIT) {
+            self.metrics.error("store");
+            tracing::error!(
+                run_id = %run.meta.run_id,
+                "the fleet store did not commit the run's end within {COMMIT_WAIT:?}"
+            );
+        }
         Ok(())
     }
 
@@ -394,8 +454,10 @@ fn write_loop(
     trends: &Trends,
     config: &Config,
     metrics: &Metrics,
+    committed: &Committed,
 ) {
     let flush = Duration::from_millis(config.store.flush_ms);
+    let mut received: u64 = 0;
     let mut pending: Vec<StoreOp> = Vec::new();
     let mut first_pending = Instant::now();
     let mut last_prune: Option<Instant> = None;
@@ -410,8 +472,11 @@ fn write_loop(
                 if pending.is_empty() {
                     first_pending = Instant::now();
                 }
+                received += 1;
+                // A run's end is committed at once: its sink waits for it.
+                let run_end = matches!(op, StoreOp::RunEnded { .. });
                 pending.push(op);
-                if pending.len() < MAX_BATCH && first_pending.elapsed() < flush {
+                if !run_end && pending.len() < MAX_BATCH && first_pending.elapsed() < flush {
                     continue;
                 }
                 false
@@ -422,6 +487,8 @@ fn write_loop(
         if !pending.is_empty() {
             commit(&mut pending, store, trends, config, metrics);
         }
+        // Committed, or failed and said so: either way nobody waits on it any more.
+        committed.set(received);
         if let Some(days) = config.store.retention_days {
             if last_prune.is_none_or(|t| t.elapsed() >= Duration::from_secs(PRUNE_EVERY_S)) {
                 last_prune = Some(Instant::now());
