@@ -146,6 +146,48 @@ impl Listeners {
     }
 }
 
+/// The TCP listener and, if configured, the inbox.
+fn sources(
+    config: &Config,
+    ingest: TcpListener,
+    tls: Option<&security::TlsConfigs>,
+) -> Result<Vec<Box<dyn Source>>, ServeError> {
+    let mut sources: Vec<Box<dyn Source>> = vec![Box::new(
+        tcp::TcpSource::new(ingest, tcp::ConnectionLimits::from_config(&config.limits))
+            .with_tls(tls.map(|t| Arc::clone(&t.ingest))),
+    )];
+    if let Some(dir) = &config.server.inbox {
+        sources.push(Box::new(inbox::InboxSource::new(
+            dir,
+            Duration::from_secs_f64(config.server.inbox_rescan_s),
+            Duration::from_secs_f64(config.server.inbox_settle_s),
+        )?));
+    }
+    Ok(sources)
+}
+
+/// Tokens and TLS configurations, after the exposure rule (see [`security`]).
+fn secure(
+    config: &Config,
+    listeners: &Listeners,
+) -> Result<(Arc<security::Tokens>, Option<security::TlsConfigs>), ServeError> {
+    let tokens = Arc::new(security::Tokens::load(config)?);
+    let addr = |l: &TcpListener| {
+        l.local_addr().map_err(|source| ServeError::Io {
+            path: PathBuf::from("<listener>"),
+            source,
+        })
+    };
+    security::check_exposure(
+        config,
+        addr(&listeners.ingest)?,
+        addr(&listeners.http)?,
+        &tokens,
+        config.insecure,
+    )?;
+    Ok((tokens, security::server_configs(config)?))
+}
+
 /// HTTPS through axum-server's rustls acceptor (handshakes run per
 /// connection, not in the accept loop); stops gracefully with `stop`.
 fn spawn_https(
@@ -212,21 +254,7 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
     config.validate()?;
-    let tokens = Arc::new(security::Tokens::load(&config)?);
-    let addr = |l: &TcpListener| {
-        l.local_addr().map_err(|source| ServeError::Io {
-            path: PathBuf::from("<listener>"),
-            source,
-        })
-    };
-    security::check_exposure(
-        &config,
-        addr(&listeners.ingest)?,
-        addr(&listeners.http)?,
-        &tokens,
-        config.insecure,
-    )?;
-    let tls = security::server_configs(&config)?;
+    let (tokens, tls) = secure(&config, &listeners)?;
     let config = Arc::new(config);
     let limits = &config.limits;
     let metrics = Arc::new(Metrics::new());
@@ -238,17 +266,7 @@ pub async fn run(
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }
     let store = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
-    let mut sources: Vec<Box<dyn Source>> = vec![Box::new(
-        tcp::TcpSource::new(listeners.ingest, tcp::ConnectionLimits::from_config(limits))
-            .with_tls(tls.as_ref().map(|(ingest, _)| Arc::clone(ingest))),
-    )];
-    if let Some(dir) = &config.server.inbox {
-        sources.push(Box::new(inbox::InboxSource::new(
-            dir,
-            Duration::from_secs_f64(config.server.inbox_rescan_s),
-            Duration::from_secs_f64(config.server.inbox_settle_s),
-        )?));
-    }
+    let sources = sources(&config, listeners.ingest, tls.as_ref())?;
 
     let (sink_tx, sink_rx) = mpsc::channel(limits.queue_depth);
     let sink_metrics = Arc::clone(&metrics);
@@ -304,7 +322,7 @@ pub async fn run(
         .http
         .local_addr()
         .map_or_else(|e| e.to_string(), |a| a.to_string());
-    let http_task = match tls.map(|(_, http)| http) {
+    let http_task = match tls.map(|t| t.http) {
         None => tokio::spawn(
             axum::serve(listeners.http, app)
                 .with_graceful_shutdown(http_stop.clone().cancelled_owned())

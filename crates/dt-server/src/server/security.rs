@@ -138,11 +138,17 @@ fn tls_error(path: &Path, what: &str, e: impl std::fmt::Display) -> ServeError {
     }
 }
 
-/// The TLS server configurations: `(ingest, http)`, or `None` without `[tls]`.
-/// The ingest one requires client certificates when `client_ca` is set.
-pub fn server_configs(
-    config: &Config,
-) -> Result<Option<(Arc<rustls::ServerConfig>, Arc<rustls::ServerConfig>)>, ServeError> {
+/// The TLS server configurations of the two listeners.
+#[derive(Debug, Clone)]
+pub struct TlsConfigs {
+    /// The ingest listener's (requires client certificates when `client_ca` is set).
+    pub ingest: Arc<rustls::ServerConfig>,
+    /// The HTTP listener's (ALPN h2, http/1.1).
+    pub http: Arc<rustls::ServerConfig>,
+}
+
+/// The TLS server configurations, or `None` without `[tls]`.
+pub fn server_configs(config: &Config) -> Result<Option<TlsConfigs>, ServeError> {
     let tls = &config.tls;
     let (Some(cert), Some(key)) = (&tls.cert, &tls.key) else {
         return Ok(None);
@@ -195,7 +201,10 @@ pub fn server_configs(
     .map_err(|e| tls_error(key, "certificate and key do not match", e))?;
     let mut http = http;
     http.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
-    Ok(Some((Arc::new(ingest), Arc::new(http))))
+    Ok(Some(TlsConfigs {
+        ingest: Arc::new(ingest),
+        http: Arc::new(http),
+    }))
 }
 
 /// The exposure rule (see the module doc); `insecure` waives it, loudly.
@@ -208,12 +217,14 @@ pub fn check_exposure(
 ) -> Result<(), ServeError> {
     let tls = config.tls.cert.is_some() && config.tls.key.is_some();
     let mut problems = Vec::new();
-    if !ingest.ip().is_loopback() && !(tls && config.tls.client_ca.is_some()) {
+    let ingest_secured = tls && config.tls.client_ca.is_some();
+    if !(ingest.ip().is_loopback() || ingest_secured) {
         problems.push(format!(
             "the ingest listener {ingest} is not on loopback and has no TLS with client certificates ([tls] cert, key, client_ca)"
         ));
     }
-    if !http.ip().is_loopback() && !(tls && !tokens.read.is_empty()) {
+    let http_secured = tls && !tokens.read.is_empty();
+    if !(http.ip().is_loopback() || http_secured) {
         problems.push(format!(
             "the HTTP listener {http} is not on loopback and has no TLS with bearer tokens ([tls] cert, key; [auth] read_tokens_file)"
         ));

@@ -11,6 +11,7 @@
 //! mapped column, and its row counts add up; skipping bad rows changes
 //! nothing in a file without any; a charge is a finite number of bar.
 
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -95,29 +96,25 @@ fn csv_seeds() -> Vec<(usize, String)> {
     );
     for i in 0..24_u32 {
         let x = f64::from(i) * 0.1;
-        iso.push_str(&format!(
-            "2024-05-01T10:00:{:02}.{:03}Z,{:.1},{:.3},{:.2}\n",
+        let _ = writeln!(
+            iso,
+            "2024-05-01T10:00:{:02}.{:03}Z,{:.1},{:.3},{:.2}",
             i / 10,
             (i % 10) * 100,
             150.0 * x.sin(),
             40.0 + 30.0 * x.cos(),
             25.0 + 0.01 * x
-        ));
-        elapsed.push_str(&format!(
-            "{:.3};{:.4};{:.2};\"{:.1}\"\n",
-            x,
-            x.cos(),
-            -x,
-            30.0
-        ));
-        epoch.push_str(&format!(
-            "{},{:.1},{:.2},25.0,{:.3},{:.3}\n",
+        );
+        let _ = writeln!(elapsed, "{:.3};{:.4};{:.2};\"{:.1}\"", x, x.cos(), -x, 30.0);
+        let _ = writeln!(
+            epoch,
+            "{},{:.1},{:.2},25.0,{:.3},{:.3}",
             1_714_557_600_000_u64 + u64::from(i) * 10,
             x,
             x,
             x.sin(),
             -x.sin()
-        ));
+        );
         if i == 7 {
             epoch.push('\n'); // a blank line
         }
