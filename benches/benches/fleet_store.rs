@@ -152,6 +152,7 @@ fn fleet(c: &mut Criterion) {
         ready: Arc::new(AtomicBool::new(true)),
         stop: CancellationToken::new(),
         tokens: Arc::new(dt_server::server::security::Tokens::default()),
+        uploads: dt_server::server::http::Uploads::disabled(),
     });
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -160,3 +160,22 @@ def test_refuses_to_expose_without_tls_unless_insecure(tmp_path: Path) -> None:
         assert "--insecure:" in d.text() and "0.0.0.0:" in d.text()
     finally:
         assert d.stop() == 0
+
+
+def test_runs_upload_over_https_with_the_ingest_role(daemon: ServeProcess, setup: dict[str, Any]) -> None:
+    """`POST /v1/runs`: the body is a run's MCAP bytes, as on the TCP ingest; only the ingest
+    role may upload, and the run then shows to the read role."""
+    url = f"https://{daemon.http}/v1/runs"
+    body = setup["run"].read_bytes()
+    with client(setup) as http:
+        assert http.post(url, content=body).status_code == 401
+        assert http.post(url, content=body, headers={"Authorization": f"Bearer {setup['read']}"}).status_code == 403
+        r = http.post(url, content=body, headers={"Authorization": f"Bearer {setup['ingest']}"})
+        assert r.status_code == 200, r.text
+        report = r.json()
+        assert report["status"] == "completed" and report["ticks"] > 1000, report
+        bad = http.post(url, content=b"not an mcap", headers={"Authorization": f"Bearer {setup['ingest']}"})
+        assert bad.status_code == 422 and bad.json()["status"] == "failed", bad.text
+        assets = http.get(f"https://{daemon.http}/v1/assets",
+                          headers={"Authorization": f"Bearer {setup['read']}"}).json()["assets"]
+    assert report["asset_id"] in {a["asset_id"] for a in assets}

@@ -13,6 +13,7 @@
 //! | `GET /v1/assets/{id}/runs` | runs seen, newest first |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
+//! | `POST /v1/runs` | upload one run (the body is an MCAP stream, as on the TCP ingest); answers its `RunReport`; the ingest role when tokens are on |
 //!
 //! With bearer tokens configured (`[auth]`, see [`super::security`]) every
 //! route but `/healthz` and the dashboard's static files (`/`, `/assets/…`,
@@ -69,6 +70,77 @@ pub struct AppState {
     pub stop: CancellationToken,
     /// Bearer tokens (none configured: the API is open).
     pub tokens: Arc<Tokens>,
+    /// Where uploads go (`POST /v1/runs`).
+    pub uploads: Uploads,
+}
+
+/// The ingest behind `POST /v1/runs`, until the daemon stops taking runs.
+#[derive(Debug, Clone)]
+pub struct Uploads {
+    ingest: Arc<std::sync::Mutex<Option<super::ingest::Ingest>>>,
+    cancel: CancellationToken,
+}
+
+impl Uploads {
+    /// Uploads into `ingest`; `cancel` ends the ones in progress (shutdown).
+    #[must_use]
+    pub fn new(ingest: super::ingest::Ingest, cancel: CancellationToken) -> Self {
+        Self {
+            ingest: Arc::new(std::sync::Mutex::new(Some(ingest))),
+            cancel,
+        }
+    }
+
+    /// Takes no upload (`503`): an API without ingest (benches, read-only views).
+    #[must_use]
+    pub fn disabled() -> Self {
+        Self {
+            ingest: Arc::new(std::sync::Mutex::new(None)),
+            cancel: CancellationToken::new(),
+        }
+    }
+
+    /// No upload is taken any more (the sinks may then close).
+    pub fn close(&self) {
+        self.ingest
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take();
+    }
+
+    fn get(&self) -> Option<super::ingest::Ingest> {
+        self.ingest
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+}
+
+/// `POST /v1/runs`: the body is one run's MCAP stream.
+async fn post_run(State(app): State<AppState>, body: axum::body::Body) -> Response {
+    let Some(ingest) = app.uploads.get() else {
+        return (StatusCode::SERVICE_UNAVAILABLE, "the daemon is stopping\n").into_response();
+    };
+    let stream = body
+        .into_data_stream()
+        .map(|r| r.map_err(std::io::Error::other));
+    let reader = tokio_util::io::StreamReader::new(stream);
+    let idle = std::time::Duration::from_secs_f64(app.config.limits.idle_timeout_s);
+    let report = ingest
+        .ingest_stream(
+            super::sink::SourceKind::Http,
+            "http upload".to_owned(),
+            reader,
+            &app.uploads.cancel,
+            Some(idle),
+        )
+        .await;
+    let status = if report.status == "completed" {
+        StatusCode::OK
+    } else {
+        StatusCode::UNPROCESSABLE_ENTITY
+    };
+    (status, Json(report)).into_response()
 }
 
 // The dashboard, compiled in (no build step; uPlot vendored from its npm
@@ -125,6 +197,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/assets/{id}/runs", get(runs))
         .route("/v1/assets/{id}/health", get(health_changes))
         .route("/v1/events", get(events))
+        .route("/v1/runs", axum::routing::post(post_run))
         .layer(axum::middleware::from_fn_with_state(
             state.clone(),
             require_token,
@@ -177,14 +250,20 @@ async fn require_token(
     let Some(token) = bearer(&req) else {
         return unauthorized(None);
     };
-    match app.tokens.role(&token) {
-        Some(Role::Read) => next.run(req).await,
-        Some(Role::Ingest) => (
+    let upload = req.method() == axum::http::Method::POST && req.uri().path() == "/v1/runs";
+    match (app.tokens.role(&token), upload) {
+        (Some(Role::Read), false) | (Some(Role::Ingest), true) => next.run(req).await,
+        (Some(Role::Ingest), false) => (
             StatusCode::FORBIDDEN,
             "this token may ingest runs, not read the API\n",
         )
             .into_response(),
-        None => {
+        (Some(Role::Read), true) => (
+            StatusCode::FORBIDDEN,
+            "this token may read the API, not upload runs\n",
+        )
+            .into_response(),
+        (None, _) => {
             app.metrics.error("auth");
             unauthorized(Some("invalid_token"))
         }

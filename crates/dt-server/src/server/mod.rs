@@ -308,6 +308,7 @@ pub async fn run(
 
     let ready = Arc::new(AtomicBool::new(false));
     let http_stop = CancellationToken::new();
+    let app_uploads = http::Uploads::new(ingest.clone(), cancel.clone());
     let app = http::router(AppState {
         live,
         store,
@@ -317,7 +318,9 @@ pub async fn run(
         ready: Arc::clone(&ready),
         stop: http_stop.clone(),
         tokens,
+        uploads: app_uploads.clone(),
     });
+    let uploads = app_uploads;
     let http_addr = listeners
         .http
         .local_addr()
@@ -340,6 +343,7 @@ pub async fn run(
     tracker.close();
     tracker.wait().await;
     // The last sender goes: the sink thread drains the queue and flushes.
+    uploads.close();
     drop(ingest);
     if sinks_done.await.is_err() {
         tracing::error!("the sink thread panicked");

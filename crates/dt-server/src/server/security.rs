@@ -13,8 +13,8 @@
 //!   `/healthz` and the dashboard's static files needs `Authorization:
 //!   Bearer <token>` (or `?access_token=`, RFC 6750 §2.3, for the browser's
 //!   `EventSource`, which cannot set headers). The read role reads the API,
-//!   the event stream and `/metrics`; the ingest role posts runs
-//!   (`POST /v1/runs`). Tokens are kept as SHA-256 digests and compared in
+//!   the event stream and `/metrics`; the ingest role uploads runs
+//!   (`POST /v1/runs`), and nothing else. Tokens are kept as SHA-256 digests and compared in
 //!   constant time (`subtle`), all of them each time; they are never logged.
 //! - **Exposure rule**: an ingest listener off loopback needs TLS and client
 //!   certificates; an HTTP listener off loopback needs TLS and read tokens.

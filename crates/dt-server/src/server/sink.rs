@@ -22,6 +22,8 @@ pub enum SourceKind {
     Tcp,
     /// A file of the inbox directory.
     Inbox,
+    /// An upload (`POST /v1/runs`).
+    Http,
 }
 
 impl SourceKind {
@@ -31,6 +33,7 @@ impl SourceKind {
         match self {
             SourceKind::Tcp => "tcp",
             SourceKind::Inbox => "inbox",
+            SourceKind::Http => "http",
         }
     }
 }
