@@ -203,3 +203,20 @@ class ServeProcess:
 
     def text(self) -> str:
         return "".join(self.log)
+
+
+# --- the `shocktwin` command line (built once if missing) ---
+
+@pytest.fixture(scope="session")
+def shocktwin_bin() -> Path:
+    """`SHOCKTWIN_BIN`, else `target/release/shocktwin`, built by cargo if it is not there yet."""
+    import os
+
+    root = Path(__file__).resolve().parents[2]
+    binary = Path(os.environ.get("SHOCKTWIN_BIN", root / "target" / "release" / "shocktwin"))
+    if not binary.exists():
+        _subprocess.run(
+            ["cargo", "build", "--release", "-p", "dt-server", "--bin", "shocktwin"],
+            cwd=root, check=True, timeout=3600,
+        )
+    return binary

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,18 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOK = ROOT / "docs" / "analyst.py"
-BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
 CELL_TIMEOUT_S = 150  # the longest cell trains the bundle (~20 s alone, more on a busy machine)
-
-
-@pytest.fixture(scope="module")
-def shocktwin_bin() -> Path:
-    if not BIN.exists():
-        subprocess.run(
-            ["cargo", "build", "--release", "-p", "dt-server", "--bin", "shocktwin"],
-            cwd=ROOT, check=True, timeout=3600,
-        )
-    return BIN
 
 
 @pytest.fixture(scope="module")

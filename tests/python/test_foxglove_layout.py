@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import subprocess
 from collections import defaultdict
@@ -27,7 +26,6 @@ from typing import Any, Iterator
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
 LAYOUT = ROOT / "docs" / "foxglove" / "shocktwin-layout.json"
 BUNDLE = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
 
@@ -97,16 +95,6 @@ def read_mcap(path: Path) -> dict[str, dict[str, Any]]:
 def declared_types(schema: dict[str, Any], field: str) -> set[str]:
     kind = schema["properties"][field].get("type")
     return set(kind) if isinstance(kind, list) else {kind}
-
-
-@pytest.fixture(scope="module")
-def shocktwin_bin() -> Path:
-    if not BIN.exists():
-        subprocess.run(
-            ["cargo", "build", "--release", "-p", "dt-server", "--bin", "shocktwin"],
-            cwd=ROOT, check=True, timeout=3600,
-        )
-    return BIN
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -29,7 +28,6 @@ import shocktwin
 from conftest import synthetic_run, write_mcap_log
 
 ROOT = Path(__file__).resolve().parents[2]
-BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
 sys.path.insert(0, str(ROOT))
 from train import dataset, evaluate, model  # noqa: E402
 from train.campaign import load_campaign  # noqa: E402
@@ -49,16 +47,6 @@ pytestmark = pytest.mark.filterwarnings("ignore:Stochastic Optimizer")  # few it
 
 
 # --- session fixtures -----------------------------------------------------------------------
-
-
-@pytest.fixture(scope="session")
-def shocktwin_bin() -> Path:
-    if not BIN.exists():
-        subprocess.run(
-            ["cargo", "build", "--release", "-p", "dt-server", "--bin", "shocktwin"],
-            cwd=ROOT, check=True, timeout=3600,
-        )
-    return BIN
 
 
 @pytest.fixture(scope="session")
