@@ -329,7 +329,7 @@ impl ObserverParams {
 }
 
 /// One fitted reversal (the observation and what the update did with it).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Reversal {
     /// Interpolated time of the velocity zero crossing, ns.
     pub t_ns: i64,
@@ -389,7 +389,7 @@ impl ChargeEstimate {
 pub const Z95: f64 = 1.959_963_984_540_054;
 
 /// Counts of what the observer did with the reversals it saw.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct ObserverCounters {
     /// Reversals detected.
     pub detected: u64,
@@ -405,7 +405,7 @@ pub struct ObserverCounters {
     pub reacquired: u64,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 struct AccPoint {
     t_ns: i64,
     a2_mps2: f64,
@@ -413,7 +413,7 @@ struct AccPoint {
     y_m: f64,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 struct Pending {
     t_r_ns: i64,
     /// Sub-nanosecond part of the crossing time, s.
@@ -421,7 +421,7 @@ struct Pending {
 }
 
 /// The recursive charge observer of one run (see the module docs).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ChargeObserver {
     p: ObserverParams,
     buf: VecDeque<AccPoint>,

@@ -47,6 +47,8 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
+use serde::{Deserialize, Serialize};
+
 use crate::bundle::{Bundle, BundleError, HealthConfig};
 use crate::charge::Z95;
 use crate::error::PhysicsError;
@@ -69,12 +71,63 @@ pub enum EstimatorError {
     Physics(#[from] PhysicsError),
 }
 
+/// Version of the [`Estimator::checkpoint`] encoding.
+pub const CHECKPOINT_FORMAT: u32 = 1;
+
+/// A checkpoint could not be restored.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    /// Not a checkpoint (truncated, corrupted, another encoding).
+    #[error("not an estimator checkpoint: {0}")]
+    Decode(String),
+    /// Another checkpoint format version.
+    #[error("estimator checkpoint format {0}, this build reads {CHECKPOINT_FORMAT}")]
+    Format(u32),
+    /// Taken with another model bundle.
+    #[error("the checkpoint was taken with model {checkpoint}, the bundle is {bundle}")]
+    Model {
+        /// The checkpoint's model digest.
+        checkpoint: String,
+        /// The bundle's.
+        bundle: String,
+    },
+}
+
+#[derive(Serialize)]
+struct CheckpointRef<'a> {
+    format: u32,
+    model: String,
+    state: &'a EstimatorState,
+}
+
+#[derive(Deserialize)]
+struct Checkpoint {
+    format: u32,
+    model: String,
+    state: EstimatorState,
+}
+
+/// SHA-256 (hex, first 16 bytes) of the bundle's `twin.json` contents: the
+/// model a checkpoint belongs to (the network file's digest is in it when
+/// the bundle records one).
+fn model_digest(bundle: &Bundle) -> String {
+    use sha2::{Digest, Sha256};
+    use std::fmt::Write as _;
+    let json = serde_json::to_vec(&bundle.twin).unwrap_or_default();
+    Sha256::digest(&json)[..16]
+        .iter()
+        .fold(String::with_capacity(32), |mut s, b| {
+            let _ = write!(s, "{b:02x}");
+            s
+        })
+}
+
 /// Samples (within `max_gap_ns` of each other) that must agree on a forward
 /// clock jump before it is taken; fewer are timestamp outliers.
 pub const JUMP_CONFIRM: usize = 5;
 
 /// Per-asset settings of an estimator.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EstimatorConfig {
     /// The asset's nominal charge pressure (`expected_bar`), bar gauge.
     pub nominal_bar: f64,
@@ -101,7 +154,7 @@ impl EstimatorConfig {
 }
 
 /// What an estimator has counted so far.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct EstimatorCounters {
     /// Samples taken by [`Estimator::push`] (incl. late and held ones).
     pub samples: u64,
@@ -130,7 +183,7 @@ pub struct EstimatorCounters {
 
 /// One emitted tick: the estimate and the pipeline's full feature row (all
 /// [`crate::features::COLUMNS`]; the network read the bundle's columns of it).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Tick {
     /// The `/estimate` fields.
     pub estimate: Estimate,
@@ -138,7 +191,7 @@ pub struct Tick {
     pub row: TickRow,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 struct Queued {
     key: (i64, u8),
     sample: Sample,
@@ -162,7 +215,7 @@ struct Queued {
 ///
 /// Not excited or no average: `unknown`. The level becomes the reported state
 /// once it has been the same for `dwell_s`.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct HealthMachine {
     cfg: HealthConfig,
     state: Health,
@@ -278,6 +331,12 @@ impl HealthMachine {
 /// One asset's streaming twin. See the module docs.
 pub struct Estimator {
     bundle: Arc<Bundle>,
+    s: EstimatorState,
+}
+
+/// Everything of an [`Estimator`] but its bundle: what a checkpoint holds.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct EstimatorState {
     cfg: EstimatorConfig,
     topics: TopicSet,
     columns: Vec<usize>,
@@ -293,6 +352,7 @@ pub struct Estimator {
     released: Option<(i64, u8)>,
     /// After [`Estimator::finish`]: the next released sample starts a segment.
     finished: bool,
+    #[serde(with = "serde_big_array::BigArray")]
     avg: [f64; EXCITATION_WINDOW_TICKS],
     avg_idx: usize,
     health: HealthMachine,
@@ -307,8 +367,8 @@ impl std::fmt::Debug for Estimator {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Estimator")
             .field("bundle", &self.bundle.dir)
-            .field("cfg", &self.cfg)
-            .field("counters", &self.counters)
+            .field("cfg", &self.s.cfg)
+            .field("counters", &self.s.counters)
             .finish_non_exhaustive()
     }
 }
@@ -331,41 +391,81 @@ impl Estimator {
         let columns = column_indices(&bundle.groups);
         let uses_observer = bundle.groups.contains(&Group::Observer) && pipe.observer().is_some();
         Ok(Self {
-            health: HealthMachine::new(cfg.health),
-            uses_observer,
-            columns,
-            pipe,
-            topics,
             bundle,
-            cfg,
-            queue: VecDeque::with_capacity(256),
-            newest_ns: i64::MIN,
-            jump: Vec::new(),
-            released: None,
-            finished: false,
-            avg: [f64::NAN; EXCITATION_WINDOW_TICKS],
-            avg_idx: 0,
-            prev_gaps: GapCounters::default(),
-            out: VecDeque::with_capacity(16),
-            counters: EstimatorCounters::default(),
-            seg_missing: 0,
-            seg_gaps: 0,
+            s: EstimatorState {
+                health: HealthMachine::new(cfg.health),
+                uses_observer,
+                columns,
+                pipe,
+                topics,
+                cfg,
+                queue: VecDeque::with_capacity(256),
+                newest_ns: i64::MIN,
+                jump: Vec::new(),
+                released: None,
+                finished: false,
+                avg: [f64::NAN; EXCITATION_WINDOW_TICKS],
+                avg_idx: 0,
+                prev_gaps: GapCounters::default(),
+                out: VecDeque::with_capacity(16),
+                counters: EstimatorCounters::default(),
+                seg_missing: 0,
+                seg_gaps: 0,
+            },
+        })
+    }
+
+    /// The whole state of this estimator (Kalman filter, thermal model,
+    /// charge observer, pipeline buffers, re-order window, health state
+    /// machine and the estimates not yet drained) as bytes, tied to its
+    /// bundle. [`Estimator::restore`] with the same bundle continues exactly
+    /// (bit for bit) where this one is.
+    #[must_use]
+    pub fn checkpoint(&self) -> Vec<u8> {
+        let ck = CheckpointRef {
+            format: CHECKPOINT_FORMAT,
+            model: model_digest(&self.bundle),
+            state: &self.s,
+        };
+        // Serialising plain numbers, vectors and enums cannot fail.
+        rmp_serde::to_vec_named(&ck).unwrap_or_default()
+    }
+
+    /// The estimator a [`checkpoint`](Self::checkpoint) was taken of. Fails
+    /// when the bytes are not a checkpoint of this format or were taken with
+    /// another model.
+    pub fn restore(bundle: Arc<Bundle>, bytes: &[u8]) -> Result<Self, CheckpointError> {
+        let ck: Checkpoint =
+            rmp_serde::from_slice(bytes).map_err(|e| CheckpointError::Decode(e.to_string()))?;
+        if ck.format != CHECKPOINT_FORMAT {
+            return Err(CheckpointError::Format(ck.format));
+        }
+        let model = model_digest(&bundle);
+        if ck.model != model {
+            return Err(CheckpointError::Model {
+                checkpoint: ck.model,
+                bundle: model,
+            });
+        }
+        Ok(Self {
+            bundle,
+            s: ck.state,
         })
     }
 
     /// The counters so far.
     #[must_use]
     pub fn counters(&self) -> EstimatorCounters {
-        let mut c = self.counters;
-        c.missing_samples += self.seg_missing;
-        c.gaps += self.seg_gaps;
+        let mut c = self.s.counters;
+        c.missing_samples += self.s.seg_missing;
+        c.gaps += self.s.seg_gaps;
         c
     }
 
     /// The settings.
     #[must_use]
     pub fn config(&self) -> &EstimatorConfig {
-        &self.cfg
+        &self.s.cfg
     }
 
     /// The bundle.
@@ -377,26 +477,29 @@ impl Estimator {
     /// Samples held in the re-order window.
     #[must_use]
     pub fn held(&self) -> usize {
-        self.queue.len()
+        self.s.queue.len()
     }
 
     /// Takes one sample (any topic, any order within the re-order window).
     /// Late samples are counted and dropped, not an error; an error is a
     /// numerical failure of the twin or the network.
     pub fn push(&mut self, sample: Sample) -> Result<(), EstimatorError> {
-        self.counters.samples += 1;
+        self.s.counters.samples += 1;
         let t = sample.t_ns();
-        if self.newest_ns != i64::MIN && t.saturating_sub(self.newest_ns) > self.cfg.max_gap_ns {
+        if self.s.newest_ns != i64::MIN
+            && t.saturating_sub(self.s.newest_ns) > self.s.cfg.max_gap_ns
+        {
             if self
+                .s
                 .jump
                 .first()
-                .is_some_and(|f| f.t_ns().abs_diff(t) > self.cfg.max_gap_ns.unsigned_abs())
+                .is_some_and(|f| f.t_ns().abs_diff(t) > self.s.cfg.max_gap_ns.unsigned_abs())
             {
                 self.drop_jump();
             }
-            self.jump.push(sample);
-            if self.jump.len() >= JUMP_CONFIRM {
-                for s in std::mem::take(&mut self.jump) {
+            self.s.jump.push(sample);
+            if self.s.jump.len() >= JUMP_CONFIRM {
+                for s in std::mem::take(&mut self.s.jump) {
                     self.accept(s)?;
                 }
             }
@@ -408,31 +511,34 @@ impl Estimator {
 
     /// The held "jump" samples were not followed by the stream: outliers.
     fn drop_jump(&mut self) {
-        self.counters.timestamp_outliers += self.jump.len() as u64;
-        self.jump.clear();
+        self.s.counters.timestamp_outliers += self.s.jump.len() as u64;
+        self.s.jump.clear();
     }
 
     fn accept(&mut self, sample: Sample) -> Result<(), EstimatorError> {
         let t = sample.t_ns();
         let key = (t, sample.topic_rank());
-        if self.released.is_some_and(|r| key < r) {
-            self.counters.late_dropped += 1;
+        if self.s.released.is_some_and(|r| key < r) {
+            self.s.counters.late_dropped += 1;
             return Ok(());
         }
-        if t < self.newest_ns {
-            self.counters.reordered += 1;
+        if t < self.s.newest_ns {
+            self.s.counters.reordered += 1;
         }
-        self.newest_ns = self.newest_ns.max(t);
+        self.s.newest_ns = self.s.newest_ns.max(t);
         let q = Queued { key, sample };
-        if self.queue.back().is_none_or(|b| b.key <= key) {
-            self.queue.push_back(q);
+        if self.s.queue.back().is_none_or(|b| b.key <= key) {
+            self.s.queue.push_back(q);
         } else {
-            let at = self.queue.partition_point(|x| x.key <= key);
-            self.queue.insert(at, q);
+            let at = self.s.queue.partition_point(|x| x.key <= key);
+            self.s.queue.insert(at, q);
         }
-        let horizon = self.newest_ns.saturating_sub(self.cfg.reorder_window_ns);
-        while self.queue.front().is_some_and(|q| q.key.0 <= horizon) {
-            if let Some(q) = self.queue.pop_front() {
+        let horizon = self
+            .s
+            .newest_ns
+            .saturating_sub(self.s.cfg.reorder_window_ns);
+        while self.s.queue.front().is_some_and(|q| q.key.0 <= horizon) {
+            if let Some(q) = self.s.queue.pop_front() {
                 self.release(q)?;
             }
         }
@@ -446,103 +552,104 @@ impl Estimator {
     /// timestamp outliers.
     pub fn finish(&mut self) -> Result<(), EstimatorError> {
         self.drop_jump();
-        while let Some(q) = self.queue.pop_front() {
+        while let Some(q) = self.s.queue.pop_front() {
             self.release(q)?;
         }
-        self.pipe.finish();
+        self.s.pipe.finish();
         self.take_rows()?;
-        self.finished = true;
+        self.s.finished = true;
         Ok(())
     }
 
     /// The estimates emitted so far and not yet taken.
     pub fn drain(&mut self) -> impl Iterator<Item = Estimate> + '_ {
-        self.out.drain(..).map(|t| t.estimate)
+        self.s.out.drain(..).map(|t| t.estimate)
     }
 
     /// The ticks (estimate and feature row) emitted so far and not yet taken.
     pub fn drain_ticks(&mut self) -> impl Iterator<Item = Tick> + '_ {
-        self.out.drain(..)
+        self.s.out.drain(..)
     }
 
     /// Number of estimates waiting.
     #[must_use]
     pub fn ready(&self) -> usize {
-        self.out.len()
+        self.s.out.len()
     }
 
     fn release(&mut self, q: Queued) -> Result<(), EstimatorError> {
-        if let Some((last_t, _)) = self.released {
-            if self.finished {
+        if let Some((last_t, _)) = self.s.released {
+            if self.s.finished {
                 self.new_segment()?;
-            } else if q.key.0.saturating_sub(last_t) > self.cfg.max_gap_ns {
-                self.counters.clock_jumps += 1;
-                self.pipe.finish();
+            } else if q.key.0.saturating_sub(last_t) > self.s.cfg.max_gap_ns {
+                self.s.counters.clock_jumps += 1;
+                self.s.pipe.finish();
                 self.take_rows()?;
                 self.new_segment()?;
             }
         }
-        self.released = Some(q.key);
-        self.pipe.push(&q.sample)?;
+        self.s.released = Some(q.key);
+        self.s.pipe.push(&q.sample)?;
         self.take_rows()
     }
 
     fn new_segment(&mut self) -> Result<(), EstimatorError> {
-        self.finished = false;
-        self.counters.missing_samples += self.seg_missing;
-        self.counters.gaps += self.seg_gaps;
-        self.seg_missing = 0;
-        self.seg_gaps = 0;
-        self.prev_gaps = GapCounters::default();
-        self.pipe = FeaturePipeline::new(&pipeline_params(&self.bundle), self.topics)?;
-        self.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
-        self.avg_idx = 0;
-        self.health = HealthMachine::new(self.cfg.health);
+        self.s.finished = false;
+        self.s.counters.missing_samples += self.s.seg_missing;
+        self.s.counters.gaps += self.s.seg_gaps;
+        self.s.seg_missing = 0;
+        self.s.seg_gaps = 0;
+        self.s.prev_gaps = GapCounters::default();
+        self.s.pipe = FeaturePipeline::new(&pipeline_params(&self.bundle), self.s.topics)?;
+        self.s.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
+        self.s.avg_idx = 0;
+        self.s.health = HealthMachine::new(self.s.cfg.health);
         Ok(())
     }
 
     fn take_rows(&mut self) -> Result<(), EstimatorError> {
-        while let Some(row) = self.pipe.pop() {
+        while let Some(row) = self.s.pipe.pop() {
             let estimate = self.estimate(&row)?;
-            self.out.push_back(Tick { estimate, row });
+            self.s.out.push_back(Tick { estimate, row });
         }
         Ok(())
     }
 
     fn estimate(&mut self, row: &TickRow) -> Result<Estimate, EstimatorError> {
-        self.counters.ticks += 1;
+        self.s.counters.ticks += 1;
         let twin = &row.twin;
         let g = twin.gaps;
-        self.seg_missing = twin.missing_samples;
-        self.seg_gaps = g.force + g.position + g.acceleration;
-        let p = self.prev_gaps;
-        let stale = (self.topics.force && g.force > p.force)
-            || (self.topics.position && g.position > p.position)
-            || (self.topics.acceleration && g.acceleration > p.acceleration);
-        self.prev_gaps = g;
+        self.s.seg_missing = twin.missing_samples;
+        self.s.seg_gaps = g.force + g.position + g.acceleration;
+        let p = self.s.prev_gaps;
+        let stale = (self.s.topics.force && g.force > p.force)
+            || (self.s.topics.position && g.position > p.position)
+            || (self.s.topics.acceleration && g.acceleration > p.acceleration);
+        self.s.prev_gaps = g;
 
-        let k = self.columns.len();
+        let k = self.s.columns.len();
         let mut x = [0.0; N_COLUMNS];
-        for (xi, &i) in x.iter_mut().zip(&self.columns) {
+        for (xi, &i) in x.iter_mut().zip(&self.s.columns) {
             *xi = row.values[i];
         }
         let pressure_bar = if x[..k].iter().all(|v| v.is_finite()) {
             self.bundle.predict_one(&x[..k])?
         } else {
-            self.counters.ticks_without_inputs += 1;
+            self.s.counters.ticks_without_inputs += 1;
             f64::NAN
         };
         if stale {
-            self.counters.ticks_stale += 1;
+            self.s.counters.ticks_stale += 1;
         }
-        let excited = twin.velocity_rms_1s_mps >= self.cfg.health.min_excitation_mps;
-        self.avg[self.avg_idx] = if excited && !stale {
+        let excited = twin.velocity_rms_1s_mps >= self.s.cfg.health.min_excitation_mps;
+        self.s.avg[self.s.avg_idx] = if excited && !stale {
             pressure_bar
         } else {
             f64::NAN
         };
-        self.avg_idx = (self.avg_idx + 1) % EXCITATION_WINDOW_TICKS;
+        self.s.avg_idx = (self.s.avg_idx + 1) % EXCITATION_WINDOW_TICKS;
         let (sum, n) = self
+            .s
             .avg
             .iter()
             .filter(|x| x.is_finite())
@@ -550,7 +657,7 @@ impl Estimator {
         let pressure_avg_bar = if n > 0.0 { sum / n } else { f64::NAN };
         // The interval: the charge observer's standard deviation around the
         // estimate, when the bundle reads the observer (SPEC §2a).
-        let sd = if self.uses_observer {
+        let sd = if self.s.uses_observer {
             row.values[col::OBSERVER_SD_BAR]
         } else {
             f64::NAN
@@ -559,7 +666,8 @@ impl Estimator {
         let (lo, hi) = (pressure_bar - half, pressure_bar + half);
         let (avg_lo, avg_hi) = (pressure_avg_bar - half, pressure_avg_bar + half);
         let health =
-            self.health
+            self.s
+                .health
                 .update_interval(row.t_ns, pressure_avg_bar, avg_lo, avg_hi, excited);
         Ok(Estimate {
             t_ns: row.t_ns,
@@ -567,7 +675,7 @@ impl Estimator {
             pressure_avg_bar,
             pressure_lo_bar: lo,
             pressure_hi_bar: hi,
-            expected_bar: self.cfg.nominal_bar,
+            expected_bar: self.s.cfg.nominal_bar,
             health,
             velocity_mps: twin.velocity_mps,
             force_model_n: twin.force_model_n,

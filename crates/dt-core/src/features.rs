@@ -623,7 +623,7 @@ pub fn paper_rmse_bar(id: u32) -> Option<f64> {
 
 /// Which topics a pipeline gets (decides the Kalman mode and which groups'
 /// columns are filled).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[allow(clippy::struct_excessive_bools)] // a set of independent flags, one per topic
 pub struct TopicSet {
     /// `/position`.
@@ -732,7 +732,7 @@ impl TopicSet {
 
 /// Cumulative counts of ticks in which a fast channel had no sample (after
 /// its first one) and held its previous mean.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct GapCounters {
     /// `/force`.
     pub force: u64,
@@ -746,7 +746,7 @@ pub struct GapCounters {
 
 /// The twin's internal state at a tick (for the estimator: excitation,
 /// diagnostics, `/estimate` fields).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TwinState {
     /// Boxcar mean of the Kalman position, m.
     pub position_m: f64,
@@ -779,7 +779,7 @@ pub struct TwinState {
 }
 
 /// One 50 Hz row.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TickRow {
     /// Tick time `t_k`, ns.
     pub t_ns: i64,
@@ -794,7 +794,7 @@ pub struct TickRow {
 /// Boxcar (first-order CIC) mean with hold-on-empty; it also keeps the
 /// sum of squares of the samples given by [`Boxcar::add`] (the within-tick
 /// variance of the raw `a_rel`).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 struct Boxcar {
     sum: f64,
     sum_sq: f64,
@@ -852,8 +852,9 @@ impl Boxcar {
 
 /// The last `N` per-tick values in a ring (no allocation); the statistics
 /// skip NaN entries (and the slots not yet written, which are NaN).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 struct TickWindow<const N: usize> {
+    #[serde(with = "serde_big_array::BigArray")]
     values: [f64; N],
     next: usize,
 }
@@ -905,7 +906,7 @@ impl<const N: usize> TickWindow<N> {
 /// algorithm). Feed samples in time order with [`push`](Self::push), take
 /// rows with [`pop`](Self::pop) / [`drain`](Self::drain), call
 /// [`finish`](Self::finish) at the end of the stream.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FeaturePipeline {
     available: TopicSet,
     force_model: ForceModel,
@@ -942,6 +943,7 @@ pub struct FeaturePipeline {
     prev_power_w: f64,
     prev_ambient_c: f64,
 
+    #[serde(with = "serde_big_array::BigArray")]
     v_sq: [f64; EXCITATION_WINDOW_TICKS],
     v_idx: usize,
     missing_samples: u64,

@@ -31,6 +31,7 @@
 //! combination of Duym).
 
 use crate::params::{ForceParams, CHARGE_REF_TEMP_C, KELVIN_OFFSET, P_ATM_PA};
+use serde::{Deserialize, Serialize};
 
 /// Adiabatic index of nitrogen (eq. 8).
 pub const GAMMA_N2: f64 = 1.4;
@@ -80,7 +81,7 @@ pub fn smin(a: f64, b: f64, k: f64) -> f64 {
 }
 
 /// The nominal force model of SPEC §3.3.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ForceModel {
     params: ForceParams,
 }

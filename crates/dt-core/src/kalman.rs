@@ -51,6 +51,7 @@
 //! Joseph-form `update`).
 
 use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
 
 use crate::error::PhysicsError;
 use crate::params::KalmanParams;
@@ -61,7 +62,7 @@ pub const POSITION_ONLY_JERK_PSD: f64 = 1.0e4;
 const NS_PER_S: f64 = 1.0e9;
 
 /// Which process model the filter runs.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum KalmanMode {
     /// SPEC §3.1: `[y, ẏ, b_a]` driven by the relative acceleration.
     AccelBias,
@@ -74,7 +75,7 @@ pub enum KalmanMode {
 }
 
 /// The velocity estimator of SPEC §3.1 (or its position-only variant).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct KalmanFilter {
     params: KalmanParams,
     mode: KalmanMode,

@@ -25,9 +25,10 @@
 use crate::error::PhysicsError;
 use crate::kalman::check_len;
 use crate::params::{ThermalParams, KELVIN_OFFSET};
+use serde::{Deserialize, Serialize};
 
 /// Oil and cylinder temperature, °C.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ThermalState {
     /// Damping-fluid temperature, °C.
     pub oil_c: f64,
@@ -36,7 +37,7 @@ pub struct ThermalState {
 }
 
 /// The two-node thermal model of SPEC §3.2.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ThermalModel {
     params: ThermalParams,
 }

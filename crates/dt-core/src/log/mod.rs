@@ -12,6 +12,7 @@
 //! Which findings are fatal and which are `problems` is tabled in [`reader`].
 //! Types shared by the writer and the readers live here.
 
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
 mod decode;
@@ -70,7 +71,7 @@ pub struct RunMetadata {
 }
 
 /// One sensor sample of a shocktwin log; `t_ns` is the MCAP `log_time`.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Sample {
     /// `/position`.
     Position {

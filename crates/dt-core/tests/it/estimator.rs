@@ -504,3 +504,81 @@ fn one_far_future_timestamp_is_an_outlier_not_the_end_of_the_run() {
         p(&reference.iter().map(|t| t.estimate).collect::<Vec<_>>())
     );
 }
+
+/// Checkpoint and restore at any point (here: several cuts, one inside the
+/// re-order window with estimates not yet drained) continue exactly: every
+/// later tick is bit-identical to the uninterrupted run's.
+#[test]
+fn checkpoint_restore_continues_bit_for_bit() {
+    for name in ["bundle-mlp13", "bundle-force-skl"] {
+        let b = bundle(name);
+        let log = synth_log(T0, 8, 0.04, 7);
+        let samples = sorted_samples(&log);
+        let whole = stream(&mut estimator(&b), &samples);
+        for cut in [1, 517, samples.len() / 2, samples.len() - 3] {
+            let mut est = estimator(&b);
+            let mut ticks = Vec::new();
+            for s in &samples[..cut] {
+                est.push(*s).unwrap();
+                if cut != samples.len() / 2 {
+                    ticks.extend(est.drain_ticks());
+                }
+            }
+            let bytes = est.checkpoint();
+            drop(est);
+            let mut est = Estimator::restore(Arc::clone(&b), &bytes).unwrap();
+            ticks.extend(stream(&mut est, &samples[cut..]));
+            assert_eq!(ticks.len(), whole.len(), "{name} cut {cut}");
+            for (i, (a, w)) in ticks.iter().zip(&whole).enumerate() {
+                let same = |x: f64, y: f64| x.to_bits() == y.to_bits();
+                assert!(
+                    a.row.t_ns == w.row.t_ns
+                        && a.estimate.health == w.estimate.health
+                        && same(a.estimate.pressure_bar, w.estimate.pressure_bar)
+                        && same(a.estimate.pressure_avg_bar, w.estimate.pressure_avg_bar)
+                        && same(a.estimate.velocity_mps, w.estimate.velocity_mps)
+                        && same(a.estimate.oil_temp_c, w.estimate.oil_temp_c)
+                        && a.row
+                            .values
+                            .iter()
+                            .zip(&w.row.values)
+                            .all(|(x, y)| same(*x, *y)),
+                    "{name} cut {cut} tick {i}: {a:?} vs {w:?}"
+                );
+            }
+            assert_eq!(est.counters(), estimator_counters(&b, &samples), "{name}");
+        }
+    }
+}
+
+fn estimator_counters(
+    b: &Arc<Bundle>,
+    samples: &[Sample],
+) -> dt_core::estimator::EstimatorCounters {
+    let mut est = estimator(b);
+    stream(&mut est, samples);
+    est.counters()
+}
+
+/// A checkpoint of another model, or bytes that are not one, are refused
+/// with a reason; nothing panics.
+#[test]
+fn checkpoint_of_another_model_or_garbage_is_refused() {
+    let a = bundle("bundle-mlp13");
+    let b = bundle("bundle-force-skl");
+    let mut est = estimator(&a);
+    for s in sorted_samples(&synth_log(T0, 2, 0.04, 3)) {
+        est.push(s).unwrap();
+    }
+    let bytes = est.checkpoint();
+    let err = Estimator::restore(Arc::clone(&b), &bytes).unwrap_err();
+    assert!(
+        err.to_string().contains("another model") || err.to_string().contains("model"),
+        "{err}"
+    );
+    for bad in [&[][..], &bytes[..bytes.len() / 2], &[0xff; 64][..]] {
+        let err = Estimator::restore(Arc::clone(&a), bad).unwrap_err();
+        assert!(!err.to_string().is_empty());
+    }
+    assert!(Estimator::restore(Arc::clone(&a), &bytes).is_ok());
+}
