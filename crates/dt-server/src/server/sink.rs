@@ -24,6 +24,8 @@ pub enum SourceKind {
     Inbox,
     /// An upload (`POST /v1/runs`).
     Http,
+    /// The estimate stream of a NATS worker group (the fleet view).
+    Nats,
 }
 
 impl SourceKind {
@@ -34,6 +36,7 @@ impl SourceKind {
             SourceKind::Tcp => "tcp",
             SourceKind::Inbox => "inbox",
             SourceKind::Http => "http",
+            SourceKind::Nats => "nats",
         }
     }
 }

@@ -59,6 +59,11 @@ pub trait TwinFactory: Send + Sync {
     ) -> Result<Box<dyn AssetTwin>, TwinError>;
     /// Human-readable name, logged at start.
     fn describe(&self) -> String;
+    /// The real estimator's factory, when this is one (the NATS workers
+    /// checkpoint its estimators).
+    fn as_estimator(&self) -> Option<&super::EstimatorFactory> {
+        None
+    }
 }
 
 /// The 50 Hz tick period, ns (SPEC §4, ARCHITECTURE "50 Hz clock").

@@ -1,0 +1,193 @@
+//! The fleet view of `serve --nats`: every daemon of the group (workers and
+//! read-only ones, `[nats] worker = false`) reads the estimate stream from
+//! "now" on and hands each run's estimates to its own sinks — the live API
+//! and dashboard, the recorder and the fleet store — as relayed runs
+//! ([`crate::server::ingest::Ingest::open_relay`]). So any daemon shows the
+//! whole fleet, whichever worker estimated an asset.
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use async_nats::jetstream::{self, consumer};
+use dt_core::estimate::Estimate;
+use dt_core::log::RunMetadata;
+use futures_util::future::BoxFuture;
+use futures_util::StreamExt;
+use serde::Deserialize;
+
+use super::payload::asset_of_token;
+use super::{connect, ensure_topology, NatsConfig, NatsError, ESTIMATES_STREAM};
+use crate::server::ingest::{Ingest, RunHandle};
+use crate::server::sink::{RunOutcome, SourceKind};
+use crate::server::source::{Source, SourceContext};
+use crate::server::ServeError;
+
+/// Relayed estimates are handed to the sinks at least this often.
+const FLUSH_EVERY: Duration = Duration::from_millis(100);
+
+/// The estimate stream as a [`Source`].
+pub struct NatsFleetView {
+    cfg: NatsConfig,
+}
+
+impl NatsFleetView {
+    /// A view of the group at `cfg.url`.
+    #[must_use]
+    pub fn new(cfg: NatsConfig) -> Self {
+        Self { cfg }
+    }
+}
+
+impl Source for NatsFleetView {
+    fn name(&self) -> String {
+        format!(
+            "nats fleet view ({})",
+            self.cfg.url.as_deref().unwrap_or("")
+        )
+    }
+
+    fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
+        Box::pin(async move {
+            view(&self.cfg, ctx).await.map_err(|e| ServeError::Invalid {
+                key: "nats".into(),
+                reason: e.to_string(),
+            })
+        })
+    }
+}
+
+#[derive(Deserialize)]
+struct EstimateIn {
+    run_id: String,
+    #[serde(flatten)]
+    e: Estimate,
+}
+
+#[derive(Deserialize)]
+struct RunEventIn {
+    event: String,
+    run_id: String,
+    #[serde(default)]
+    meta: std::collections::BTreeMap<String, String>,
+}
+
+async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
+    let client = connect(cfg, "shocktwin fleet view").await?;
+    let js = jetstream::new(client);
+    ensure_topology(&js, cfg).await?;
+    let stream = js
+        .get_stream(ESTIMATES_STREAM)
+        .await
+        .map_err(|e| NatsError::new(format!("stream {ESTIMATES_STREAM}"), e))?;
+    let mut messages = stream
+        .create_consumer(consumer::pull::OrderedConfig {
+            filter_subjects: vec!["shocktwin.estimate.*".into(), "shocktwin.run.*".into()],
+            deliver_policy: consumer::DeliverPolicy::New,
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?
+        .messages()
+        .await
+        .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?;
+    let mut runs: HashMap<String, RunHandle> = HashMap::new();
+    let mut tick = tokio::time::interval(FLUSH_EVERY);
+    let source = format!("nats {}", cfg.url.as_deref().unwrap_or(""));
+    loop {
+        tokio::select! {
+            () = ctx.cancel.cancelled() => break,
+            _ = tick.tick() => {
+                for r in runs.values_mut() {
+                    if r.flush().await.is_err() {
+                        return Ok(());
+                    }
+                }
+            }
+            m = messages.next() => match m {
+                None => break,
+                Some(Err(e)) => {
+                    tracing::warn!("fleet view: {e}");
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                }
+                Some(Ok(msg)) => {
+                    let arrived = Instant::now();
+                    let mut parts = msg.subject.splitn(3, '.');
+                    let (kind, token) = (parts.nth(1).unwrap_or_default(), parts.next().unwrap_or_default());
+                    let asset = asset_of_token(token);
+                    match kind {
+                        "estimate" => match serde_json::from_slice::<EstimateIn>(&msg.payload) {
+                            Ok(e) => {
+                                let r = relay_for(&ctx.ingest, &mut runs, &source, &asset, &e.run_id, None).await;
+                                if let Some(r) = r {
+                                    r.set_arrival(arrived);
+                                    r.relay([e.e]);
+                                }
+                            }
+                            Err(err) => tracing::warn!(subject = %msg.subject, "undecodable estimate: {err}"),
+                        },
+                        "run" => match serde_json::from_slice::<RunEventIn>(&msg.payload) {
+                            Ok(ev) if ev.event == "started" => {
+                                relay_for(&ctx.ingest, &mut runs, &source, &asset, &ev.run_id, Some(&ev.meta)).await;
+                            }
+                            Ok(ev) => {
+                                if runs.get(&asset).is_some_and(|r| r.info().meta.run_id == ev.run_id) {
+                                    if let Some(r) = runs.remove(&asset) {
+                                        let outcome = match ev.meta.get("outcome").map(String::as_str) {
+                                            Some("failed") => RunOutcome::Failed { kind: "twin", reason: format!("{source}: the worker's twin failed") },
+                                            Some("interrupted") => RunOutcome::Interrupted,
+                                            _ => RunOutcome::Completed,
+                                        };
+                                        let _ = r.end(outcome).await;
+                                    }
+                                }
+                            }
+                            Err(err) => tracing::warn!(subject = %msg.subject, "undecodable run event: {err}"),
+                        },
+                        _ => {}
+                    }
+                }
+            }
+        }
+    }
+    for (_, r) in runs {
+        let _ = r.end(RunOutcome::Interrupted).await;
+    }
+    Ok(())
+}
+
+/// The open relayed run of `asset` for `run_id` (a new one when the asset
+/// has none or another run; the other run is ended as interrupted).
+async fn relay_for<'a>(
+    ingest: &Ingest,
+    runs: &'a mut HashMap<String, RunHandle>,
+    source: &str,
+    asset: &str,
+    run_id: &str,
+    meta: Option<&std::collections::BTreeMap<String, String>>,
+) -> Option<&'a mut RunHandle> {
+    if runs
+        .get(asset)
+        .is_some_and(|r| r.info().meta.run_id != run_id)
+    {
+        if let Some(old) = runs.remove(asset) {
+            let _ = old.end(RunOutcome::Interrupted).await;
+        }
+    }
+    if !runs.contains_key(asset) {
+        let mut map = meta.cloned().unwrap_or_default();
+        map.remove("outcome");
+        map.insert("asset_id".into(), asset.to_owned());
+        map.insert("run_id".into(), run_id.to_owned());
+        let meta = RunMetadata::from_map("nats", &map).ok()?;
+        match ingest
+            .open_relay(SourceKind::Nats, source.to_owned(), meta)
+            .await
+        {
+            Ok(r) => {
+                runs.insert(asset.to_owned(), r);
+            }
+            Err(_) => return None,
+        }
+    }
+    runs.get_mut(asset)
+}

@@ -1,0 +1,177 @@
+//! `shocktwin publish --nats URL FILE.mcap... [--realtime] [--batch-ms 100]`:
+//! sends runs as vehicles would, to `shocktwin.telemetry.<asset>` (stream
+//! `SHOCKTWIN_TELEMETRY`), one task per file, batches of `--batch-ms` of
+//! samples (see [`super::payload`]). Every batch carries the message id
+//! `<asset>/<run>/<batch>`, so a publisher that retries after a lost ack
+//! never stores a batch twice.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use async_nats::jetstream::{self, message::PublishMessage as Publish};
+use dt_core::log::{read_log, Sample};
+
+use super::payload::{subject_token, TelemetryBatch, PAYLOAD_VERSION};
+use super::{connect, ensure_topology, NatsConfig};
+use crate::cli::PublishArgs;
+
+/// Runs `shocktwin publish`.
+pub fn run(args: &PublishArgs) -> Result<std::process::ExitCode> {
+    if args.batch_ms == 0 {
+        bail!("--batch-ms must be at least 1");
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("tokio runtime")?;
+    rt.block_on(publish_all(args))
+}
+
+async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
+    let cfg = NatsConfig {
+        url: Some(args.nats.clone()),
+        ca_file: args.nats_ca.clone(),
+        ..NatsConfig::default()
+    };
+    let client = connect(&cfg, "shocktwin publish").await?;
+    let js = jetstream::new(client);
+    ensure_topology(&js, &cfg).await?;
+    let js = Arc::new(js);
+    let mut tasks = tokio::task::JoinSet::new();
+    for (i, file) in args.files.iter().enumerate() {
+        let js = Arc::clone(&js);
+        let file = file.clone();
+        let opts = FileOptions {
+            batch_ns: i64::from(args.batch_ms) * 1_000_000,
+            realtime: args.realtime,
+            asset: args.rename_assets.as_ref().map(|p| format!("{p}{i}")),
+        };
+        tasks.spawn(async move {
+            let r = publish_file(&js, &file, &opts).await;
+            (file, r)
+        });
+    }
+    let mut failed = 0;
+    while let Some(joined) = tasks.join_next().await {
+        let (file, r) = joined.context("publish task")?;
+        match r {
+            Ok((asset, run, batches, samples)) => eprintln!(
+                "published {}: asset {asset} run {run}, {batches} batches, {samples} samples",
+                file.display()
+            ),
+            Err(e) => {
+                failed += 1;
+                eprintln!("shocktwin: {}: {e:#}", file.display());
+            }
+        }
+    }
+    Ok(if failed > 0 {
+        std::process::ExitCode::FAILURE
+    } else {
+        std::process::ExitCode::SUCCESS
+    })
+}
+
+struct FileOptions {
+    batch_ns: i64,
+    realtime: bool,
+    asset: Option<String>,
+}
+
+/// Publishes one run; returns asset, run, batches and samples sent.
+async fn publish_file(
+    js: &jetstream::Context,
+    file: &Path,
+    opts: &FileOptions,
+) -> Result<(String, String, u64, usize)> {
+    let path = PathBuf::from(file);
+    let log = tokio::task::spawn_blocking(move || read_log(&path))
+        .await
+        .context("reader task")??;
+    let mut meta = log.metadata.clone();
+    if let Some(a) = &opts.asset {
+        meta.asset_id.clone_from(a);
+    }
+    let samples = log.samples_sorted();
+    let subject = format!("shocktwin.telemetry.{}", subject_token(&meta.asset_id));
+    let mut map = meta.to_map();
+    map.remove("asset_id");
+    map.remove("run_id");
+    let t0 = samples.first().map_or(0, Sample::t_ns);
+    let started = tokio::time::Instant::now();
+    let mut batch_no = 0u64;
+    let mut i = 0;
+    loop {
+        let end_t = t0 + (batch_no as i64 + 1) * opts.batch_ns;
+        let mut b = TelemetryBatch {
+            v: PAYLOAD_VERSION,
+            asset_id: meta.asset_id.clone(),
+            run_id: meta.run_id.clone(),
+            batch: batch_no,
+            ..TelemetryBatch::default()
+        };
+        if batch_no == 0 {
+            b.meta.clone_from(&map);
+        }
+        while i < samples.len() && samples[i].t_ns() < end_t {
+            b.push(&samples[i]);
+            i += 1;
+        }
+        b.end = i == samples.len();
+        if opts.realtime {
+            let due = Duration::from_nanos((end_t - t0).max(0) as u64);
+            tokio::time::sleep_until(started + due).await;
+        }
+        let payload: bytes::Bytes = serde_json::to_vec(&b)?.into();
+        let id = format!("{}/{}/{}", meta.asset_id, meta.run_id, batch_no);
+        send_with_retry(js, &subject, &payload, &id)
+            .await
+            .with_context(|| format!("batch {batch_no} on {subject}"))?;
+        batch_no += 1;
+        if b.end {
+            break;
+        }
+    }
+    Ok((meta.asset_id, meta.run_id, batch_no, samples.len()))
+}
+
+/// How long a batch is retried while the server is away (a restart).
+const RETRY_FOR: Duration = Duration::from_secs(60);
+
+/// Publishes one batch and waits for its acknowledgement, retrying (same
+/// message id: stored once) until [`RETRY_FOR`] has passed.
+async fn send_with_retry(
+    js: &jetstream::Context,
+    subject: &str,
+    payload: &bytes::Bytes,
+    id: &str,
+) -> Result<()> {
+    let deadline = tokio::time::Instant::now() + RETRY_FOR;
+    let mut wait = Duration::from_millis(50);
+    loop {
+        let attempt = async {
+            js.send_publish(
+                subject.to_owned(),
+                Publish::build().payload(payload.clone()).message_id(id),
+            )
+            .await
+            .map_err(anyhow::Error::from)?
+            .await
+            .map_err(anyhow::Error::from)
+        };
+        match attempt.await {
+            Ok(_) => return Ok(()),
+            Err(e) if tokio::time::Instant::now() >= deadline => {
+                return Err(e.context(format!("no acknowledgement for {} s", RETRY_FOR.as_secs())));
+            }
+            Err(e) => {
+                tracing::debug!(subject, "publish retried: {e}");
+                tokio::time::sleep(wait).await;
+                wait = (wait * 2).min(Duration::from_secs(1));
+            }
+        }
+    }
+}

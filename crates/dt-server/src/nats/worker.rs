@@ -1,0 +1,829 @@
+//! `serve --nats`: one worker of the group that estimates the fleet.
+//!
+//! **Partitions.** The telemetry stream maps `shocktwin.telemetry.<asset>`
+//! to `shocktwin.telemetry.<p>.<asset>` with the server's own
+//! `partition(P, 1)` subject transform (a hash of the asset token), so each
+//! asset belongs to exactly one of `P` partitions whatever client published
+//! it (MQTT included). A worker holds a partition through a lease in the KV
+//! bucket `shocktwin_leases` (`p<n>`, created with compare-and-set, renewed
+//! every second, expiring after [`super::LEASE_TTL`]); each worker aims at
+//! `ceil(P / live workers)` partitions (live: heartbeat keys `worker.<id>`)
+//! and gives away extras, so a joining worker gets its share and a dead one's
+//! partitions are taken over once its leases expire.
+//!
+//! **Processing.** A partition is read with an ordered consumer filtered to
+//! `shocktwin.telemetry.<p>.*`, from the stream sequence after its
+//! checkpoint. Every estimate goes to `shocktwin.estimate.<asset>` and every
+//! health change to `shocktwin.health.<asset>` (stream
+//! `SHOCKTWIN_ESTIMATES`) with a message id (`e/<asset>/<run>/<t_ns>`,
+//! `h/…`): a batch processed twice (after a failover) yields the same
+//! estimates with the same ids, which `JetStream` drops as duplicates.
+//!
+//! **Checkpoints.** Every second, and when a partition is given away, the
+//! worker waits for the acknowledgements of everything it published, then
+//! writes the partition's checkpoint — each open run's metadata, last batch,
+//! health and its whole estimator ([`Estimator::checkpoint`]) with the
+//! stream sequence they cover — to `shocktwin_checkpoints` with revision
+//! compare-and-set. A failed compare-and-set means another worker owns the
+//! partition: this one drops it. A new owner restores the estimators and
+//! replays from the next sequence, so the estimates after a failover equal
+//! those of an uninterrupted run, bit for bit (no tick lost, none
+//! duplicated).
+//!
+//! **Bad input** (undecodable, another payload version, ids outside the
+//! charset, subject and payload disagreeing, a batch going back in time or
+//! without its run's start) is counted and sent to
+//! `shocktwin.deadletter.<asset token>` with the reason in headers; the
+//! partition and its other assets carry on.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use async_nats::jetstream::{self, consumer, kv, message::PublishMessage as Publish};
+use bytes::Bytes;
+use dt_core::estimate::{Estimate, Health};
+use dt_core::estimator::Estimator;
+use futures_util::future::BoxFuture;
+use futures_util::StreamExt;
+use serde::{Deserialize, Serialize};
+use tokio_util::sync::CancellationToken;
+
+use super::payload::{PayloadError, TelemetryBatch};
+use super::{
+    checkpoint_bucket, connect, ensure_topology, lease_bucket, NatsConfig, NatsError, RENEW_EVERY,
+    TELEMETRY_STREAM,
+};
+use crate::server::config::Config;
+use crate::server::metrics::Metrics;
+use crate::server::source::{Source, SourceContext};
+use crate::server::{EstimatorFactory, ServeError};
+
+/// Version of the partition checkpoint encoding.
+const CHECKPOINT_VERSION: u32 = 1;
+/// A partition waits for its publish acknowledgements once this many are
+/// outstanding (the context allows [`MAX_ACKS_IN_FLIGHT`] for all partitions
+/// together: a partition never waits for a permit another one holds).
+const MAX_PENDING_ACKS: usize = 256;
+/// The `JetStream` context's limit of unacknowledged publishes.
+const MAX_ACKS_IN_FLIGHT: usize = 1 << 16;
+
+/// A worker of the group (a [`Source`] of the daemon).
+pub struct NatsWorker {
+    cfg: NatsConfig,
+    factory: EstimatorFactory,
+    id: String,
+}
+
+impl NatsWorker {
+    /// A worker with a fresh id (`<host>-<pid>-<random>`).
+    #[must_use]
+    pub fn new(cfg: NatsConfig, factory: EstimatorFactory) -> Self {
+        let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "worker".into());
+        let id = format!(
+            "{}-{}-{}",
+            host.chars()
+                .filter(char::is_ascii_alphanumeric)
+                .take(24)
+                .collect::<String>(),
+            std::process::id(),
+            nuid_suffix()
+        );
+        Self { cfg, factory, id }
+    }
+}
+
+fn nuid_suffix() -> String {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.subsec_nanos());
+    format!("{nanos:08x}")
+}
+
+impl Source for NatsWorker {
+    fn name(&self) -> String {
+        format!(
+            "nats worker {} ({})",
+            self.id,
+            self.cfg.url.as_deref().unwrap_or("")
+        )
+    }
+
+    fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
+        Box::pin(async move {
+            let me = *self;
+            me.serve(ctx).await.map_err(|e| ServeError::Invalid {
+                key: "nats".into(),
+                reason: e.to_string(),
+            })
+        })
+    }
+}
+
+struct Held {
+    revision: u64,
+    stop: CancellationToken,
+    lost: Arc<AtomicBool>,
+    task: tokio::task::JoinHandle<Result<(), NatsError>>,
+}
+
+/// What a partition task needs.
+#[derive(Clone)]
+struct PartCtx {
+    js: jetstream::Context,
+    checkpoints: kv::Store,
+    factory: EstimatorFactory,
+    config: Arc<Config>,
+    metrics: Arc<MetricsHandle>,
+}
+
+/// The daemon's metrics, shared with the partition tasks.
+struct MetricsHandle(crate::server::ingest::Ingest);
+
+impl MetricsHandle {
+    fn m(&self) -> &Metrics {
+        self.0.metrics()
+    }
+}
+
+impl NatsWorker {
+    async fn serve(self, ctx: SourceContext) -> Result<(), NatsError> {
+        let client = connect(&self.cfg, &format!("shocktwin worker {}", self.id)).await?;
+        let js = jetstream::ContextBuilder::new()
+            .max_ack_inflight(MAX_ACKS_IN_FLIGHT)
+            .build(client);
+        let partitions = ensure_topology(&js, &self.cfg).await?;
+        if partitions as usize * MAX_PENDING_ACKS * 2 > MAX_ACKS_IN_FLIGHT {
+            return Err(NatsError::new(
+                "partitions",
+                format!(
+                    "{partitions} partitions: at most {} per worker group",
+                    MAX_ACKS_IN_FLIGHT / MAX_PENDING_ACKS / 2
+                ),
+            ));
+        }
+        let leases = lease_bucket(&js).await?;
+        let part = PartCtx {
+            checkpoints: checkpoint_bucket(&js).await?,
+            js,
+            factory: self.factory.clone(),
+            config: Arc::new(ctx.ingest.config().clone()),
+            metrics: Arc::new(MetricsHandle(ctx.ingest.clone())),
+        };
+        tracing::info!(worker = %self.id, partitions, "joined the worker group");
+        let mut held: BTreeMap<u32, Held> = BTreeMap::new();
+        let heartbeat = format!("worker.{}", self.id);
+        let mut tick = tokio::time::interval(RENEW_EVERY / 2);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                () = ctx.cancel.cancelled() => break,
+                _ = tick.tick() => {}
+            }
+            if let Err(e) = leases.put(&heartbeat, Bytes::from_static(b"1")).await {
+                tracing::warn!(worker = %self.id, "heartbeat: {e}");
+            }
+            // Renew; a lease we cannot renew is lost: drop the partition
+            // without writing (another worker may own it already).
+            let mut lost = Vec::new();
+            for (&p, h) in &mut held {
+                if h.task.is_finished() {
+                    lost.push((p, true));
+                    continue;
+                }
+                match leases
+                    .update(lease_key(p), Bytes::from(self.id.clone()), h.revision)
+                    .await
+                {
+                    Ok(r) => h.revision = r,
+                    Err(e) => {
+                        tracing::warn!(worker = %self.id, partition = p, "lease lost: {e}");
+                        lost.push((p, false));
+                    }
+                }
+            }
+            for (p, finished) in lost {
+                if let Some(h) = held.remove(&p) {
+                    h.lost.store(!finished, Ordering::SeqCst);
+                    h.stop.cancel();
+                    match h.task.await {
+                        Ok(Err(e)) => tracing::warn!(partition = p, "partition stopped: {e}"),
+                        Err(e) => tracing::error!(partition = p, "partition task: {e}"),
+                        Ok(Ok(())) => {}
+                    }
+                    if finished {
+                        // The task ended by itself (checkpoint refused, stream
+                        // error): give the lease back so that the partition
+                        // restarts from its last checkpoint.
+                        let _ = leases.delete(lease_key(p)).await;
+                    }
+                }
+            }
+            self.rebalance(&leases, &mut held, partitions, &part, &ctx)
+                .await;
+        }
+        // Shutdown: final checkpoints, then the leases go back at once.
+        for (p, h) in std::mem::take(&mut held) {
+            release(&leases, p, h).await;
+        }
+        let _ = leases.delete(&heartbeat).await;
+        tracing::info!(worker = %self.id, "left the worker group");
+        Ok(())
+    }
+}
+
+impl NatsWorker {
+    /// Gives away one partition above the fair share, or takes free ones up
+    /// to it.
+    async fn rebalance(
+        &self,
+        leases: &kv::Store,
+        held: &mut BTreeMap<u32, Held>,
+        partitions: u32,
+        part: &PartCtx,
+        ctx: &SourceContext,
+    ) {
+        let live = live_workers(leases).await.max(1);
+        let share = partitions.div_ceil(live) as usize;
+        if held.len() > share {
+            if let Some((&p, _)) = held.iter().next_back() {
+                if let Some(h) = held.remove(&p) {
+                    release(leases, p, h).await;
+                    tracing::info!(worker = %self.id, partition = p, share, "partition handed over");
+                }
+            }
+        } else if held.len() < share {
+            let offset = hash32(&self.id) % partitions;
+            for k in 0..partitions {
+                let p = (offset + k) % partitions;
+                if held.contains_key(&p) {
+                    continue;
+                }
+                if let Ok(revision) = leases
+                    .create(lease_key(p), Bytes::from(self.id.clone()))
+                    .await
+                {
+                    let stop = ctx.cancel.child_token();
+                    let lost = Arc::new(AtomicBool::new(false));
+                    let task = tokio::spawn(run_partition(
+                        p,
+                        part.clone(),
+                        stop.clone(),
+                        Arc::clone(&lost),
+                    ));
+                    tracing::info!(worker = %self.id, partition = p, "partition taken");
+                    held.insert(
+                        p,
+                        Held {
+                            revision,
+                            stop,
+                            lost,
+                            task,
+                        },
+                    );
+                    if held.len() >= share {
+                        break;
+                    }
+                }
+            }
+        }
+    }
+}
+
+async fn release(leases: &kv::Store, p: u32, h: Held) {
+    h.stop.cancel();
+    match h.task.await {
+        Ok(Err(e)) => tracing::warn!(partition = p, "partition stopped: {e}"),
+        Err(e) => tracing::error!(partition = p, "partition task: {e}"),
+        Ok(Ok(())) => {}
+    }
+    let _ = leases.delete(lease_key(p)).await;
+}
+
+fn lease_key(p: u32) -> String {
+    format!("p{p}")
+}
+
+async fn live_workers(leases: &kv::Store) -> u32 {
+    let Ok(mut keys) = leases.keys().await else {
+        return 1;
+    };
+    let mut n = 0;
+    while let Some(k) = keys.next().await {
+        if k.is_ok_and(|k| k.starts_with("worker.")) {
+            n += 1;
+        }
+    }
+    n
+}
+
+/// FNV-1a: a stable spread of the workers' first choices.
+fn hash32(s: &str) -> u32 {
+    s.bytes().fold(0x811c_9dc5_u32, |h, b| {
+        (h ^ u32::from(b)).wrapping_mul(0x0100_0193)
+    })
+}
+
+/// One open run of a partition, as checkpointed.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct SavedRun {
+    run_id: String,
+    meta: BTreeMap<String, String>,
+    last_batch: u64,
+    health: Health,
+    estimator: serde_bytes::ByteBuf,
+}
+
+#[derive(Debug, Default, Serialize, Deserialize)]
+struct PartitionCheckpoint {
+    version: u32,
+    /// The telemetry stream sequence everything here covers.
+    seq: u64,
+    assets: BTreeMap<String, SavedRun>,
+}
+
+struct OpenRun {
+    run_id: String,
+    meta: BTreeMap<String, String>,
+    last_batch: u64,
+    health: Health,
+    est: Estimator,
+}
+
+/// A partition's work: assets, publishing, checkpoints.
+struct Partition {
+    p: u32,
+    ctx: PartCtx,
+    runs: HashMap<String, OpenRun>,
+    seq: u64,
+    pending: Vec<async_nats::jetstream::context::PublishAckFuture>,
+    buf: Vec<Estimate>,
+}
+
+async fn run_partition(
+    p: u32,
+    ctx: PartCtx,
+    stop: CancellationToken,
+    lost: Arc<AtomicBool>,
+) -> Result<(), NatsError> {
+    let (mut revision, mut part) = restore_partition(p, ctx).await?;
+    let stream = part
+        .ctx
+        .js
+        .get_stream(TELEMETRY_STREAM)
+        .await
+        .map_err(|e| NatsError::new(format!("stream {TELEMETRY_STREAM}"), e))?;
+    let deliver_policy = if part.seq == 0 {
+        consumer::DeliverPolicy::All
+    } else {
+        consumer::DeliverPolicy::ByStartSequence {
+            start_sequence: part.seq + 1,
+        }
+    };
+    let mut messages = stream
+        .create_consumer(consumer::pull::OrderedConfig {
+            filter_subject: format!("shocktwin.telemetry.{p}.*"),
+            deliver_policy,
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| NatsError::new(format!("consumer of partition {p}"), e))?
+        .messages()
+        .await
+        .map_err(|e| NatsError::new(format!("consumer of partition {p}"), e))?;
+    let mut tick = tokio::time::interval(RENEW_EVERY);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut dirty = false;
+    loop {
+        tokio::select! {
+            biased;
+            () = stop.cancelled() => break,
+            _ = tick.tick() => {
+                if dirty {
+                    revision = Some(part.checkpoint(revision).await?);
+                    dirty = false;
+                }
+            }
+            m = messages.next() => match m {
+                None => return Err(NatsError::new(format!("partition {p}"), "the consumer ended")),
+                Some(Err(e)) => return Err(NatsError::new(format!("partition {p}"), e)),
+                Some(Ok(msg)) => {
+                    let seq = msg.info().map_or(part.seq + 1, |i| i.stream_sequence);
+                    Box::pin(part.handle(&msg.subject, &msg.payload, seq)).await?;
+                    part.seq = seq;
+                    dirty = true;
+                    if part.pending.len() >= MAX_PENDING_ACKS {
+                        part.await_acks().await?;
+                    }
+                }
+            }
+        }
+    }
+    if !lost.load(Ordering::SeqCst) && dirty {
+        part.checkpoint(revision).await?;
+    }
+    Ok(())
+}
+
+/// The partition's state from its checkpoint (empty without one) and the
+/// checkpoint's revision.
+async fn restore_partition(p: u32, ctx: PartCtx) -> Result<(Option<u64>, Partition), NatsError> {
+    let key = lease_key(p);
+    let (revision, saved) = match ctx.checkpoints.entry(&key).await {
+        Ok(Some(e)) if e.operation == kv::Operation::Put => {
+            let ck: PartitionCheckpoint = rmp_serde::from_slice(&e.value).map_err(|err| {
+                NatsError::new(format!("checkpoint {key}"), format!("undecodable: {err}"))
+            })?;
+            (Some(e.revision), ck)
+        }
+        Ok(_) => (None, PartitionCheckpoint::default()),
+        Err(e) => return Err(NatsError::new(format!("checkpoint {key}"), e)),
+    };
+    let mut part = Partition {
+        p,
+        ctx,
+        runs: HashMap::new(),
+        seq: saved.seq,
+        pending: Vec::new(),
+        buf: Vec::new(),
+    };
+    let bundle = Arc::clone(part.ctx.factory.bundle());
+    for (asset, s) in saved.assets {
+        match Estimator::restore(Arc::clone(&bundle), &s.estimator) {
+            Ok(est) => {
+                part.runs.insert(
+                    asset,
+                    OpenRun {
+                        run_id: s.run_id,
+                        meta: s.meta,
+                        last_batch: s.last_batch,
+                        health: s.health,
+                        est,
+                    },
+                );
+            }
+            Err(e) => {
+                part.ctx.metrics.m().error("nats_checkpoint");
+                tracing::error!(partition = p, asset, run = %s.run_id, "cannot restore: {e}; the run restarts with its next batch 0");
+            }
+        }
+    }
+    tracing::info!(
+        partition = p,
+        from_seq = part.seq + 1,
+        runs = part.runs.len(),
+        "partition restored"
+    );
+    Ok((revision, part))
+}
+
+impl Partition {
+    /// Waits for every publish acknowledgement.
+    async fn await_acks(&mut self) -> Result<(), NatsError> {
+        for f in self.pending.drain(..) {
+            f.await
+                .map_err(|e| NatsError::new(format!("publish (partition {})", self.p), e))?;
+        }
+        Ok(())
+    }
+
+    /// Writes the checkpoint (after every publish is acknowledged) with
+    /// compare-and-set on `revision`; returns the new revision.
+    async fn checkpoint(&mut self, revision: Option<u64>) -> Result<u64, NatsError> {
+        self.await_acks().await?;
+        let ck = PartitionCheckpoint {
+            version: CHECKPOINT_VERSION,
+            seq: self.seq,
+            assets: self
+                .runs
+                .iter()
+                .map(|(a, r)| {
+                    (
+                        a.clone(),
+                        SavedRun {
+                            run_id: r.run_id.clone(),
+                            meta: r.meta.clone(),
+                            last_batch: r.last_batch,
+                            health: r.health,
+                            estimator: serde_bytes::ByteBuf::from(r.est.checkpoint()),
+                        },
+                    )
+                })
+                .collect(),
+        };
+        let bytes =
+            rmp_serde::to_vec_named(&ck).map_err(|e| NatsError::new("checkpoint encoding", e))?;
+        let key = lease_key(self.p);
+        let kv = &self.ctx.checkpoints;
+        let r = match revision {
+            Some(rev) => kv
+                .update(&key, bytes.into(), rev)
+                .await
+                .map_err(|e| e.to_string()),
+            None => kv
+                .create(&key, bytes.into())
+                .await
+                .map_err(|e| e.to_string()),
+        };
+        r.map_err(|e| {
+            NatsError::new(
+                format!("checkpoint {key}"),
+                format!("compare-and-set refused ({e}): another worker owns the partition"),
+            )
+        })
+    }
+
+    async fn handle(&mut self, subject: &str, payload: &[u8], seq: u64) -> Result<(), NatsError> {
+        let token = subject.rsplit('.').next().unwrap_or_default();
+        match TelemetryBatch::decode(token, payload) {
+            Err(e) => {
+                self.dead_letter(token, e.kind(), &e.to_string(), payload, seq)
+                    .await
+            }
+            Ok(b) => match Box::pin(self.apply(b)).await {
+                Ok(()) => Ok(()),
+                Err(Refused::Publish(e)) => Err(e),
+                Err(Refused::Input(kind, reason)) => {
+                    self.dead_letter(token, kind, &reason, payload, seq).await
+                }
+            },
+        }
+    }
+
+    async fn dead_letter(
+        &mut self,
+        token: &str,
+        kind: &str,
+        reason: &str,
+        payload: &[u8],
+        seq: u64,
+    ) -> Result<(), NatsError> {
+        self.ctx.metrics.m().error("nats_deadletter");
+        tracing::warn!(
+            partition = self.p,
+            asset = token,
+            seq,
+            kind,
+            "dead-lettered: {reason}"
+        );
+        let mut headers = async_nats::HeaderMap::new();
+        headers.insert("Shocktwin-Kind", kind);
+        headers.insert(
+            "Shocktwin-Reason",
+            reason.replace(['\r', '\n'], " ").as_str(),
+        );
+        headers.insert("Shocktwin-Stream-Seq", seq.to_string().as_str());
+        let publish = Publish::build()
+            .payload(Bytes::copy_from_slice(payload))
+            .headers(headers)
+            .message_id(format!("d/{seq}"));
+        self.publish(format!("shocktwin.deadletter.{token}"), publish)
+            .await
+    }
+
+    async fn publish(&mut self, subject: String, msg: Publish) -> Result<(), NatsError> {
+        let ack = self
+            .ctx
+            .js
+            .send_publish(subject.clone(), msg)
+            .await
+            .map_err(|e| NatsError::new(format!("publish to {subject}"), e))?;
+        self.pending.push(ack);
+        Ok(())
+    }
+
+    async fn apply(&mut self, b: TelemetryBatch) -> Result<(), Refused> {
+        let asset = b.asset_id.clone();
+        if b.batch == 0 {
+            if let Some(open) = self.runs.get(&asset) {
+                if open.run_id == b.run_id {
+                    return Err(Refused::Input(
+                        "back_in_time",
+                        format!(
+                            "batch 0 of run `{}` again after batch {}: going back in time",
+                            b.run_id, open.last_batch
+                        ),
+                    ));
+                }
+                // A new run of the asset: the open one was cut off.
+                if let Some(open) = self.runs.remove(&asset) {
+                    self.end_run(&asset, open, "interrupted").await?;
+                }
+            }
+            let meta = b
+                .metadata()
+                .map_err(|e| Refused::Input(e.kind(), e.to_string()))?;
+            let cfg = self.ctx.factory.config_for(&self.ctx.config.asset(&asset));
+            let est = Estimator::new(Arc::clone(self.ctx.factory.bundle()), cfg).map_err(|e| {
+                Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
+            })?;
+            let mut map = meta.to_map();
+            map.remove("asset_id");
+            map.remove("run_id");
+            self.run_event(&asset, &b.run_id, "started", &map, None)
+                .await?;
+            tracing::info!(partition = self.p, asset, run = %b.run_id, "run started");
+            self.runs.insert(
+                asset.clone(),
+                OpenRun {
+                    run_id: b.run_id.clone(),
+                    meta: map,
+                    last_batch: 0,
+                    health: Health::Unknown,
+                    est,
+                },
+            );
+        } else {
+            match self.runs.get(&asset) {
+                Some(open) if open.run_id == b.run_id => {
+                    if b.batch <= open.last_batch {
+                        return Err(Refused::Input(
+                            "back_in_time",
+                            format!(
+                                "batch {} of run `{}` after batch {}: going back in time",
+                                b.batch, b.run_id, open.last_batch
+                            ),
+                        ));
+                    }
+                }
+                _ => {
+                    return Err(Refused::Input(
+                        "no_start",
+                        format!(
+                            "batch {} of run `{}` without the run's batch 0",
+                            b.batch, b.run_id
+                        ),
+                    ))
+                }
+            }
+        }
+        let Some(mut open) = self.runs.remove(&asset) else {
+            return Ok(());
+        };
+        open.last_batch = b.batch;
+        let mut failed = None;
+        for s in b.samples() {
+            if let Err(e) = open.est.push(s) {
+                failed = Some(e.to_string());
+                break;
+            }
+        }
+        self.buf.clear();
+        self.buf.extend(open.est.drain());
+        self.publish_estimates(&asset, &mut open).await?;
+        if let Some(reason) = failed {
+            tracing::warn!(partition = self.p, asset, "the twin failed: {reason}");
+            self.end_run(&asset, open, "failed").await?;
+        } else if b.end {
+            self.end_run(&asset, open, "completed").await?;
+        } else {
+            self.runs.insert(asset, open);
+        }
+        Ok(())
+    }
+
+    async fn end_run(
+        &mut self,
+        asset: &str,
+        mut open: OpenRun,
+        outcome: &str,
+    ) -> Result<(), Refused> {
+        let finished = open.est.finish();
+        self.buf.clear();
+        self.buf.extend(open.est.drain());
+        self.publish_estimates(asset, &mut open).await?;
+        let outcome = if finished.is_err() { "failed" } else { outcome };
+        let mut map = open.meta.clone();
+        map.insert("outcome".into(), outcome.into());
+        self.run_event(
+            asset,
+            &open.run_id,
+            "ended",
+            &map,
+            Some(open.est.counters().ticks),
+        )
+        .await?;
+        tracing::info!(partition = self.p, asset, run = %open.run_id, outcome, "run ended");
+        Ok(())
+    }
+
+    async fn publish_estimates(&mut self, asset: &str, open: &mut OpenRun) -> Result<(), Refused> {
+        let token = super::payload::subject_token(asset);
+        let subject = format!("shocktwin.estimate.{token}");
+        let buf = std::mem::take(&mut self.buf);
+        for e in &buf {
+            let payload = serde_json::to_vec(&EstimateMsg {
+                run_id: &open.run_id,
+                e,
+            })
+            .map_err(|err| Refused::Publish(NatsError::new("estimate encoding", err)))?;
+            let id = format!("e/{asset}/{}/{}", open.run_id, e.t_ns);
+            self.publish(
+                subject.clone(),
+                Publish::build().payload(payload.into()).message_id(id),
+            )
+            .await
+            .map_err(Refused::Publish)?;
+            if e.health != open.health {
+                let msg = HealthMsg {
+                    run_id: &open.run_id,
+                    t_ns: e.t_ns,
+                    from: open.health,
+                    to: e.health,
+                };
+                let payload = serde_json::to_vec(&msg)
+                    .map_err(|err| Refused::Publish(NatsError::new("health encoding", err)))?;
+                let id = format!("h/{asset}/{}/{}", open.run_id, e.t_ns);
+                self.publish(
+                    format!("shocktwin.health.{token}"),
+                    Publish::build().payload(payload.into()).message_id(id),
+                )
+                .await
+                .map_err(Refused::Publish)?;
+                open.health = e.health;
+            }
+        }
+        self.buf = buf;
+        Ok(())
+    }
+
+    async fn run_event(
+        &mut self,
+        asset: &str,
+        run_id: &str,
+        event: &str,
+        meta: &BTreeMap<String, String>,
+        ticks: Option<u64>,
+    ) -> Result<(), Refused> {
+        let token = super::payload::subject_token(asset);
+        let payload = serde_json::to_vec(&RunEvent {
+            event,
+            asset_id: asset,
+            run_id,
+            meta,
+            ticks,
+        })
+        .map_err(|e| Refused::Publish(NatsError::new("run event encoding", e)))?;
+        let id = format!("r/{asset}/{run_id}/{event}");
+        self.publish(
+            format!("shocktwin.run.{token}"),
+            Publish::build().payload(payload.into()).message_id(id),
+        )
+        .await
+        .map_err(Refused::Publish)
+    }
+}
+
+/// Why a batch was not taken.
+enum Refused {
+    /// Bad input: dead-lettered with this kind and reason.
+    Input(&'static str, String),
+    /// Publishing failed: the partition stops (and restarts from its
+    /// checkpoint).
+    Publish(NatsError),
+}
+
+/// `shocktwin.estimate.<asset>`: `run_id` and the `/estimate` fields (SPEC §10).
+#[derive(Serialize)]
+pub struct EstimateMsg<'a> {
+    /// The run.
+    pub run_id: &'a str,
+    /// The estimate (`t_ns` and the SPEC §2/§2a fields).
+    #[serde(flatten)]
+    pub e: &'a Estimate,
+}
+
+/// `shocktwin.health.<asset>`: a change of the reported state.
+#[derive(Debug, Serialize)]
+pub struct HealthMsg<'a> {
+    /// The run.
+    pub run_id: &'a str,
+    /// Tick of the change, ns.
+    pub t_ns: i64,
+    /// Previous state.
+    pub from: Health,
+    /// New state.
+    pub to: Health,
+}
+
+/// `shocktwin.run.<asset>`: a run started or ended (with its metadata).
+#[derive(Debug, Serialize)]
+pub struct RunEvent<'a> {
+    /// `started` or `ended`.
+    pub event: &'a str,
+    /// The asset.
+    pub asset_id: &'a str,
+    /// The run.
+    pub run_id: &'a str,
+    /// The `shocktwin.run` record (and `outcome` when ended).
+    pub meta: &'a BTreeMap<String, String>,
+    /// Estimates emitted (when ended).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ticks: Option<u64>,
+}
+
+impl From<PayloadError> for Refused {
+    fn from(e: PayloadError) -> Self {
+        Refused::Input(e.kind(), e.to_string())
+    }
+}

