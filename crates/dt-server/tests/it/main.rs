@@ -7,6 +7,7 @@ mod fuzz_config;
 #[path = "../../../dt-core/tests/it/fuzz_driver.rs"]
 mod fuzz_driver;
 mod fuzz_import;
+mod fuzz_nats;
 mod serve_estimator;
 mod serve_http;
 mod serve_inbox;
