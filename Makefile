@@ -19,7 +19,7 @@ CAMPAIGN ?= $(OUT)/campaign
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
-.PHONY: help setup build wheel browser demo test test-rust test-python lint fuzz bench bench-python load-test study clean
+.PHONY: help setup build wheel browser demo test test-rust test-python lint fuzz bench bench-python load-test bench-nats study clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -110,6 +110,9 @@ bench-python: $(VENV)/.deps $(BIN) ## the Python reference (mcap, filterpy, scip
 	$(PY) benches/python_reference.py
 
 LOAD_ASSETS ?= 100,200,300,400,500
+bench-nats: $(VENV)/.deps $(BIN) ## throughput of the NATS worker group, 1 vs 2 workers, on a real nats-server (a bench, minutes; simulated data)
+	$(PY) benches/nats_scale.py
+
 load-test: $(BIN) ## load test of shocktwin serve over loopback (a bench, minutes; exits 1 if a count breaks), see docs/daemon.md
 	mkdir -p $(OUT)
 	target/release/shocktwin-load --serve $(BIN) --model crates/dt-core/tests/fixtures/bundle-mlp13 --assets $(LOAD_ASSETS) --duration-s 60 --json-out $(OUT)/load-test.jsonl
