@@ -236,7 +236,7 @@ class NatsServer:
     """`nats-server` with JetStream (file storage under `store`) and its MQTT listener on
     loopback ports; `restart()` keeps the store (a server restart loses nothing)."""
 
-    def __init__(self, workdir: Path) -> None:
+    def __init__(self, workdir: Path, extra_conf: str = "") -> None:
         import shutil
         import sys as _sys
 
@@ -255,6 +255,7 @@ class NatsServer:
             f"http: 127.0.0.1:{self.monitor_port}\n"
             f'jetstream {{ store_dir: "{store}" }}\n'
             f"mqtt {{ listen: 127.0.0.1:{self.mqtt_port} }}\n"
+            + extra_conf
         )
         self.log = workdir / "nats-server.log"
         self.proc: _subprocess.Popen[bytes] | None = None

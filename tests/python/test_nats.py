@@ -333,3 +333,74 @@ def test_a_restart_of_the_nats_server_loses_nothing(
         assert_equal_to_replay(estimates_by_asset(nats_server.url)["restart-0"], replayed[runs[0].name], "restart-0")
     finally:
         w.stop()
+
+
+def test_workers_and_publish_reach_a_tls_nats_server(
+        shocktwin_bin: Path, tmp_path: Path, runs: list[Path]) -> None:
+    """The NATS client connection speaks TLS (rustls) when `[nats] ca_file` is set; a
+    server that requires TLS refuses the plaintext client with a clear error."""
+    import trustme
+
+    ca = trustme.CA()
+    cert = ca.issue_cert("127.0.0.1")
+    ca_pem, chain_pem, key_pem = tmp_path / "ca.pem", tmp_path / "server.pem", tmp_path / "server.key"
+    ca.cert_pem.write_to_path(str(ca_pem))
+    cert.cert_chain_pems[0].write_to_path(str(chain_pem))
+    for blob in cert.cert_chain_pems[1:]:
+        with chain_pem.open("ab") as f:
+            f.write(blob.bytes())
+    cert.private_key_pem.write_to_path(str(key_pem))
+    work = tmp_path / "nats"
+    work.mkdir()
+    server = NatsServer(work, f'tls {{ cert_file: "{chain_pem}", key_file: "{key_pem}" }}\n')
+    try:
+        config = tmp_path / "worker.toml"
+        config.write_text(f'[nats]\nurl = "{server.url}"\nca_file = "{ca_pem}"\n')
+        w = ServeProcess([str(shocktwin_bin), "serve", "--config", str(config), "--model", str(BUNDLE),
+                          "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
+        try:
+            proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-ca", str(ca_pem),
+                                   "--rename-assets", "tls-", str(runs[0])], capture_output=True, text=True, timeout=300)
+            assert proc.returncode == 0, proc.stderr
+            done = wait_ended_tls(server, ca_pem, {"tls-0"}, 120, w)
+            assert done["tls-0"]["meta"]["outcome"] == "completed"
+        finally:
+            w.stop()
+        plain = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, str(runs[0])],
+                               capture_output=True, text=True, timeout=60)
+        assert plain.returncode != 0
+        assert "NATS connect" in plain.stderr, plain.stderr
+    finally:
+        server.stop()
+
+
+def wait_ended_tls(server: NatsServer, ca_pem: Path, assets: set[str], timeout_s: float,
+                   w: ServeProcess) -> dict[str, dict[str, Any]]:
+    import ssl
+
+    import nats
+
+    async def ended() -> dict[str, dict[str, Any]]:
+        ctx = ssl.create_default_context(cafile=str(ca_pem))
+        nc = await nats.connect(server.url, tls=ctx)
+        js = nc.jetstream()
+        out: dict[str, dict[str, Any]] = {}
+        info = await js.stream_info("SHOCKTWIN_ESTIMATES", subjects_filter="shocktwin.run.*")
+        total = sum((info.state.subjects or {}).values())
+        if total:
+            sub = await js.pull_subscribe("shocktwin.run.*", stream="SHOCKTWIN_ESTIMATES")
+            for m in await sub.fetch(total, timeout=5):
+                ev = json.loads(m.data)
+                if ev["event"] == "ended":
+                    out[ev["asset_id"]] = ev
+        await nc.close()
+        return out
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        done = asyncio.run(ended())
+        if assets <= set(done):
+            return done
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not ended: {assets - set(done)}\n{w.text()[-3000:]}")
+        time.sleep(1.0)
