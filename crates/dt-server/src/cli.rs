@@ -47,6 +47,10 @@ pub struct PublishArgs {
     /// Pace each run at real time (as a vehicle would send it).
     #[arg(long)]
     pub realtime: bool,
+    /// Pace each run at this many times real time (tests: a vehicle's
+    /// stream, faster).
+    #[arg(long, conflicts_with = "realtime")]
+    pub speed: Option<f64>,
     /// Samples per message, in milliseconds of the run.
     #[arg(long, default_value_t = 100)]
     pub batch_ms: u32,

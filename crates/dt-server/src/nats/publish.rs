@@ -22,6 +22,9 @@ pub fn run(args: &PublishArgs) -> Result<std::process::ExitCode> {
     if args.batch_ms == 0 {
         bail!("--batch-ms must be at least 1");
     }
+    if args.speed.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+        bail!("--speed must be a positive number");
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -46,7 +49,7 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
         let file = file.clone();
         let opts = FileOptions {
             batch_ns: i64::from(args.batch_ms) * 1_000_000,
-            realtime: args.realtime,
+            speed: if args.realtime { Some(1.0) } else { args.speed },
             asset: args.rename_assets.as_ref().map(|p| format!("{p}{i}")),
         };
         tasks.spawn(async move {
@@ -77,7 +80,8 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
 
 struct FileOptions {
     batch_ns: i64,
-    realtime: bool,
+    /// Pacing: this many times real time (none: as fast as acknowledged).
+    speed: Option<f64>,
     asset: Option<String>,
 }
 
@@ -121,8 +125,8 @@ async fn publish_file(
             i += 1;
         }
         b.end = i == samples.len();
-        if opts.realtime {
-            let due = Duration::from_nanos((end_t - t0).max(0) as u64);
+        if let Some(speed) = opts.speed {
+            let due = Duration::from_secs_f64((end_t - t0).max(0) as f64 / 1e9 / speed);
             tokio::time::sleep_until(started + due).await;
         }
         let payload: bytes::Bytes = serde_json::to_vec(&b)?.into();
