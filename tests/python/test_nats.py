@@ -231,6 +231,11 @@ def test_failover_kill_9_loses_no_tick_and_duplicates_none(
             json.dumps({"assets": n_assets, "killed_partitions": held, "resume_s": resume_s}))
         restored = sum(len(re.findall(r"partition restored", w.text())) for w in (workers[0], workers[2]))
         assert restored > 16 - held, "the survivors restored the dead worker's partitions"
+        # The fleet view: a surviving worker's API shows every asset, whichever worker estimated it.
+        import httpx
+
+        listed = {a["asset_id"] for a in httpx.get(f"http://{workers[0].http}/v1/assets", timeout=10).json()["assets"]}
+        assert assets <= listed, sorted(assets - listed)[:10]
     finally:
         for w in workers:
             w.stop()
