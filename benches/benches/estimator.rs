@@ -5,7 +5,9 @@
 //!   2 potentiometer, 1 loadcell, temperatures once a second) through the
 //!   re-order window, the Kalman filter, boxcars, thermal and force models,
 //!   the MLP, the 1 s average and the health machine, and taking its estimate;
-//! - `bundle/predict_one_{dense,tract}`: the network alone on one row;
+//! - `bundle/predict_one_{dense,f64,tract}`: the network alone on one row:
+//!   the float32 SIMD path the estimator runs, the float64 dense path it
+//!   replaced (`predict_f64`, one row, its result `Vec` included) and tract;
 //! - `replay_1h/*`: one hour of one asset (≈ 4.15 M messages, a zstd MCAP in
 //!   memory written once by `LogWriter`): `read_log_bytes` alone, the
 //!   estimator alone, and both (what `shocktwin replay` does per file). Real
@@ -149,6 +151,9 @@ fn bench_tick(c: &mut Criterion) {
     let mut group = c.benchmark_group("bundle");
     group.bench_function("predict_one_dense", |bench| {
         bench.iter(|| b.predict_one(std::hint::black_box(&row)).unwrap());
+    });
+    group.bench_function("predict_one_f64", |bench| {
+        bench.iter(|| b.predict_f64(std::hint::black_box(&row)).unwrap());
     });
     group.bench_function("predict_one_tract", |bench| {
         bench.iter(|| b.predict_reference(std::hint::black_box(&row)).unwrap());

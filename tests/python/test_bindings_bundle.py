@@ -28,19 +28,47 @@ def expected(name: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array(data["rows"], dtype=float), np.array(data["pressure_bar"], dtype=float)
 
 
+#: |float32 − float64| ≤ BAR · (1 + |float64|): the float32 network's parity bar.
+BAR = shocktwin.MLP_F32_PARITY_BAR
+
+
 @pytest.mark.parametrize(
-    ("name", "backend"),
-    [("bundle-mlp13", "dense"), ("bundle-force-skl", "dense"), ("bundle-force-tanh", "tract")],
+    ("name", "backend", "precision"),
+    [
+        ("bundle-mlp13", "dense", "float32"),
+        ("bundle-force-skl", "dense", "float32"),
+        ("bundle-force-tanh", "tract", "float64"),
+    ],
 )
-def test_predict_matches_the_fixture_outputs(name: str, backend: str):
+def test_predict_matches_the_fixture_outputs(name: str, backend: str, precision: str):
     bundle = shocktwin.Bundle(FIXTURES / name)
     rows, want = expected(name)
-    assert bundle.backend == backend
+    assert bundle.backend == backend and bundle.precision == precision
     got = bundle.predict(rows)
     assert got.dtype == np.float64 and got.shape == (len(rows),)
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    tol = BAR if precision == "float32" else 0.0
+    np.testing.assert_allclose(got, want, rtol=tol, atol=max(tol, 1e-9))
+    np.testing.assert_allclose(bundle.predict_f64(rows), want, rtol=0, atol=1e-9)
     np.testing.assert_allclose(bundle.predict_reference(rows), want, rtol=0, atol=1e-9)
     assert np.ptp(want) > 0.1  # the outputs differ: the comparison is not of one constant
+
+
+@pytest.mark.parametrize("name", ["bundle-mlp13", "bundle-force-skl"])
+def test_float32_network_within_the_parity_bar_of_onnxruntime(name: str):
+    """The bundle's mlp.onnx run by onnxruntime (float64) against the float32 dense path,
+    on the fixture rows and on rows far from the data (±20 standard deviations)."""
+    ort = pytest.importorskip("onnxruntime")
+    bundle = shocktwin.Bundle(FIXTURES / name)
+    rows, _ = expected(name)
+    norm = bundle.twin["normalisation"]
+    mean, std = np.array(norm["mean"]), np.array(norm["std"])
+    far = mean + std * np.random.default_rng(7).uniform(-20, 20, size=(500, len(mean)))
+    session = ort.InferenceSession(str(FIXTURES / name / "mlp.onnx"), providers=["CPUExecutionProvider"])
+    (inp,) = session.get_inputs()
+    for x in (rows, far):
+        want = session.run(None, {inp.name: (x - mean) / std})[0][:, 0]
+        np.testing.assert_allclose(bundle.predict(x), want, rtol=BAR, atol=BAR)
+        np.testing.assert_allclose(bundle.predict_f64(x), want, rtol=0, atol=1e-9 * (1 + np.abs(want)).max())
 
 
 def test_properties_are_twin_json():
@@ -76,7 +104,7 @@ def test_predict_inputs():
     nan_row = rows[:2].copy()
     nan_row[1, 3] = np.nan
     got = bundle.predict(nan_row)
-    assert got[0] == pytest.approx(want[0], abs=1e-9) and np.isnan(got[1])
+    assert got[0] == pytest.approx(want[0], abs=BAR * (1 + abs(want[0]))) and np.isnan(got[1])
     with pytest.raises(shocktwin.InputError, match="11 columns.*reads 12"):
         bundle.predict(rows[:, :11])
     with pytest.raises(TypeError):

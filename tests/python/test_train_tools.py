@@ -102,8 +102,9 @@ def real_rows(data: dataset.CampaignData, every: int = 7) -> np.ndarray:
 
 def test_parity_of_the_network_evaluators(data, trained, bundle_dir):
     """The bundle's mlp.onnx run by onnxruntime on the normalised inputs, Trained.predict
-    (scikit-learn) and shocktwin.Bundle.predict (dense path) / predict_reference (tract)
-    agree to 1e-5 bar on real feature rows."""
+    (scikit-learn) and shocktwin.Bundle.predict_f64 (float64 dense path) / predict_reference
+    (tract) agree to 1e-5 bar on real feature rows; Bundle.predict (float32) is within
+    MLP_F32_PARITY_BAR of onnxruntime."""
     import onnxruntime as ort
 
     x = real_rows(data)
@@ -115,14 +116,19 @@ def test_parity_of_the_network_evaluators(data, trained, bundle_dir):
     onnx_out = session.run([model.ONNX_OUTPUT], {inp.name: (x - trained.mean) / trained.std})[0][:, 0]
     bundle = shocktwin.Bundle(bundle_dir)
     assert bundle.backend == "dense"  # skl2onnx's float64 MLP is read by the dense path
-    dense = bundle.predict(x)
+    dense = bundle.predict(x)  # float32
+    dense64 = bundle.predict_f64(x)
     tract = bundle.predict_reference(x)
-    results = {"onnxruntime": onnx_out, "tract": tract, "dense": dense}
+    results = {"onnxruntime": onnx_out, "tract": tract, "dense float64": dense64}
     for name, got in results.items():
         assert got.shape == sk.shape, name
         err = np.max(np.abs(got - sk))
         assert err <= PARITY_BAR, f"{name} vs scikit-learn: {err:.3g} bar"
-    assert np.max(np.abs(dense - tract)) <= 1e-9  # the dense path is checked against tract at load
+    assert np.max(np.abs(dense64 - tract)) <= 1e-9  # the dense path is checked against tract at load
+    # the float32 path that predict and the estimator run, against onnxruntime's float64
+    assert bundle.precision == "float32"
+    bar = shocktwin.MLP_F32_PARITY_BAR
+    np.testing.assert_allclose(dense, onnx_out, rtol=bar, atol=bar)
     assert np.ptp(sk) > 0.5, "the network is constant: parity would prove nothing"
 
 

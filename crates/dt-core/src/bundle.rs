@@ -10,6 +10,19 @@
 //! [`Bundle::load`] checks that every part is present and consistent and names
 //! what is not (file, key, expected against found); the network runs through
 //! tract-onnx.
+//!
+//! # The hot path: a float32 MLP
+//!
+//! A plain MLP graph (`MatMul`/`Add`/`Relu` chain, the shape `train/model.py`
+//! writes) is read from the ONNX initializers once at load and evaluated in
+//! float32 with SIMD: each layer's weights are stored once, contiguous and
+//! zero-padded to [`PAD`] outputs (`[n_in × pad]`, one row per input), and a
+//! row is pushed through with broadcast-FMA kernels written against `pulp`'s
+//! safe SIMD API, which picks AVX2+FMA (or NEON, or scalar code) at run time.
+//! A tick's row runs on stack buffers: no allocation. Its agreement with the
+//! float64 graph (onnxruntime, tract and the float64 dense path agree to
+//! 1e-9) is [`MLP_F32_PARITY_BAR`], checked on probe rows at load; a network
+//! that misses it runs in float64 instead.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -28,6 +41,22 @@ use crate::params::PhysicsParams;
 pub const BUNDLE_FORMAT: &str = "shocktwin-bundle/1";
 /// Name of the JSON part of a bundle.
 pub const TWIN_JSON: &str = "twin.json";
+
+/// Agreement of the float32 network (what [`Bundle::predict`],
+/// [`Bundle::predict_one`] and so the estimator run) with the bundle's ONNX
+/// evaluated in float64 by onnxruntime (or tract, or
+/// [`Bundle::predict_f64`], which agree with it to 1e-9):
+/// `|p32 − p64| ≤ MLP_F32_PARITY_BAR · (1 + |p64|)`, bar — numpy's
+/// `assert_allclose(p32, p64, rtol=MLP_F32_PARITY_BAR, atol=MLP_F32_PARITY_BAR)`.
+/// See [`mlp_f32_agrees`].
+pub const MLP_F32_PARITY_BAR: f64 = 1e-4;
+
+/// Whether a float32 network output agrees with the float64 reference
+/// within [`MLP_F32_PARITY_BAR`] (NaN agrees with NaN only).
+#[must_use]
+pub fn mlp_f32_agrees(p32: f64, p64: f64) -> bool {
+    (p32.is_nan() && p64.is_nan()) || (p32 - p64).abs() <= MLP_F32_PARITY_BAR * (1.0 + p64.abs())
+}
 
 /// Errors of loading or running a bundle; each names the file and the part.
 #[derive(Debug, thiserror::Error)]
@@ -258,11 +287,32 @@ impl Bundle {
     }
 
     /// Charge pressure (bar) for raw (un-normalised) feature rows, row-major
-    /// `[n_rows × n_inputs]`: `(x − mean) / std`, then the network.
+    /// `[n_rows × n_inputs]`: `(x − mean) / std`, then the network (the
+    /// float32 path when the graph is a plain MLP: each row exactly as
+    /// [`predict_one`](Self::predict_one) gives it).
     pub fn predict(&self, rows: &[f64]) -> Result<Vec<f64>, BundleError> {
         let x = self.normalise(rows)?;
         let k = self.n_inputs();
         self.network.run(&x, x.len() / k, k, &self.onnx_path())
+    }
+
+    /// [`predict`](Self::predict) in float64 throughout: the float64 dense
+    /// path (checked against tract to 1e-9 at load), or tract's plan. What
+    /// the float32 path is held to within [`MLP_F32_PARITY_BAR`].
+    pub fn predict_f64(&self, rows: &[f64]) -> Result<Vec<f64>, BundleError> {
+        let x = self.normalise(rows)?;
+        let k = self.n_inputs();
+        match &self.network.dense {
+            Some(dense) => {
+                let mut scratch = Vec::new();
+                Ok(x.chunks_exact(k)
+                    .map(|row| dense.forward_one(row, &mut scratch))
+                    .collect())
+            }
+            None => self
+                .network
+                .run_tract(&x, x.len() / k, k, &self.onnx_path()),
+        }
     }
 
     /// [`predict`](Self::predict) through tract-onnx's plan, whatever the
@@ -275,7 +325,7 @@ impl Bundle {
     }
 
     /// Charge pressure for one raw feature row (no allocation on the dense
-    /// path beyond a small scratch buffer).
+    /// paths for layers up to [`STACK_WIDTH`] wide).
     pub fn predict_one(&self, row: &[f64]) -> Result<f64, BundleError> {
         let k = self.n_inputs();
         if row.len() != k {
@@ -292,21 +342,34 @@ impl Bundle {
         {
             *xi = (v - m) / s;
         }
-        match &self.network.dense {
-            Some(dense) => Ok(dense.forward_one(&x[..k], &mut Vec::new())),
-            None => Ok(self.network.run_tract(&x[..k], 1, k, &self.onnx_path())?[0]),
+        match (&self.network.fast, &self.network.dense) {
+            (Some(fast), _) => Ok(fast.forward(&x[..k])),
+            (None, Some(dense)) => Ok(dense.forward_one(&x[..k], &mut Vec::new())),
+            (None, None) => Ok(self.network.run_tract(&x[..k], 1, k, &self.onnx_path())?[0]),
         }
     }
 
-    /// Which evaluator runs the network: `"dense"` (a plain float64 MLP read
-    /// from the ONNX initializers, checked against tract at load) or
-    /// `"tract"` (tract-onnx's optimised plan, any other graph).
+    /// Which evaluator runs the network: `"dense"` (a plain MLP read from
+    /// the ONNX initializers, checked against tract at load; float32 with
+    /// SIMD, see [`precision`](Self::precision)) or `"tract"` (tract-onnx's
+    /// optimised plan, any other graph).
     #[must_use]
     pub fn backend(&self) -> &'static str {
         if self.network.dense.is_some() {
             "dense"
         } else {
             "tract"
+        }
+    }
+
+    /// The precision [`predict`](Self::predict) runs in: `"float32"` (the
+    /// dense path within [`MLP_F32_PARITY_BAR`] of float64) or `"float64"`.
+    #[must_use]
+    pub fn precision(&self) -> &'static str {
+        if self.network.fast.is_some() {
+            "float32"
+        } else {
+            "float64"
         }
     }
 
@@ -344,6 +407,9 @@ struct Network {
     plan: Arc<TypedRunnableModel>,
     f32_io: bool,
     dense: Option<DenseMlp>,
+    /// The dense MLP in float32 (when it agrees with tract within
+    /// [`MLP_F32_PARITY_BAR`]): what runs.
+    fast: Option<MlpF32>,
 }
 
 /// One dense layer `y = x W + b` (`W` row-major `[n_in, n_out]`, as in ONNX
@@ -364,8 +430,8 @@ struct DenseMlp {
     max_width: usize,
 }
 
-/// Layers up to this wide run on stack buffers.
-const STACK_WIDTH: usize = 128;
+/// Layers up to this wide (float32: padded) run on stack buffers.
+pub const STACK_WIDTH: usize = 256;
 
 /// Outputs evaluated together in registers by [`Dense::forward`].
 const LANES: usize = 16;
@@ -538,6 +604,220 @@ impl DenseMlp {
     }
 }
 
+/// Outputs of a float32 layer are padded to a multiple of this (zeros): a
+/// whole number of [`F32_BLOCK`]-register blocks for SIMD widths up to 8
+/// lanes.
+const PAD: usize = 64;
+
+/// SIMD registers of outputs accumulated together by [`MlpF32`] (8 × 8
+/// lanes = a 64-wide layer in registers on AVX2: 8 independent FMA chains).
+const F32_BLOCK: usize = 8;
+
+/// One float32 layer: `y = x W + b` (then `ReLU`), `W` stored row-major
+/// `[n_in × pad]` (one contiguous, zero-padded row of outputs per input),
+/// or, for a single output, as one zero-padded column of `pad_in` values
+/// (a dot product).
+#[derive(Debug, Clone)]
+struct LayerF32 {
+    n_in: usize,
+    /// `n_out` rounded up to [`PAD`].
+    pad: usize,
+    /// `n_in` rounded up to [`PAD`] (the width of the input buffer).
+    pad_in: usize,
+    w: Vec<f32>,
+    b: Vec<f32>,
+    relu: bool,
+    /// `n_out == 1`: a dot product.
+    dot: bool,
+}
+
+/// [`DenseMlp`] in float32, laid out for the SIMD kernels once at load.
+#[derive(Debug, Clone)]
+struct MlpF32 {
+    layers: Vec<LayerF32>,
+    /// The widest padded buffer.
+    max_pad: usize,
+    /// The instruction set detected at load (AVX2+FMA, NEON, … or scalar).
+    arch: pulp::Arch,
+}
+
+const fn round_up(n: usize) -> usize {
+    n.div_ceil(PAD) * PAD
+}
+
+impl MlpF32 {
+    fn new(mlp: &DenseMlp) -> Self {
+        let layers: Vec<LayerF32> = mlp
+            .layers
+            .iter()
+            .map(|l| {
+                let (pad, pad_in) = (round_up(l.n_out), round_up(l.n_in));
+                let dot = l.n_out == 1;
+                let mut w = vec![0.0_f32; if dot { pad_in } else { l.n_in * pad }];
+                if dot {
+                    for (wi, &v) in w.iter_mut().zip(&l.w) {
+                        *wi = v as f32;
+                    }
+                } else {
+                    for (dst, src) in w.chunks_exact_mut(pad).zip(l.w.chunks_exact(l.n_out)) {
+                        for (d, &v) in dst.iter_mut().zip(src) {
+                            *d = v as f32;
+                        }
+                    }
+                }
+                let mut b = vec![0.0_f32; pad];
+                for (bi, &v) in b.iter_mut().zip(&l.b) {
+                    *bi = v as f32;
+                }
+                LayerF32 {
+                    n_in: l.n_in,
+                    pad,
+                    pad_in,
+                    w,
+                    b,
+                    relu: l.relu,
+                    dot,
+                }
+            })
+            .collect();
+        let max_pad = layers
+            .iter()
+            .map(|l| l.pad.max(l.pad_in))
+            .max()
+            .unwrap_or(PAD);
+        Self {
+            layers,
+            max_pad,
+            arch: pulp::Arch::new(),
+        }
+    }
+
+    /// The network's single output for one normalised float64 row (cast to
+    /// float32; the output widened back). A NaN input gives NaN.
+    fn forward(&self, x: &[f64]) -> f64 {
+        if x.iter().any(|v| v.is_nan()) {
+            return f64::NAN;
+        }
+        if self.max_pad <= STACK_WIDTH {
+            let mut a = [0.0_f32; STACK_WIDTH];
+            let mut b = [0.0_f32; STACK_WIDTH];
+            self.forward_in(x, &mut a, &mut b)
+        } else {
+            let (mut a, mut b) = (vec![0.0_f32; self.max_pad], vec![0.0_f32; self.max_pad]);
+            self.forward_in(x, &mut a, &mut b)
+        }
+    }
+
+    /// `a` and `b`: zeroed buffers of at least `max_pad` values.
+    fn forward_in(&self, x: &[f64], a: &mut [f32], b: &mut [f32]) -> f64 {
+        for (ai, &v) in a.iter_mut().zip(x) {
+            *ai = v as f32;
+        }
+        f64::from(self.arch.dispatch(Forward {
+            layers: &self.layers,
+            a,
+            b,
+        }))
+    }
+}
+
+/// One row through every layer, generic over the SIMD instruction set.
+struct Forward<'a> {
+    layers: &'a [LayerF32],
+    a: &'a mut [f32],
+    b: &'a mut [f32],
+}
+
+impl pulp::WithSimd for Forward<'_> {
+    type Output = f32;
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) -> f32 {
+        let (mut cur, mut next) = (self.a, self.b);
+        for layer in self.layers {
+            if layer.dot {
+                let y = dot_f32(simd, &cur[..layer.pad_in], &layer.w) + layer.b[0];
+                next[..layer.pad].fill(0.0);
+                next[0] = if layer.relu && y < 0.0 { 0.0 } else { y };
+            } else {
+                layer_f32(simd, layer, &cur[..layer.n_in], &mut next[..layer.pad]);
+            }
+            std::mem::swap(&mut cur, &mut next);
+        }
+        cur[0]
+    }
+}
+
+/// `out = x W + b` (then `ReLU`) for one row: per block of [`F32_BLOCK`]
+/// output registers, each input broadcast and FMA'd with its contiguous
+/// weight row into the accumulators (no horizontal sums).
+#[inline(always)]
+fn layer_f32<S: pulp::Simd>(simd: S, layer: &LayerF32, x: &[f32], out: &mut [f32]) {
+    let (out_v, _) = S::as_mut_simd_f32s(out);
+    let (bias_v, _) = S::as_simd_f32s(&layer.b);
+    let zero = simd.splat_f32s(0.0);
+    let mut v0 = 0;
+    for (out_blk, bias_blk) in out_v
+        .chunks_exact_mut(F32_BLOCK)
+        .zip(bias_v.chunks_exact(F32_BLOCK))
+    {
+        let mut acc = [zero; F32_BLOCK];
+        acc.copy_from_slice(bias_blk);
+        for (&xi, row) in x.iter().zip(layer.w.chunks_exact(layer.pad)) {
+            let (row_v, _) = S::as_simd_f32s(row);
+            let w = &row_v[v0..v0 + F32_BLOCK];
+            let xv = simd.splat_f32s(xi);
+            for (a, &wv) in acc.iter_mut().zip(w) {
+                *a = simd.mul_add_e_f32s(xv, wv, *a);
+            }
+        }
+        if layer.relu {
+            // max(0, a): a NaN stays NaN on x86 (the second operand is
+            // returned); inputs with a NaN never get here (see `forward`).
+            for a in &mut acc {
+                *a = simd.max_f32s(zero, *a);
+            }
+        }
+        out_blk.copy_from_slice(&acc);
+        v0 += F32_BLOCK;
+    }
+    // Registers left over when the padded width is not a whole number of
+    // blocks (SIMD wider than 8 lanes): one at a time.
+    let rest = out_v.len() - v0;
+    for j in 0..rest {
+        let mut acc = bias_v[v0 + j];
+        for (&xi, row) in x.iter().zip(layer.w.chunks_exact(layer.pad)) {
+            let (row_v, _) = S::as_simd_f32s(row);
+            acc = simd.mul_add_e_f32s(simd.splat_f32s(xi), row_v[v0 + j], acc);
+        }
+        if layer.relu {
+            acc = simd.max_f32s(zero, acc);
+        }
+        out_v[v0 + j] = acc;
+    }
+}
+
+/// `x · w` over equal-length, zero-padded slices (four accumulators).
+#[inline(always)]
+fn dot_f32<S: pulp::Simd>(simd: S, x: &[f32], w: &[f32]) -> f32 {
+    let (xv, xt) = S::as_simd_f32s(x);
+    let (wv, wt) = S::as_simd_f32s(w);
+    let zero = simd.splat_f32s(0.0);
+    let mut acc = [zero; 4];
+    let (x4, x_rest) = xv.split_at(xv.len() - xv.len() % 4);
+    let (w4, w_rest) = wv.split_at(x4.len());
+    for (xs, ws) in x4.chunks_exact(4).zip(w4.chunks_exact(4)) {
+        for ((a, &xi), &wi) in acc.iter_mut().zip(xs).zip(ws) {
+            *a = simd.mul_add_e_f32s(xi, wi, *a);
+        }
+    }
+    for (&xi, &wi) in x_rest.iter().zip(w_rest) {
+        acc[0] = simd.mul_add_e_f32s(xi, wi, acc[0]);
+    }
+    let sum = simd.add_f32s(simd.add_f32s(acc[0], acc[1]), simd.add_f32s(acc[2], acc[3]));
+    simd.reduce_sum_f32s(sum) + xt.iter().zip(wt).map(|(a, b)| a * b).sum::<f32>()
+}
+
 impl Network {
     fn load(bytes: &[u8], twin: &TwinJson, path: &Path) -> Result<Self, BundleError> {
         let onnx_err = |e: &dyn std::fmt::Display| BundleError::Onnx {
@@ -578,6 +858,7 @@ impl Network {
             plan,
             f32_io,
             dense: None,
+            fast: None,
         };
         // A probe run checks the output shape now, not at the first tick.
         let probe = net.run_tract(&vec![0.0; k], 1, k, path)?;
@@ -598,6 +879,16 @@ impl Network {
                     (d - r).abs() <= 1e-9 * r.abs().max(1.0)
                 });
                 if agrees {
+                    // The float32 copy runs if it is within the parity bar
+                    // of tract on the same probe rows.
+                    let fast = MlpF32::new(&dense);
+                    let fast_agrees = rows
+                        .chunks_exact(k)
+                        .zip(&reference)
+                        .all(|(row, &r)| mlp_f32_agrees(fast.forward(row), r));
+                    if fast_agrees {
+                        net.fast = Some(fast);
+                    }
                     net.dense = Some(dense);
                 }
             }
@@ -606,6 +897,9 @@ impl Network {
     }
 
     fn run(&self, x: &[f64], n: usize, k: usize, path: &Path) -> Result<Vec<f64>, BundleError> {
+        if let Some(fast) = &self.fast {
+            return Ok(x.chunks_exact(k).map(|row| fast.forward(row)).collect());
+        }
         match &self.dense {
             Some(dense) => {
                 let mut scratch = Vec::new();

@@ -94,6 +94,19 @@ impl PyBundle {
         Ok(to_numpy(py, out))
     }
 
+    /// ``predict`` in float64 throughout (the float64 dense path, or tract):
+    /// what the float32 path is held to within ``MLP_F32_PARITY_BAR``.
+    fn predict_f64<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyArrayLike2<'py, f64, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let rows = rows_of(&self.bundle, &x)?;
+        let bundle = self.inner();
+        let out = without_gil(py, move || bundle.predict_f64(&rows)).map_err(CoreError::from)?;
+        Ok(to_numpy(py, out))
+    }
+
     /// ``predict`` through tract-onnx's plan whatever ``backend`` is: the
     /// reference the dense path is checked against when the bundle loads.
     fn predict_reference<'py>(
@@ -175,11 +188,19 @@ impl PyBundle {
         json_to_py(py, &value)
     }
 
-    /// Which evaluator runs the network: ``"dense"`` (a float64 MLP read from
-    /// the ONNX initializers, checked against tract at load) or ``"tract"``.
+    /// Which evaluator runs the network: ``"dense"`` (an MLP read from the
+    /// ONNX initializers, checked against tract at load) or ``"tract"``.
     #[getter]
     fn backend(&self) -> &'static str {
         self.bundle.backend()
+    }
+
+    /// The precision ``predict`` and ``estimate`` run the network in:
+    /// ``"float32"`` (the dense path, within ``MLP_F32_PARITY_BAR`` of
+    /// float64) or ``"float64"``.
+    #[getter]
+    fn precision(&self) -> &'static str {
+        self.bundle.precision()
     }
 
     fn __repr__(&self) -> String {

@@ -43,6 +43,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(features::permutations, m)?)?;
     m.add_function(wrap_pyfunction!(features::extra_permutations, m)?)?;
     m.add_class::<bundle::PyBundle>()?;
+    m.add("MLP_F32_PARITY_BAR", dt_core::bundle::MLP_F32_PARITY_BAR)?;
     m.add_function(wrap_pyfunction!(bundle::estimate, m)?)?;
     features::add_constants(m)?;
     Ok(())

@@ -1,6 +1,7 @@
 //! The one decoding path from MCAP channels and messages to [`Sample`]s,
 //! shared by the whole-file reader, the incremental decoder and `inspect`.
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 
 use super::raw::RawChannel;
@@ -68,8 +69,8 @@ impl SampleDecoder {
         let mut values = [f64::NAN; 2];
         let mut found = [false; 2];
         parse_flat_object(data, |key, value| {
-            if let Some(i) = spec.fields.iter().position(|f| *f == key) {
-                values[i] = value.map_err(|reason| (key.to_owned(), reason))?;
+            if let Some(i) = spec.fields.iter().position(|f| f.as_bytes() == key) {
+                values[i] = value.map_err(|reason| (spec.fields[i].to_owned(), reason))?;
                 found[i] = true;
             }
             Ok(())
@@ -153,7 +154,9 @@ fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(
     Ok(())
 }
 
-/// Parses a flat JSON object, calling `f(key, value)` for each member whose
+/// Parses a flat JSON object, calling `f(key, value)` (the key unescaped,
+/// as UTF-8 bytes borrowed from `data` when it has no escapes: no copy, no
+/// allocation) for each member whose
 /// value is a number (or `null`, `NaN`, `Infinity`, `-Infinity`, all read as
 /// NaN: a missing sample); for other values `f` gets `Err(reason)`.
 /// Members of other types are passed too, so that a required field with a
@@ -161,7 +164,7 @@ fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(
 /// The error is `(field, reason)`.
 fn parse_flat_object(
     data: &[u8],
-    mut f: impl FnMut(&str, Result<f64, String>) -> Result<(), (String, String)>,
+    mut f: impl FnMut(&[u8], Result<f64, String>) -> Result<(), (String, String)>,
 ) -> Result<(), (String, String)> {
     let mut p = Parser { data, pos: 0 };
     let whole = |reason: String| {
@@ -181,14 +184,15 @@ fn parse_flat_object(
     loop {
         p.ws();
         let key = p.string().map_err(whole)?;
+        let name = || String::from_utf8_lossy(&key).into_owned();
         p.ws();
         if !p.eat(b':') {
-            return Err(whole(format!("expected `:` after key {key:?}")));
+            return Err(whole(format!("expected `:` after key {:?}", name())));
         }
         p.ws();
         let value = p
             .value()
-            .map_err(|reason| (key.clone(), format!("malformed JSON: {reason}")))?;
+            .map_err(|reason| (name(), format!("malformed JSON: {reason}")))?;
         f(&key, value)?;
         p.ws();
         if p.eat(b',') {
@@ -206,7 +210,7 @@ struct Parser<'a> {
     pos: usize,
 }
 
-impl Parser<'_> {
+impl<'a> Parser<'a> {
     fn ws(&mut self) {
         while let Some(b' ' | b'\t' | b'\n' | b'\r') = self.data.get(self.pos) {
             self.pos += 1;
@@ -240,8 +244,10 @@ impl Parser<'_> {
         }
     }
 
-    /// A JSON string (the opening quote not yet eaten), unescaped.
-    fn string(&mut self) -> Result<String, String> {
+    /// A JSON string (the opening quote not yet eaten), unescaped, as UTF-8
+    /// bytes (checked); borrowed from the message when it has no escapes
+    /// (every key the writers write; ASCII checked without a call).
+    fn string(&mut self) -> Result<Cow<'a, [u8]>, String> {
         let start = self.pos;
         if !self.eat(b'"') {
             return Err("expected a string".into());
@@ -266,11 +272,15 @@ impl Parser<'_> {
             .get(start..self.pos)
             .ok_or_else(|| "unterminated string".to_owned())?;
         if escaped {
-            serde_json::from_slice(raw).map_err(|e| format!("bad string: {e}"))
-        } else {
-            std::str::from_utf8(&raw[1..raw.len() - 1])
-                .map(str::to_owned)
+            serde_json::from_slice::<String>(raw)
+                .map(|s| Cow::Owned(s.into_bytes()))
                 .map_err(|e| format!("bad string: {e}"))
+        } else {
+            let inner = &raw[1..raw.len() - 1];
+            if !inner.is_ascii() {
+                std::str::from_utf8(inner).map_err(|e| format!("bad string: {e}"))?;
+            }
+            Ok(Cow::Borrowed(inner))
         }
     }
 
@@ -346,7 +356,7 @@ mod tests {
     fn fields(json: &str) -> Result<Fields, (String, String)> {
         let mut out = Vec::new();
         parse_flat_object(json.as_bytes(), |k, v| {
-            out.push((k.to_owned(), v));
+            out.push((String::from_utf8(k.to_vec()).unwrap(), v));
             Ok(())
         })?;
         Ok(out)

@@ -1,15 +1,17 @@
 //! The model bundle (SPEC §5): loading the fixtures of `fixtures/bundle-*`
 //! (made by `fixtures/make_bundles.py`), the network against the numpy forward
-//! pass stored there, and every consistency check naming its file and part.
+//! pass stored there (cross-checked with onnxruntime when the fixtures are
+//! made): the float64 paths to 1e-9, the float32 hot path to
+//! [`MLP_F32_PARITY_BAR`]; and every consistency check naming its file and part.
 
 use std::path::{Path, PathBuf};
 
-use dt_core::bundle::{Bundle, BundleError};
+use dt_core::bundle::{mlp_f32_agrees, Bundle, BundleError, MLP_F32_PARITY_BAR};
 use dt_core::features::Group;
 use dt_core::params::PhysicsParams;
 use serde_json::Value;
 
-/// Agreement required between the network here and numpy (SPEC: 1e-9).
+/// Agreement required between the float64 network paths and numpy (SPEC: 1e-9).
 const TOL_BAR: f64 = 1e-9;
 
 fn fixture(name: &str) -> PathBuf {
@@ -61,6 +63,21 @@ fn load_err(dir: &Path, parts: &[&str]) -> BundleError {
     err
 }
 
+/// The float32 path within [`MLP_F32_PARITY_BAR`] of the float64 reference.
+fn assert_f32_parity(got: &[f64], want: &[f64], what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}");
+    let mut worst = 0.0_f64;
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        assert!(
+            mlp_f32_agrees(*g, *w),
+            "{what}: row {i}: float32 {g} vs float64 {w} (Δ {:e}, bar {MLP_F32_PARITY_BAR:e})",
+            g - w
+        );
+        worst = worst.max((g - w).abs() / (1.0 + w.abs()));
+    }
+    eprintln!("{what}: worst float32 error {worst:.2e} × (1 + |p|) bar");
+}
+
 fn assert_close(got: &[f64], want: &[f64], what: &str) {
     assert_eq!(got.len(), want.len(), "{what}");
     for (i, (g, w)) in got.iter().zip(want).enumerate() {
@@ -94,25 +111,36 @@ fn fixture_loads_with_its_parts() {
     assert_eq!(b.twin.health.warn_bar, 9.0);
     assert_eq!(b.twin.provenance["seed"], 20_240_613);
     assert_eq!(b.backend(), "dense", "a plain MLP runs on the dense path");
+    assert_eq!(b.precision(), "float32", "… in float32");
 }
 
 #[test]
 fn predict_equals_numpy_forward_pass() {
-    for (name, backend) in [
-        ("bundle-mlp13", "dense"),
-        ("bundle-force-skl", "dense"),
-        ("bundle-force-tanh", "tract"),
+    for (name, backend, precision) in [
+        ("bundle-mlp13", "dense", "float32"),
+        ("bundle-force-skl", "dense", "float32"),
+        ("bundle-force-tanh", "tract", "float64"),
     ] {
         let b = Bundle::load(fixture(name)).unwrap();
         assert_eq!(b.backend(), backend, "{name}");
+        assert_eq!(b.precision(), precision, "{name}");
         let (rows, want) = expected(name);
-        assert_close(&b.predict(&rows).unwrap(), &want, name);
+        assert_close(&b.predict_f64(&rows).unwrap(), &want, name);
         assert_close(&b.predict_reference(&rows).unwrap(), &want, name);
+        let batch = b.predict(&rows).unwrap();
         let one: Vec<f64> = rows
             .chunks_exact(b.n_inputs())
             .map(|r| b.predict_one(r).unwrap())
             .collect();
-        assert_close(&one, &want, name);
+        if precision == "float32" {
+            assert_f32_parity(&batch, &want, name);
+        } else {
+            assert_close(&batch, &want, name);
+        }
+        // One row at a time is the batch, bit for bit (streaming = batch).
+        for (i, (o, p)) in one.iter().zip(&batch).enumerate() {
+            assert_eq!(o.to_bits(), p.to_bits(), "{name} row {i}: {o} vs {p}");
+        }
         // The outputs are not all alike (a constant network would pass too easily).
         let spread = want.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b))
             - want.iter().fold(f64::INFINITY, |a, &b| a.min(b));
@@ -135,7 +163,7 @@ fn dense_path_agrees_with_tract_far_from_the_data() {
         let j = i % k;
         rows.push(norm.mean[j] + norm.std[j] * 20.0 * u);
     }
-    let dense = b.predict(&rows).unwrap();
+    let dense = b.predict_f64(&rows).unwrap();
     let tract = b.predict_reference(&rows).unwrap();
     for (d, t) in dense.iter().zip(&tract) {
         assert!(
@@ -143,6 +171,18 @@ fn dense_path_agrees_with_tract_far_from_the_data() {
             "dense {d} vs tract {t}"
         );
     }
+    // The float32 path far from the data too (outputs of tens of bar).
+    assert_f32_parity(&b.predict(&rows).unwrap(), &tract, "far from the data");
+}
+
+#[test]
+fn float32_path_propagates_nan_like_float64() {
+    let b = Bundle::load(fixture("bundle-mlp13")).unwrap();
+    let (rows, _) = expected("bundle-mlp13");
+    let mut row = rows[..b.n_inputs()].to_vec();
+    row[3] = f64::NAN;
+    assert!(b.predict_one(&row).unwrap().is_nan());
+    assert!(b.predict_f64(&row).unwrap()[0].is_nan());
 }
 
 #[test]

@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use dt_core::bundle::{Bundle, HealthConfig};
+use dt_core::bundle::{mlp_f32_agrees, Bundle, HealthConfig};
 use dt_core::estimate::Health;
 use dt_core::estimator::{Estimator, EstimatorConfig, HealthMachine, Tick};
 use dt_core::features::{column_indices, compute_features, sorted_samples, FeatureTable, TICK_NS};
@@ -131,6 +131,38 @@ fn assert_same_as_batch(b: &Bundle, ticks: &[Tick], table: &FeatureTable) {
     // Most ticks carry a pressure (all but the ones before the thermal
     // model starts and the Kalman filter's first sample).
     assert!(finite + 20 > ticks.len(), "{finite} of {}", ticks.len());
+}
+
+/// The estimator runs the float32 network: on a replayed run every tick's
+/// pressure is within `MLP_F32_PARITY_BAR` of the float64 network (what it
+/// ran before) on the same feature row.
+#[test]
+fn replay_in_float32_stays_within_the_parity_bar_of_float64() {
+    for name in ["bundle-mlp13", "bundle-force-skl"] {
+        let b = bundle(name);
+        assert_eq!(b.precision(), "float32", "{name}");
+        let log = synth_log(T0, 30, 0.04, 3);
+        let ticks = stream(&mut estimator(&b), &sorted_samples(&log));
+        let idx = column_indices(&b.groups);
+        let (mut n, mut worst) = (0, 0.0_f64);
+        for tick in &ticks {
+            let row: Vec<f64> = idx.iter().map(|&c| tick.row.values[c]).collect();
+            if !row.iter().all(|x| x.is_finite()) {
+                continue;
+            }
+            let p64 = b.predict_f64(&row).unwrap()[0];
+            let p32 = tick.estimate.pressure_bar;
+            assert!(
+                mlp_f32_agrees(p32, p64),
+                "{name} t {}: {p32} vs {p64}",
+                tick.row.t_ns
+            );
+            worst = worst.max((p32 - p64).abs());
+            n += 1;
+        }
+        assert!(n + 20 > ticks.len(), "{name}: {n} of {}", ticks.len());
+        eprintln!("{name}: {n} ticks, worst |p32 − p64| = {worst:.2e} bar");
+    }
 }
 
 #[test]

@@ -15,7 +15,8 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   whatever sensors the log has (the reduced models without accelerometers or
   ambient thermocouple; calibration on a reduced campaign).
 - ``Bundle(path)``: a model bundle (SPEC §5), checked; ``Bundle.predict(X)``
-  runs its network on raw feature rows.
+  runs its network on raw feature rows (a plain MLP in float32, within
+  ``MLP_F32_PARITY_BAR`` of the float64 ONNX graph; ``predict_f64`` in float64).
 - ``estimate(log, bundle)``: the streaming estimator (the daemon's code) over
   a whole run: pressure, 1 s average and health per 50 Hz tick.
 - ``GROUPS``, ``COLUMNS``, ``group_columns``, ``group_topics``, ``suite``,
@@ -44,6 +45,7 @@ from shocktwin._native import (
     COLUMNS,
     Bundle,
     GROUPS,
+    MLP_F32_PARITY_BAR,
     SENSOR_COSTS_AUD,
     ForceModel,
     KalmanFilter,
@@ -107,6 +109,7 @@ __all__ = [
     "extra_permutations",
     # model bundles and the estimator
     "Bundle",
+    "MLP_F32_PARITY_BAR",
     "estimate",
     # errors
     "ShocktwinError",
