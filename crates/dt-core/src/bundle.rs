@@ -731,6 +731,7 @@ struct Forward<'a> {
 impl pulp::WithSimd for Forward<'_> {
     type Output = f32;
 
+    #[allow(clippy::inline_always)] // pulp: the body must inline into its target-feature dispatch
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, simd: S) -> f32 {
         let (mut cur, mut next) = (self.a, self.b);
@@ -751,6 +752,7 @@ impl pulp::WithSimd for Forward<'_> {
 /// `out = x W + b` (then `ReLU`) for one row: per block of [`F32_BLOCK`]
 /// output registers, each input broadcast and FMA'd with its contiguous
 /// weight row into the accumulators (no horizontal sums).
+#[allow(clippy::inline_always)] // pulp: inlined into the SIMD dispatch of `with_simd`
 #[inline(always)]
 fn layer_f32<S: pulp::Simd>(simd: S, layer: &LayerF32, x: &[f32], out: &mut [f32]) {
     let (out_v, _) = S::as_mut_simd_f32s(out);
@@ -798,6 +800,7 @@ fn layer_f32<S: pulp::Simd>(simd: S, layer: &LayerF32, x: &[f32], out: &mut [f32
 }
 
 /// `x · w` over equal-length, zero-padded slices (four accumulators).
+#[allow(clippy::inline_always)] // pulp: inlined into the SIMD dispatch of `with_simd`
 #[inline(always)]
 fn dot_f32<S: pulp::Simd>(simd: S, x: &[f32], w: &[f32]) -> f32 {
     let (xv, xt) = S::as_simd_f32s(x);

@@ -126,6 +126,10 @@ pub struct Limits {
     pub idle_timeout_s: f64,
     /// Estimates kept per asset for `GET /v1/assets/{id}`.
     pub history_len: usize,
+    /// Bytes a second one IP address may send over all its ingest
+    /// connections (a token bucket with one second of burst); a faster peer
+    /// is slowed down (read more slowly), not cut off. 0: no limit.
+    pub max_ingest_bytes_per_s_per_peer: u64,
 }
 
 impl Default for Limits {
@@ -138,6 +142,7 @@ impl Default for Limits {
             queue_depth: 1024,
             idle_timeout_s: 120.0,
             history_len: 500,
+            max_ingest_bytes_per_s_per_peer: 16 << 20,
         }
     }
 }
@@ -367,6 +372,13 @@ impl Config {
             return Err(invalid(
                 "limits.first_data_timeout_s",
                 "must be a positive number",
+            ));
+        }
+        let rate = l.max_ingest_bytes_per_s_per_peer;
+        if rate != 0 && !(4096..=u64::from(u32::MAX)).contains(&rate) {
+            return Err(invalid(
+                "limits.max_ingest_bytes_per_s_per_peer",
+                "must be 0 (no limit) or 4096 to 4294967295 bytes/s",
             ));
         }
         if l.queue_depth == 0 {

@@ -156,7 +156,10 @@ fn sources(
 ) -> Result<Vec<Box<dyn Source>>, ServeError> {
     let mut sources: Vec<Box<dyn Source>> = vec![Box::new(
         tcp::TcpSource::new(ingest, tcp::ConnectionLimits::from_config(&config.limits))
-            .with_tls(tls.map(|t| Arc::clone(&t.ingest))),
+            .with_tls(tls.map(|t| Arc::clone(&t.ingest)))
+            .with_rate(tcp::peer_rate(
+                config.limits.max_ingest_bytes_per_s_per_peer,
+            )),
     )];
     if let Some(dir) = &config.server.inbox {
         sources.push(Box::new(inbox::InboxSource::new(

@@ -18,9 +18,11 @@ use std::sync::Mutex;
 use std::time::Duration;
 
 use futures_util::future::BoxFuture;
+use futures_util::StreamExt;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
+use tokio_util::io::{ReaderStream, StreamReader};
 
 use super::sink::SourceKind;
 use super::source::{Source, SourceContext};
@@ -32,6 +34,7 @@ pub struct TcpSource {
     listener: TcpListener,
     limits: ConnectionLimits,
     tls: Option<Arc<rustls::ServerConfig>>,
+    rate: Option<Arc<PeerRate>>,
 }
 
 /// What one listener allows (from `[limits]`).
@@ -68,6 +71,7 @@ impl TcpSource {
             listener,
             limits,
             tls: None,
+            rate: None,
         }
     }
 
@@ -75,6 +79,13 @@ impl TcpSource {
     #[must_use]
     pub fn with_tls(mut self, config: Option<Arc<rustls::ServerConfig>>) -> Self {
         self.tls = config;
+        self
+    }
+
+    /// Limits each peer's byte rate (see [`peer_rate`]; none: unlimited).
+    #[must_use]
+    pub fn with_rate(mut self, rate: Option<Arc<PeerRate>>) -> Self {
+        self.rate = rate;
         self
     }
 }
@@ -197,6 +208,7 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
         let ingest = ctx.ingest.clone();
         let cancel = ctx.cancel.clone();
         let tls = src.tls.clone();
+        let rate = src.rate.clone();
         ctx.tracker.spawn(async move {
             match tls {
                 None => {
@@ -209,14 +221,15 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
                         ingest.metrics().error("first_data_timeout");
                         tracing::warn!(%peer, "closed: nothing sent within {:?}", limits.first_data);
                     } else {
-                        serve_connection(&ingest, socket, peer, &cancel, limits.idle).await;
+                        serve_connection(&ingest, socket, peer, &cancel, limits.idle, rate).await;
                     }
                 }
                 Some(config) => {
                     let acceptor = tokio_rustls::TlsAcceptor::from(config);
                     match tokio::time::timeout(limits.first_data, acceptor.accept(socket)).await {
                         Ok(Ok(stream)) => {
-                            serve_connection(&ingest, stream, peer, &cancel, limits.idle).await;
+                            serve_connection(&ingest, stream, peer, &cancel, limits.idle, rate)
+                                .await;
                         }
                         Ok(Err(e)) => {
                             ingest.metrics().error("tls_handshake");
@@ -254,23 +267,62 @@ async fn refuse(mut socket: tokio::net::TcpStream, reason: String) {
     .await;
 }
 
+/// The per-peer byte rate of the ingest (`limits.max_ingest_bytes_per_s_per_peer`):
+/// governor's keyed GCRA limiter, one cell per byte, one second of burst.
+pub type PeerRate = governor::DefaultKeyedRateLimiter<std::net::IpAddr>;
+
+/// The limiter for `bytes_per_s` (none for 0).
+#[must_use]
+pub fn peer_rate(bytes_per_s: u64) -> Option<Arc<PeerRate>> {
+    let per_s = std::num::NonZeroU32::new(u32::try_from(bytes_per_s).ok()?)?;
+    Some(Arc::new(governor::RateLimiter::keyed(
+        governor::Quota::per_second(per_s),
+    )))
+}
+
 async fn serve_connection<S: AsyncRead + AsyncWrite + Unpin>(
     ingest: &super::ingest::Ingest,
     socket: S,
     peer: SocketAddr,
     cancel: &tokio_util::sync::CancellationToken,
     idle: Duration,
+    rate: Option<Arc<PeerRate>>,
 ) {
     let (mut reader, mut writer) = tokio::io::split(socket);
-    let report = ingest
-        .ingest_stream(
-            SourceKind::Tcp,
-            format!("tcp {peer}"),
-            &mut reader,
-            cancel,
-            Some(idle),
-        )
-        .await;
+    let source = format!("tcp {peer}");
+    let report = match rate {
+        None => {
+            ingest
+                .ingest_stream(SourceKind::Tcp, source, &mut reader, cancel, Some(idle))
+                .await
+        }
+        Some(rate) => {
+            // Each chunk read waits for its bytes' tokens: a peer over its rate
+            // is read more slowly (TCP pushes back on it), never cut off.
+            let ip = peer.ip();
+            let chunks = ReaderStream::with_capacity(&mut reader, RATE_CHUNK_BYTES as usize).then(
+                move |chunk| {
+                    let rate = Arc::clone(&rate);
+                    async move {
+                        if let Ok(bytes) = &chunk {
+                            if let Some(n) = u32::try_from(bytes.len())
+                                .ok()
+                                .and_then(std::num::NonZeroU32::new)
+                            {
+                                // `n` ≤ RATE_CHUNK_BYTES ≤ the burst (validated).
+                                let _ = rate.until_key_n_ready(&ip, n).await;
+                            }
+                        }
+                        chunk
+                    }
+                },
+            );
+            let mut throttled = StreamReader::new(Box::pin(chunks));
+            ingest
+                .ingest_stream(SourceKind::Tcp, source, &mut throttled, cancel, Some(idle))
+                .await
+        }
+    };
     let mut line = serde_json::to_vec(&report).unwrap_or_default();
     line.push(b'\n');
     // Best effort: the client may be gone already.
@@ -281,6 +333,10 @@ async fn serve_connection<S: AsyncRead + AsyncWrite + Unpin>(
     let mut rest = reader.take(LINGER_MAX_BYTES);
     let _ = tokio::time::timeout(LINGER, tokio::io::copy(&mut rest, &mut tokio::io::sink())).await;
 }
+
+/// Bytes read at a time from a rate-limited connection (at most the burst of
+/// the smallest useful rate, 4 KiB/s).
+const RATE_CHUNK_BYTES: u32 = 4096;
 
 /// How long a closing connection's remaining input is read and discarded.
 const LINGER: Duration = Duration::from_secs(2);

@@ -364,3 +364,39 @@ async fn idle_connection_is_closed_with_its_estimates_kept() {
     assert_eq!(v["last_run_status"], "failed");
     d.stop_untimed().await;
 }
+
+/// `limits.max_ingest_bytes_per_s_per_peer`: one address's streams together
+/// are read no faster than the rate (beyond one second of burst), and are
+/// slowed down, not cut off: both runs complete with every tick. Only a lower
+/// bound on the time is asserted (a loaded machine can only be slower).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_peer_over_its_byte_rate_is_slowed_not_cut_off() {
+    let a = good_stream("rate-a", "r1", 0, 3_000);
+    let b = good_stream("rate-b", "r1", 0, 3_000);
+    let total = (a.bytes.len() + b.bytes.len()) as u64;
+    // About five seconds' worth at the limit.
+    let rate = (total / 5).max(4096);
+    let mut config = test_config();
+    config.limits.max_ingest_bytes_per_s_per_peer = rate;
+    let d = Daemon::start(config).await;
+    assert!(
+        total > 3 * rate,
+        "{total} bytes: too few to measure a rate of {rate}"
+    );
+    let started = std::time::Instant::now();
+    let (ra, rb) = tokio::join!(
+        send(d.ingest, &a.bytes, 4096),
+        send(d.ingest, &b.bytes, 4096)
+    );
+    let took = started.elapsed().as_secs_f64();
+    for (r, s) in [(&ra, &a), (&rb, &b)] {
+        assert_eq!(r["status"], "completed", "{r}");
+        assert_eq!(r["ticks"].as_u64(), Some(s.ticks), "{r}");
+    }
+    let floor = (total - rate) as f64 / rate as f64;
+    assert!(
+        took >= 0.9 * floor,
+        "{total} bytes in {took:.2} s: faster than {rate} B/s allows ({floor:.2} s)"
+    );
+    d.stop().await;
+}
