@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Callable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import pytest
@@ -164,6 +164,18 @@ import threading as _threading
 _ANSI = _re.compile(r"\x1b\[[0-9;]*m")
 
 
+def terminate(proc: "_subprocess.Popen[Any]") -> int:
+    """SIGTERM, then the exit status (SIGKILL after 20 s)."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except _subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+    return proc.returncode
+
+
 class ServeProcess:
     """A running ``shocktwin serve``: its addresses (from the ``listening`` log line) and
     its log (drained in a thread so that the daemon never blocks on a full pipe)."""
@@ -192,14 +204,7 @@ class ServeProcess:
 
     def stop(self) -> int:
         """SIGTERM, then the exit status (killed after 20 s)."""
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(20)
-            except _subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        return self.proc.returncode
+        return terminate(self.proc)
 
     def text(self) -> str:
         return "".join(self.log)
@@ -282,13 +287,8 @@ class NatsServer:
         raise AssertionError("nats-server did not listen within 20 s:\n" + self.log.read_text())
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(20)
-            except _subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
+        if self.proc is not None:
+            terminate(self.proc)
 
     def restart(self) -> None:
         self.stop()

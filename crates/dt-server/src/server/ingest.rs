@@ -149,6 +149,25 @@ impl Ingest {
                     meta.asset_id, meta.run_id
                 ),
             })?;
+        let handle = self.start(kind, source, meta, asset, twin).await?;
+        tracing::info!(
+            source = %handle.info.source,
+            asset = %handle.info.meta.asset_id,
+            run = %handle.info.meta.run_id,
+            "run started"
+        );
+        Ok(handle)
+    }
+
+    /// Tells the sinks a run starts and makes its handle.
+    async fn start(
+        &self,
+        kind: SourceKind,
+        source: String,
+        meta: RunMetadata,
+        asset: super::config::AssetConfig,
+        twin: Box<dyn AssetTwin>,
+    ) -> Result<RunHandle, RunOutcome> {
         let info = Arc::new(RunInfo {
             seq: self.inner.next_seq.fetch_add(1, Ordering::Relaxed),
             kind,
@@ -162,12 +181,6 @@ impl Ingest {
             .send(SinkMsg::Started(Arc::clone(&info)))
             .await
             .map_err(|_| sink_closed_outcome())?;
-        tracing::info!(
-            source = %info.source,
-            asset = %info.meta.asset_id,
-            run = %info.meta.run_id,
-            "run started"
-        );
         Ok(RunHandle {
             ingest: self.clone(),
             asset_label: AssetLabel {
@@ -194,33 +207,8 @@ impl Ingest {
         meta: RunMetadata,
     ) -> Result<RunHandle, RunOutcome> {
         let asset = self.inner.config.asset(&meta.asset_id);
-        let info = Arc::new(RunInfo {
-            seq: self.inner.next_seq.fetch_add(1, Ordering::Relaxed),
-            kind,
-            source,
-            meta,
-            asset,
-            started: SystemTime::now(),
-        });
-        self.inner
-            .sink_tx
-            .send(SinkMsg::Started(Arc::clone(&info)))
+        self.start(kind, source, meta, asset, Box::new(RelayTwin))
             .await
-            .map_err(|_| sink_closed_outcome())?;
-        Ok(RunHandle {
-            ingest: self.clone(),
-            asset_label: AssetLabel {
-                asset: info.meta.asset_id.clone(),
-            },
-            info,
-            twin: Box::new(RelayTwin),
-            out: Vec::new(),
-            samples: 0,
-            samples_reported: 0,
-            ticks: 0,
-            last_t_ns: None,
-            arrived: None,
-        })
     }
 
     /// Reads one MCAP stream to its end (or error, idle timeout, or `cancel`)
