@@ -27,6 +27,7 @@ __all__ = [
     "estimate",
     "GROUPS",
     "COLUMNS",
+    "MLP_F32_PARITY_BAR",
     "SENSOR_COSTS_AUD",
 ]
 
