@@ -47,6 +47,13 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             http = %listeners.http.local_addr()?,
             "listening"
         );
+        let per_connection = config.limits.connection_memory_bound();
+        tracing::info!(
+            per_connection_mib = per_connection >> 20,
+            max_connections = config.limits.max_connections,
+            total_mib = (per_connection.saturating_mul(config.limits.max_connections as u64)) >> 20,
+            "ingest decoding memory bound (limits.max_record_bytes + max_chunk_uncompressed_bytes per connection)"
+        );
         server::run(config, listeners, twins, shutdown).await?;
         Ok(())
     })

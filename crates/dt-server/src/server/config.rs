@@ -117,8 +117,15 @@ pub struct Limits {
     /// An ingest connection must send its first bytes (or finish its TLS
     /// handshake) within this many seconds, else it is closed.
     pub first_data_timeout_s: f64,
-    /// Largest MCAP record (e.g. a chunk) a stream may declare, bytes.
+    /// Largest MCAP record (e.g. a compressed chunk) a stream may declare,
+    /// bytes.
     pub max_record_bytes: u64,
+    /// Largest uncompressed size a chunk may declare, bytes. A connection
+    /// holds at most one record and one decompressed chunk at a time, so
+    /// `max_record_bytes + max_chunk_uncompressed_bytes` (plus a 64 KiB read
+    /// buffer and the estimator's fixed state) bounds its memory, and
+    /// `max_connections` times that bounds the ingest's.
+    pub max_chunk_uncompressed_bytes: u64,
     /// Depth of the queue from the ingest tasks to the sinks (batches) and of
     /// the live event stream (events); a full queue slows the readers down.
     pub queue_depth: usize,
@@ -132,13 +139,25 @@ pub struct Limits {
     pub max_ingest_bytes_per_s_per_peer: u64,
 }
 
+impl Limits {
+    /// The most memory one ingest connection's decoding holds, bytes: one
+    /// record, one decompressed chunk and the read buffer.
+    #[must_use]
+    pub fn connection_memory_bound(&self) -> u64 {
+        self.max_record_bytes
+            .saturating_add(self.max_chunk_uncompressed_bytes)
+            .saturating_add(64 << 10)
+    }
+}
+
 impl Default for Limits {
     fn default() -> Self {
         Self {
             max_connections: 64,
             max_connections_per_peer: 16,
             first_data_timeout_s: 10.0,
-            max_record_bytes: 64 << 20,
+            max_record_bytes: 16 << 20,
+            max_chunk_uncompressed_bytes: 16 << 20,
             queue_depth: 1024,
             idle_timeout_s: 120.0,
             history_len: 500,
@@ -386,6 +405,12 @@ impl Config {
         }
         if l.max_record_bytes < 1024 {
             return Err(invalid("limits.max_record_bytes", "must be at least 1024"));
+        }
+        if l.max_chunk_uncompressed_bytes < 1024 {
+            return Err(invalid(
+                "limits.max_chunk_uncompressed_bytes",
+                "must be at least 1024",
+            ));
         }
         if !(l.idle_timeout_s.is_finite() && l.idle_timeout_s > 0.0) {
             return Err(invalid(

@@ -224,12 +224,7 @@ impl Ingest {
     ) -> RunReport {
         let limits = ReadLimits {
             max_record_bytes: self.inner.config.limits.max_record_bytes,
-            max_chunk_uncompressed_bytes: self
-                .inner
-                .config
-                .limits
-                .max_record_bytes
-                .saturating_mul(4),
+            max_chunk_uncompressed_bytes: self.inner.config.limits.max_chunk_uncompressed_bytes,
         };
         let mut decoder = LogDecoder::with_limits(&source, limits);
         let mut buf = vec![0u8; READ_BUF_BYTES];

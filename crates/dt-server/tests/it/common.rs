@@ -38,6 +38,7 @@ pub struct Daemon {
 pub fn test_config() -> Config {
     let mut c = Config::default();
     c.limits.max_record_bytes = 64 << 10;
+    c.limits.max_chunk_uncompressed_bytes = 256 << 10;
     c.limits.queue_depth = 64;
     c.limits.history_len = 50;
     c.server.inbox_rescan_s = 0.2;

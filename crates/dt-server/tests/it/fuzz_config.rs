@@ -84,6 +84,7 @@ fn toml_line() -> impl Strategy<Value = String> {
             "inbox",
             "max_connections",
             "max_record_bytes",
+            "max_chunk_uncompressed_bytes",
             "queue_depth",
             "nominal_bar",
             "warn_bar",

@@ -230,6 +230,49 @@ async fn concurrent_streams_good_and_bad() {
 }
 
 /// Reads the one reply line of a refused connection.
+/// The per-connection memory cap: a chunk that is small on the wire but
+/// declares more uncompressed bytes than `limits.max_chunk_uncompressed_bytes`
+/// is refused before it is decompressed; a stream beside it is unaffected.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chunk_over_the_uncompressed_cap_is_refused_and_others_carry_on() {
+    let mut config = test_config();
+    config.limits.max_record_bytes = 1 << 20;
+    config.limits.max_chunk_uncompressed_bytes = 64 << 10;
+    assert_eq!(
+        config.limits.connection_memory_bound(),
+        (1 << 20) + (64 << 10) + (64 << 10)
+    );
+    let d = Daemon::start(config).await;
+    let bomb = write_stream(
+        &meta("pump-bomb", "r1"),
+        &run_samples(0, 4000),
+        WriteOptions {
+            compression: Compression::Zstd,
+            chunk_size: Some(512 << 10),
+        },
+    );
+    // Small on the wire: the cap is on the uncompressed size, not the record.
+    assert!(bomb.bytes.len() < 1 << 20, "{}", bomb.bytes.len());
+    let good = good_stream("pump-good", "r1", 1_000_000_000_000, 2000);
+    let (r_bomb, r_good) = tokio::join!(
+        send(d.ingest, &bomb.bytes, 4096),
+        send(d.ingest, &good.bytes, 4096)
+    );
+    assert_eq!(r_bomb["kind"], "too_large", "{r_bomb}");
+    assert!(
+        r_bomb["reason"].as_str().unwrap().contains("uncompressed"),
+        "{r_bomb}"
+    );
+    assert_eq!(r_good["status"], "completed", "{r_good}");
+    assert_eq!(r_good["ticks"], good.ticks, "{r_good}");
+    let metrics = d.metrics().await;
+    assert_eq!(
+        metric(&metrics, "shocktwin_errors_total{kind=\"too_large\"}"),
+        Some(1.0),
+        "{metrics}"
+    );
+}
+
 async fn refused_reply(addr: std::net::SocketAddr) -> serde_json::Value {
     let mut c = TcpStream::connect(addr).await.unwrap();
     let mut reply = String::new();
