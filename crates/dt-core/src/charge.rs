@@ -27,8 +27,11 @@
 //! first on the other is `t_r` (the mount's ringing inside the band does not
 //! make more reversals). It counts when the velocity slope across it,
 //! `ÿ_r = (ẏ̂(t_r + 20 ms) − ẏ̂(t_r − 20 ms)) / 40 ms`, is at least
-//! [`ObserverParams::min_reversal_accel_mps2`] and no other reversal came
-//! within [`ObserverParams::window_post_s`]. Once the stream has passed
+//! [`ObserverParams::min_reversal_accel_mps2`], no other reversal came
+//! within [`ObserverParams::window_post_s`], and (once calibrated) it matches
+//! an excitation of the calibration campaign in both `|ÿ_r|` and its spacing
+//! from the previous reversal, the half period
+//! ([`ObserverParams::calibrated_at`]). Once the stream has passed
 //! `t_r + max(window_post_s, 20 ms)`, the raw `a2` samples in
 //! `[t_r − window_pre_s, t_r + window_post_s]` are fitted by
 //! Levenberg–Marquardt to a coupled model of the reversal: the rod end moves
@@ -132,6 +135,17 @@ const SLOPE_HALF_S: f64 = 0.02;
 const TEMPLATE_LEAD_S: f64 = 0.015;
 /// Atmospheric pressure, bar.
 const P_ATM_BAR: f64 = P_ATM_PA / 1e5;
+/// Default relative half-width of a calibrated reversal spacing
+/// ([`ObserverParams::spacing_rel`]).
+pub const DEFAULT_SPACING_REL: f64 = 0.15;
+
+fn default_spacing_rel() -> f64 {
+    DEFAULT_SPACING_REL
+}
+
+fn nan() -> f64 {
+    f64::NAN
+}
 
 /// Parameters of the charge observer: rig (calibrated on the nominal runs),
 /// measurement model (calibrated on labelled runs), prior and dynamics.
@@ -191,6 +205,24 @@ pub struct ObserverParams {
     pub accel_clusters_mps2: [f64; 4],
     /// Relative half-width of each calibrated `|ÿ_r|` cluster.
     pub accel_cluster_rel: f64,
+    /// Reversal spacing (the half period: time since the previous reversal
+    /// the detector saw, s) of each excitation in
+    /// [`accel_clusters_mps2`](Self::accel_clusters_mps2), at the same index.
+    /// An excitation is two numbers, amplitude and frequency, and `|ÿ_r| ≈
+    /// A ω²` alone does not tell them apart: the first reversals of a 1.5 or
+    /// 3 Hz run, while its amplitude ramps up, pass a 1 Hz `|ÿ_r|` cluster
+    /// with a third or a sixth of the 1 Hz spacing. A reversal counts for
+    /// cluster `k` only when its `|ÿ_r|` is within `accel_cluster_rel` of
+    /// `accel_clusters_mps2[k]` **and** its spacing within `spacing_rel` of
+    /// `reversal_spacings_s[k]`; a reversal with no previous one (no spacing)
+    /// then counts for no cluster. 0 = no spacing restriction for that cluster
+    /// (the default, and what a physics file calibrated before this field
+    /// existed means).
+    #[serde(default)]
+    pub reversal_spacings_s: [f64; 4],
+    /// Relative half-width of each calibrated spacing.
+    #[serde(default = "default_spacing_rel")]
+    pub spacing_rel: f64,
     /// Hysteresis band of the reversal detector, m/s: a reversal is the
     /// velocity passing from beyond `+band` to beyond `−band` (or back), so
     /// the mount's ringing in `ẏ̂` after a friction flip (several mm/s) does
@@ -238,6 +270,8 @@ impl Default for ObserverParams {
             reversal_band_mps: 0.01,
             accel_clusters_mps2: [0.0; 4],
             accel_cluster_rel: 0.2,
+            reversal_spacings_s: [0.0; 4],
+            spacing_rel: DEFAULT_SPACING_REL,
             window_pre_s: 0.010,
             window_post_s: 0.030,
             max_residual_mps2: 0.6,
@@ -246,15 +280,28 @@ impl Default for ObserverParams {
 }
 
 impl ObserverParams {
-    /// Whether the measurement model was calibrated at reversal acceleration
-    /// `abs_accel` (see [`accel_clusters_mps2`](Self::accel_clusters_mps2)).
+    /// Whether the measurement model was calibrated at a reversal with
+    /// acceleration `abs_accel` (m/s²) and spacing `spacing_s` (s since the
+    /// previous reversal; NaN when there was none): some cluster `k` has
+    /// `|abs_accel − accel_clusters_mps2[k]| ≤ accel_cluster_rel ·
+    /// accel_clusters_mps2[k]` and, unless `reversal_spacings_s[k]` is 0,
+    /// `|spacing_s − reversal_spacings_s[k]| ≤ spacing_rel ·
+    /// reversal_spacings_s[k]` (see
+    /// [`reversal_spacings_s`](Self::reversal_spacings_s)). No cluster at
+    /// all: every reversal (uncalibrated).
     #[must_use]
-    pub fn calibrated_at(&self, abs_accel: f64) -> bool {
-        let centres = self.accel_clusters_mps2.iter().filter(|c| **c > 0.0);
-        centres.clone().next().is_none()
-            || centres
-                .into_iter()
-                .any(|c| (abs_accel - c).abs() <= self.accel_cluster_rel * c)
+    pub fn calibrated_at(&self, abs_accel: f64, spacing_s: f64) -> bool {
+        let mut clusters = self
+            .accel_clusters_mps2
+            .iter()
+            .zip(&self.reversal_spacings_s)
+            .filter(|(c, _)| **c > 0.0)
+            .peekable();
+        clusters.peek().is_none()
+            || clusters.any(|(&c, &h)| {
+                (abs_accel - c).abs() <= self.accel_cluster_rel * c
+                    && (h <= 0.0 || (spacing_s - h).abs() <= self.spacing_rel * h)
+            })
     }
 
     /// Checks every parameter; the error names the first bad one.
@@ -273,6 +320,7 @@ impl ObserverParams {
             ("observer.max_residual_mps2", self.max_residual_mps2),
             ("observer.reversal_band_mps", self.reversal_band_mps),
             ("observer.accel_cluster_rel", self.accel_cluster_rel),
+            ("observer.spacing_rel", self.spacing_rel),
         ] {
             if !(value.is_finite() && value > 0.0) {
                 return Err(PhysicsError::InvalidParameter {
@@ -299,6 +347,10 @@ impl ObserverParams {
             ("observer.accel_clusters_mps2", self.accel_clusters_mps2[1]),
             ("observer.accel_clusters_mps2", self.accel_clusters_mps2[2]),
             ("observer.accel_clusters_mps2", self.accel_clusters_mps2[3]),
+            ("observer.reversal_spacings_s", self.reversal_spacings_s[0]),
+            ("observer.reversal_spacings_s", self.reversal_spacings_s[1]),
+            ("observer.reversal_spacings_s", self.reversal_spacings_s[2]),
+            ("observer.reversal_spacings_s", self.reversal_spacings_s[3]),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(PhysicsError::InvalidParameter {
@@ -335,6 +387,10 @@ pub struct Reversal {
     pub t_ns: i64,
     /// Velocity slope across the reversal `ÿ_r`, m/s².
     pub accel_mps2: f64,
+    /// Time since the previous reversal the detector saw, s (NaN for the
+    /// first of a stream).
+    #[serde(default = "nan")]
+    pub spacing_s: f64,
     /// Kalman extension at the reversal, m.
     pub extension_m: f64,
     /// Gas temperature used, °C.
@@ -418,6 +474,9 @@ struct Pending {
     t_r_ns: i64,
     /// Sub-nanosecond part of the crossing time, s.
     t_r_s: f64,
+    /// Time since the previous crossing, s (NaN: none).
+    #[serde(default = "nan")]
+    spacing_s: f64,
 }
 
 /// The recursive charge observer of one run (see the module docs).
@@ -548,6 +607,9 @@ impl ChargeObserver {
         let t_r_ns = prev.t_ns + (frac * dt_ns).floor() as i64;
         let t_r_s = (frac * dt_ns - (frac * dt_ns).floor()) * 1e-9;
         let spacing_ns = (self.p.window_post_s * 1e9) as i64;
+        let spacing_s = self
+            .last_reversal_ns
+            .map_or(f64::NAN, |l| (t_r_ns - l) as f64 * 1e-9);
         if self.pending.is_some()
             || self
                 .last_reversal_ns
@@ -562,7 +624,11 @@ impl ChargeObserver {
         }
         self.last_reversal_ns = Some(t_r_ns);
         self.counters.detected += 1;
-        self.pending = Some(Pending { t_r_ns, t_r_s });
+        self.pending = Some(Pending {
+            t_r_ns,
+            t_r_s,
+            spacing_s,
+        });
     }
 
     /// Seconds from the reversal to `t_ns`.
@@ -593,7 +659,7 @@ impl ChargeObserver {
         let accel = (v_at(SLOPE_HALF_S)? - v_at(-SLOPE_HALF_S)?) / (2.0 * SLOPE_HALF_S);
         if accel.abs() < p.min_reversal_accel_mps2
             || accel.is_nan()
-            || !p.calibrated_at(accel.abs())
+            || !p.calibrated_at(accel.abs(), pending.spacing_s)
         {
             return None;
         }
@@ -631,6 +697,7 @@ impl ChargeObserver {
         let rev = Reversal {
             t_ns: pending.t_r_ns,
             accel_mps2: accel,
+            spacing_s: pending.spacing_s,
             extension_m: y_r,
             gas_temp_c: self.gas_temp_c,
             alpha_n: theta[0],
@@ -974,6 +1041,73 @@ mod tests {
     }
 
     #[test]
+    fn a_reversal_at_a_calibrated_accel_but_another_spacing_is_skipped() {
+        // `feed` makes reversals of |ÿ| = 6 m/s² every 0.25 s.
+        let at = |spacing: f64| ObserverParams {
+            accel_clusters_mps2: [6.0, 0.0, 0.0, 0.0],
+            reversal_spacings_s: [spacing, 0.0, 0.0, 0.0],
+            ..params()
+        };
+        let mut same = ChargeObserver::new(at(0.25)).unwrap();
+        same.record_reversals();
+        feed(&mut same, 40.0, 8);
+        assert!(same.counters().used >= 6, "{:?}", same.counters());
+        for r in same.reversals() {
+            assert!((r.spacing_s - 0.25).abs() < 1e-3, "{r:?}");
+        }
+        // The same |ÿ| at a third more spacing (another amplitude and
+        // frequency): nothing is used and the estimate keeps its prior.
+        for spacing in [0.375, 0.5] {
+            let p = at(spacing);
+            let mut other = ChargeObserver::new(p).unwrap();
+            feed(&mut other, 40.0, 8);
+            let c = other.counters();
+            assert_eq!(c.used, 0, "{c:?}");
+            assert!(c.skipped >= 6, "{c:?}");
+            let est = other.estimate(2_000_000_000);
+            assert!((est.mean_bar - p.prior_mean_bar).abs() < 1e-12, "{est:?}");
+        }
+    }
+
+    #[test]
+    fn calibrated_at_needs_both_accel_and_spacing() {
+        let p = ObserverParams {
+            accel_clusters_mps2: [1.5, 6.0, 0.0, 0.0],
+            reversal_spacings_s: [0.5, 0.0, 0.0, 0.0],
+            ..ObserverParams::default()
+        };
+        assert!(p.calibrated_at(1.5, 0.5));
+        assert!(p.calibrated_at(1.7, 0.56));
+        assert!(!p.calibrated_at(1.5, 0.333), "1 Hz |ÿ| at a 1.5 Hz spacing");
+        assert!(!p.calibrated_at(1.5, 0.6));
+        assert!(!p.calibrated_at(1.5, f64::NAN), "no previous reversal");
+        assert!(!p.calibrated_at(3.5, 0.333));
+        // Cluster 1 has no spacing: |ÿ| alone, as before.
+        assert!(p.calibrated_at(6.0, 0.1) && p.calibrated_at(6.0, f64::NAN));
+        // No cluster at all: uncalibrated, every reversal.
+        assert!(ObserverParams::default().calibrated_at(3.5, f64::NAN));
+    }
+
+    #[test]
+    fn a_physics_file_without_spacings_loads_as_no_spacing_restriction() {
+        let mut v = serde_json::to_value(params()).unwrap();
+        let obj = v.as_object_mut().unwrap();
+        obj.remove("reversal_spacings_s").unwrap();
+        obj.remove("spacing_rel").unwrap();
+        obj.insert(
+            "accel_clusters_mps2".into(),
+            serde_json::json!([6.0, 0, 0, 0]),
+        );
+        let old: ObserverParams = serde_json::from_value(v).unwrap();
+        assert!(old.reversal_spacings_s.iter().all(|h| *h == 0.0));
+        assert!((old.spacing_rel - DEFAULT_SPACING_REL).abs() < 1e-15);
+        assert!(old.calibrated_at(6.0, 0.37) && old.calibrated_at(6.0, f64::NAN));
+        let mut obs = ChargeObserver::new(old).unwrap();
+        feed(&mut obs, 40.0, 8);
+        assert!(obs.counters().used >= 6, "{:?}", obs.counters());
+    }
+
+    #[test]
     fn bad_parameters_are_named() {
         let bad = ObserverParams {
             mount_freq_hz: -1.0,
@@ -981,5 +1115,24 @@ mod tests {
         };
         let err = ChargeObserver::new(bad).unwrap_err().to_string();
         assert!(err.contains("observer.mount_freq_hz"), "{err}");
+        for (bad, name) in [
+            (
+                ObserverParams {
+                    reversal_spacings_s: [0.5, -0.1, 0.0, 0.0],
+                    ..ObserverParams::default()
+                },
+                "observer.reversal_spacings_s",
+            ),
+            (
+                ObserverParams {
+                    spacing_rel: f64::NAN,
+                    ..ObserverParams::default()
+                },
+                "observer.spacing_rel",
+            ),
+        ] {
+            let err = ChargeObserver::new(bad).unwrap_err().to_string();
+            assert!(err.contains(name), "{err}");
+        }
     }
 }

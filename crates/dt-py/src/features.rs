@@ -119,7 +119,9 @@ pub(crate) fn features<'py>(
 /// ``log`` and ``bundle_or_params`` as in ``features``; the physics'
 /// ``observer`` section (or its defaults) configures the fit. Returns a dict
 /// of float64 arrays: ``t_s`` (reversal time, s since the run's first
-/// message), ``accel_mps2`` (velocity slope across it), ``extension_m``,
+/// message), ``accel_mps2`` (velocity slope across it), ``spacing_s`` (time
+/// since the previous reversal the detector saw, NaN for the first),
+/// ``extension_m``,
 /// ``gas_temp_c``, ``alpha_n`` (fitted friction amplitude), ``damping_ext_nspm``,
 /// ``damping_comp_nspm``, ``shift_s``, ``residual_mps2``, ``samples``,
 /// ``a_n``, ``b_n_per_bar`` (the measurement model ``alpha = a + b p``) and
@@ -149,6 +151,7 @@ pub(crate) fn charge_reversals<'py>(
         to_numpy(py, col(&|r| (r.t_ns - origin) as f64 * 1e-9)),
     )?;
     out.set_item("accel_mps2", to_numpy(py, col(&|r| r.accel_mps2)))?;
+    out.set_item("spacing_s", to_numpy(py, col(&|r| r.spacing_s)))?;
     out.set_item("extension_m", to_numpy(py, col(&|r| r.extension_m)))?;
     out.set_item("gas_temp_c", to_numpy(py, col(&|r| r.gas_temp_c)))?;
     out.set_item("alpha_n", to_numpy(py, col(&|r| r.alpha_n)))?;
