@@ -137,42 +137,61 @@ def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: 
     return p, sd_n / float(np.sqrt(np.sum(b[keep] ** 2)))
 
 
-def accel_clusters(revs: Sequence[dict[str, Any]], rel: float) -> list[float]:
-    """The reversal accelerations the campaign calibrates (per run, the median
-    ``|ÿ_r|`` of its fitted reversals; runs within ``rel`` of each other merged),
-    up to four, most reversals first; zero-padded."""
-    runs = sorted((float(np.median(np.abs(r["accel_mps2"]))), len(r["accel_mps2"]))
+def accel_clusters(revs: Sequence[dict[str, Any]], rel: float) -> list[tuple[float, float]]:
+    """The excitations the campaign calibrates, each as ``(|ÿ_r|, spacing)``: per run, the
+    median ``|ÿ_r|`` and the median spacing (time since the previous reversal, the half
+    period) of its fitted reversals; runs within ``rel`` of each other in ``|ÿ_r|`` merged
+    (reversal-weighted means). Up to four, most reversals first, sorted by ``|ÿ_r|``."""
+    runs = sorted((float(np.median(np.abs(r["accel_mps2"]))), float(np.nanmedian(r["spacing_s"])),
+                   len(r["accel_mps2"]))
                   for r in revs if len(r["accel_mps2"]) >= MIN_CLUSTER_REVERSALS)
-    clusters: list[list[float]] = []  # [sum of a·n, n]
-    for a, n in runs:
-        if clusters and abs(a - clusters[-1][0] / clusters[-1][1]) <= rel * a:
+    clusters: list[list[float]] = []  # [sum of a·n, sum of spacing·n, n]
+    for a, h, n in runs:
+        if clusters and abs(a - clusters[-1][0] / clusters[-1][2]) <= rel * a:
             clusters[-1][0] += a * n
-            clusters[-1][1] += n
+            clusters[-1][1] += h * n
+            clusters[-1][2] += n
         else:
-            clusters.append([a * n, float(n)])
+            clusters.append([a * n, h * n, float(n)])
     if len(clusters) > 4:
         log.warning("%d reversal-acceleration clusters; the observer keeps the 4 with most reversals",
                     len(clusters))
-    best = sorted(clusters, key=lambda c: -c[1])[:4]
-    centres = sorted(c[0] / c[1] for c in best)
-    return centres + [0.0] * (4 - len(centres))
+    best = sorted(clusters, key=lambda c: -c[2])[:4]
+    return sorted((c[0] / c[2], c[1] / c[2]) for c in best)
+
+
+def in_clusters(rev: dict[str, np.ndarray], clusters: Sequence[tuple[float, float]], rel: float,
+                spacing_rel: float) -> np.ndarray:
+    """Which reversals the observer takes (dt-core ``ObserverParams::calibrated_at``): within
+    ``rel`` of a cluster's ``|ÿ_r|`` and within ``spacing_rel`` of its spacing (NaN: none)."""
+    a = np.abs(rev["accel_mps2"])[:, None]
+    h = np.asarray(rev["spacing_s"])[:, None]
+    acc = np.array([c[0] for c in clusters])
+    sp = np.array([c[1] for c in clusters])
+    with np.errstate(invalid="ignore"):
+        ok = (np.abs(a - acc) <= rel * acc) & (np.abs(h - sp) <= spacing_rel * sp)
+    return ok.any(axis=1)
 
 
 def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct: float) -> dict[str, Any]:
     """The measurement model, validated run by run: leave-one-run-out charge errors per
     excitation (reversal-acceleration cluster); an excitation whose LORO RMS exceeds
     ``CLUSTER_MAX_LORO_BAR`` is dropped (the observer skips its reversals) and the rest refitted."""
-    clusters = [c for c in accel_clusters(revs, obs["accel_cluster_rel"]) if c > 0]
+    clusters = accel_clusters(revs, obs["accel_cluster_rel"])
     if not clusters:
         raise ValueError(f"no run has {MIN_CLUSTER_REVERSALS} fitted reversals: nothing to calibrate the observer on")
-    rel = obs["accel_cluster_rel"]
+    rel, spacing_rel = obs["accel_cluster_rel"], obs["spacing_rel"]
+    spread = spacing_spread(revs, clusters, rel)
+    if spread > spacing_rel:
+        log.warning("calibration reversals' spacing spreads %.1f %% from their excitation's, beyond the "
+                    "observer's ±%.0f %%: some calibration reversals will be skipped", 100 * spread,
+                    100 * spacing_rel)
     dropped: list[dict[str, float]] = []
     while True:
-        centres = np.array(clusters)
+        centres = np.array([c[0] for c in clusters])
 
         def inside(r: dict[str, Any]) -> dict[str, Any]:  # the observer skips the others
-            a = np.abs(r["accel_mps2"])[:, None]
-            keep = (np.abs(a - centres) <= rel * centres).any(axis=1)
+            keep = in_clusters(r, clusters, rel, spacing_rel)
             return {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
 
         used = [inside(r) for r in revs]
@@ -196,9 +215,10 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
         worst = int(np.argmax(per_cluster))
         if len(clusters) == 1 or per_cluster[worst] <= CLUSTER_MAX_LORO_BAR:
             break
-        log.warning("reversals at |a| = %.2f m/s² do not calibrate (leave-one-run-out RMS %.1f bar > %.1f): "
-                    "the observer will skip them", clusters[worst], per_cluster[worst], CLUSTER_MAX_LORO_BAR)
-        dropped.append({"accel_mps2": clusters[worst], "loro_rms_bar": per_cluster[worst]})
+        log.warning("reversals at |a| = %.2f m/s², %.3f s apart do not calibrate (leave-one-run-out RMS %.1f bar "
+                    "> %.1f): the observer will skip them", *clusters[worst], per_cluster[worst], CLUSTER_MAX_LORO_BAR)
+        dropped.append({"accel_mps2": clusters[worst][0], "spacing_s": clusters[worst][1],
+                        "loro_rms_bar": per_cluster[worst]})
         clusters.pop(worst)
     err = np.array([row["error_bar"] for row in loro])
     stat = np.array([row["stat_sd_bar"] for row in loro])
@@ -210,14 +230,30 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
         row.update({k: None for k, v in row.items() if isinstance(v, float) and not np.isfinite(v)})
     tol = unit_tol_pct / 100.0
     out = dict(obs)
-    out["accel_clusters_mps2"] = clusters + [0.0] * (4 - len(clusters))
+    out["accel_clusters_mps2"] = [c[0] for c in clusters] + [0.0] * (4 - len(clusters))
+    out["reversal_spacings_s"] = [c[1] for c in clusters] + [0.0] * (4 - len(clusters))
     out.update(step_offset_n=float(coef[0]), step_dir_n=float(coef[1]), step_per_accel_ns2pm=float(coef[2]),
                step_per_bar_n=float(coef[3]), step_per_bar_accel=float(coef[4]), step_sd_n=float(sd_n),
                systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
     out["systematic_rel"] = tol
     return {"observer": out, "loro": loro, "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))),
             "loro_rms_per_cluster_bar": [v if np.isfinite(v) else None for v in per_cluster], "dropped_clusters": dropped,
-            "systematic_loro_bar": sys_sd}
+            "systematic_loro_bar": sys_sd, "spacing_spread_rel": spread}
+
+
+def spacing_spread(revs: Sequence[dict[str, Any]], clusters: Sequence[tuple[float, float]], rel: float) -> float:
+    """How far the calibration's own reversals spread in spacing: the 99th percentile of
+    ``|spacing / its cluster's spacing − 1|`` over the reversals within ``rel`` of a cluster's
+    ``|ÿ_r|``, from onset + ``SKIP_AFTER_ONSET_S`` on (the observer's ``spacing_rel`` must
+    exceed it, or it would skip reversals it was calibrated on)."""
+    dev = []
+    for r in revs:
+        a = np.abs(r["accel_mps2"])
+        for c_a, c_h in clusters:
+            m = (np.abs(a - c_a) <= rel * c_a) & np.isfinite(r["spacing_s"])
+            dev.append(np.abs(r["spacing_s"][m] / c_h - 1.0))
+    d = np.concatenate(dev) if dev else np.array([])
+    return float(np.percentile(d, 99)) if len(d) else 0.0
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -246,8 +282,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"{o['step_offset_n']:.2f} {o['step_dir_n']:+.2f} sgn(a) {o['step_per_accel_ns2pm']:+.3f} |a| "
           f"+ ({o['step_per_bar_n']:.3f} {o['step_per_bar_accel']:+.4f} |a|) p_g  (N), per-reversal sd "
           f"{o['step_sd_n']:.2f} N")
-    print("calibrated at reversal accelerations " + ", ".join(f"{c:.2f}" for c in o["accel_clusters_mps2"] if c > 0)
-          + f" m/s² (±{100 * o['accel_cluster_rel']:.0f} %); reversals elsewhere are skipped")
+    print("calibrated at reversals " + ", ".join(f"{c:.2f} m/s² {h:.3f} s apart"
+                                                   for c, h in zip(o["accel_clusters_mps2"], o["reversal_spacings_s"])
+                                                   if c > 0)
+          + f" (±{100 * o['accel_cluster_rel']:.0f} % in |a|, ±{100 * o['spacing_rel']:.0f} % in spacing; "
+          f"99 % of the calibration reversals within {100 * cal['spacing_spread_rel']:.1f} % of their spacing); "
+          "reversals elsewhere are skipped")
     print(f"leave-one-run-out charge error RMS {cal['loro_rms_bar']:.2f} bar; systematic sd "
           f"{o['systematic_sd_bar']:.2f} bar (+{100 * o['systematic_rel']:.0f} % of the charge)")
     print(f"wrote {out}")

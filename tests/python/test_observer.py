@@ -181,3 +181,50 @@ def test_calibrated_interval_covers_held_out_runs(tmp_path: Path) -> None:
         assert abs(m[-1] - charge) < 3.0, f"{path.name}: final estimate {m[-1]:.2f} bar, truth {charge}"
     assert total > 0
     assert hits / total >= 0.85, f"coverage {hits / total:.2f}"
+
+
+def test_a_calibrated_accel_at_another_spacing_is_skipped(run_4bar: Path) -> None:
+    """An excitation is two numbers, amplitude and frequency: a reversal at a calibrated
+    ``|ÿ_r|`` but another spacing (half period) is not used (``calibrated_at`` in dt-core),
+    so an uncalibrated frequency keeps the prior instead of a confident wrong number."""
+    rev = shocktwin.charge_reversals(run_4bar, observer_physics())
+    spacing = rev["spacing_s"][np.isfinite(rev["spacing_s"])]
+    assert np.isnan(rev["spacing_s"][0]) or rev["spacing_s"][0] > 0
+    assert abs(float(np.median(spacing)) - 0.5) < 0.01  # 1 Hz: a reversal every half period
+    accel = float(np.median(np.abs(rev["accel_mps2"])))
+
+    def at(spacing_s: float) -> dict:
+        params = observer_physics()
+        params["observer"].update(accel_clusters_mps2=[accel, 0.0, 0.0, 0.0],
+                                  reversal_spacings_s=[spacing_s, 0.0, 0.0, 0.0])
+        return params
+
+    same = shocktwin.charge_reversals(run_4bar, at(0.5))
+    assert same["used"].sum() > 30
+    assert np.all(np.abs(same["spacing_s"] - 0.5) <= 0.15 * 0.5)
+    for other in (1 / 3, 0.7):  # 1.5 Hz's spacing, and a slower excitation's
+        params = at(other)
+        assert shocktwin.charge_reversals(run_4bar, params)["alpha_n"].size == 0
+        x, cols, _ = shocktwin.features(run_4bar, params, ["observer"])
+        sd = x[:, cols.index("observer_sd_bar")]
+        assert np.all(sd >= params["observer"]["prior_sd_bar"]), sd.min()
+
+
+def test_calibration_records_each_excitations_spacing() -> None:
+    rng = np.random.default_rng(0)
+
+    def run(accel: float, spacing: float, n: int = 50) -> dict:
+        return {"accel_mps2": accel * np.where(np.arange(n) % 2, 1.0, -1.0) * (1 + 0.01 * rng.standard_normal(n)),
+                "spacing_s": np.r_[np.nan, spacing * (1 + 0.002 * rng.standard_normal(n - 1))]}
+
+    revs = [run(1.54, 0.5), run(1.56, 0.5), run(6.2, 0.25)]
+    clusters = obs_tool.accel_clusters(revs, 0.2)
+    assert len(clusters) == 2
+    assert abs(clusters[0][0] - 1.55) < 0.05 and abs(clusters[0][1] - 0.5) < 0.005
+    assert abs(clusters[1][0] - 6.2) < 0.1 and abs(clusters[1][1] - 0.25) < 0.005
+    assert obs_tool.spacing_spread(revs, clusters, 0.2) < 0.01
+    # the observer's rule: |ÿ| and spacing of one cluster; no previous reversal: no spacing
+    probe = {"accel_mps2": np.array([1.5, -1.5, 1.5, 6.0, 6.0, 3.5]),
+             "spacing_s": np.array([0.5, 1 / 3, np.nan, 0.25, 0.5, 1 / 3])}
+    np.testing.assert_array_equal(obs_tool.in_clusters(probe, clusters, 0.2, 0.15),
+                                  [True, False, False, True, False, False])
