@@ -852,6 +852,9 @@ impl SpawnedDaemon {
         .env("SHOCKTWIN_MAX_CONNECTIONS", (n + 16).to_string())
         // Every simulated vehicle connects from loopback.
         .env("SHOCKTWIN_MAX_CONNECTIONS_PER_PEER", (n + 16).to_string())
+        // Every simulated vehicle comes from 127.0.0.1: one peer standing in
+        // for many, so the per-peer byte rate would measure itself.
+        .env("SHOCKTWIN_MAX_INGEST_BYTES_PER_S_PER_PEER", "0")
         .env("RUST_LOG", "warn,dt_server::cmd_serve=info")
         .stdin(Stdio::null())
         .stdout(Stdio::null())

@@ -278,6 +278,10 @@ pub const ENV_VARS: &[(&str, &str)] = &[
     ),
     ("SHOCKTWIN_MAX_RECORD_BYTES", "limits.max_record_bytes"),
     ("SHOCKTWIN_QUEUE_DEPTH", "limits.queue_depth"),
+    (
+        "SHOCKTWIN_MAX_INGEST_BYTES_PER_S_PER_PEER",
+        "limits.max_ingest_bytes_per_s_per_peer",
+    ),
 ];
 
 impl Config {
@@ -341,6 +345,9 @@ impl Config {
                     self.limits.max_record_bytes = parse(&value).map_err(bad)?;
                 }
                 "SHOCKTWIN_QUEUE_DEPTH" => self.limits.queue_depth = parse(&value).map_err(bad)?,
+                "SHOCKTWIN_MAX_INGEST_BYTES_PER_S_PER_PEER" => {
+                    self.limits.max_ingest_bytes_per_s_per_peer = parse(&value).map_err(bad)?;
+                }
                 _ => unreachable!("ENV_VARS and apply_env list the same variables"),
             }
         }
@@ -551,6 +558,7 @@ warn_bar = 8.0
             "SHOCKTWIN_HTTP" => Some("127.0.0.1:9100".to_owned()),
             "SHOCKTWIN_LISTEN" => Some("127.0.0.1:9200".to_owned()),
             "SHOCKTWIN_QUEUE_DEPTH" => Some("7".to_owned()),
+            "SHOCKTWIN_MAX_INGEST_BYTES_PER_S_PER_PEER" => Some("0".to_owned()),
             _ => None,
         };
         let cli = ConfigOverrides {
@@ -562,6 +570,7 @@ warn_bar = 8.0
         assert_eq!(c.server.http.port(), 9100, "env beats file");
         assert_eq!(c.limits.max_connections, 3, "file beats default");
         assert_eq!(c.limits.queue_depth, 7);
+        assert_eq!(c.limits.max_ingest_bytes_per_s_per_peer, 0);
         let a = c.asset("shock-7");
         assert_eq!((a.nominal_bar, a.warn_bar, a.fault_bar), (10.0, 8.0, 5.0));
         assert_eq!(c.asset("other").warn_bar, 9.0);
