@@ -17,7 +17,7 @@ OUT      ?= out
 CAMPAIGN ?= $(OUT)/campaign
 
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
-PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
+PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py crates/workspace-hack -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
 .PHONY: help setup build wheel browser demo test test-rust test-python lint fuzz bench bench-python load-test bench-nats study clean
 
