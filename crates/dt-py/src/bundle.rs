@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use dt_core::bundle::Bundle;
+use dt_core::bundle::{Bundle, BundleError};
 use dt_core::error::PhysicsError;
 use dt_core::estimator::{estimate_log, EstimatorConfig};
 use dt_core::features::TopicSet;
@@ -52,6 +52,20 @@ impl PyBundle {
     pub(crate) fn inner(&self) -> Arc<Bundle> {
         Arc::clone(&self.bundle)
     }
+
+    /// Runs one of the bundle's prediction paths on the rows of `x`, checked
+    /// against its width, with the GIL released.
+    fn predict_with<'py>(
+        &self,
+        py: Python<'py>,
+        x: &PyArrayLike2<'py, f64, AllowTypeChange>,
+        path: fn(&Bundle, &[f64]) -> Result<Vec<f64>, BundleError>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let rows = rows_of(&self.bundle, x)?;
+        let bundle = self.inner();
+        let out = without_gil(py, move || path(&bundle, &rows)).map_err(CoreError::from)?;
+        Ok(to_numpy(py, out))
+    }
 }
 
 /// Row-major values of a 2-D array of feature rows, checked against the
@@ -88,10 +102,7 @@ impl PyBundle {
         py: Python<'py>,
         x: PyArrayLike2<'py, f64, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let rows = rows_of(&self.bundle, &x)?;
-        let bundle = self.inner();
-        let out = without_gil(py, move || bundle.predict(&rows)).map_err(CoreError::from)?;
-        Ok(to_numpy(py, out))
+        self.predict_with(py, &x, Bundle::predict)
     }
 
     /// ``predict`` in float64 throughout (the float64 dense path, or tract):
@@ -101,10 +112,7 @@ impl PyBundle {
         py: Python<'py>,
         x: PyArrayLike2<'py, f64, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let rows = rows_of(&self.bundle, &x)?;
-        let bundle = self.inner();
-        let out = without_gil(py, move || bundle.predict_f64(&rows)).map_err(CoreError::from)?;
-        Ok(to_numpy(py, out))
+        self.predict_with(py, &x, Bundle::predict_f64)
     }
 
     /// ``predict`` through tract-onnx's plan whatever ``backend`` is: the
@@ -114,11 +122,7 @@ impl PyBundle {
         py: Python<'py>,
         x: PyArrayLike2<'py, f64, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let rows = rows_of(&self.bundle, &x)?;
-        let bundle = self.inner();
-        let out =
-            without_gil(py, move || bundle.predict_reference(&rows)).map_err(CoreError::from)?;
-        Ok(to_numpy(py, out))
+        self.predict_with(py, &x, Bundle::predict_reference)
     }
 
     /// The bundle directory.
