@@ -82,7 +82,7 @@ browser: ## check for (in CI as root: install) chromium and chromium-driver, for
 	fi
 
 test-python: setup $(BIN) browser ## pytest: the Python contract, references and interop, the dashboard in Chromium
-	$(PY) -m pytest -q --durations=15 tests/python
+	$(PY) -m pytest -q -n 2 --dist loadfile --durations=15 tests/python
 
 test: setup test-rust test-python ## set up, then run every test
 

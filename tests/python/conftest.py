@@ -2,6 +2,21 @@
 
 from __future__ import annotations
 
+import os
+import sys
+
+# One BLAS thread per process, set before numpy loads and inherited by every subprocess
+# (CLIs, training pools, the notebook's kernel, fresh venvs). The tests run several busy
+# processes at once on a 2-core machine (daemons, NATS workers, training pools, pytest-xdist
+# workers); with OpenBLAS's default of a thread per core, each of the MLP's small matrix
+# products then waits for a descheduled partner thread: one `train.train` fit took 188 s
+# instead of 4 s beside a single other busy process. The results do not depend on it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+if "numpy" in sys.modules:  # loaded by a plugin before this file: limit it in place
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
+
 # --- run logs written with the Python `mcap` package (independent of the Rust writer) ---
 
 import json
@@ -302,3 +317,48 @@ def nats_server(tmp_path: Path) -> Iterator[NatsServer]:
         yield server
     finally:
         server.stop()
+
+
+# --- a quick campaign with the charge observer calibrated on it (made once a session) ---
+
+QUICK_CAMPAIGN_PRESSURES = "0.5,4,7,10,12"
+QUICK_CAMPAIGN_FREQUENCIES = "1,2"
+
+
+@pytest.fixture(scope="session")
+def calibrated_campaign(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(campaign, physics.json): `shocktwin simulate --quick` at 0.5, 4, 7, 10 and 12 bar,
+    1 and 2 Hz (10 runs), and the default physics with the observer calibrated on it by
+    `python -m train.observer fit` (about a minute on 2 cores). Read-only for the tests
+    (test_observer, test_fleet_store). Made once a session; under pytest-xdist once for
+    all workers (in the session's shared temporary directory, under a file lock)."""
+    import fcntl
+    import shutil
+
+    import shocktwin
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # pytest-N/, shared by this session's workers (popen-gwK/)
+    work = root / "calibrated-campaign"
+    with open(root / "calibrated-campaign.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (work / "done").exists():
+            shutil.rmtree(work, ignore_errors=True)
+            work.mkdir()
+            proc = _subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--pressures", QUICK_CAMPAIGN_PRESSURES,
+                                    "--frequencies", QUICK_CAMPAIGN_FREQUENCIES, "--out", str(work / "campaign")],
+                                   capture_output=True, text=True, timeout=600)
+            assert proc.returncode == 0, proc.stderr
+            assert len(list((work / "campaign").glob("*.mcap"))) == 10
+            (work / "physics.json").write_text(json.dumps(shocktwin.default_params()))
+            root_dir = str(Path(__file__).resolve().parents[2])
+            sys.path.insert(0, root_dir)
+            try:
+                from train import observer as obs_tool
+            finally:
+                sys.path.remove(root_dir)
+            assert obs_tool.main(["fit", "--campaign", str(work / "campaign"),
+                                  "--physics", str(work / "physics.json")]) == 0
+            (work / "done").touch()
+    return work / "campaign", work / "physics.json"

@@ -15,7 +15,6 @@ its name. Simulated data throughout.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import re
 import shutil
@@ -42,7 +41,6 @@ LEAK_BAR_PER_DAY = 0.5
 DAYS = 10
 
 sys.path.insert(0, str(ROOT))
-from train import observer as obs_tool  # noqa: E402
 from train import train as train_tool  # noqa: E402
 
 sys.path.remove(str(ROOT))
@@ -54,16 +52,13 @@ def simulate(out: Path, *args: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def world(calibrated_campaign: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A cheap-suite bundle and a leaking unit's 10 days of runs."""
     if not BIN.exists():
         pytest.fail(f"{BIN} is missing: run `make build`")
     tmp = tmp_path_factory.mktemp("fleet")
-    campaign = tmp / "campaign"
-    simulate(campaign, "--frequencies", "1,2")
-    physics = tmp / "physics.json"
-    physics.write_text(json.dumps(shocktwin.default_params()))
-    assert obs_tool.main(["fit", "--campaign", str(campaign), "--physics", str(physics)]) == 0
+    # a quick campaign (0.5-12 bar, 1 and 2 Hz) with the observer calibrated on it (conftest)
+    campaign, physics = calibrated_campaign
     bundle = tmp / "perm17"
     assert train_tool.main(["--campaign", str(campaign), "--permutation", "17", "--physics", str(physics),
                             "--out", str(bundle)]) == 0

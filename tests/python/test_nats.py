@@ -50,7 +50,12 @@ def replay(shocktwin_bin: Path, run: Path, out_dir: Path) -> list[dict[str, Any]
 
 
 async def _read_stream(url: str, subjects: list[str], stream: str) -> list[tuple[str, bytes, dict[str, str], float]]:
-    """Every message of `stream` on `subjects`: (subject, data, headers, server timestamp s)."""
+    """Every message of `stream` on `subjects`: (subject, data, headers, server timestamp s).
+
+    An ordered push consumer per subject (no acks; nats-py redelivers after any gap, in
+    order, without duplicates) reads the count the stream reports: about 4 times faster
+    than batched pulls, whose per-message fetch machinery took 18 s for the failover
+    test's ~175,000 estimates."""
     import nats
 
     nc = await nats.connect(url)
@@ -61,19 +66,26 @@ async def _read_stream(url: str, subjects: list[str], stream: str) -> list[tuple
         total = sum((info.state.subjects or {}).values())
         if total == 0:
             continue
-        psub = await js.pull_subscribe(subject, stream=stream)
-        got = 0
-        while got < total:
-            try:
-                msgs = await psub.fetch(min(1000, total - got), timeout=5)
-            except nats.errors.TimeoutError:
-                break
-            for m in msgs:
+        got: list[tuple[str, bytes, dict[str, str], float]] = []
+        complete = asyncio.Event()
+
+        async def take(m: Any, got: list[Any] = got, total: int = total, complete: asyncio.Event = complete) -> None:
+            if len(got) < total:
                 ts = m.metadata.timestamp.timestamp() if m.metadata.timestamp else 0.0
-                out.append((m.subject, m.data, dict(m.headers or {}), ts))
-                await m.ack()
-            got += len(msgs)
-        await psub.unsubscribe()
+                got.append((m.subject, m.data, dict(m.headers or {}), ts))
+            if len(got) >= total:
+                complete.set()
+
+        sub = await js.subscribe(subject, stream=stream, cb=take, ordered_consumer=True)
+        seen = -1
+        while not complete.is_set() and len(got) > seen:  # stop after 5 s without a message
+            seen = len(got)
+            try:
+                await asyncio.wait_for(complete.wait(), 5)
+            except asyncio.TimeoutError:
+                pass
+        await sub.unsubscribe()
+        out.extend(got)
     await nc.close()
     return out
 
