@@ -211,27 +211,41 @@ def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], 
                                                        daemons: list[Daemon]) -> None:
     inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
     inbox.mkdir()
-    f = sorted(world["runs"].glob("*.mcap"))[0]
-    shutil.copy(f, inbox / f.name)
+    # Every day's run in the inbox: the daemon processes them back to back (≈ 1.5 s each on
+    # a quiet machine), so whenever it is frozen below, one of them is almost surely open.
+    files = sorted(world["runs"].glob("*.mcap"))
+    for f in files:
+        shutil.copy(f, inbox / f.name)
     d = Daemon(world["bundle"], db, inbox)
     daemons.append(d)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:  # until some of the run's history is committed
+    deadline = time.monotonic() + 120
+    open_runs: list[str] = []
+    while time.monotonic() < deadline and not open_runs:
         try:
-            if d.get("/v1/assets/dyno-unit-A/history")["points"]:
-                break
+            running = [r for r in d.get("/v1/assets/dyno-unit-A/runs")["runs"] if r["status"] == "running"]
         except httpx.HTTPStatusError:
-            pass
-        time.sleep(0.1)
+            running = []
+        if running and d.get("/v1/assets/dyno-unit-A/history")["points"]:
+            # Freeze it, then read which run its store has open: the run the API showed may
+            # have ended between the request and the signal (a loaded machine), another begun.
+            d.proc.send_signal(signal.SIGSTOP)
+            with sqlite3.connect(db) as c:
+                open_runs = [r[0] for r in c.execute("SELECT run_id FROM runs WHERE status = 'running'")]
+            if not open_runs:
+                d.proc.send_signal(signal.SIGCONT)
+        time.sleep(0.05)
+    assert open_runs, "the daemon was never caught with a run open (nothing to interrupt)"
     d.kill9()
     with sqlite3.connect(db) as c:
         assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
         assert c.execute("SELECT count(*) FROM samples").fetchone()[0] > 0
     d2 = Daemon(world["bundle"], db, inbox)
     daemons.append(d2)
-    runs = d2.wait_runs("dyno-unit-A", 1)
-    statuses = sorted(r["status"] for r in runs if r["run_id"] == f.stem)
-    assert statuses == ["completed", "interrupted"], runs
+    runs = d2.wait_runs("dyno-unit-A", len(files))
+    for run_id in open_runs:
+        statuses = sorted(r["status"] for r in runs if r["run_id"] == run_id)
+        assert statuses == ["completed", "interrupted"], runs
+    assert {r["run_id"] for r in runs if r["status"] == "completed"} == {f.stem for f in files}
     d2.stop()
 
 
