@@ -221,11 +221,12 @@ def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], 
     deadline = time.monotonic() + 120
     open_runs: list[str] = []
     while time.monotonic() < deadline and not open_runs:
-        try:
+        try:  # a run open, with some of its history committed
             running = [r for r in d.get("/v1/assets/dyno-unit-A/runs")["runs"] if r["status"] == "running"]
-        except httpx.HTTPStatusError:
-            running = []
-        if running and d.get("/v1/assets/dyno-unit-A/history")["points"]:
+            caught = bool(running) and bool(d.get("/v1/assets/dyno-unit-A/history")["points"])
+        except httpx.HTTPStatusError:  # the asset is not known yet
+            caught = False
+        if caught:
             # Freeze it, then read which run its store has open: the run the API showed may
             # have ended between the request and the signal (a loaded machine), another begun.
             d.proc.send_signal(signal.SIGSTOP)
