@@ -55,6 +55,15 @@
 //! failed fit, `α ≤ 0`, a negative slope, `|δ|` over [`MAX_SHIFT_MS`] or a
 //! residual RMS above `max_residual_mps2` is skipped and counted.
 //!
+//! With a calibrated [`DampingLaw`] (`observer.damping_law`) the slopes give
+//! way to that law: `F = c_± L(ẏ, T_oil) + α tanh(ẏ / v_s)`, where `L` holds
+//! the valves' knees and their thinning with the heat, and `c_ext`, `c_comp`
+//! become dimensionless scales (start 1; reported × 1000 in the slope
+//! fields). The law is fitted once on the nominal runs' own reversal windows
+//! (`train/damping_law.py`); without it (the default) the linear slopes,
+//! which fit 1 Hz windows to the noise but not 2 Hz ones, whose window
+//! crosses a valve's knee.
+//!
 //! # Measurement model and the recursive update
 //!
 //! The gas pressure at the reversal follows from the charge `p` (bar gauge at
@@ -223,6 +232,20 @@ pub struct ObserverParams {
     /// Relative half-width of each calibrated spacing.
     #[serde(default = "default_spacing_rel")]
     pub spacing_rel: f64,
+    /// Also use reversals **between** the calibrated excitations: a reversal
+    /// of a steady stroke of a calibrated amplitude (`A = |ÿ_r| h² / π²`
+    /// with `h` its spacing, the half period of `A sin ωt`; within
+    /// `accel_cluster_rel` of the range of the clusters' `A`) whose `|ÿ_r|`
+    /// lies within the clusters' range (widened by `accel_cluster_rel`): the
+    /// measurement model is linear in `|ÿ_r|` and interpolates there. Only
+    /// with a calibrated [`DampingLaw`]: with linear slopes it does not
+    /// interpolate (1.5 Hz between 1 and 2 Hz off by ≈ 4 bar on the
+    /// simulated dyno); with the law the batch charge of three 1.5 Hz runs
+    /// never calibrated came within 0.4 bar. No extrapolation: `|ÿ_r|`
+    /// beyond the calibrated range is skipped. Needs two clusters with
+    /// spacings. Default false.
+    #[serde(default)]
+    pub between_excitations: bool,
     /// Hysteresis band of the reversal detector, m/s: a reversal is the
     /// velocity passing from beyond `+band` to beyond `−band` (or back), so
     /// the mount's ringing in `ẏ̂` after a friction flip (several mm/s) does
@@ -238,6 +261,217 @@ pub struct ObserverParams {
     /// at 2 Hz: ≈ 0.7 against ≈ 0.45 for the good ones), the fitted
     /// amplitude no longer follows the charge.
     pub max_residual_mps2: f64,
+    /// The damping force near a reversal (calibrated on the nominal runs'
+    /// reversal windows by `python -m train.observer fit`); uncalibrated (the
+    /// default): linear slopes freed per window.
+    #[serde(default)]
+    pub damping_law: DampingLaw,
+}
+
+/// Hinges of a [`DampingLaw`].
+pub const LAW_KNOTS: usize = 8;
+
+/// The damping force of the window model near a reversal: a smooth
+/// piecewise-linear law of the stroke velocity `ẏ` with a viscous part that
+/// thins with the heat,
+///
+/// ```text
+/// L(ẏ, T) = Σ_j (r(T) a_j + b_j) φ_j(ẏ)                         N
+/// φ_0(ẏ) = ẏ
+/// φ_j(ẏ) = +w [sp((ẏ − k_j)/w) − sp(−k_j/w)]     for a knot k_j > 0
+/// φ_j(ẏ) = −w [sp((k_j − ẏ)/w) − sp(k_j/w)]      for a knot k_j < 0
+/// sp(x) = ln(1 + eˣ),   r(T) = exp(−β (T_oil − 40 °C))
+/// ```
+///
+/// `a_0 + b_0` is the slope at `ẏ = 0` (N·s/m) and `a_j + b_j` the change of
+/// slope past knot `k_j`, smoothed over `w` (m/s): the valves' cracking
+/// and blow-off knees without assuming how the valves are built. `L(0) = 0`.
+/// It is measured where the window looks — the reversal windows of the
+/// nominal runs (`train/damping_law.py`) — because a linear slope freed per
+/// window cannot follow the valves' knees inside it: on the simulated dyno
+/// the compression valve cracks ≈ 7 ms from a 2 Hz reversal and the fitted
+/// friction amplitude then drifts with the oil temperature, not with the
+/// charge. With a calibrated law the window fit frees one scale per side
+/// (`θ[1]`, `θ[2]`, 1 = the law as calibrated) instead of the slopes.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DampingLaw {
+    /// Hinge velocities `k_j`, m/s (non-zero; a zero knot is unused).
+    pub knots_mps: [f64; LAW_KNOTS],
+    /// Smoothing width `w` of the hinges, m/s (0: uncalibrated).
+    pub width_mps: f64,
+    /// Viscous slopes `a_j` at 40 °C, N·s/m (`a_0` at `ẏ = 0`, then one
+    /// per knot).
+    pub viscous_nspm: [f64; LAW_KNOTS + 1],
+    /// Slopes `b_j` that do not depend on the viscosity, N·s/m.
+    pub dry_nspm: [f64; LAW_KNOTS + 1],
+    /// Viscosity temperature coefficient `β`, 1/K.
+    pub beta_per_k: f64,
+}
+
+/// `ln(1 + eˣ)` without overflow; below `x = −25` it is under `1.4e-11`
+/// and taken as 0 (most hinges are far from a window's velocities: no
+/// transcendental call for them).
+fn softplus(x: f64) -> f64 {
+    if x > 36.0 {
+        x
+    } else if x < -25.0 {
+        0.0
+    } else {
+        x.exp().ln_1p()
+    }
+}
+
+/// `1 / (1 + e⁻ˣ)`, the derivative of [`softplus`].
+fn logistic(x: f64) -> f64 {
+    if x < -36.0 {
+        0.0
+    } else {
+        1.0 / (1.0 + (-x).exp())
+    }
+}
+
+/// A [`DampingLaw`] at one viscosity ratio, tabulated for the window fit:
+/// cubic Hermite interpolation of the law and its slope on a grid of
+/// [`LAW_TABLE_STEP_MPS`] `h` (error at most `h⁴ c max|sp⁗| / (384 w³)` per
+/// hinge of slope `c` and width `w`: 6e-5 N for 100 kN·s/m at the 8 mm/s of
+/// `train/damping_law.py`), the law itself outside the grid.
+#[derive(Debug, Clone)]
+struct LawTable {
+    law: DampingLaw,
+    ratio: f64,
+    lo: f64,
+    force: Vec<f64>,
+    slope: Vec<f64>,
+}
+
+/// Grid step of a [`LawTable`], m/s.
+const LAW_TABLE_STEP_MPS: f64 = 1.0e-3;
+
+impl LawTable {
+    fn new(law: DampingLaw, ratio: f64, half_span_mps: f64) -> Self {
+        let n = (2.0 * half_span_mps / LAW_TABLE_STEP_MPS).ceil() as usize + 1;
+        let lo = -half_span_mps;
+        let grid = (0..n).map(|i| lo + i as f64 * LAW_TABLE_STEP_MPS);
+        Self {
+            law,
+            ratio,
+            lo,
+            force: grid.clone().map(|v| law.force_n(v, ratio)).collect(),
+            slope: grid.map(|v| law.slope_nspm(v, ratio)).collect(),
+        }
+    }
+
+    fn force_n(&self, v: f64) -> f64 {
+        let x = (v - self.lo) / LAW_TABLE_STEP_MPS;
+        let i = x.floor();
+        if !(i >= 0.0 && i + 1.0 < self.force.len() as f64) {
+            return self.law.force_n(v, self.ratio);
+        }
+        let (j, t) = (i as usize, x - i);
+        let h = LAW_TABLE_STEP_MPS;
+        let (f0, f1, d0, d1) = (
+            self.force[j],
+            self.force[j + 1],
+            self.slope[j] * h,
+            self.slope[j + 1] * h,
+        );
+        let (t2, t3) = (t * t, t * t * t);
+        (2.0 * t3 - 3.0 * t2 + 1.0) * f0
+            + (t3 - 2.0 * t2 + t) * d0
+            + (-2.0 * t3 + 3.0 * t2) * f1
+            + (t3 - t2) * d1
+    }
+}
+
+impl DampingLaw {
+    /// Whether the law was calibrated (a positive width and a non-zero
+    /// slope at `ẏ = 0`).
+    #[must_use]
+    pub fn is_calibrated(&self) -> bool {
+        self.width_mps > 0.0 && self.viscous_nspm[0] + self.dry_nspm[0] != 0.0
+    }
+
+    /// The viscosity ratio `r(T)` at oil temperature `temp_c`.
+    #[must_use]
+    pub fn viscosity_ratio(&self, temp_c: f64) -> f64 {
+        (-self.beta_per_k * (temp_c - 40.0)).exp()
+    }
+
+    /// The damping force at stroke velocity `v_mps` and viscosity ratio
+    /// `ratio`, N (extension positive).
+    #[must_use]
+    pub fn force_n(&self, v_mps: f64, ratio: f64) -> f64 {
+        let w = self.width_mps;
+        let mut f = (ratio * self.viscous_nspm[0] + self.dry_nspm[0]) * v_mps;
+        for (j, &k) in self.knots_mps.iter().enumerate() {
+            let c = ratio * self.viscous_nspm[j + 1] + self.dry_nspm[j + 1];
+            if k > 0.0 {
+                f += c * w * (softplus((v_mps - k) / w) - softplus(-k / w));
+            } else if k < 0.0 {
+                f -= c * w * (softplus((k - v_mps) / w) - softplus(k / w));
+            }
+        }
+        f
+    }
+
+    /// The slope `∂L/∂ẏ` at stroke velocity `v_mps` and viscosity ratio
+    /// `ratio`, N·s/m.
+    #[must_use]
+    pub fn slope_nspm(&self, v_mps: f64, ratio: f64) -> f64 {
+        let w = self.width_mps;
+        let mut d = ratio * self.viscous_nspm[0] + self.dry_nspm[0];
+        for (j, &k) in self.knots_mps.iter().enumerate() {
+            let c = ratio * self.viscous_nspm[j + 1] + self.dry_nspm[j + 1];
+            if k > 0.0 {
+                d += c * logistic((v_mps - k) / w);
+            } else if k < 0.0 {
+                d += c * logistic((k - v_mps) / w);
+            }
+        }
+        d
+    }
+
+    fn validate(&self) -> Result<(), PhysicsError> {
+        let check = |name: &'static str, value: f64, ok: bool, reason: &'static str| {
+            if value.is_finite() && ok {
+                Ok(())
+            } else {
+                Err(PhysicsError::InvalidParameter {
+                    name,
+                    value,
+                    reason,
+                })
+            }
+        };
+        check(
+            "observer.damping_law.width_mps",
+            self.width_mps,
+            self.width_mps >= 0.0,
+            "must be finite and non-negative",
+        )?;
+        check(
+            "observer.damping_law.beta_per_k",
+            self.beta_per_k,
+            self.beta_per_k >= 0.0,
+            "must be finite and non-negative",
+        )?;
+        for &k in &self.knots_mps {
+            check("observer.damping_law.knots_mps", k, true, "must be finite")?;
+        }
+        for &a in &self.viscous_nspm {
+            check(
+                "observer.damping_law.viscous_nspm",
+                a,
+                true,
+                "must be finite",
+            )?;
+        }
+        for &b in &self.dry_nspm {
+            check("observer.damping_law.dry_nspm", b, true, "must be finite")?;
+        }
+        Ok(())
+    }
 }
 
 impl Default for ObserverParams {
@@ -275,6 +509,8 @@ impl Default for ObserverParams {
             window_pre_s: 0.010,
             window_post_s: 0.030,
             max_residual_mps2: 0.6,
+            damping_law: DampingLaw::default(),
+            between_excitations: false,
         }
     }
 }
@@ -289,6 +525,8 @@ impl ObserverParams {
     /// reversal_spacings_s[k]` (see
     /// [`reversal_spacings_s`](Self::reversal_spacings_s)). No cluster at
     /// all: every reversal (uncalibrated).
+    /// With [`between_excitations`](Self::between_excitations), also a
+    /// steady stroke between the clusters (see there).
     #[must_use]
     pub fn calibrated_at(&self, abs_accel: f64, spacing_s: f64) -> bool {
         let mut clusters = self
@@ -302,6 +540,34 @@ impl ObserverParams {
                 (abs_accel - c).abs() <= self.accel_cluster_rel * c
                     && (h <= 0.0 || (spacing_s - h).abs() <= self.spacing_rel * h)
             })
+            || (self.between_excitations && self.between_calibrated(abs_accel, spacing_s))
+    }
+
+    /// A steady stroke of a calibrated amplitude at a `|ÿ_r|` inside the
+    /// calibrated range ([`between_excitations`](Self::between_excitations)).
+    fn between_calibrated(&self, abs_accel: f64, spacing_s: f64) -> bool {
+        let pi2 = std::f64::consts::PI.powi(2);
+        let (mut n, mut a_lo, mut a_hi, mut s_lo, mut s_hi) =
+            (0, f64::MAX, 0.0_f64, f64::MAX, 0.0_f64);
+        for (&c, &h) in self
+            .accel_clusters_mps2
+            .iter()
+            .zip(&self.reversal_spacings_s)
+        {
+            if c > 0.0 && h > 0.0 {
+                n += 1;
+                (a_lo, a_hi) = (a_lo.min(c), a_hi.max(c));
+                let stroke = c * h * h / pi2;
+                (s_lo, s_hi) = (s_lo.min(stroke), s_hi.max(stroke));
+            }
+        }
+        let rel = self.accel_cluster_rel;
+        let stroke = abs_accel * spacing_s * spacing_s / pi2;
+        n >= 2
+            && abs_accel >= a_lo * (1.0 - rel)
+            && abs_accel <= a_hi * (1.0 + rel)
+            && stroke >= s_lo * (1.0 - rel)
+            && stroke <= s_hi * (1.0 + rel)
     }
 
     /// Checks every parameter; the error names the first bad one.
@@ -376,7 +642,7 @@ impl ObserverParams {
                 });
             }
         }
-        Ok(())
+        self.damping_law.validate()
     }
 }
 
@@ -397,9 +663,11 @@ pub struct Reversal {
     pub gas_temp_c: f64,
     /// Fitted friction amplitude `α`, N.
     pub alpha_n: f64,
-    /// Fitted damping slope for extension, N·s/m.
+    /// Fitted damping in extension: the slope, N·s/m, with the linear law;
+    /// with a calibrated [`DampingLaw`], 1000 × its fitted scale (1000 = the
+    /// law as calibrated).
     pub damping_ext_nspm: f64,
-    /// Fitted damping slope for compression, N·s/m.
+    /// Fitted damping in compression, as `damping_ext_nspm`.
     pub damping_comp_nspm: f64,
     /// Fitted shift of the reversal time, s.
     pub shift_s: f64,
@@ -686,8 +954,12 @@ impl ChargeObserver {
         let data: Vec<f64> = window.iter().map(|w| w.1).collect();
         let pre_n = times.iter().filter(|&&s| s < -0.002).count().max(1);
         let c0 = data[..pre_n].iter().sum::<f64>() / pre_n as f64;
-        let (theta, residual) =
-            self.solve_window(ReversalModel::new(p, accel), &times, &data, c0)?;
+        let (theta, residual) = self.solve_window(
+            &ReversalModel::new(p, accel, self.gas_temp_c),
+            &times,
+            &data,
+            c0,
+        )?;
         // Extension at the reversal: the window sample nearest to it.
         let y_r = window
             .iter()
@@ -718,31 +990,38 @@ impl ChargeObserver {
     /// with its residual RMS.
     fn solve_window(
         &self,
-        model: ReversalModel,
+        model: &ReversalModel,
         times: &[f64],
         data: &[f64],
         c0: f64,
     ) -> Option<(Vector5<f64>, f64)> {
         let p = &self.p;
         let alpha0 = p.step_offset_n.max(10.0);
-        [
-            Vector5::new(
-                alpha0,
-                START_DAMPING_KNSPM,
-                START_DAMPING_KNSPM,
-                START_SHIFT_MS,
-                c0,
-            ),
-            Vector5::new(
-                alpha0,
-                FALLBACK_DAMPING_KNSPM,
-                FALLBACK_DAMPING_KNSPM,
-                0.0,
-                c0,
-            ),
-        ]
-        .into_iter()
-        .find_map(|start| {
+        let starts = if model.law.is_some() {
+            // The calibrated law as it is, then with the linear law's shift.
+            [
+                Vector5::new(alpha0, 1.0, 1.0, 0.0, c0),
+                Vector5::new(alpha0, 1.0, 1.0, START_SHIFT_MS, c0),
+            ]
+        } else {
+            [
+                Vector5::new(
+                    alpha0,
+                    START_DAMPING_KNSPM,
+                    START_DAMPING_KNSPM,
+                    START_SHIFT_MS,
+                    c0,
+                ),
+                Vector5::new(
+                    alpha0,
+                    FALLBACK_DAMPING_KNSPM,
+                    FALLBACK_DAMPING_KNSPM,
+                    0.0,
+                    c0,
+                ),
+            ]
+        };
+        starts.into_iter().find_map(|start| {
             let problem = WindowFit {
                 model,
                 times: times.to_vec(),
@@ -842,9 +1121,11 @@ impl ChargeObserver {
 /// The coupled reversal model of one window: the rod end moves at
 /// `v_r(s) = ÿ_r (s − δ)`, the damper force on the body is
 /// `F = c(ẏ) ẏ + α tanh(ẏ / v_s)` with `ẏ = v_r − ẋ_b` and `c` the extension or
-/// compression slope, the body obeys `m ẍ_b = F − k x_b − c_m ẋ_b`, and the
+/// compression slope (with a calibrated [`DampingLaw`]:
+/// `F = κ(ẏ) L(ẏ) + α tanh(ẏ / v_s)`, `κ` the extension or compression
+/// scale), the body obeys `m ẍ_b = F − k x_b − c_m ẋ_b`, and the
 /// accelerometer reads its first-order-filtered acceleration plus a constant.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct ReversalModel {
     mass: f64,
     stiffness: f64,
@@ -852,10 +1133,13 @@ struct ReversalModel {
     filter_rad_s: f64,
     v_smooth: f64,
     accel: f64,
+    /// The calibrated law at the window's oil temperature, tabulated;
+    /// `None`: linear slopes.
+    law: Option<LawTable>,
 }
 
 impl ReversalModel {
-    fn new(p: &ObserverParams, accel: f64) -> Self {
+    fn new(p: &ObserverParams, accel: f64, oil_c: f64) -> Self {
         let wn = std::f64::consts::TAU * p.mount_freq_hz;
         Self {
             mass: p.mount_mass_kg,
@@ -864,18 +1148,41 @@ impl ReversalModel {
             filter_rad_s: std::f64::consts::TAU * p.accel_bw_hz,
             v_smooth: p.friction_v_smooth_mps,
             accel,
+            // The window's velocities: |ÿ_r| over the window, the quasi-static
+            // lead and the largest shift, plus the body's own motion.
+            law: p.damping_law.is_calibrated().then(|| {
+                let reach_s =
+                    p.window_pre_s + p.window_post_s + TEMPLATE_LEAD_S + 2e-3 * MAX_SHIFT_MS;
+                LawTable::new(
+                    p.damping_law,
+                    p.damping_law.viscosity_ratio(oil_c),
+                    accel.abs() * reach_s + 0.05,
+                )
+            }),
+        }
+    }
+
+    /// The damping part of the force at stroke velocity `yd` for the
+    /// extension and compression parameters `c_ext`, `c_comp` (slopes in
+    /// N·s/m, or the law's scales).
+    fn damping(&self, yd: f64, c_ext: f64, c_comp: f64) -> f64 {
+        let c = if yd > 0.0 { c_ext } else { c_comp };
+        match &self.law {
+            Some(table) => c * table.force_n(yd),
+            None => c * yd,
         }
     }
 
     /// The modelled `a2` at `times` (s from the reversal) for the scaled
-    /// parameters `θ = [α N, c_ext kN·s/m, c_comp kN·s/m, δ ms, c0 m/s²]`.
+    /// parameters `θ = [α N, c_ext kN·s/m, c_comp kN·s/m, δ ms, c0 m/s²]`
+    /// (with a calibrated law, `c_ext` and `c_comp` are its scales).
     fn simulate(&self, theta: &Vector5<f64>, times: &[f64]) -> Vec<f64> {
-        let (alpha, c_ext, c_comp) = (theta[0], theta[1] * 1e3, theta[2] * 1e3);
+        let unit = if self.law.is_some() { 1.0 } else { 1e3 };
+        let (alpha, c_ext, c_comp) = (theta[0], theta[1] * unit, theta[2] * unit);
         let shift = theta[3] * 1e-3;
         let force = |s: f64, vb: f64| -> f64 {
             let yd = self.accel * (s - shift) - vb;
-            let c = if yd > 0.0 { c_ext } else { c_comp };
-            c * yd + alpha * (yd / self.v_smooth).tanh()
+            self.damping(yd, c_ext, c_comp) + alpha * (yd / self.v_smooth).tanh()
         };
         let deriv = |s: f64, x: [f64; 3]| -> [f64; 3] {
             let a = (force(s, x[1]) - self.stiffness * x[0] - self.damping * x[1]) / self.mass;
@@ -885,8 +1192,21 @@ impl ReversalModel {
         // Quasi-static start: the body follows the smooth force, `x = F/k`,
         // `ẋ = Ḟ/k` with `Ḟ = (dF/dẏ) ÿ_r`.
         let yd0 = self.accel * (s - shift);
-        let slope = if yd0 > 0.0 { c_ext } else { c_comp }
-            + alpha / self.v_smooth / (yd0 / self.v_smooth).cosh().powi(2);
+        let slope = match &self.law {
+            // Central difference of the law (1 mm/s; the start is 15 ms from
+            // the reversal, well away from ẏ = 0).
+            Some(_) => {
+                (self.damping(yd0 + 1e-3, c_ext, c_comp) - self.damping(yd0 - 1e-3, c_ext, c_comp))
+                    / 2e-3
+            }
+            None => {
+                if yd0 > 0.0 {
+                    c_ext
+                } else {
+                    c_comp
+                }
+            }
+        } + alpha / self.v_smooth / (yd0 / self.v_smooth).cosh().powi(2);
         let mut st = [
             force(s, 0.0) / self.stiffness,
             slope * self.accel / self.stiffness,
@@ -916,23 +1236,42 @@ impl ReversalModel {
     }
 }
 
+/// The window model of one reversal (see [`ReversalModel`]): the modelled
+/// `a2` at `times` (s from the reversal) for a reversal with velocity slope
+/// `accel_mps2`, oil at `oil_c` and the scaled parameters
+/// `θ = [α N, c_ext, c_comp, δ ms, c0 m/s²]` (`c_ext`, `c_comp` in kN·s/m
+/// with the linear law, the calibrated [`DampingLaw`]'s scales otherwise).
+/// What the observer fits to every window; public for the calibration of
+/// the law on the windows themselves (`train/damping_law.py`) and for
+/// references.
+#[must_use]
+pub fn reversal_window_a2(
+    params: &ObserverParams,
+    accel_mps2: f64,
+    oil_c: f64,
+    theta: [f64; 5],
+    times: &[f64],
+) -> Vec<f64> {
+    ReversalModel::new(params, accel_mps2, oil_c).simulate(&Vector5::from(theta), times)
+}
+
 fn add(x: [f64; 3], k: [f64; 3], h: f64) -> [f64; 3] {
     [x[0] + h * k[0], x[1] + h * k[1], x[2] + h * k[2]]
 }
 
 /// The least-squares problem of one window (residuals `model − a2`,
-/// forward-difference Jacobian).
-struct WindowFit {
-    model: ReversalModel,
+/// forward-difference Jacobian but for the offset's exact column).
+struct WindowFit<'a> {
+    model: &'a ReversalModel,
     times: Vec<f64>,
     data: Vec<f64>,
     theta: Vector5<f64>,
 }
 
-/// Forward-difference steps of the scaled parameters.
-const JACOBIAN_STEP: [f64; 5] = [1.0e-3, 1.0e-4, 1.0e-4, 1.0e-4, 1.0e-4];
+/// Forward-difference steps of the scaled parameters (not the offset).
+const JACOBIAN_STEP: [f64; 4] = [1.0e-3, 1.0e-4, 1.0e-4, 1.0e-4];
 
-impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit {
+impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
     type ResidualStorage = Owned<f64, Dyn>;
     type JacobianStorage = Owned<f64, Dyn, U5>;
     type ParameterStorage = Owned<f64, U5>;
@@ -956,6 +1295,8 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit {
     fn jacobian(&self) -> Option<OMatrix<f64, Dyn, U5>> {
         let base = self.model.simulate(&self.theta, &self.times);
         let mut jac = OMatrix::<f64, Dyn, U5>::zeros(base.len());
+        // The offset `c0` enters the model as itself: its column is 1.
+        jac.column_mut(4).fill(1.0);
         for (j, step) in JACOBIAN_STEP.iter().enumerate() {
             let mut th = self.theta;
             th[j] += step;
@@ -992,8 +1333,14 @@ mod tests {
         let mut t_ns = 0_i64;
         for k in 0..n_reversals {
             let accel = if k % 2 == 0 { -accel_mag } else { accel_mag };
-            let model = ReversalModel::new(&p, accel);
-            let theta = Vector5::new(alpha, 1.9, 0.54, 0.0, -9.8);
+            // The observer's oil temperature until told otherwise: 20 °C.
+            let model = ReversalModel::new(&p, accel, CHARGE_REF_TEMP_C);
+            let (c_ext, c_comp) = if p.damping_law.is_calibrated() {
+                (1.0, 1.0)
+            } else {
+                (1.9, 0.54)
+            };
+            let theta = Vector5::new(alpha, c_ext, c_comp, 0.0, -9.8);
             let t_r = (k as f64 + 0.5) * half;
             let times: Vec<f64> = (0..250)
                 .map(|i| (t_ns + i * dt_ns) as f64 * 1e-9 - t_r)
@@ -1018,6 +1365,90 @@ mod tests {
             // The fit starts 15 ms before the window from a quasi-static
             // state; the settled stream differs from it by ~0.02 m/s².
             assert!((r.alpha_n - 40.0).abs() < 0.5, "{r:?}");
+            assert!(r.residual_mps2 < 0.03, "{r:?}");
+        }
+    }
+
+    /// A law of the simulated dyno's shape: a bleed that cracks at a few
+    /// cm/s in compression and ≈ 0.15 m/s in extension.
+    fn a_law() -> DampingLaw {
+        let mut viscous = [0.0; LAW_KNOTS + 1];
+        let mut dry = [0.0; LAW_KNOTS + 1];
+        // knots: −0.15, −0.09, −0.05, −0.025, 0.025, 0.05, 0.09, 0.15 m/s
+        (viscous[0], dry[0]) = (2500.0, 500.0);
+        dry[3] = 2500.0; // compression crack at −0.05 m/s: stiffer
+        dry[1] = -5000.0; // compression blow-off at −0.15 m/s
+        viscous[6] = 5000.0; // extension bleed turns orifice-like
+        dry[8] = -6000.0; // extension blow-off at 0.15 m/s
+        DampingLaw {
+            knots_mps: [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15],
+            width_mps: 0.008,
+            viscous_nspm: viscous,
+            dry_nspm: dry,
+            beta_per_k: 0.03,
+        }
+    }
+
+    #[test]
+    fn the_law_has_its_knees_and_thins_with_the_heat() {
+        let law = a_law();
+        assert!(law.is_calibrated() && !DampingLaw::default().is_calibrated());
+        let r40 = law.viscosity_ratio(40.0);
+        assert!((r40 - 1.0).abs() < 1e-15);
+        assert!(law.force_n(0.0, r40).abs() < 1e-12);
+        // Extension positive, compression negative, monotone through 0.
+        let mut prev = f64::NEG_INFINITY;
+        for i in -100..=100 {
+            let v = f64::from(i) * 2e-3;
+            let f = law.force_n(v, r40);
+            assert!(f > prev && f.signum() == v.signum() || v == 0.0, "{v} {f}");
+            prev = f;
+        }
+        // Past the compression knee the slope is the opened valve's.
+        let slope = (law.force_n(-0.21, r40) - law.force_n(-0.22, r40)) / 0.01;
+        assert!((slope - 500.0).abs() < 0.1 * 500.0, "{slope}");
+        // The window fit's table: within 1e-4 N of the law (5 kN·s/m hinges
+        // 8 mm/s wide: ≈ 3e-6 N), and the slope is the law's derivative.
+        let table = LawTable::new(law, r40, 0.3);
+        for i in -400..=400 {
+            let v = f64::from(i) * 1e-3 + 3.7e-4;
+            assert!((table.force_n(v) - law.force_n(v, r40)).abs() < 1e-4, "{v}");
+            let num = (law.force_n(v + 1e-6, r40) - law.force_n(v - 1e-6, r40)) / 2e-6;
+            assert!((law.slope_nspm(v, r40) - num).abs() < 1e-3, "{v}");
+        }
+        // The bleed thins with the heat: less force at low speed when hot.
+        let hot = law.viscosity_ratio(80.0);
+        assert!(law.force_n(0.01, hot) < 0.5 * law.force_n(0.01, r40));
+        let bad = DampingLaw {
+            beta_per_k: f64::NAN,
+            ..a_law()
+        };
+        let err = ObserverParams {
+            damping_law: bad,
+            ..params()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("observer.damping_law.beta_per_k"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_noise_free_window_with_a_law_gives_back_its_friction_amplitude() {
+        let mut obs = ChargeObserver::new(ObserverParams {
+            damping_law: a_law(),
+            ..params()
+        })
+        .unwrap();
+        obs.record_reversals();
+        feed(&mut obs, 40.0, 8);
+        let revs = obs.reversals();
+        assert!(revs.len() >= 6, "{:?}", obs.counters());
+        for r in revs {
+            assert!((r.alpha_n - 40.0).abs() < 0.5, "{r:?}");
+            assert!((r.damping_ext_nspm - 1000.0).abs() < 50.0, "{r:?}");
             assert!(r.residual_mps2 < 0.03, "{r:?}");
         }
     }
@@ -1086,6 +1517,26 @@ mod tests {
         assert!(p.calibrated_at(6.0, 0.1) && p.calibrated_at(6.0, f64::NAN));
         // No cluster at all: uncalibrated, every reversal.
         assert!(ObserverParams::default().calibrated_at(3.5, f64::NAN));
+        // Between excitations: a steady stroke of the calibrated amplitude
+        // (38.8 mm: 1.53 m/s² at 0.5 s and 6.14 m/s² at 0.25 s) at 1.5 Hz.
+        let q = ObserverParams {
+            accel_clusters_mps2: [1.53, 6.14, 0.0, 0.0],
+            reversal_spacings_s: [0.5, 0.25, 0.0, 0.0],
+            ..ObserverParams::default()
+        };
+        let at_1p5 = (0.0388 * (std::f64::consts::TAU * 1.5).powi(2), 1.0 / 3.0);
+        assert!(!q.calibrated_at(at_1p5.0, at_1p5.1), "off by default");
+        let q = ObserverParams {
+            between_excitations: true,
+            ..q
+        };
+        assert!(q.calibrated_at(at_1p5.0, at_1p5.1));
+        assert!(q.calibrated_at(1.53, 0.5) && q.calibrated_at(6.14, 0.25));
+        // a ramp reversal (a third of the stroke), a 3 Hz stroke (beyond the
+        // range: no extrapolation), no previous reversal
+        assert!(!q.calibrated_at(1.5, 0.333));
+        assert!(!q.calibrated_at(0.0388 * (std::f64::consts::TAU * 3.0).powi(2), 1.0 / 6.0));
+        assert!(!q.calibrated_at(at_1p5.0, f64::NAN));
     }
 
     #[test]

@@ -54,6 +54,22 @@ impl CoreError {
     pub(crate) fn params(what: &str, err: &serde_json::Error) -> Self {
         CoreError::Params(format!("{what}: invalid physics parameters: {err}"))
     }
+
+    /// A parameter set `what` whose value at a known path does not parse.
+    pub(crate) fn params_at(
+        what: &str,
+        err: &serde_path_to_error::Error<serde_json::Error>,
+    ) -> Self {
+        let path = err.path().to_string();
+        if path == "." || path.is_empty() {
+            Self::params(what, err.inner())
+        } else {
+            CoreError::Params(format!(
+                "{what}: invalid physics parameter `{path}`: {}",
+                err.inner()
+            ))
+        }
+    }
 }
 
 impl From<BundleError> for CoreError {

@@ -175,6 +175,32 @@ pub(crate) fn charge_reversals<'py>(
     Ok(out)
 }
 
+/// The charge observer's window model of one reversal: the modelled body
+/// acceleration ``a2`` (m/s², float64 array) at ``times`` (s from the
+/// reversal) for a reversal with velocity slope ``accel_mps2`` and the oil at
+/// ``oil_c`` (°C), with the scaled parameters ``theta = [alpha N, c_ext,
+/// c_comp, shift ms, c0 m/s²]`` (``c_ext``, ``c_comp`` in kN·s/m with the
+/// linear law, the calibrated ``damping_law``'s scales otherwise). The
+/// physics' ``observer`` section (or its defaults) gives the mount, filter
+/// and law. What the observer fits to every window; for calibrating the
+/// damping law on the windows and for references.
+#[pyfunction]
+pub(crate) fn reversal_window<'py>(
+    py: Python<'py>,
+    bundle_or_params: &Bound<'py, PyAny>,
+    accel_mps2: f64,
+    oil_c: f64,
+    theta: [f64; 5],
+    times: Vec<f64>,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let (params, _) = physics_from(bundle_or_params)?;
+    let obs = params.observer.unwrap_or_default();
+    let a2 = without_gil(py, move || {
+        dt_core::charge::reversal_window_a2(&obs, accel_mps2, oil_c, theta, &times)
+    });
+    Ok(to_numpy(py, a2))
+}
+
 /// The twin's state at every 50 Hz tick of a run, from every sensor topic
 /// the log has: the *reduced models* where sensors are missing (the
 /// position-only Kalman filter without ``/acceleration``; the first shock

@@ -89,8 +89,10 @@ fn physics_from_value(what: &str, value: Value) -> PyResult<PhysicsParams> {
         .into_iter()
         .filter_map(|k| map.remove(k).map(|v| (k.to_owned(), v)))
         .collect();
-    let params: PhysicsParams = serde_json::from_value(Value::Object(parts))
-        .map_err(|err| CoreError::params(what, &err))?;
+    // serde_path_to_error: a wrong value deep in the observer's damping law
+    // is named by its path (`observer.damping_law.dry_nspm`), not only its type.
+    let params: PhysicsParams = serde_path_to_error::deserialize(Value::Object(parts))
+        .map_err(|err| CoreError::params_at(what, &err))?;
     params.validate().map_err(CoreError::from)?;
     Ok(params)
 }

@@ -11,6 +11,8 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   (SPEC §4) that training and the streaming estimator share.
 - ``charge_reversals(log, bundle_or_params)``: the gas-charge observer's
   per-reversal fits over a run (calibration and analysis).
+- ``reversal_window(bundle_or_params, accel_mps2, oil_c, theta, times)``: the
+  observer's window model of one reversal (calibrating its damping law).
 - ``twin_trace(log, bundle_or_params)``: the twin's state per 50 Hz tick from
   whatever sensors the log has (the reduced models without accelerometers or
   ambient thermocouple; calibration on a reduced campaign).
@@ -53,6 +55,7 @@ from shocktwin._native import (
     ThermalModel,
     __version__,
     charge_reversals,
+    reversal_window,
     twin_trace,
     default_params,
     default_observer_params,
@@ -97,6 +100,7 @@ __all__ = [
     # features and suites
     "features",
     "charge_reversals",
+    "reversal_window",
     "twin_trace",
     "GROUPS",
     "COLUMNS",

@@ -21,6 +21,7 @@ __all__ = [
     "permutations",
     "extra_permutations",
     "charge_reversals",
+    "reversal_window",
     "twin_trace",
     "default_observer_params",
     "Bundle",
@@ -143,6 +144,13 @@ def charge_reversals(
     log: Log | _Path,
     bundle_or_params: dict[str, Any] | Bundle | _Path,
 ) -> dict[str, Any]: ...
+def reversal_window(
+    bundle_or_params: dict[str, Any] | Bundle | _Path,
+    accel_mps2: float,
+    oil_c: float,
+    theta: Sequence[float],
+    times: Sequence[float] | _F64,
+) -> _F64: ...
 def twin_trace(
     log: Log | _Path,
     bundle_or_params: dict[str, Any] | Bundle | _Path,

@@ -347,7 +347,9 @@ struct OpenRun {
     meta: BTreeMap<String, String>,
     last_batch: u64,
     health: Health,
-    est: Estimator,
+    /// Boxed: the estimator (observer windows included) is large, and an
+    /// `OpenRun` moves through the partition's futures.
+    est: Box<Estimator>,
 }
 
 /// A partition's work: assets, publishing, checkpoints.
@@ -458,7 +460,7 @@ async fn restore_partition(p: u32, ctx: PartCtx) -> Result<(Option<u64>, Partiti
                         meta: s.meta,
                         last_batch: s.last_batch,
                         health: s.health,
-                        est,
+                        est: Box::new(est),
                     },
                 );
             }
@@ -630,7 +632,7 @@ impl Partition {
                     meta: map,
                     last_batch: 0,
                     health: Health::Unknown,
-                    est,
+                    est: Box::new(est),
                 },
             );
         } else {
