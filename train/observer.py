@@ -42,6 +42,7 @@ from scipy.optimize import least_squares
 import shocktwin
 
 from train.campaign import Run, load_campaign, main_wrapper
+from train.damping_law import LAW_MIN_TEMP_SPAN_K, law_calibrated
 from train.progress import progress
 from train.fit_physics import rest_end_s
 
@@ -256,6 +257,63 @@ def spacing_spread(revs: Sequence[dict[str, Any]], clusters: Sequence[tuple[floa
     return float(np.percentile(d, 99)) if len(d) else 0.0
 
 
+RESIDUAL_BIN_MPS2 = 0.05      # bins of the window residual for choosing the law's cut
+RESIDUAL_MAX_BIAS_BAR = 1.5   # a bin whose median charge error is larger starts the cut
+RESIDUAL_MIN_CUT_MPS2 = 0.15  # never cut below this (1 Hz windows fit at 0.07)
+
+
+def residual_cut(revs: Sequence[dict[str, Any]], cal: dict[str, Any]) -> float:
+    """The largest window residual (m/s²) below which the calibration's reversals carry an
+    unbiased charge: windows in bins of ``RESIDUAL_BIN_MPS2``, from the best fitting up;
+    the cut is the lower edge of the first bin (with 20 reversals or more) whose median
+    charge error under ``cal``'s measurement model exceeds ``RESIDUAL_MAX_BIAS_BAR``. With
+    the damping law the windows the law misses (the simulated dyno's cold 2 Hz reversals)
+    read the friction low by several bar; with linear slopes every 2 Hz window does."""
+    o = cal["observer"]
+    coef = np.array([o["step_offset_n"], o["step_dir_n"], o["step_per_accel_ns2pm"], o["step_per_bar_n"],
+                     o["step_per_bar_accel"]])
+    res = np.concatenate([r["residual_mps2"] for r in revs])
+    err = np.concatenate([(r["alpha_n"] - design(r, r["label_bar"], o) @ coef)
+                          / (coef[3] + coef[4] * np.abs(r["accel_mps2"])) for r in revs])
+    edge = RESIDUAL_MIN_CUT_MPS2
+    while edge < o["max_residual_mps2"]:
+        m = (res >= edge) & (res < edge + RESIDUAL_BIN_MPS2)
+        if m.sum() >= 20 and abs(float(np.median(err[m]))) > RESIDUAL_MAX_BIAS_BAR:
+            return round(float(edge), 3)
+        edge += RESIDUAL_BIN_MPS2
+    return float(o["max_residual_mps2"])
+
+
+def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
+                   per_run: int, min_span_k: float) -> dict[str, Any] | None:
+    """The window model's damping law, fitted on the nominal runs' reversal windows
+    (``train.damping_law``); None (with the reason) without nominal windows or when they
+    span less than ``min_span_k`` of oil temperature."""
+    from train.damping_law import LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_windows, reversal_windows
+
+    runs = campaign.nominal(physics.get("nominal_bar", 12.0))
+    wins = [w for w in reversal_windows(runs, physics, obs, per_run)
+            if w["residual0"] <= LAW_WINDOW_MAX_RESIDUAL_MPS2]
+    if not wins:
+        log.warning("no reversal window on the nominal runs: no damping law")
+        return None
+    temps = [w["oil_c"] for w in wins]
+    span = max(temps) - min(temps)
+    if span < min_span_k:
+        print(f"damping law: the nominal runs' reversal windows span {span:.0f} K of oil temperature "
+              f"({min(temps):.0f}-{max(temps):.0f} °C), under the {min_span_k:.0f} K its viscosity "
+              "coefficient needs (runs that heat up do): linear damping slopes")
+        return None
+    if span < LAW_MIN_TEMP_SPAN_K:
+        log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
+                    "is poorly determined", span)
+    fit = fit_law_windows(wins, physics, obs)
+    print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
+          f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
+          f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K)")
+    return fit["law"]
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     campaign = load_campaign(args.campaign)
@@ -269,15 +327,48 @@ def cmd_fit(args: argparse.Namespace) -> int:
                     if k in ("a_rod", "v_gas")})
     elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
-    params = {**physics, "observer": obs}
-    log.info("fitting reversals of %d runs", len(campaign.runs))
-    revs = reversals(campaign.runs, params, args.jobs)
-    cal = calibrate(revs, obs, args.unit_tolerance_pct)
+    cal, law = None, None
+    if args.damping in ("law", "auto"):
+        law = damping_law_of(campaign, physics, obs, args.law_windows,
+                             LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0)
+        if law is None and args.damping == "law":
+            raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
+    if law is not None:
+        law_obs = {**obs, "damping_law": law, "between_excitations": not args.no_between}
+        log.info("fitting reversals of %d runs with the damping law", len(campaign.runs))
+        revs = reversals(campaign.runs, {**physics, "observer": law_obs}, args.jobs)
+        cal = calibrate(revs, law_obs, args.unit_tolerance_pct)
+        cut = residual_cut(revs, cal)
+        if cut < law_obs["max_residual_mps2"]:
+            print(f"damping law: windows that fit worse than {cut:.2f} m/s² read the charge biased on the "
+                  "calibration runs; the observer skips them")
+            law_obs["max_residual_mps2"] = cut
+            revs = [{k: (v[r["residual_mps2"] <= cut] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+                    for r in revs]
+            cal = calibrate(revs, law_obs, args.unit_tolerance_pct)
+    if args.damping in ("linear", "auto"):
+        log.info("fitting reversals of %d runs with linear damping slopes", len(campaign.runs))
+        lin = calibrate(reversals(campaign.runs, {**physics, "observer": obs}, args.jobs), obs,
+                        args.unit_tolerance_pct)
+        if cal is not None:
+            # Keep the window model that calibrates more excitations, then the lower
+            # leave-one-run-out error (the calibration campaign's own runs only).
+            n_law, n_lin = (sum(c > 0 for c in x["observer"]["accel_clusters_mps2"]) for x in (cal, lin))
+            print(f"window model: damping law {n_law} excitation(s), LORO {cal['loro_rms_bar']:.2f} bar; linear "
+                  f"slopes {n_lin}, LORO {lin['loro_rms_bar']:.2f} bar")
+            if (n_lin, -lin["loro_rms_bar"]) > (n_law, -cal["loro_rms_bar"]):
+                cal = lin
+        else:
+            cal = lin
+    o = cal["observer"]
+    law_on = law_calibrated(o)
+    print("window model: " + ("the damping law" + (", reversals between calibrated excitations used"
+                                                   if o.get("between_excitations") else "")
+                              if law_on else "linear damping slopes"))
     physics["observer"] = cal["observer"]
     physics.setdefault("fit", {})["observer"] = {k: v for k, v in cal.items() if k != "observer"}
     out = args.out or args.physics
     out.write_text(json.dumps(physics, indent=2) + "\n")
-    o = cal["observer"]
     print("Charge observer calibration (simulated data), measurement model alpha = "
           f"{o['step_offset_n']:.2f} {o['step_dir_n']:+.2f} sgn(a) {o['step_per_accel_ns2pm']:+.3f} |a| "
           f"+ ({o['step_per_bar_n']:.3f} {o['step_per_bar_accel']:+.4f} |a|) p_g  (N), per-reversal sd "
@@ -305,6 +396,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--unit-tolerance-pct", type=float, default=10.0,
                    help="one-sigma unit-to-unit tolerance of the seal friction (datasheet), %%")
     f.add_argument("--jobs", type=int, default=2)
+    f.add_argument("--damping", choices=["auto", "law", "linear"], default="auto",
+                   help="the window model's damping: a law fitted on the nominal runs' reversal windows, "
+                        "linear slopes per window, or (auto) whichever calibrates more excitations, then the "
+                        "lower leave-one-run-out error (the law only when the nominal runs' windows span "
+                        f"{LAW_MIN_TEMP_SPAN_K:.0f} K of oil temperature)")
+    f.add_argument("--no-between", action="store_true",
+                   help="with the law, skip reversals between calibrated excitations")
+    f.add_argument("--law-windows", type=int, default=40,
+                   help="reversal windows per nominal run the damping law is fitted on")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)

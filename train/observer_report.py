@@ -37,6 +37,7 @@ from scipy.integrate import solve_ivp
 import shocktwin
 
 from train.campaign import load_campaign
+from train.damping_law import law_calibrated
 from train.fit_physics import rest_end_s
 from train.progress import progress
 from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95
@@ -128,17 +129,30 @@ def score_run(args: tuple[str, str, dict[str, Any], float]) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------
 
 
-def window_model(theta: np.ndarray, accel: float, obs: dict[str, float], times: np.ndarray) -> np.ndarray:
-    """a2 of one reversal window (independent of dt-core: scipy ``solve_ivp``, RK45)."""
+def window_model(theta: np.ndarray, accel: float, obs: dict[str, Any], times: np.ndarray,
+                 oil_c: float = 40.0) -> np.ndarray:
+    """a2 of one reversal window (independent of dt-core: scipy ``solve_ivp``, RK45). With a
+    calibrated damping law (``train.damping_law``, evaluated at ``oil_c``) ``c_ext`` and
+    ``c_comp`` are its scales; otherwise slopes in N·s/m."""
     alpha, c_ext, c_comp, shift, c0 = theta
     m = obs["mount_mass_kg"]
     wn = 2 * np.pi * obs["mount_freq_hz"]
     k, c = m * wn ** 2, 2 * obs["mount_zeta"] * m * wn
     wc, vs = 2 * np.pi * obs["accel_bw_hz"], obs["friction_v_smooth_mps"]
+    if law_calibrated(obs):
+        from train.damping_law import law
+
+        d = obs["damping_law"]
+
+        def damping(yd: float) -> float:
+            return (c_ext if yd > 0 else c_comp) * float(law(yd, oil_c, d))
+    else:
+        def damping(yd: float) -> float:
+            return (c_ext if yd > 0 else c_comp) * yd
 
     def force(s: float, vb: float) -> float:
         yd = accel * (s - shift) - vb
-        return (c_ext if yd > 0 else c_comp) * yd + alpha * np.tanh(yd / vs)
+        return damping(yd) + alpha * np.tanh(yd / vs)
 
     def rhs(s: float, x: np.ndarray) -> list[float]:
         a = (force(s, x[1]) - k * x[0] - c * x[1]) / m
@@ -146,7 +160,11 @@ def window_model(theta: np.ndarray, accel: float, obs: dict[str, float], times: 
 
     s0 = times[0] - 0.015
     yd0 = accel * (s0 - shift)
-    slope = (c_ext if yd0 > 0 else c_comp) + alpha / vs / np.cosh(yd0 / vs) ** 2
+    if law_calibrated(obs):
+        dslope = (damping(yd0 + 1e-3) - damping(yd0 - 1e-3)) / 2e-3
+    else:
+        dslope = c_ext if yd0 > 0 else c_comp
+    slope = dslope + alpha / vs / np.cosh(yd0 / vs) ** 2
     x0 = [force(s0, 0.0) / k, slope * accel / k, 0.0]  # quasi-static start
     sol = solve_ivp(rhs, (s0, times[-1]), x0, t_eval=times,
                     rtol=1e-9, atol=1e-12, max_step=2e-5)
@@ -159,8 +177,12 @@ def fisher_per_reversal(obs: dict[str, float], freq_hz: float, p_bar: float) -> 
     times = np.arange(-obs["window_pre_s"], obs["window_post_s"] + 1e-9, 1e-3)
     gain = obs["step_per_bar_n"] + obs.get("step_per_bar_accel", 0.0) * accel
     alpha = obs["step_offset_n"] + gain * p_bar
-    theta = np.array([alpha, 1910.0, 542.0, 0.0, -9.8])
-    steps = np.array([0.01 * alpha, 20.0, 20.0, 2e-5, 0.01])
+    if law_calibrated(obs):  # the law at 40 °C, its per-side scales at 1
+        theta = np.array([alpha, 1.0, 1.0, 0.0, -9.8])
+        steps = np.array([0.01 * alpha, 0.01, 0.01, 2e-5, 0.01])
+    else:  # linear slopes, N·s/m (typical fitted values)
+        theta = np.array([alpha, 1910.0, 542.0, 0.0, -9.8])
+        steps = np.array([0.01 * alpha, 20.0, 20.0, 2e-5, 0.01])
     jac = np.column_stack([(window_model(theta + e, accel, obs, times) - window_model(theta - e, accel, obs, times))
                            / (2 * e[i]) for i, e in enumerate(np.diag(steps))])
     sigma2 = ACC_NOISE_MPS2 ** 2 + ACC_LSB_MPS2 ** 2 / 12

@@ -55,35 +55,45 @@ def observer_physics(**over: float) -> dict:
     return params
 
 
-def test_window_fit_matches_scipy(run_4bar: Path) -> None:
-    params = observer_physics()
+# A damping law of the simulated dyno's shape (dt-core ``charge::DampingLaw``; the same as
+# dt-core's own test law): a compression crack at −0.05 m/s, blow-offs at ±0.15 m/s.
+A_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "width_mps": 0.008,
+         "viscous_nspm": [2500.0, 0, 0, 0, 0, 5000.0, 0, 0, 0],
+         "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
+
+
+@pytest.mark.parametrize("with_law", [False, True], ids=["linear", "law"])
+def test_window_fit_matches_scipy(run_4bar: Path, with_law: bool) -> None:
+    params = observer_physics(**({"damping_law": A_LAW} if with_law else {}))
     rev = shocktwin.charge_reversals(run_4bar, params)
     assert rev["detected"] > 50 and len(rev["alpha_n"]) > 30
     log = shocktwin.read_log(run_4bar)
     acc = log.topic("/acceleration")
     t0 = min(log.topic(t)["t_s"][0] for t in log.topics if len(log.topic(t)["t_s"]))
     o = params["observer"]
-    # Four windows (each scipy fit is ~20 s of Python ODE solves): reversals of both
-    # directions (the two damping slopes swap roles), early and late in the run.
+    # Four windows (each scipy fit is ~20 s of Python ODE solves), two with the law:
+    # reversals of both directions (the two damping sides swap roles), early and late.
     later = np.arange(5, len(rev["alpha_n"]))
     up, down = later[rev["accel_mps2"][later] > 0], later[rev["accel_mps2"][later] < 0]
     assert len(up) > 10 and len(down) > 10
-    picks = [up[0], down[0], up[-1], down[-1]]
+    picks = [up[-1], down[-1]] if with_law else [up[0], down[0], up[-1], down[-1]]
     for i in picks:
         tr = rev["t_s"][i] + t0
         m = (acc["t_s"] >= tr - o["window_pre_s"] - 1e-9) & (acc["t_s"] <= tr + o["window_post_s"] + 1e-9)
         times, data = acc["t_s"][m] - tr, acc["a2_mps2"][m]
         assert len(times) == rev["samples"][i]
-        accel = rev["accel_mps2"][i]
+        accel, oil_c = rev["accel_mps2"][i], rev["gas_temp_c"][i]
         ours = np.array([rev["alpha_n"][i], rev["damping_ext_nspm"][i], rev["damping_comp_nspm"][i],
                          rev["shift_s"][i]])
-        scale = np.array([10.0, 1000.0, 1000.0, 1e-3, 1.0])
+        # with a law the damping parameters are its per-side scales (reported × 1000)
+        scale = np.array([10.0, 1.0 if with_law else 1000.0, 1.0 if with_law else 1000.0, 1e-3, 1.0])
+        ours[1:3] /= 1000.0 if with_law else 1.0
 
         def resid(z: np.ndarray) -> np.ndarray:
-            return window_model(z * scale, accel, o, times) - data
+            return window_model(z * scale, accel, o, times, oil_c) - data
 
         # The window problem has more than one minimum (module docs): scipy starts near ours
-        # (amplitude +10 %, slopes +20 %, shift +0.5 ms, offset from the data) and must land on it.
+        # (amplitude +10 %, damping +20 %, shift +0.5 ms, offset from the data) and must land on it.
         start = np.array([ours[0] * 1.1, ours[1] * 1.2, ours[2] * 1.2, ours[3] + 5e-4, data[:5].mean()]) / scale
         ref = least_squares(resid, start, x_scale="jac").x * scale
         assert abs(ref[0] - ours[0]) < 0.02 * abs(ours[0]) + 0.2, (i, ref, ours)
@@ -231,3 +241,12 @@ def test_calibration_records_each_excitations_spacing() -> None:
              "spacing_s": np.array([0.5, 1 / 3, np.nan, 0.25, 0.5, 1 / 3])}
     np.testing.assert_array_equal(obs_tool.in_clusters(probe, clusters, 0.2, 0.15),
                                   [True, False, False, True, False, False])
+
+
+def test_a_damping_law_of_the_wrong_shape_is_named() -> None:
+    params = observer_physics(damping_law={**A_LAW, "dry_nspm": [500.0, 0.0]})
+    with pytest.raises(shocktwin.ParamsError, match=r"observer\.damping_law\.dry_nspm"):
+        shocktwin.reversal_window(params, 6.0, 40.0, [40.0, 1.0, 1.0, 0.0, 0.0], [0.0, 1e-3])
+    params = observer_physics(damping_law={**A_LAW, "beta_per_k": -0.01})
+    with pytest.raises(shocktwin.ParamsError, match=r"observer\.damping_law\.beta_per_k"):
+        shocktwin.reversal_window(params, 6.0, 40.0, [40.0, 1.0, 1.0, 0.0, 0.0], [0.0, 1e-3])
