@@ -1,0 +1,65 @@
+"""The damping law of the observer's reversal window (``train.damping_law``), fitted
+without a loadcell on the windows themselves, gives back a known law.
+
+Reference: windows made by the observer's own window model (``shocktwin.reversal_window``,
+dt-core) with a known law, known friction amplitudes and the accelerometer's noise, at
+the two excitations and the range of oil temperatures a heating campaign has. The fit
+starts from linear slopes and amplitudes 8 N off; it must fit to the noise, find the
+amplitudes nearly as well as a fit that knows the law, the law where the windows look,
+and the law's thinning with the heat."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+import shocktwin
+from train.damping_law import fit_law_windows, law
+
+A_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "width_mps": 0.008,
+         "viscous_nspm": [2500.0, 0, 0, 0, 0, 5000.0, 0, 0, 0],
+         "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
+NOISE_MPS2 = 0.07  # the simulated body accelerometer's noise (README: the 1 Hz residual)
+
+
+def test_the_law_fitted_on_windows_gives_back_a_known_law() -> None:
+    rng = np.random.default_rng(7)
+    params = shocktwin.default_params()
+    obs = dict(shocktwin.default_observer_params())
+    truth = {**params, "observer": {**obs, "damping_law": A_LAW}}
+    times = np.arange(-obs["window_pre_s"], obs["window_post_s"] + 1e-9, 1e-3)
+    windows, alphas = [], []
+    for accel in (1.5, -1.5, 6.0, -6.0):
+        for oil_c in (25.0, 55.0, 85.0, 115.0):
+            alpha = float(rng.uniform(30.0, 55.0))
+            a2 = shocktwin.reversal_window(truth, accel, oil_c, [alpha, 1.0, 1.0, 0.0, 0.3], times)
+            windows.append({"run": "synthetic", "t_s": 0.0, "times": times, "accel": accel, "oil_c": oil_c,
+                            "a2": a2 + rng.normal(0.0, NOISE_MPS2, len(times)),
+                            "slope_nspm": 2000.0, "alpha0": alpha - 8.0})
+            alphas.append(alpha)
+    fit = fit_law_windows(windows, params, obs)
+
+    # the windows fit to the noise
+    assert fit["residual_rms_mps2"] < 1.5 * NOISE_MPS2, fit["residual_rms_mps2"]
+    # and the amplitudes come back nearly as well as with the law known: each window
+    # refitted alone with the true law (amplitude, shift, offset; the same loss) is the
+    # reference (the slow, cold windows carry little: ≈ 6 N off from the noise alone)
+    known = []
+    for w in windows:
+        def resid(z: np.ndarray, w: dict = w) -> np.ndarray:
+            return shocktwin.reversal_window(truth, w["accel"], w["oil_c"], [z[0] * 10.0, 1.0, 1.0, z[1], z[2]],
+                                             times) - w["a2"]
+        known.append(least_squares(resid, [w["alpha0"] / 10.0, 0.0, float(np.mean(w["a2"][:5]))],
+                                   loss="soft_l1", f_scale=0.3).x[0] * 10.0)
+    rms = {name: float(np.sqrt(np.mean((np.array(a) - np.array(alphas)) ** 2)))
+           for name, a in (("learned", [w["alpha_n"] for w in fit["per_window"]]), ("known", known))}
+    assert rms["learned"] < 1.5 * rms["known"] + 0.2, rms
+
+    # the law where every window looks (|v| ≤ 0.04 m/s), cold and hot, within 15 % of its span
+    v = np.linspace(-0.04, 0.04, 41)
+    for oil_c in (25.0, 115.0):
+        want, got = law(v, oil_c, A_LAW), law(v, oil_c, fit["law"])
+        assert np.max(np.abs(got - want)) < 0.15 * np.ptp(want), (oil_c, got - want)
+    # and it thins with the heat, as the known law does
+    beta = fit["law"]["beta_per_k"]
+    assert 0.5 * A_LAW["beta_per_k"] < beta < 2.0 * A_LAW["beta_per_k"], beta
