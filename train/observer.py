@@ -327,6 +327,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                     if k in ("a_rod", "v_gas")})
     elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
+    obs["window_sd"] = bool(args.window_sd)
     cal, law = None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
@@ -401,6 +402,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "linear slopes per window, or (auto) whichever calibrates more excitations, then the "
                         "lower leave-one-run-out error (the law only when the nominal runs' windows span "
                         f"{LAW_MIN_TEMP_SPAN_K:.0f} K of oil temperature)")
+    f.add_argument("--window-sd", action="store_true",
+                   help="weigh each reversal by its window fit's own sd of the friction amplitude when "
+                        "larger than the calibrated one (dt-core ObserverParams::window_sd)")
     f.add_argument("--no-between", action="store_true",
                    help="with the law, skip reversals between calibrated excitations")
     f.add_argument("--law-windows", type=int, default=40,

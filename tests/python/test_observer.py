@@ -102,16 +102,22 @@ def test_window_fit_matches_scipy(run_4bar: Path, with_law: bool) -> None:
         assert abs(rms - rev["residual_mps2"][i]) < 0.01 + 0.02 * rms
 
 
-def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path) -> None:
-    params = observer_physics(random_walk_bar2_per_s=0.0)
+@pytest.mark.parametrize("window_sd", [False, True], ids=["step_sd", "window_sd"])
+def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, window_sd: bool) -> None:
+    params = observer_physics(random_walk_bar2_per_s=0.0, window_sd=window_sd, step_sd_n=1.0)
     rev = shocktwin.charge_reversals(run_4bar, params)
     o = params["observer"]
     used = rev["used"] == 1.0
     assert used.sum() > 20
     a, b, y = rev["a_n"][used], rev["b_n_per_bar"][used], rev["alpha_n"][used]
+    # each reversal's variance: the calibrated one, or its window's own when larger
+    var = np.full(len(y), o["step_sd_n"] ** 2)
+    if window_sd:
+        var = np.maximum(var, rev["alpha_sd_n"][used] ** 2)
+        assert (var > o["step_sd_n"] ** 2).sum() > 5, rev["alpha_sd_n"][used]
     # batch Bayes: Gaussian prior + all observations at once (no random walk)
-    info = 1 / o["prior_sd_bar"] ** 2 + np.sum(b ** 2) / o["step_sd_n"] ** 2
-    mean = (o["prior_mean_bar"] / o["prior_sd_bar"] ** 2 + np.sum(b * (y - a)) / o["step_sd_n"] ** 2) / info
+    info = 1 / o["prior_sd_bar"] ** 2 + np.sum(b ** 2 / var)
+    mean = (o["prior_mean_bar"] / o["prior_sd_bar"] ** 2 + np.sum(b * (y - a) / var)) / info
     x, cols, _ = shocktwin.features(run_4bar, params, ["observer"])
     final, sd = x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]
     assert abs(final - mean) < 1e-9 * max(1.0, abs(mean))

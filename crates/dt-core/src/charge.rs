@@ -246,6 +246,15 @@ pub struct ObserverParams {
     /// spacings. Default false.
     #[serde(default)]
     pub between_excitations: bool,
+    /// Weigh each reversal by its own window's information too: the
+    /// measurement variance is `max(step_sd_n², σ_α²)`, `σ_α²` the window
+    /// fit's variance of `α` (`σ̂² (JᵀJ)⁻¹₀₀`, `σ̂²` the residual variance
+    /// with 5 parameters taken off, `J` the fit's Jacobian). A slow, cold
+    /// window carries little (its `α` moves by several N with the noise
+    /// alone) and the calibration's one `step_sd_n` cannot know it. Default
+    /// false (every reversal weighs `step_sd_n`).
+    #[serde(default)]
+    pub window_sd: bool,
     /// Hysteresis band of the reversal detector, m/s: a reversal is the
     /// velocity passing from beyond `+band` to beyond `−band` (or back), so
     /// the mount's ringing in `ẏ̂` after a friction flip (several mm/s) does
@@ -511,6 +520,7 @@ impl Default for ObserverParams {
             max_residual_mps2: 0.6,
             damping_law: DampingLaw::default(),
             between_excitations: false,
+            window_sd: false,
         }
     }
 }
@@ -673,6 +683,10 @@ pub struct Reversal {
     pub shift_s: f64,
     /// Residual RMS of the window fit, m/s².
     pub residual_mps2: f64,
+    /// Standard deviation of the fitted `α` from the window's own fit
+    /// (residual variance and Jacobian; see [`ObserverParams::window_sd`]), N.
+    #[serde(default = "nan")]
+    pub alpha_sd_n: f64,
     /// Samples in the window.
     pub samples: usize,
     /// `a_r` of the measurement model, N.
@@ -954,7 +968,7 @@ impl ChargeObserver {
         let data: Vec<f64> = window.iter().map(|w| w.1).collect();
         let pre_n = times.iter().filter(|&&s| s < -0.002).count().max(1);
         let c0 = data[..pre_n].iter().sum::<f64>() / pre_n as f64;
-        let (theta, residual) = self.solve_window(
+        let (theta, residual, alpha_sd_n) = self.solve_window(
             &ReversalModel::new(p, accel, self.gas_temp_c),
             &times,
             &data,
@@ -977,6 +991,7 @@ impl ChargeObserver {
             damping_comp_nspm: theta[2] * 1e3,
             shift_s: theta[3] * 1e-3,
             residual_mps2: residual,
+            alpha_sd_n,
             samples: window.len(),
             a_n,
             b_n_per_bar,
@@ -987,14 +1002,14 @@ impl ChargeObserver {
 
     /// Least squares of one window from [`START_DAMPING_KNSPM`], then from
     /// [`FALLBACK_DAMPING_KNSPM`]: the first fit that passes every check,
-    /// with its residual RMS.
+    /// with its residual RMS and the standard deviation of its `α`.
     fn solve_window(
         &self,
         model: &ReversalModel,
         times: &[f64],
         data: &[f64],
         c0: f64,
-    ) -> Option<(Vector5<f64>, f64)> {
+    ) -> Option<(Vector5<f64>, f64, f64)> {
         let p = &self.p;
         let alpha0 = p.step_offset_n.max(10.0);
         let starts = if model.law.is_some() {
@@ -1032,7 +1047,8 @@ impl ChargeObserver {
                 .with_patience(40)
                 .minimize(problem);
             let theta = fitted.theta;
-            let residual = (2.0 * report.objective_function / times.len() as f64).sqrt();
+            let n = times.len() as f64;
+            let residual = (2.0 * report.objective_function / n).sqrt();
             let fine = report.termination.was_successful()
                 && theta.iter().all(|v| v.is_finite())
                 && residual <= p.max_residual_mps2
@@ -1040,7 +1056,20 @@ impl ChargeObserver {
                 && theta[1] >= 0.0
                 && theta[2] >= 0.0
                 && theta[3].abs() <= MAX_SHIFT_MS;
-            fine.then_some((theta, residual))
+            if !fine {
+                return None;
+            }
+            // var(α) = σ̂² (JᵀJ)⁻¹₀₀ with σ̂² = Σr² / (n − 5); NaN if singular.
+            let dof = (n - 5.0).max(1.0);
+            let alpha_sd = fitted
+                .jacobian()
+                .and_then(|j| (j.transpose() * j).try_inverse())
+                .map_or(f64::NAN, |inv| {
+                    (2.0 * report.objective_function / dof * inv[(0, 0)])
+                        .max(0.0)
+                        .sqrt()
+                });
+            Some((theta, residual, alpha_sd))
         })
     }
 
@@ -1065,7 +1094,10 @@ impl ChargeObserver {
         let t = rev.t_ns;
         self.predict_to(t);
         let b = rev.b_n_per_bar;
-        let r = self.p.step_sd_n * self.p.step_sd_n;
+        let mut r = self.p.step_sd_n * self.p.step_sd_n;
+        if self.p.window_sd && rev.alpha_sd_n.is_finite() {
+            r = r.max(rev.alpha_sd_n * rev.alpha_sd_n);
+        }
         let innov = rev.alpha_n - (rev.a_n + b * self.mean_bar);
         let s = b * b * self.var_bar2 + r;
         if b != 0.0 && innov.abs() <= INNOVATION_GATE * s.sqrt() {
@@ -1354,14 +1386,19 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_noise_free_window_gives_back_its_friction_amplitude() {
-        let mut obs = ChargeObserver::new(params()).unwrap();
+    /// The reversals an observer with `p` fits on eight noise-free windows
+    /// with friction amplitude 40 N.
+    fn fitted_reversals(p: &ObserverParams) -> Vec<Reversal> {
+        let mut obs = ChargeObserver::new(*p).unwrap();
         obs.record_reversals();
         feed(&mut obs, 40.0, 8);
-        let revs = obs.reversals();
-        assert!(revs.len() >= 6, "{:?}", obs.counters());
-        for r in revs {
+        assert!(obs.reversals().len() >= 6, "{:?}", obs.counters());
+        obs.reversals().to_vec()
+    }
+
+    #[test]
+    fn a_noise_free_window_gives_back_its_friction_amplitude() {
+        for r in fitted_reversals(&params()) {
             // The fit starts 15 ms before the window from a quasi-static
             // state; the settled stream differs from it by ~0.02 m/s².
             assert!((r.alpha_n - 40.0).abs() < 0.5, "{r:?}");
@@ -1435,18 +1472,61 @@ mod tests {
         );
     }
 
+    /// The window's own sd of `α` (from its residual and Jacobian) against
+    /// the spread of the fitted `α` over 200 noise draws (Monte Carlo), on a
+    /// fast window and a slow, cold one that carries much less.
+    #[test]
+    fn the_windows_alpha_sd_is_the_spread_over_noise_draws() {
+        use rand::SeedableRng as _;
+        use rand_distr::Distribution as _;
+        let p = params();
+        let obs = ChargeObserver::new(p).unwrap();
+        let noise = rand_distr::Normal::new(0.0, 0.07).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let times: Vec<f64> = (0..=40).map(|i| -0.010 + f64::from(i) * 1e-3).collect();
+        let mut sds = Vec::new();
+        for (accel, oil_c) in [(6.0, 80.0), (1.5, 20.0)] {
+            let model = ReversalModel::new(&p, accel, oil_c);
+            let clean = model.simulate(&Vector5::new(40.0, 1.9, 0.54, 0.0, -9.8), &times);
+            let (mut alphas, mut own) = (Vec::new(), Vec::new());
+            for _ in 0..200 {
+                let data: Vec<f64> = clean.iter().map(|a| a + noise.sample(&mut rng)).collect();
+                let c0 = data[..8].iter().sum::<f64>() / 8.0;
+                if let Some((theta, _, sd)) = obs.solve_window(&model, &times, &data, c0) {
+                    alphas.push(theta[0]);
+                    own.push(sd);
+                }
+            }
+            // (a slow window fails the fit's checks more often: ≈ 70 % pass)
+            assert!(alphas.len() >= 100, "{accel}: {} of 200 fits", alphas.len());
+            let n = alphas.len() as f64;
+            let mean = alphas.iter().sum::<f64>() / n;
+            let spread =
+                (alphas.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+            own.sort_by(f64::total_cmp);
+            let median = own[own.len() / 2];
+            assert!(
+                (median / spread - 1.0).abs() < 0.3,
+                "|ÿ| {accel}: own sd {median:.3} N against the spread {spread:.3} N"
+            );
+            eprintln!(
+                "|ÿ| {accel}: {} fits, own sd {median:.3} N, spread {spread:.3} N",
+                alphas.len()
+            );
+            sds.push(median);
+        }
+        assert!(
+            sds[1] > 2.0 * sds[0],
+            "the slow, cold window carries as much: {sds:?}"
+        );
+    }
+
     #[test]
     fn a_noise_free_window_with_a_law_gives_back_its_friction_amplitude() {
-        let mut obs = ChargeObserver::new(ObserverParams {
+        for r in fitted_reversals(&ObserverParams {
             damping_law: a_law(),
             ..params()
-        })
-        .unwrap();
-        obs.record_reversals();
-        feed(&mut obs, 40.0, 8);
-        let revs = obs.reversals();
-        assert!(revs.len() >= 6, "{:?}", obs.counters());
-        for r in revs {
+        }) {
             assert!((r.alpha_n - 40.0).abs() < 0.5, "{r:?}");
             assert!((r.damping_ext_nspm - 1000.0).abs() < 50.0, "{r:?}");
             assert!(r.residual_mps2 < 0.03, "{r:?}");

@@ -123,7 +123,8 @@ pub(crate) fn features<'py>(
 /// since the previous reversal the detector saw, NaN for the first),
 /// ``extension_m``,
 /// ``gas_temp_c``, ``alpha_n`` (fitted friction amplitude), ``damping_ext_nspm``,
-/// ``damping_comp_nspm``, ``shift_s``, ``residual_mps2``, ``samples``,
+/// ``damping_comp_nspm``, ``shift_s``, ``residual_mps2``, ``alpha_sd_n`` (the
+/// window fit's own sd of ``alpha_n``), ``samples``,
 /// ``a_n``, ``b_n_per_bar`` (the measurement model ``alpha = a + b p``) and
 /// ``used`` (1.0 when the update took it), plus the counts ``detected``,
 /// ``skipped``, ``rejected``. Raises ``MissingTopicsError`` when the log lacks
@@ -165,6 +166,7 @@ pub(crate) fn charge_reversals<'py>(
     )?;
     out.set_item("shift_s", to_numpy(py, col(&|r| r.shift_s)))?;
     out.set_item("residual_mps2", to_numpy(py, col(&|r| r.residual_mps2)))?;
+    out.set_item("alpha_sd_n", to_numpy(py, col(&|r| r.alpha_sd_n)))?;
     out.set_item("samples", to_numpy(py, col(&|r| r.samples as f64)))?;
     out.set_item("a_n", to_numpy(py, col(&|r| r.a_n)))?;
     out.set_item("b_n_per_bar", to_numpy(py, col(&|r| r.b_n_per_bar)))?;
