@@ -241,7 +241,8 @@ pub struct ObserverParams {
     /// with a calibrated [`DampingLaw`]: with linear slopes it does not
     /// interpolate (1.5 Hz between 1 and 2 Hz off by ≈ 4 bar on the
     /// simulated dyno); with the law the batch charge of three 1.5 Hz runs
-    /// never calibrated came within 0.4 bar. No extrapolation: `|ÿ_r|`
+    /// never calibrated came within 0.4 bar (at 1.75 Hz, though, three runs
+    /// read 1–2 bar low: README). No extrapolation: `|ÿ_r|`
     /// beyond the calibrated range is skipped. Needs two clusters with
     /// spacings. Default false.
     #[serde(default)]
