@@ -102,26 +102,38 @@ def test_window_fit_matches_scipy(run_4bar: Path, with_law: bool) -> None:
         assert abs(rms - rev["residual_mps2"][i]) < 0.01 + 0.02 * rms
 
 
-@pytest.mark.parametrize("window_sd", [False, True], ids=["step_sd", "window_sd"])
-def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, window_sd: bool) -> None:
-    params = observer_physics(random_walk_bar2_per_s=0.0, window_sd=window_sd, step_sd_n=1.0)
+@pytest.mark.parametrize("variant", ["step_sd", "window_sd", "stroke_ends"])
+def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, variant: str) -> None:
+    params = observer_physics(random_walk_bar2_per_s=0.0, window_sd=variant == "window_sd",
+                              stroke_ends=variant == "stroke_ends", step_sd_n=1.0,
+                              # with the ends: a wrong direction term, so that they disagree
+                              step_dir_n=3.0 if variant == "stroke_ends" else 0.0)
     rev = shocktwin.charge_reversals(run_4bar, params)
     o = params["observer"]
+    # each reversal's variance: the calibrated one, or its window's own when larger
+    var_all = np.full(len(rev["alpha_n"]), o["step_sd_n"] ** 2)
+    if variant == "window_sd":
+        var_all = np.maximum(var_all, rev["alpha_sd_n"] ** 2)
+        assert (var_all > o["step_sd_n"] ** 2).sum() > 5, rev["alpha_sd_n"]
+
+    def batch(m: np.ndarray) -> tuple[float, float]:
+        """Batch Bayes: Gaussian prior + the observations ``m`` at once (no random walk)."""
+        a, b, y, var = rev["a_n"][m], rev["b_n_per_bar"][m], rev["alpha_n"][m], var_all[m]
+        info = 1 / o["prior_sd_bar"] ** 2 + np.sum(b ** 2 / var)
+        return (o["prior_mean_bar"] / o["prior_sd_bar"] ** 2 + np.sum(b * (y - a) / var)) / info, 1 / info
+
     used = rev["used"] == 1.0
     assert used.sum() > 20
-    a, b, y = rev["a_n"][used], rev["b_n_per_bar"][used], rev["alpha_n"][used]
-    # each reversal's variance: the calibrated one, or its window's own when larger
-    var = np.full(len(y), o["step_sd_n"] ** 2)
-    if window_sd:
-        var = np.maximum(var, rev["alpha_sd_n"][used] ** 2)
-        assert (var > o["step_sd_n"] ** 2).sum() > 5, rev["alpha_sd_n"][used]
-    # batch Bayes: Gaussian prior + all observations at once (no random walk)
-    info = 1 / o["prior_sd_bar"] ** 2 + np.sum(b ** 2 / var)
-    mean = (o["prior_mean_bar"] / o["prior_sd_bar"] ** 2 + np.sum(b * (y - a) / var)) / info
+    mean, post_var = batch(used)
     x, cols, _ = shocktwin.features(run_4bar, params, ["observer"])
     final, sd = x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]
     assert abs(final - mean) < 1e-9 * max(1.0, abs(mean))
-    expect_sd = np.sqrt(1 / info + o["systematic_sd_bar"] ** 2 + (o["systematic_rel"] * mean) ** 2)
+    split = 0.0
+    if variant == "stroke_ends":  # each end of the stroke from all its fitted reversals, gate or not
+        (m1, v1), (m2, v2) = (batch(np.sign(rev["accel_mps2"]) == s) for s in (1, -1))
+        split = max((m1 - m2) ** 2 - v1 - v2, 0.0) / 4
+        assert split > 1.0, (m1, v1, m2, v2)
+    expect_sd = np.sqrt(post_var + o["systematic_sd_bar"] ** 2 + (o["systematic_rel"] * mean) ** 2 + split)
     assert abs(sd - expect_sd) < 1e-9
 
 

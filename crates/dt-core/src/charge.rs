@@ -99,6 +99,13 @@
 //! added to the reported variance (not to the filter's), so the interval stays honest
 //! after thousands of reversals.
 //!
+//! Two options widen what each reversal or the interval carries (both off
+//! by default): `window_sd` takes `σ_α²` per reversal as the larger of
+//! `step_sd_n²` and its window fit's own variance of `α`; `stroke_ends`
+//! estimates the charge apart from each end of the stroke (`ÿ_r > 0`,
+//! `ÿ_r < 0`) and adds their split beyond their noise,
+//! `max(0, (m₊ − m₋)² − v₊ − v₋) / 4`, to the reported variance.
+//!
 //! # Assumptions
 //! - A dyno-like excitation: reversals with `|ÿ|` above the threshold; the
 //!   reversals of a rest or a slow drift are not used (the estimate keeps its
@@ -256,6 +263,16 @@ pub struct ObserverParams {
     /// false (every reversal weighs `step_sd_n`).
     #[serde(default)]
     pub window_sd: bool,
+    /// Widen the interval by the disagreement of the two ends of the
+    /// stroke: besides the filter, the charge is estimated apart from the
+    /// reversals with `ÿ_r > 0` and with `ÿ_r < 0` (every fitted reversal, no
+    /// gate; same prior, variance and random walk), and the reported variance
+    /// gains `max(0, (m₊ − m₋)² − v₊ − v₋) / 4`: the spread between the ends
+    /// beyond what their own noise explains. Both ends see the same charge,
+    /// so where they disagree the window model is off (on the simulated
+    /// dyno: between the calibrated excitations, by 2–14 bar). Default false.
+    #[serde(default)]
+    pub stroke_ends: bool,
     /// Hysteresis band of the reversal detector, m/s: a reversal is the
     /// velocity passing from beyond `+band` to beyond `−band` (or back), so
     /// the mount's ringing in `ẏ̂` after a friction flip (several mm/s) does
@@ -522,6 +539,7 @@ impl Default for ObserverParams {
             damping_law: DampingLaw::default(),
             between_excitations: false,
             window_sd: false,
+            stroke_ends: false,
         }
     }
 }
@@ -704,7 +722,8 @@ pub struct ChargeEstimate {
     /// Posterior mean of the charge, bar gauge at 20 °C.
     pub mean_bar: f64,
     /// Reported standard deviation: filter variance plus the systematic
-    /// variance, bar.
+    /// variance (plus the split of the stroke's ends with
+    /// [`ObserverParams::stroke_ends`]), bar.
     pub sd_bar: f64,
     /// Reversals used so far.
     pub reversals: u64,
@@ -781,6 +800,10 @@ pub struct ChargeObserver {
     rejected_run: u32,
     counters: ObserverCounters,
     record: Option<Vec<Reversal>>,
+    /// `(mean, variance)` of the charge from the reversals with `ÿ_r > 0`
+    /// and `ÿ_r < 0` ([`ObserverParams::stroke_ends`]; None: both at the prior).
+    #[serde(default)]
+    ends: Option<[(f64, f64); 2]>,
 }
 
 impl ChargeObserver {
@@ -807,6 +830,7 @@ impl ChargeObserver {
             rejected_run: 0,
             counters: ObserverCounters::default(),
             record: None,
+            ends: None,
         })
     }
 
@@ -1099,6 +1123,17 @@ impl ChargeObserver {
         if self.p.window_sd && rev.alpha_sd_n.is_finite() {
             r = r.max(rev.alpha_sd_n * rev.alpha_sd_n);
         }
+        if self.p.stroke_ends && b != 0.0 {
+            let prior = (
+                self.p.prior_mean_bar,
+                self.p.prior_sd_bar * self.p.prior_sd_bar,
+            );
+            let ends = self.ends.get_or_insert([prior; 2]);
+            let (m, v) = &mut ends[usize::from(rev.accel_mps2 < 0.0)];
+            let gain = *v * b / (b * b * *v + r);
+            *m += gain * (rev.alpha_n - (rev.a_n + b * *m));
+            *v *= 1.0 - gain * b;
+        }
         let innov = rev.alpha_n - (rev.a_n + b * self.mean_bar);
         let s = b * b * self.var_bar2 + r;
         if b != 0.0 && innov.abs() <= INNOVATION_GATE * s.sqrt() {
@@ -1126,7 +1161,11 @@ impl ChargeObserver {
     fn predict_to(&mut self, t_ns: i64) {
         if let Some(u) = self.updated_ns {
             if t_ns > u {
-                self.var_bar2 += self.p.random_walk_bar2_per_s * (t_ns - u) as f64 * 1e-9;
+                let q = self.p.random_walk_bar2_per_s * (t_ns - u) as f64 * 1e-9;
+                self.var_bar2 += q;
+                for (_, v) in self.ends.iter_mut().flatten() {
+                    *v += q;
+                }
             }
         }
         if self.updated_ns.is_none_or(|u| t_ns > u) {
@@ -1143,9 +1182,12 @@ impl ChargeObserver {
         });
         let sys = self.p.systematic_sd_bar;
         let rel = self.p.systematic_rel * self.mean_bar.abs();
+        let split = self.ends.map_or(0.0, |[(m1, v1), (m2, v2)]| {
+            ((m1 - m2).powi(2) - v1 - v2).max(0.0) / 4.0
+        });
         ChargeEstimate {
             mean_bar: self.mean_bar,
-            sd_bar: (self.var_bar2 + grown + sys * sys + rel * rel).sqrt(),
+            sd_bar: (self.var_bar2 + grown + sys * sys + rel * rel + split).sqrt(),
             reversals: self.counters.used,
         }
     }
@@ -1359,6 +1401,12 @@ mod tests {
     /// A stream of one reversal per `half_period_s` whose `a2` is the window
     /// model itself with friction amplitude `alpha` (no noise).
     fn feed(obs: &mut ChargeObserver, alpha: f64, n_reversals: usize) {
+        feed_ends(obs, [alpha, alpha], n_reversals);
+    }
+
+    /// As [`feed`], with amplitude `alpha[0]` at the reversals with `ÿ > 0`
+    /// and `alpha[1]` at those with `ÿ < 0`.
+    fn feed_ends(obs: &mut ChargeObserver, alpha: [f64; 2], n_reversals: usize) {
         let p = *obs.params();
         let half = 0.25;
         let accel_mag = 6.0;
@@ -1373,7 +1421,7 @@ mod tests {
             } else {
                 (1.9, 0.54)
             };
-            let theta = Vector5::new(alpha, c_ext, c_comp, 0.0, -9.8);
+            let theta = Vector5::new(alpha[usize::from(accel < 0.0)], c_ext, c_comp, 0.0, -9.8);
             let t_r = (k as f64 + 0.5) * half;
             let times: Vec<f64> = (0..250)
                 .map(|i| (t_ns + i * dt_ns) as f64 * 1e-9 - t_r)
@@ -1470,6 +1518,30 @@ mod tests {
         assert!(
             err.to_string().contains("observer.damping_law.beta_per_k"),
             "{err}"
+        );
+    }
+
+    /// Ends of the stroke that read different charges widen the interval by
+    /// their split; ends that agree leave it as it was.
+    #[test]
+    fn stroke_ends_that_disagree_widen_the_interval() {
+        let sd = |stroke_ends: bool, alpha: [f64; 2]| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                stroke_ends,
+                ..params()
+            })
+            .unwrap();
+            feed_ends(&mut obs, alpha, 40);
+            obs.estimate(i64::MAX / 2).sd_bar
+        };
+        let same = [40.0, 40.0];
+        assert!((sd(true, same) - sd(false, same)).abs() < 1e-9);
+        // 10 N apart at 1.5 N/bar: ends 6.7 bar apart, the variance + 6.7²/4
+        let (wide, narrow) = (sd(true, [35.0, 45.0]), sd(false, [35.0, 45.0]));
+        let added = wide * wide - narrow * narrow;
+        assert!(
+            (added.sqrt() - 10.0 / 1.5 / 2.0).abs() < 0.3,
+            "{wide} against {narrow}"
         );
     }
 
