@@ -2,6 +2,7 @@
 
     python -m train.observer fit --campaign DIR --physics physics.json [--out physics.json]
     python -m train.observer evaluate --physics physics.json --out DIR NAME=DIR [NAME=DIR ...]
+    python -m train.observer baseline --physics physics.json --charge-bar 12 RUN.mcap... --out unit.json
 
 ``fit`` runs the observer's per-reversal window fit (``shocktwin.charge_reversals``, the
 code the daemon runs) over every run of a labelled campaign and fits its measurement
@@ -23,6 +24,13 @@ group) over held-out sets and reports, from excitation onset on: RMSE of the est
 over ticks from ``--settle-s`` after onset (instantaneous and 1 s average), 95 %
 interval coverage, the time until the SPEC §6a health verdict is right and stays right,
 false alarms on nominal runs, the Cramér–Rao bound beside the achieved error, and plots.
+
+``baseline`` reads one unit at a known charge (at installation or after a service, when the
+charge was set or gauged): what the observer reads over the given runs and how sure it is
+from their reversals alone, written as the unit's ``observer_baseline`` (dt-core
+``UnitBaseline``) for ``shocktwin replay --observer-baseline`` and the daemon's
+``[assets.<id>] observer_baseline``. The observer then conditions the unit's systematic
+offset and gain on it (``evaluate --baseline SET=FILE`` scores with it).
 
 The data are simulated (``shocktwin simulate``); the report and figures say so.
 """
@@ -391,6 +399,83 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+# A baseline run must have taught the observer something: its reading's own sd (without
+# the systematic part) below this share of the prior's.
+BASELINE_MAX_SD_SHARE = 0.25
+BASELINE_SETTLE_S = 60.0  # as `evaluate --settle-s`
+
+
+def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: float,
+                jobs: int = 2) -> dict[str, Any]:
+    """The unit's ``observer_baseline`` from ``paths`` (runs of one unit at ``charge_bar``):
+    each run's reading at its last excited tick, combined by inverse variance. The sd is
+    what stays uncertain once the unit's offset is known: the filter's own variance, the
+    drift of the reading within the run (RMS of its departure from the final reading over
+    the ticks from ``BASELINE_SETTLE_S`` after onset: the error changes as the unit heats —
+    on the simulated second unit it read 7.7 bar for 10 at the cold start and 10.2 hot —
+    and a constant correction cannot follow it) and, over several runs, their spread
+    about the mean."""
+    obs = physics["observer"]
+    if obs.get("baseline"):
+        raise SystemExit("the physics already carries a unit baseline: give the model's own")
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
+    sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
+    rows = []
+    for path, (m, sd, drift) in zip(paths, reads):
+        if m is None:
+            raise SystemExit(f"{path}: no excited tick: no baseline from it")
+        var = max(sd ** 2 - sys2 - (rel * m) ** 2, 1e-4) + drift ** 2
+        if np.sqrt(var) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
+            raise SystemExit(f"{path}: the observer used (almost) no reversals (reading {m:.2f} ± "
+                             f"{np.sqrt(var):.2f} bar from its reversals alone): an excitation it was not "
+                             "calibrated at? No baseline from it")
+        rows.append((str(path), m, var))
+    w = np.array([1.0 / v for _, _, v in rows])
+    m = np.array([x for _, x, _ in rows])
+    mean = float(np.sum(w * m) / np.sum(w))
+    spread = float(np.sum(w * (m - mean) ** 2) / np.sum(w)) if len(rows) > 1 else 0.0
+    sd = float(np.sqrt(1.0 / np.sum(w) + spread))
+    return {"observer_baseline": {"charge_bar": float(charge_bar), "read_bar": mean, "read_sd_bar": sd},
+            "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
+                     for (p, x, v), (_, _, d) in zip(rows, reads)],
+            "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
+
+
+def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float]:
+    path, physics = args
+    lg = shocktwin.read_log(path)
+    x, cols, t = shocktwin.features(lg, physics, ["observer"])
+    onset = rest_end_s(Run(path=Path(path), log=lg, run_id="", asset_id="", label_bar=None, frequency_hz=None))
+    pos = lg.topic("/position")
+    moving = np.nonzero(np.abs(np.diff(pos["position_m"])) > 1e-4)[0]
+    end = float(pos["t_s"][moving[-1]]) if len(moving) else float("nan")
+    idx = np.nonzero((t >= onset) & (t <= end))[0]
+    if len(idx) == 0:
+        return None, float("nan"), float("nan")
+    i = idx[-1]
+    mean = x[:, cols.index("observer_bar")]
+    # how far the reading wanders at this constant charge, at the ticks a score would count
+    scored = idx[t[idx] >= onset + BASELINE_SETTLE_S]
+    drift = float(np.sqrt(np.mean((mean[scored] - mean[i]) ** 2))) if len(scored) else 0.0
+    return float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift
+
+
+def cmd_baseline(args: argparse.Namespace) -> int:
+    physics = json.loads(args.physics.read_text())
+    if not physics.get("observer"):
+        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    for p in args.runs:
+        if not p.is_file():
+            raise SystemExit(f"{p}: no such run log")
+    b = baseline_of(physics, args.runs, args.charge_bar, args.jobs)
+    args.out.write_text(json.dumps(b, indent=2) + "\n")
+    ob = b["observer_baseline"]
+    print(f"unit baseline: read {ob['read_bar']:.2f} ± {ob['read_sd_bar']:.2f} bar at a known "
+          f"{ob['charge_bar']:g} bar ({len(args.runs)} run(s)); wrote {args.out}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m train.observer", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -422,10 +507,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     e.add_argument("--out", required=True, type=Path)
     e.add_argument("--settle-s", type=float, default=60.0, help="score ticks from this long after onset")
     e.add_argument("--jobs", type=int, default=2)
+    e.add_argument("--baseline", action="append", default=[], metavar="SET=FILE",
+                   help="score set SET with this unit baseline (from `baseline`); its own runs are "
+                        "not scored")
     e.add_argument("sets", nargs="+", help="NAME=DIR of held-out campaigns")
+    b = sub.add_parser("baseline", help="one unit's reading at a known charge (installation, service)")
+    b.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")
+    b.add_argument("--charge-bar", required=True, type=float, help="the charge the unit held, bar gauge at 20 °C")
+    b.add_argument("--out", required=True, type=Path)
+    b.add_argument("--jobs", type=int, default=2)
+    b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
     args = parser.parse_args(argv)
     if args.cmd == "fit":
         return cmd_fit(args)
+    if args.cmd == "baseline":
+        return cmd_baseline(args)
     from train.observer_report import cmd_evaluate
     return cmd_evaluate(args)
 

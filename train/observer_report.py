@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -41,6 +42,8 @@ from train.damping_law import law_calibrated
 from train.fit_physics import rest_end_s
 from train.progress import progress
 from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95
+
+log = logging.getLogger("shocktwin.observer")
 
 TICK_S = 0.02
 ACC_NOISE_MPS2 = 0.064      # accelerometer white noise at 1 kHz (dt-sim sensor table)
@@ -216,17 +219,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if not d:
             raise SystemExit(f"{spec!r}: a held-out set is NAME=DIR")
         sets[name] = Path(d)
-    lines = evaluate(physics, sets, args.out, args.settle_s, args.jobs)
+    baselines = {}
+    for spec in args.baseline:
+        name, _, f = spec.partition("=")
+        if name not in sets or not f:
+            raise SystemExit(f"--baseline {spec!r}: need SET=FILE with SET one of {', '.join(sets)}")
+        baselines[name] = json.loads(Path(f).read_text())
+    lines = evaluate(physics, sets, args.out, args.settle_s, args.jobs, baselines)
     print("\n".join(lines[:4 + len(sets)]))
     print(f"report: {args.out / 'observer.md'}")
     return 0
 
 
 def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, settle_s: float,
-             jobs: int) -> list[str]:
+             jobs: int, baselines: dict[str, dict[str, Any]] | None = None) -> list[str]:
     """Scores the observer of ``physics`` on every run of the held-out campaigns ``set_dirs``
     (name → directory), draws ``observer_bound.png`` and ``observer_runs.png`` into ``out`` and
-    writes ``observer.md`` / ``observer.json`` there; returns the Markdown lines."""
+    writes ``observer.md`` / ``observer.json`` there; returns the Markdown lines. A set named
+    in ``baselines`` is scored with that unit baseline (``train.observer baseline``'s output),
+    without the runs it was made from."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -235,8 +246,15 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
     settle = settle_s
     tasks = []
     for name, d in set_dirs.items():
+        b = (baselines or {}).get(name)
+        own = {r["file"] for r in b["runs"]} if b else set()
+        set_physics = ({**physics, "observer": {**physics["observer"], "baseline": b["observer_baseline"]}}
+                       if b else physics)
         for run in load_campaign(d).runs:
-            tasks.append((str(run.path), name, physics, settle))
+            if run.path.name in own:
+                log.info("%s: %s made the unit baseline: not scored", name, run.path.name)
+                continue
+            tasks.append((str(run.path), name, set_physics, settle))
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         rows = list(progress(pool.map(score_run, tasks), total=len(tasks), desc="scoring", unit="run"))
     out.mkdir(parents=True, exist_ok=True)

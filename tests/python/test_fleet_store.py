@@ -15,6 +15,7 @@ its name. Simulated data throughout.
 from __future__ import annotations
 
 import csv
+import json
 import os
 import re
 import shutil
@@ -68,10 +69,10 @@ def world(calibrated_campaign: tuple[Path, Path], tmp_path_factory: pytest.TempP
 
 
 class Daemon:
-    def __init__(self, bundle: Path, db: Path, inbox: Path) -> None:
+    def __init__(self, bundle: Path, db: Path, inbox: Path, config: Path | None = None) -> None:
         self.proc = subprocess.Popen(
             [str(BIN), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(bundle),
-             "--db", str(db), "--inbox", str(inbox)],
+             "--db", str(db), "--inbox", str(inbox), *(["--config", str(config)] if config else [])],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )
         assert self.proc.stderr is not None
@@ -205,6 +206,51 @@ def test_trend_history_and_restart(world: dict[str, Path], tmp_path: Path, daemo
     assert again["fault"] == before["trend"]["fault"]
     d2.stop()
     assert d2.proc.returncode == 0
+
+
+def replay_binned(bundle: Path, run: Path, out: Path, *extra: str) -> dict[int, float]:
+    """``shocktwin replay``'s pressure averaged per calendar second."""
+    subprocess.run([str(BIN), "replay", "--model", str(bundle), str(run), "--out", str(out), *extra],
+                   check=True, stdout=subprocess.DEVNULL)
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    t0 = first_log_time_ns(run)
+    sec = (t0 + np.array([round(float(r["t_s"]) * 1e9) for r in rows])) // 1_000_000_000
+    pressure = np.array([float(r["pressure_bar"]) for r in rows])
+    return {int(s): float(pressure[sec == s].mean()) for s in np.unique(sec)}
+
+
+def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path], tmp_path: Path,
+                                                          daemons: list[Daemon]) -> None:
+    """`[assets.<id>] observer_baseline` in the daemon's config: that asset's estimates are
+    `shocktwin replay --observer-baseline`'s, not the model's alone."""
+    run = sorted(world["runs"].glob("*.mcap"))[0]
+    baseline = {"charge_bar": 12.0, "read_bar": 10.5, "read_sd_bar": 0.3}
+    (tmp_path / "unit.json").write_text(json.dumps({"observer_baseline": baseline}))
+    with_b = replay_binned(world["bundle"], run, tmp_path / "b.csv", "--observer-baseline", str(tmp_path / "unit.json"))
+    without = replay_binned(world["bundle"], run, tmp_path / "m.csv")
+    assert max(abs(with_b[s] - without[s]) for s in with_b) > 0.1, "the baseline changed nothing"
+    # the bindings, as an analyst gives it
+    est = shocktwin.estimate(run, world["bundle"], observer_baseline=baseline)
+    sec = (first_log_time_ns(run) + np.round(est["t_s"] * 1e9).astype(np.int64)) // 1_000_000_000
+    for s in with_b:
+        assert est["pressure_bar"][sec == s].mean() == pytest.approx(with_b[s], abs=1e-9)
+    config = tmp_path / "serve.toml"
+    config.write_text("[assets.dyno-unit-A]\nobserver_baseline = { charge_bar = 12.0, read_bar = 10.5, "
+                      "read_sd_bar = 0.3 }\n")
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    shutil.copy(run, inbox / run.name)
+    d = Daemon(world["bundle"], tmp_path / "fleet.sqlite", inbox, config)
+    daemons.append(d)
+    d.wait_runs("dyno-unit-A", 1)
+    secs = sorted(with_b)
+    hist = d.get("/v1/assets/dyno-unit-A/history", since=f"{np.datetime64(secs[0], 's')}Z",
+                 until=f"{np.datetime64(secs[-1], 's')}Z", step_s=1)["points"]
+    assert len(hist) == len(secs)
+    for p in hist:
+        assert p["pressure_bar"] == pytest.approx(with_b[int(unix_s(p["t"]))], abs=1e-9)
+    d.stop()
 
 
 def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], tmp_path: Path,

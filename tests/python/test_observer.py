@@ -268,3 +268,44 @@ def test_a_damping_law_of_the_wrong_shape_is_named() -> None:
     params = observer_physics(damping_law={**A_LAW, "beta_per_k": -0.01})
     with pytest.raises(shocktwin.ParamsError, match=r"observer\.damping_law\.beta_per_k"):
         shocktwin.reversal_window(params, 6.0, 40.0, [40.0, 1.0, 1.0, 0.0, 0.0], [0.0, 1e-3])
+
+
+def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_campaign: tuple[Path, Path],
+                                                                  tmp_path: Path) -> None:
+    """Another unit (its seal scattered), read once at a known 12 bar: at 3 bar the interval
+    narrows and still covers the truth; the reading it was made from says how sure it is."""
+    _, physics = calibrated_campaign
+    runs = simulate(tmp_path / "unit", "--pressures", "3,12", "--frequencies", "1", "--unit", "3")
+    run3, run12 = (r for r in runs if r.name.startswith("p3.0")), (r for r in runs if r.name.startswith("p12.0"))
+    run3, run12 = next(run3), next(run12)
+    out = tmp_path / "unit3.json"
+    assert obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(run12),
+                          "--out", str(out)]) == 0
+    b = json.loads(out.read_text())
+    assert b["observer_baseline"]["charge_bar"] == 12.0
+    assert 0 < b["observer_baseline"]["read_sd_bar"] < 1.0
+    params = json.loads(physics.read_text())
+    with_b = {**params, "observer": {**params["observer"], "baseline": b["observer_baseline"]}}
+    finals = {}
+    for name, p in (("model", params), ("unit", with_b)):
+        x, cols, t = shocktwin.features(run3, p, ["observer"])
+        finals[name] = (x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")])
+    (m0, s0), (m1, s1) = finals["model"], finals["unit"]
+    print(f"unit 3 at 3 bar (simulated): the model alone {m0:.2f} ± {s0:.2f} bar, with its 12 bar baseline "
+          f"{m1:.2f} ± {s1:.2f} bar")
+    assert s1 < 0.8 * s0, f"baseline did not narrow the interval: {s0:.2f} -> {s1:.2f} bar"
+    assert abs(m1 - 3.0) <= 1.96 * s1, f"3 bar read {m1:.2f} ± {s1:.2f} with the baseline"
+    # a baseline is one unit's reading of a calibrated model: another model's is refused
+    with pytest.raises(SystemExit, match="already carries a unit baseline"):
+        obs_tool.baseline_of(with_b, [run12], 12.0, jobs=1)
+
+
+def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -> None:
+    bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+    bad = tmp_path / "b.json"
+    bad.write_text(json.dumps({"observer_baseline": {"charge_bar": 12.0, "read_bar": 11.0}}))
+    proc = subprocess.run([str(BIN), "replay", "--model", str(bundle), str(run_4bar), "--out",
+                           str(tmp_path / "o.csv"), "--observer-baseline", str(bad)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0
+    assert "--observer-baseline" in proc.stderr and "observer" in proc.stderr, proc.stderr

@@ -293,6 +293,122 @@ pub struct ObserverParams {
     /// default): linear slopes freed per window.
     #[serde(default)]
     pub damping_law: DampingLaw,
+    /// What this unit read once at a known charge ([`UnitBaseline`]): the
+    /// systematic part of the interval is then conditioned on it. Per unit,
+    /// not per model: set for one asset (daemon `[assets.<id>]`,
+    /// `shocktwin replay --observer-baseline`), never by calibration.
+    #[serde(default)]
+    pub baseline: Option<UnitBaseline>,
+}
+
+/// A unit's reading at a known charge — at installation or after a service,
+/// when the charge was set or gauged — for [`ObserverParams::baseline`].
+///
+/// The systematic error of the reading, what no number of reversals averages
+/// away, is modelled as `e(p) = u_f + u_s p` (bar): `u_f ~ N(0, S²)` the
+/// unit's friction offset (plus the calibration's own error) and
+/// `u_s ~ N(0, ρ²)` its relative seal gain, `S` =
+/// [`systematic_sd_bar`](ObserverParams::systematic_sd_bar) and `ρ` =
+/// [`systematic_rel`](ObserverParams::systematic_rel). A baseline observes
+/// `e(p₀) = read_bar − charge_bar` with variance `read_sd_bar²`; the
+/// Gaussian update with `h = [1, p₀]`,
+///
+/// ```text
+/// Σ = diag(S², ρ²),  k = Σ hᵀ / (h Σ hᵀ + σ_b²),  û = k e,  Σ' = Σ − k h Σ
+/// ```
+///
+/// gives the unit's correction: the reported mean is `(p̂ − û_f) / (1 + û_s)`
+/// and the systematic variance `[1, p] Σ' [1, p]ᵀ` instead of
+/// `S² + (ρ p)²`. One known charge cannot tell the offset from the gain, so
+/// the update splits `e` between them in proportion to their prior
+/// variances: near `p₀` the interval shrinks to about `σ_b`, far from it
+/// only by what the offset explained.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UnitBaseline {
+    /// The charge the unit was known to hold, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// What the observer read meanwhile (no baseline applied), bar.
+    pub read_bar: f64,
+    /// Standard deviation of that reading from its reversals alone (without
+    /// the systematic part), bar.
+    pub read_sd_bar: f64,
+}
+
+impl UnitBaseline {
+    /// Checks the three numbers; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), PhysicsError> {
+        for (name, value, ok, reason) in [
+            (
+                "observer.baseline.charge_bar",
+                self.charge_bar,
+                true,
+                "must be finite",
+            ),
+            (
+                "observer.baseline.read_bar",
+                self.read_bar,
+                true,
+                "must be finite",
+            ),
+            (
+                "observer.baseline.read_sd_bar",
+                self.read_sd_bar,
+                self.read_sd_bar > 0.0,
+                "must be finite and positive",
+            ),
+        ] {
+            if !(value.is_finite() && ok) {
+                return Err(PhysicsError::InvalidParameter {
+                    name,
+                    value,
+                    reason,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A [`UnitBaseline`]'s posterior: `û = [u_f, u_s]` and `Σ'`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct UnitCorrection {
+    offset_bar: f64,
+    gain_rel: f64,
+    /// `Σ'` as `[Σ_ff, Σ_fs, Σ_ss]`.
+    cov: [f64; 3],
+}
+
+impl UnitCorrection {
+    fn of(p: &ObserverParams) -> Self {
+        let (sff, sss) = (p.systematic_sd_bar.powi(2), p.systematic_rel.powi(2));
+        let prior = Self {
+            offset_bar: 0.0,
+            gain_rel: 0.0,
+            cov: [sff, 0.0, sss],
+        };
+        let Some(b) = p.baseline else {
+            return prior;
+        };
+        let p0 = b.charge_bar;
+        // Σ hᵀ and h Σ hᵀ + σ_b² for h = [1, p₀].
+        let (sh_f, sh_s) = (sff, sss * p0);
+        let s2 = sh_f + sh_s * p0 + b.read_sd_bar.powi(2);
+        let (k_f, k_s) = (sh_f / s2, sh_s / s2);
+        let e = b.read_bar - b.charge_bar;
+        Self {
+            offset_bar: k_f * e,
+            gain_rel: k_s * e,
+            cov: [sff - k_f * sh_f, -k_f * sh_s, sss - k_s * sh_s],
+        }
+    }
+
+    /// The corrected mean and the systematic variance at it.
+    fn apply(&self, read_bar: f64) -> (f64, f64) {
+        let mean = (read_bar - self.offset_bar) / (1.0 + self.gain_rel);
+        let [sff, sfs, sss] = self.cov;
+        (mean, sff + 2.0 * sfs * mean + sss * mean * mean)
+    }
 }
 
 /// Hinges of a [`DampingLaw`].
@@ -540,6 +656,7 @@ impl Default for ObserverParams {
             between_excitations: false,
             window_sd: false,
             stroke_ends: false,
+            baseline: None,
         }
     }
 }
@@ -668,6 +785,17 @@ impl ObserverParams {
                     name,
                     value,
                     reason: "must be finite",
+                });
+            }
+        }
+        if let Some(b) = &self.baseline {
+            b.validate()?;
+            if UnitCorrection::of(self).gain_rel <= -0.5 {
+                return Err(PhysicsError::InvalidParameter {
+                    name: "observer.baseline.read_bar",
+                    value: b.read_bar,
+                    reason: "is further below charge_bar than the systematic spread allows \
+                             (the unit's seal gain would halve): a wrong charge or another unit?",
                 });
             }
         }
@@ -1180,14 +1308,23 @@ impl ChargeObserver {
         let grown = self.updated_ns.map_or(0.0, |u| {
             self.p.random_walk_bar2_per_s * ((t_ns - u).max(0) as f64 * 1e-9)
         });
-        let sys = self.p.systematic_sd_bar;
-        let rel = self.p.systematic_rel * self.mean_bar.abs();
         let split = self.ends.map_or(0.0, |[(m1, v1), (m2, v2)]| {
             ((m1 - m2).powi(2) - v1 - v2).max(0.0) / 4.0
         });
+        let read_var = self.var_bar2 + grown + split;
+        let (mean_bar, sd_bar) = if self.p.baseline.is_some() {
+            let unit = UnitCorrection::of(&self.p);
+            let (mean, sys_var) = unit.apply(self.mean_bar);
+            let scale = 1.0 + unit.gain_rel;
+            (mean, (read_var / (scale * scale) + sys_var).sqrt())
+        } else {
+            let sys = self.p.systematic_sd_bar;
+            let rel = self.p.systematic_rel * self.mean_bar.abs();
+            (self.mean_bar, (read_var + sys * sys + rel * rel).sqrt())
+        };
         ChargeEstimate {
-            mean_bar: self.mean_bar,
-            sd_bar: (self.var_bar2 + grown + sys * sys + rel * rel + split).sqrt(),
+            mean_bar,
+            sd_bar,
             reversals: self.counters.used,
         }
     }
@@ -1517,6 +1654,69 @@ mod tests {
         .unwrap_err();
         assert!(
             err.to_string().contains("observer.damping_law.beta_per_k"),
+            "{err}"
+        );
+    }
+
+    /// A baseline at a known charge: the corrected mean and the interval are
+    /// the Gaussian posterior of the unit's offset and gain, checked against
+    /// the information form of the same update (a different formula), and
+    /// a unit that reads 2 bar high is read right near its baseline charge
+    /// with a far narrower interval.
+    #[test]
+    fn a_baseline_conditions_the_units_offset_and_gain() {
+        use nalgebra::{Matrix2, RowVector2, Vector2};
+        let (sys, rel, sd_b) = (1.9, 0.1, 0.1);
+        let base = ObserverParams {
+            systematic_sd_bar: sys,
+            systematic_rel: rel,
+            ..params()
+        };
+        let read = |baseline: Option<UnitBaseline>| {
+            let mut obs = ChargeObserver::new(ObserverParams { baseline, ..base }).unwrap();
+            feed_ends(&mut obs, [40.0, 40.0], 400);
+            obs.estimate(obs.updated_ns.unwrap())
+        };
+        let raw = read(None);
+        // Gauged at installation 2 bar below what this unit reads.
+        let b = UnitBaseline {
+            charge_bar: raw.mean_bar - 2.0,
+            read_bar: raw.mean_bar,
+            read_sd_bar: sd_b,
+        };
+        let est = read(Some(b));
+        let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
+        let h = RowVector2::new(1.0, b.charge_bar);
+        let post = (prior.try_inverse().unwrap() + h.transpose() * h / (sd_b * sd_b))
+            .try_inverse()
+            .unwrap();
+        let u = post * h.transpose() * (2.0 / (sd_b * sd_b));
+        let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
+        assert!((est.mean_bar - mean).abs() < 1e-9, "{est:?} {mean}");
+        let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
+        let x = Vector2::new(1.0, mean);
+        let sd = (read_var / (1.0 + u[1]).powi(2) + (x.transpose() * post * x)[0]).sqrt();
+        assert!((est.sd_bar - sd).abs() < 1e-9, "{est:?} {sd}");
+        assert!((est.mean_bar - b.charge_bar).abs() < 0.02, "{est:?} {b:?}");
+        assert!(est.sd_bar < 0.25 * raw.sd_bar, "{est:?} {raw:?}");
+        // A reading that agrees with the gauge leaves the mean where it was.
+        let agree = read(Some(UnitBaseline {
+            charge_bar: raw.mean_bar,
+            ..b
+        }));
+        assert!((agree.mean_bar - raw.mean_bar).abs() < 1e-9);
+        // A baseline no unit of this model could give is refused, by name.
+        let err = ChargeObserver::new(ObserverParams {
+            baseline: Some(UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: -60.0,
+                read_sd_bar: 0.1,
+            }),
+            ..base
+        })
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("observer.baseline.read_bar"),
             "{err}"
         );
     }

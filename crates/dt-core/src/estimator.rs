@@ -137,6 +137,10 @@ pub struct EstimatorConfig {
     pub reorder_window_ns: i64,
     /// A forward gap longer than this starts a new segment, ns.
     pub max_gap_ns: i64,
+    /// This unit's reading at a known charge, for the charge observer
+    /// ([`crate::charge::UnitBaseline`]); `None`: the model's spread alone.
+    #[serde(default)]
+    pub observer_baseline: Option<crate::charge::UnitBaseline>,
 }
 
 impl EstimatorConfig {
@@ -149,6 +153,7 @@ impl EstimatorConfig {
             health: bundle.twin.health,
             reorder_window_ns: 100_000_000,
             max_gap_ns: 2_000_000_000,
+            observer_baseline: None,
         }
     }
 }
@@ -375,10 +380,13 @@ impl std::fmt::Debug for Estimator {
 
 /// The bundle's physics for its pipeline: the charge observer runs only when
 /// the bundle reads it.
-fn pipeline_params(bundle: &Bundle) -> PhysicsParams {
+fn pipeline_params(bundle: &Bundle, cfg: &EstimatorConfig) -> PhysicsParams {
     let mut params = *bundle.physics();
     if !bundle.groups.contains(&Group::Observer) {
         params.observer = None;
+    }
+    if let (Some(o), Some(b)) = (params.observer.as_mut(), cfg.observer_baseline) {
+        o.baseline = Some(b);
     }
     params
 }
@@ -387,7 +395,7 @@ impl Estimator {
     /// An estimator for one asset with the bundle's model.
     pub fn new(bundle: Arc<Bundle>, cfg: EstimatorConfig) -> Result<Self, EstimatorError> {
         let topics = TopicSet::for_groups(&bundle.groups);
-        let pipe = FeaturePipeline::new(&pipeline_params(&bundle), topics)?;
+        let pipe = FeaturePipeline::new(&pipeline_params(&bundle, &cfg), topics)?;
         let columns = column_indices(&bundle.groups);
         let uses_observer = bundle.groups.contains(&Group::Observer) && pipe.observer().is_some();
         Ok(Self {
@@ -600,7 +608,8 @@ impl Estimator {
         self.s.seg_missing = 0;
         self.s.seg_gaps = 0;
         self.s.prev_gaps = GapCounters::default();
-        self.s.pipe = FeaturePipeline::new(&pipeline_params(&self.bundle), self.s.topics)?;
+        self.s.pipe =
+            FeaturePipeline::new(&pipeline_params(&self.bundle, &self.s.cfg), self.s.topics)?;
         self.s.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
         self.s.avg_idx = 0;
         self.s.health = HealthMachine::new(self.s.cfg.health);

@@ -262,7 +262,10 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// ``log`` is a ``Log`` or a path to a run log; ``bundle`` a ``Bundle`` or a
 /// path to a bundle directory. The estimator is configured from the bundle
 /// (its nominal pressure and health thresholds, a 100 ms re-order window, a
-/// new segment after a 2 s gap).
+/// new segment after a 2 s gap). ``observer_baseline`` (a dict with
+/// ``charge_bar``, ``read_bar``, ``read_sd_bar``, as
+/// ``python -m train.observer baseline`` writes under that key) is this
+/// unit's charge-observer baseline, for a bundle that reads the observer.
 ///
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
@@ -280,10 +283,12 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// ...
 /// shocktwin.exceptions.LogReadError: no/such/run.mcap: No such file or directory (os error 2)
 #[pyfunction]
+#[pyo3(signature = (log, bundle, *, observer_baseline = None))]
 pub(crate) fn estimate<'py>(
     py: Python<'py>,
     log: &Bound<'py, PyAny>,
     bundle: &Bound<'py, PyAny>,
+    observer_baseline: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let (log, bundle) = (log_arg(log)?, bundle_arg(bundle)?);
     let run = match log {
@@ -305,7 +310,21 @@ pub(crate) fn estimate<'py>(
         })
         .into());
     }
-    let cfg = EstimatorConfig::from_bundle(&bundle);
+    let mut cfg = EstimatorConfig::from_bundle(&bundle);
+    if let Some(obj) = observer_baseline {
+        let what = "observer_baseline";
+        if !bundle.groups.contains(&dt_core::features::Group::Observer) {
+            return Err(CoreError::Params(format!(
+                "{what}: the bundle does not read the charge observer (no `observer` group)"
+            ))
+            .into());
+        }
+        let b: dt_core::charge::UnitBaseline =
+            serde_path_to_error::deserialize(crate::params::py_to_json(obj, what)?)
+                .map_err(|err| CoreError::params_at(what, &err))?;
+        b.validate().map_err(CoreError::from)?;
+        cfg.observer_baseline = Some(b);
+    }
     let origin_ns = run.t0_ns().unwrap_or(0);
     let (estimates, _counters) =
         without_gil(py, move || estimate_log(bundle, cfg, &run)).map_err(CoreError::from)?;

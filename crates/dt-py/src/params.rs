@@ -126,7 +126,7 @@ pub(crate) fn json_to_py<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<
 
 /// A Python value of JSON shape (dict with str keys, list/tuple, str, bool,
 /// None, or anything `float()` accepts) as JSON; `at` is its path for errors.
-fn py_to_json(obj: &Bound<'_, PyAny>, at: &str) -> PyResult<Value> {
+pub(crate) fn py_to_json(obj: &Bound<'_, PyAny>, at: &str) -> PyResult<Value> {
     if obj.is_none() {
         return Ok(Value::Null);
     }

@@ -284,4 +284,10 @@ pub struct ReplayArgs {
     /// Worker threads (default: one per core).
     #[arg(long)]
     pub jobs: Option<usize>,
+    /// The unit's charge-observer baseline: a JSON file with `charge_bar`,
+    /// `read_bar`, `read_sd_bar` (as `python -m train.observer baseline`
+    /// writes, under `observer_baseline`); every file replayed is taken to
+    /// be that unit.
+    #[arg(long, value_name = "FILE.json")]
+    pub observer_baseline: Option<PathBuf>,
 }

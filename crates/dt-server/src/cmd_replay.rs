@@ -25,8 +25,10 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use dt_core::bundle::Bundle;
+use dt_core::charge::UnitBaseline;
 use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
 use dt_core::estimator::{Estimator, EstimatorConfig, EstimatorCounters};
+use dt_core::features::Group;
 use dt_core::log::{read_log, topic, LogWriter, RunLog, WriteOptions};
 
 use crate::cli::ReplayArgs;
@@ -63,6 +65,25 @@ struct Replayed {
     seconds: f64,
 }
 
+/// A unit baseline file: the three numbers of [`UnitBaseline`], bare or
+/// under `observer_baseline` (with provenance beside them).
+fn read_baseline(path: &Path) -> Result<UnitBaseline> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("--observer-baseline {}", path.display()))?;
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("--observer-baseline {}: not JSON", path.display()))?;
+    let inner = value.get("observer_baseline").cloned().unwrap_or(value);
+    let b: UnitBaseline = serde_json::from_value(inner).with_context(|| {
+        format!(
+            "--observer-baseline {}: need charge_bar, read_bar and read_sd_bar",
+            path.display()
+        )
+    })?;
+    b.validate()
+        .with_context(|| format!("--observer-baseline {}", path.display()))?;
+    Ok(b)
+}
+
 /// Runs `shocktwin replay`.
 pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     let format = format_of(&args.out)?;
@@ -73,7 +94,18 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
         Bundle::load(&args.model)
             .with_context(|| format!("loading bundle {}", args.model.display()))?,
     );
-    let cfg = EstimatorConfig::from_bundle(&bundle);
+    let mut cfg = EstimatorConfig::from_bundle(&bundle);
+    if let Some(path) = &args.observer_baseline {
+        if !bundle.groups.contains(&Group::Observer) {
+            bail!(
+                "--observer-baseline {}: the bundle {} does not read the charge observer \
+                 (no `observer` group), so a baseline has nothing to correct",
+                path.display(),
+                args.model.display()
+            );
+        }
+        cfg.observer_baseline = Some(read_baseline(path)?);
+    }
     let several = args.files.len() > 1;
     let mcap_out = |run_id: &str| -> PathBuf {
         if several {

@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use dt_core::charge::UnitBaseline;
+
 use super::ServeError;
 
 /// The whole daemon configuration (the TOML file's shape).
@@ -219,6 +221,10 @@ pub struct AssetConfig {
     pub warn_bar: f64,
     /// Below this the asset is `leak`.
     pub fault_bar: f64,
+    /// The unit's charge-observer reading at a known charge (one unit's:
+    /// only under `[assets.<id>]`), e.g. written by
+    /// `python -m train.observer baseline`.
+    pub observer_baseline: Option<UnitBaseline>,
 }
 
 impl Default for AssetConfig {
@@ -227,6 +233,7 @@ impl Default for AssetConfig {
             nominal_bar: 12.0,
             warn_bar: 9.0,
             fault_bar: 5.0,
+            observer_baseline: None,
         }
     }
 }
@@ -241,6 +248,9 @@ pub struct AssetOverrides {
     pub warn_bar: Option<f64>,
     /// Fault threshold.
     pub fault_bar: Option<f64>,
+    /// The unit's charge-observer baseline (`{ charge_bar, read_bar,
+    /// read_sd_bar }`).
+    pub observer_baseline: Option<UnitBaseline>,
 }
 
 /// Command-line flags of `shocktwin serve` that override the file and the
@@ -489,6 +499,7 @@ impl Config {
                 nominal_bar: o.nominal_bar.unwrap_or(d.nominal_bar),
                 warn_bar: o.warn_bar.unwrap_or(d.warn_bar),
                 fault_bar: o.fault_bar.unwrap_or(d.fault_bar),
+                observer_baseline: o.observer_baseline,
             },
         }
     }
@@ -513,6 +524,18 @@ fn check_asset(key: &str, a: &AssetConfig) -> Result<(), ServeError> {
                 a.fault_bar, a.warn_bar, a.nominal_bar
             ),
         });
+    }
+    if let Some(b) = &a.observer_baseline {
+        if key == "defaults" {
+            return Err(ServeError::Invalid {
+                key: format!("{key}.observer_baseline"),
+                reason: "a baseline is one unit's reading: set it under [assets.<id>]".into(),
+            });
+        }
+        b.validate().map_err(|e| ServeError::Invalid {
+            key: format!("{key}.observer_baseline"),
+            reason: e.to_string(),
+        })?;
     }
     Ok(())
 }
@@ -574,6 +597,56 @@ warn_bar = 8.0
         let a = c.asset("shock-7");
         assert_eq!((a.nominal_bar, a.warn_bar, a.fault_bar), (10.0, 8.0, 5.0));
         assert_eq!(c.asset("other").warn_bar, 9.0);
+    }
+
+    /// A unit baseline is one asset's: read from `[assets.<id>]`, refused
+    /// under `[defaults]`, and a bad number is named by its key.
+    #[test]
+    fn an_assets_observer_baseline_is_its_own() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("c.toml");
+        let load = |text: &str| {
+            std::fs::write(&file, text).unwrap();
+            Config::load(Some(&file), &no_env, &ConfigOverrides::default())
+        };
+        let c = load(
+            r"
+[assets.van-07]
+observer_baseline = { charge_bar = 12.0, read_bar = 10.84, read_sd_bar = 0.1 }
+",
+        )
+        .unwrap();
+        let b = c.asset("van-07").observer_baseline.unwrap();
+        assert_eq!(
+            (b.charge_bar, b.read_bar, b.read_sd_bar),
+            (12.0, 10.84, 0.1)
+        );
+        assert!(c.asset("van-08").observer_baseline.is_none());
+        let err = load(
+            r"
+[defaults.observer_baseline]
+charge_bar = 12.0
+read_bar = 10.84
+read_sd_bar = 0.1
+",
+        )
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("defaults.observer_baseline"),
+            "{err}"
+        );
+        let err = load(
+            r"
+[assets.van-07]
+observer_baseline = { charge_bar = 12.0, read_bar = 10.84, read_sd_bar = 0.0 }
+",
+        )
+        .unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            msg.contains("assets.van-07.observer_baseline") && msg.contains("read_sd_bar"),
+            "{msg}"
+        );
     }
 
     #[test]

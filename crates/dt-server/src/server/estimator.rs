@@ -53,6 +53,7 @@ impl EstimatorFactory {
         cfg.nominal_bar = asset.nominal_bar;
         cfg.health.warn_bar = asset.warn_bar;
         cfg.health.fault_bar = asset.fault_bar;
+        cfg.observer_baseline = asset.observer_baseline;
         cfg
     }
 }
