@@ -399,6 +399,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def excitation_end_s(lg: Any, default_s: float) -> float:
+    """When the stroke stops for good (s since the run's first message): the last time the
+    position moved by more than 0.1 mm between samples; ``default_s`` without a position."""
+    pos = lg.topic("/position")
+    if len(pos["t_s"]) < 2:
+        return default_s
+    moving = np.nonzero(np.abs(np.diff(pos["position_m"])) > 1e-4)[0]
+    return float(pos["t_s"][moving[-1]]) if len(moving) else default_s
+
+
 # A baseline run must have taught the observer something: its reading's own sd (without
 # the systematic part) below this share of the prior's.
 BASELINE_MAX_SD_SHARE = 0.25
@@ -447,9 +457,7 @@ def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, floa
     lg = shocktwin.read_log(path)
     x, cols, t = shocktwin.features(lg, physics, ["observer"])
     onset = rest_end_s(Run(path=Path(path), log=lg, run_id="", asset_id="", label_bar=None, frequency_hz=None))
-    pos = lg.topic("/position")
-    moving = np.nonzero(np.abs(np.diff(pos["position_m"])) > 1e-4)[0]
-    end = float(pos["t_s"][moving[-1]]) if len(moving) else float("nan")
+    end = excitation_end_s(lg, float(t[-1]))
     idx = np.nonzero((t >= onset) & (t <= end))[0]
     if len(idx) == 0:
         return None, float("nan"), float("nan")

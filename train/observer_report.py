@@ -41,7 +41,7 @@ from train.campaign import load_campaign
 from train.damping_law import law_calibrated
 from train.fit_physics import rest_end_s
 from train.progress import progress
-from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95
+from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95, excitation_end_s
 
 log = logging.getLogger("shocktwin.observer")
 
@@ -87,8 +87,7 @@ def score_run(args: tuple[str, str, dict[str, Any], float]) -> dict[str, Any]:
     mean, sd = x[:, cols.index("observer_bar")], x[:, cols.index("observer_sd_bar")]
     label = np.full(len(t), float(run.label_bar))
     onset = rest_end_s(run)
-    pos = run.log.topic("/position")
-    end = float(pos["t_s"][np.nonzero(np.abs(np.diff(pos["position_m"])) > 1e-4)[0][-1]]) if len(pos["t_s"]) > 1 else t[-1]
+    end = excitation_end_s(run.log, float(t[-1]))
     excited = (t >= onset) & (t <= end)
     k = int(round(1.0 / TICK_S))
     avg = np.convolve(mean, np.ones(k) / k, mode="full")[: len(mean)]
