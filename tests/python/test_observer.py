@@ -8,7 +8,8 @@ simulated runs (``shocktwin simulate --quick``):
 - no look-ahead: a truncated log gives the same estimates up to its end;
 - no excitation: a wide interval, never a confident number;
 - a log without the observer's sensors: an error naming them;
-- calibrated on one campaign, the interval covers the truth on held-out runs.
+- calibrated on one campaign, the interval covers the truth on held-out runs;
+- another unit's baseline at a known charge narrows its interval, which still covers.
 """
 
 from __future__ import annotations
