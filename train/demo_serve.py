@@ -8,8 +8,14 @@
 3. Streams the run into the daemon's TCP ingest with Python's ``mcap`` writer, as a
    vehicle gateway would (the messages re-encoded incrementally onto the socket), while
    listening to the daemon's Server-Sent Events for health changes.
+   The leaking unit is another unit of the same model than the calibration's (``--unit``:
+   seal friction, valves and mount scattered by a few per cent). Before its run, the
+   maintainer baselines it as after a service: one drive at the known 12 bar charge
+   (simulated, full length, at 1 Hz), read by ``python -m train.observer baseline``'s
+   code and sent with ``PUT /v1/assets/{id}/baseline``.
 4. Prints the verdict the daemon reached and when (seconds since the run's first
-   message), and what ``GET /v1/assets/{id}`` says.
+   message), what ``GET /v1/assets/{id}`` says, and the interval the model alone gives
+   at the end of the run (the bindings, without the baseline) beside the daemon's.
 5. The fleet's memory: before the live run, a small simulated fleet's past
    (``shocktwin simulate --days --leak-rate``: one run a day per van, one of them
    leaking) goes through the daemon's inbox into its store (``--db``); the trend
@@ -249,6 +255,24 @@ def screenshot(url: str, path: Path, select: str | None = None) -> bool:
         drv.quit()
 
 
+SERVICE_CHARGE_BAR = 12.0
+
+
+def service_baseline(binary: str, bundle: Path, unit: int, out: Path) -> dict[str, Any] | None:
+    """The unit's baseline from one simulated drive at the known ``SERVICE_CHARGE_BAR`` (as
+    after a service), or None when the bundle does not read the charge observer."""
+    physics = json.loads((bundle / "twin.json").read_text())["physics"]
+    if not physics.get("observer"):
+        return None
+    from train.observer import baseline_of
+
+    subprocess.run([binary, "simulate", "--pressures", f"{SERVICE_CHARGE_BAR:g}", "--frequencies", "1",
+                    "--seed", "8", "--unit", str(unit), "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
+    b = baseline_of(physics, sorted(out.glob("*.mcap")), SERVICE_CHARGE_BAR, jobs=1)
+    (out / "baseline.json").write_text(json.dumps(b, indent=2) + "\n")
+    return b
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m train.demo_serve", description=__doc__.split("\n")[0])
     p.add_argument("--bin", default="target/release/shocktwin")
@@ -257,11 +281,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--pressure", type=float, default=2.0, help="charge pressure of the leaking unit (bar)")
     p.add_argument("--frequency", type=float, default=2.0)
     p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--unit", type=int, default=11,
+                   help="unit seed of the leaking unit (another unit of the same model; 0: the calibration's)")
     args = p.parse_args(argv)
 
     run_dir = args.out / "run"
+    unit = ["--unit", str(args.unit)] if args.unit else []
     subprocess.run([args.bin, "simulate", "--quick", "--pressures", f"{args.pressure:g}", "--frequencies",
-                    f"{args.frequency:g}", "--seed", str(args.seed), "--out", str(run_dir)],
+                    f"{args.frequency:g}", "--seed", str(args.seed), *unit, "--out", str(run_dir)],
                    check=True, stdout=subprocess.DEVNULL)
     run_file = sorted(run_dir.glob("*.mcap"))[0]
     with open(run_file, "rb") as fh:
@@ -277,6 +304,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"the fleet's past: {n_fleet} runs of {len(FLEET)} vans through the inbox into the store ...")
         wait_fleet(http, n_fleet)
         print_fleet(http)
+        baseline = service_baseline(args.bin, args.bundle, args.unit, args.out / "service") if args.unit else None
+        if baseline is not None:
+            r = httpx.put(f"http://{http}/v1/assets/{asset_id}/baseline", json=baseline, timeout=30)
+            r.raise_for_status()
+            ob = baseline["observer_baseline"]
+            print(f"service baseline of {asset_id} (simulated drive at a known {ob['charge_bar']:g} bar): the "
+                  f"observer read {ob['read_bar']:.2f} ± {ob['read_sd_bar']:.2f} bar; PUT /v1/assets/{asset_id}/baseline "
+                  f"-> {r.status_code}")
         events: list[dict[str, Any]] = []
         ready = threading.Event()
         watcher = threading.Thread(target=watch_events, args=(http, asset_id, events, ready), daemon=True)
@@ -318,7 +353,16 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{detail.get('pressure_avg_bar') or float('nan'):.2f} bar against {detail.get('expected_bar')} bar nominal "
           f"(true charge {meta['charge_pressure_bar']} bar; simulated data)")
     print_convergence(args.out / "records" / asset_id, t0_ns, run_id=meta["run_id"])
+    if baseline is not None:
+        import shocktwin
+
+        alone = shocktwin.estimate(run_file, args.bundle)
+        print(f"at the end of the run: the daemon (with the baseline) [{detail.get('pressure_lo_bar') or float('nan'):.2f}, "
+              f"{detail.get('pressure_hi_bar') or float('nan'):.2f}] bar, {verdict}; the model alone "
+              f"[{alone['pressure_lo_bar'][-1]:.2f}, {alone['pressure_hi_bar'][-1]:.2f}] bar, {alone['health'][-1]} "
+              "(shocktwin.estimate without observer_baseline)")
     (args.out / "verdict.json").write_text(json.dumps({"report": report, "health_changes": changes,
+                                                         "baseline": baseline,
                                                          "asset": {k: v for k, v in detail.items() if k != "history"}},
                                                         indent=2) + "\n")
     return 0 if report.get("status") == "completed" else 1

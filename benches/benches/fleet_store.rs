@@ -153,6 +153,8 @@ fn fleet(c: &mut Criterion) {
         stop: CancellationToken::new(),
         tokens: Arc::new(dt_server::server::security::Tokens::default()),
         uploads: dt_server::server::http::Uploads::disabled(),
+        baselines: Arc::default(),
+        model: None,
     });
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -243,6 +243,53 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     d.stop()
 
 
+def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tmp_path: Path,
+                                                      daemons: list[Daemon]) -> None:
+    """A maintainer baselines an asset after a service with `PUT /v1/assets/{id}/baseline`
+    (the file `train.observer baseline` writes): refused with the field named when bad; the
+    asset's next run is estimated as `replay --observer-baseline`; `/v1/assets` shows it; a
+    restart keeps it; `DELETE` forgets it."""
+    run = sorted(world["runs"].glob("*.mcap"))[0]
+    doc = {"observer_baseline": {"charge_bar": 12.0, "read_bar": 10.5, "read_sd_bar": 0.3},
+           "note": "provenance beside the numbers is kept out of the way"}
+    (tmp_path / "unit.json").write_text(json.dumps(doc))
+    with_b = replay_binned(world["bundle"], run, tmp_path / "b.csv", "--observer-baseline", str(tmp_path / "unit.json"))
+    inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
+    inbox.mkdir()
+    d = Daemon(world["bundle"], db, inbox)
+    daemons.append(d)
+    url = f"http://{d.http}/v1/assets/dyno-unit-A/baseline"
+    assert httpx.get(url).status_code == 404
+    bad = httpx.put(url, json={"charge_bar": 12.0, "read_bar": 10.5})
+    assert bad.status_code == 422 and "read_sd_bar" in bad.json()["error"], bad.text
+    bad = httpx.put(url, json={"charge_bar": 12.0, "read_bar": 10.5, "read_sd_bar": -1})
+    assert bad.status_code == 422 and "observer.baseline.read_sd_bar" in bad.json()["error"], bad.text
+    assert httpx.put(url, content=b"{").status_code == 400
+    assert httpx.put(f"http://{d.http}/v1/assets/van%2007/baseline", json=doc).status_code == 400
+    r = httpx.put(url, content=(tmp_path / "unit.json").read_bytes())
+    assert r.status_code == 200, r.text
+    assert r.json()["source"] == "api" and r.json()["read_bar"] == 10.5
+    shutil.copy(run, inbox / run.name)
+    d.wait_runs("dyno-unit-A", 1)
+    secs = sorted(with_b)
+    hist = d.get("/v1/assets/dyno-unit-A/history", since=f"{np.datetime64(secs[0], 's')}Z",
+                 until=f"{np.datetime64(secs[-1], 's')}Z", step_s=1)["points"]
+    assert len(hist) == len(secs)
+    for p in hist:
+        assert p["pressure_bar"] == pytest.approx(with_b[int(unix_s(p["t"]))], abs=1e-9)
+    d.stop()
+    d2 = Daemon(world["bundle"], db, inbox)
+    daemons.append(d2)
+    row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
+    assert row["baseline"]["source"] == "api" and row["baseline"]["charge_bar"] == 12.0, row
+    url = f"http://{d2.http}/v1/assets/dyno-unit-A/baseline"
+    gone = httpx.delete(url)
+    assert gone.status_code == 200 and gone.json() == {"baseline": None}, gone.text
+    assert httpx.get(url).status_code == 404
+    assert httpx.delete(url).status_code == 404
+    d2.stop()
+
+
 def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], tmp_path: Path,
                                                        daemons: list[Daemon]) -> None:
     inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"

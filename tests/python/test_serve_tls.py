@@ -179,3 +179,18 @@ def test_runs_upload_over_https_with_the_ingest_role(daemon: ServeProcess, setup
         assets = http.get(f"https://{daemon.http}/v1/assets",
                           headers={"Authorization": f"Bearer {setup['read']}"}).json()["assets"]
     assert report["asset_id"] in {a["asset_id"] for a in assets}
+
+
+def test_baselines_are_set_with_the_ingest_role(daemon: ServeProcess, setup: dict[str, Any]) -> None:
+    """`PUT /v1/assets/{id}/baseline` changes what the daemon computes: the ingest role's, as
+    uploads are; the read role only sees it. This daemon's model (the paper's model 13) has
+    no charge observer, so the baseline is refused with the reason."""
+    url = f"https://{daemon.http}/v1/assets/van-07/baseline"
+    body = {"charge_bar": 12.0, "read_bar": 10.8, "read_sd_bar": 0.7}
+    with client(setup) as http:
+        assert http.put(url, json=body).status_code == 401
+        assert http.put(url, json=body, headers={"Authorization": f"Bearer {setup['read']}"}).status_code == 403
+        r = http.put(url, json=body, headers={"Authorization": f"Bearer {setup['ingest']}"})
+        assert r.status_code == 409 and "observer" in r.json()["error"], r.text
+        assert http.get(url, headers={"Authorization": f"Bearer {setup['read']}"}).status_code == 404
+        assert http.delete(url, headers={"Authorization": f"Bearer {setup['read']}"}).status_code == 403

@@ -336,6 +336,24 @@ pub struct UnitBaseline {
 }
 
 impl UnitBaseline {
+    /// A baseline from a JSON document: the three numbers bare, or under
+    /// `observer_baseline` with provenance beside them (what
+    /// `python -m train.observer baseline` writes); checked. The error says
+    /// which field is missing, unknown or bad.
+    pub fn from_document(doc: serde_json::Value) -> Result<Self, String> {
+        let inner = match doc {
+            serde_json::Value::Object(mut map) if map.contains_key("observer_baseline") => {
+                map.remove("observer_baseline").unwrap_or_default()
+            }
+            other => other,
+        };
+        let b: Self = serde_json::from_value(inner).map_err(|e| {
+            format!("need charge_bar, read_bar and read_sd_bar (numbers, bar): {e}")
+        })?;
+        b.validate().map_err(|e| e.to_string())?;
+        Ok(b)
+    }
+
     /// Checks the three numbers; the error names the first bad one.
     pub fn validate(&self) -> Result<(), PhysicsError> {
         for (name, value, ok, reason) in [

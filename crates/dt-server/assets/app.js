@@ -128,10 +128,13 @@ function renderFleet() {
   $("fleet").hidden = rows.length === 0;
   $("fleet").tBodies[0].innerHTML = rows.map((a) => {
     const run = a.active_runs > 0 ? `<span class="pill">● streaming</span>` : "";
+    const b = a.baseline;   // the unit's baseline narrows its interval (read at a known charge)
+    const base = b ? ` <span class="pill" title="unit baseline (${esc(b.source)}${b.set_at ? `, ${esc(b.set_at)}` : ""}): ` +
+      `read ${num(b.read_bar, 2)} ± ${num(b.read_sd_bar, 2)} bar at a known ${num(b.charge_bar, 1)} bar">baseline</span>` : "";
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
     return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
-      <td class="id">${esc(a.asset_id)}${run}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td class="id">${esc(a.asset_id)}${run}${base}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td>${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");

@@ -72,16 +72,8 @@ fn read_baseline(path: &Path) -> Result<UnitBaseline> {
         .with_context(|| format!("--observer-baseline {}", path.display()))?;
     let value: serde_json::Value = serde_json::from_str(&text)
         .with_context(|| format!("--observer-baseline {}: not JSON", path.display()))?;
-    let inner = value.get("observer_baseline").cloned().unwrap_or(value);
-    let b: UnitBaseline = serde_json::from_value(inner).with_context(|| {
-        format!(
-            "--observer-baseline {}: need charge_bar, read_bar and read_sd_bar",
-            path.display()
-        )
-    })?;
-    b.validate()
-        .with_context(|| format!("--observer-baseline {}", path.display()))?;
-    Ok(b)
+    UnitBaseline::from_document(value)
+        .map_err(|e| anyhow::anyhow!("--observer-baseline {}: {e}", path.display()))
 }
 
 /// Runs `shocktwin replay`.

@@ -12,6 +12,9 @@
 //! | `GET /v1/assets/{id}/trend` | leak rate, predicted warn/fault crossings with intervals, or why not (SPEC §9) |
 //! | `GET /v1/assets/{id}/runs` | runs seen, newest first |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
+//! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
+//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store, used from the asset's next run; the ingest role when tokens are on |
+//! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
 //! | `POST /v1/runs` | upload one run (the body is an MCAP stream, as on the TCP ingest); answers its `RunReport`; the ingest role when tokens are on |
 //!
@@ -42,10 +45,13 @@ use tokio_util::sync::CancellationToken;
 
 use dt_core::estimate::Health;
 
+use super::baselines::{BaselineView, Baselines};
 use super::config::Config;
+use super::estimator::EstimatorFactory;
 use super::metrics::Metrics;
 use super::security::{Role, Tokens};
 use super::state::{AssetSummary, LiveState};
+use super::store::StoredBaseline;
 use super::store::{
     parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, StoreError, TrendSummary, TrendView,
     Trends,
@@ -72,6 +78,11 @@ pub struct AppState {
     pub tokens: Arc<Tokens>,
     /// Where uploads go (`POST /v1/runs`).
     pub uploads: Uploads,
+    /// Unit baselines set over the API.
+    pub baselines: Arc<Baselines>,
+    /// The model, when the twin is the estimator (to check a baseline
+    /// against it).
+    pub model: Option<EstimatorFactory>,
 }
 
 /// The ingest behind `POST /v1/runs`, until the daemon stops taking runs.
@@ -196,6 +207,10 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/assets/{id}/trend", get(trend))
         .route("/v1/assets/{id}/runs", get(runs))
         .route("/v1/assets/{id}/health", get(health_changes))
+        .route(
+            "/v1/assets/{id}/baseline",
+            get(get_baseline).put(put_baseline).delete(delete_baseline),
+        )
         .route("/v1/events", get(events))
         .route("/v1/runs", axum::routing::post(post_run))
         .layer(axum::middleware::from_fn_with_state(
@@ -208,6 +223,14 @@ pub fn router(state: AppState) -> Router {
 /// Routes open without a token: liveness and the dashboard's static files.
 fn is_open(path: &str) -> bool {
     path == "/healthz" || path == "/" || path.starts_with("/assets/")
+}
+
+/// Requests that change what the daemon computes (the ingest role's):
+/// uploads and setting or removing a baseline.
+fn is_write(method: &axum::http::Method, path: &str) -> bool {
+    use axum::http::Method;
+    (method == Method::POST && path == "/v1/runs")
+        || ((method == Method::PUT || method == Method::DELETE) && path.ends_with("/baseline"))
 }
 
 /// The bearer token of a request: `Authorization: Bearer …`, else the
@@ -250,17 +273,17 @@ async fn require_token(
     let Some(token) = bearer(&req) else {
         return unauthorized(None);
     };
-    let upload = req.method() == axum::http::Method::POST && req.uri().path() == "/v1/runs";
+    let upload = is_write(req.method(), req.uri().path());
     match (app.tokens.role(&token), upload) {
         (Some(Role::Read), false) | (Some(Role::Ingest), true) => next.run(req).await,
         (Some(Role::Ingest), false) => (
             StatusCode::FORBIDDEN,
-            "this token may ingest runs, not read the API\n",
+            "this token may ingest runs and set baselines, not read the API\n",
         )
             .into_response(),
         (Some(Role::Read), true) => (
             StatusCode::FORBIDDEN,
-            "this token may read the API, not upload runs\n",
+            "this token may read the API, not upload runs or set baselines\n",
         )
             .into_response(),
         (None, _) => {
@@ -303,6 +326,8 @@ struct AssetRow<'a> {
     warn_bar: f64,
     fault_bar: f64,
     trend: Option<TrendSummary<'a>>,
+    /// The unit baseline in effect, if any.
+    baseline: Option<BaselineView>,
 }
 
 async fn assets(State(app): State<AppState>) -> Response {
@@ -321,6 +346,7 @@ async fn assets(State(app): State<AppState>) -> Response {
                 warn_bar: a.warn_bar,
                 fault_bar: a.fault_bar,
                 trend: t.as_deref().map(TrendView::summary),
+                baseline: app.baselines.view(&app.config, &s.asset_id),
             }
         })
         .collect();
@@ -379,6 +405,107 @@ async fn blocking<R: Send + 'static>(
 
 fn known(app: &AppState, id: &str) -> bool {
     app.live.detail(id, Some(0)).is_some() || app.trends.get(id).is_some()
+}
+
+async fn get_baseline(State(app): State<AppState>, Path(id): Path<String>) -> Response {
+    match app.baselines.view(&app.config, &id) {
+        Some(v) => Json(v).into_response(),
+        None => error(
+            StatusCode::NOT_FOUND,
+            format!("asset `{id}` has no unit baseline"),
+        ),
+    }
+}
+
+/// Why `model` cannot take `baseline` for `id`, if it cannot.
+fn refuse_baseline(
+    model: Option<&EstimatorFactory>,
+    config: &Config,
+    id: &str,
+    baseline: dt_core::charge::UnitBaseline,
+) -> Option<String> {
+    let Some(model) = model else {
+        return Some(
+            "this daemon runs no estimator (no --model), so a baseline has nothing to correct"
+                .into(),
+        );
+    };
+    if !model
+        .bundle()
+        .groups
+        .contains(&dt_core::features::Group::Observer)
+    {
+        return Some(format!(
+            "the model {} does not read the charge observer (no `observer` group), so a \
+             baseline has nothing to correct",
+            model.bundle().dir.display()
+        ));
+    }
+    let mut asset = config.asset(id);
+    asset.observer_baseline = Some(baseline);
+    dt_core::estimator::Estimator::new(Arc::clone(model.bundle()), model.config_for(&asset))
+        .err()
+        .map(|e| format!("the model cannot use this baseline: {e}"))
+}
+
+async fn put_baseline(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    body: axum::body::Bytes,
+) -> Response {
+    if !dt_core::log::is_valid_id(&id) {
+        return error(
+            StatusCode::BAD_REQUEST,
+            format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
+        );
+    }
+    let doc: serde_json::Value = match serde_json::from_slice(&body) {
+        Ok(v) => v,
+        Err(e) => return error(StatusCode::BAD_REQUEST, format!("body: not JSON ({e})")),
+    };
+    let baseline = match dt_core::charge::UnitBaseline::from_document(doc) {
+        Ok(b) => b,
+        Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
+    };
+    if let Some(why) = refuse_baseline(app.model.as_ref(), &app.config, &id, baseline) {
+        return error(StatusCode::CONFLICT, why);
+    }
+    let set_ms = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
+    let stored = StoredBaseline { baseline, set_ms };
+    let (baselines, asset) = (Arc::clone(&app.baselines), id.clone());
+    if let Err(r) = blocking(&app, move |store| {
+        baselines.set(store, &asset, Some(stored))
+    })
+    .await
+    {
+        return r;
+    }
+    tracing::info!(asset = %id, charge_bar = baseline.charge_bar, read_bar = baseline.read_bar,
+        read_sd_bar = baseline.read_sd_bar, "unit baseline set; used from the asset's next run");
+    match app.baselines.view(&app.config, &id) {
+        Some(v) => Json(v).into_response(),
+        None => error(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "the baseline was not kept",
+        ),
+    }
+}
+
+async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) -> Response {
+    if app.baselines.get(&id).is_none() {
+        return error(
+            StatusCode::NOT_FOUND,
+            format!("asset `{id}` has no baseline set over the API"),
+        );
+    }
+    let (baselines, asset) = (Arc::clone(&app.baselines), id.clone());
+    if let Err(r) = blocking(&app, move |store| baselines.set(store, &asset, None)).await {
+        return r;
+    }
+    tracing::info!(asset = %id, "unit baseline removed; used from the asset's next run");
+    Json(serde_json::json!({ "baseline": app.baselines.view(&app.config, &id) })).into_response()
 }
 
 #[derive(Debug, Deserialize)]

@@ -18,6 +18,7 @@ use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 
+use super::baselines::Baselines;
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
@@ -82,6 +83,7 @@ struct Inner {
     twins: Arc<dyn TwinFactory>,
     sink_tx: mpsc::Sender<SinkMsg>,
     metrics: Arc<Metrics>,
+    baselines: Arc<Baselines>,
     next_seq: AtomicU64,
 }
 
@@ -106,6 +108,7 @@ impl Ingest {
         twins: Arc<dyn TwinFactory>,
         sink_tx: mpsc::Sender<SinkMsg>,
         metrics: Arc<Metrics>,
+        baselines: Arc<Baselines>,
     ) -> Self {
         Self {
             inner: Arc::new(Inner {
@@ -113,6 +116,7 @@ impl Ingest {
                 twins,
                 sink_tx,
                 metrics,
+                baselines,
                 next_seq: AtomicU64::new(1),
             }),
         }
@@ -137,7 +141,10 @@ impl Ingest {
         source: String,
         meta: RunMetadata,
     ) -> Result<RunHandle, RunOutcome> {
-        let asset = self.inner.config.asset(&meta.asset_id);
+        let asset = self
+            .inner
+            .baselines
+            .asset_config(&self.inner.config, &meta.asset_id);
         let twin = self
             .inner
             .twins
@@ -206,7 +213,10 @@ impl Ingest {
         source: String,
         meta: RunMetadata,
     ) -> Result<RunHandle, RunOutcome> {
-        let asset = self.inner.config.asset(&meta.asset_id);
+        let asset = self
+            .inner
+            .baselines
+            .asset_config(&self.inner.config, &meta.asset_id);
         self.start(kind, source, meta, asset, Box::new(RelayTwin))
             .await
     }

@@ -17,6 +17,7 @@
 //! (finishes its MCAP files), then the HTTP server stops. Every queue is
 //! bounded; a semaphore caps connections; record sizes are limited.
 
+pub mod baselines;
 pub mod config;
 pub mod estimator;
 pub mod http;
@@ -48,6 +49,7 @@ pub use config::{AssetConfig, Config, ConfigOverrides};
 pub use estimator::EstimatorFactory;
 pub use twin::{AssetTwin, TickCounterFactory, TickCounterTwin, TwinCounters, TwinFactory};
 
+use self::baselines::Baselines;
 use self::http::AppState;
 use self::ingest::Ingest;
 use self::metrics::Metrics;
@@ -235,19 +237,23 @@ fn spawn_https(
     Ok(tokio::spawn(server.serve(app.into_make_service())))
 }
 
-/// Opens the fleet store, if configured: restores the live view from it and
-/// adds its sink.
+/// The fleet store, if any, and the unit baselines it keeps.
+type OpenedStore = (Option<Arc<dyn FleetStore>>, Arc<Baselines>);
+
+/// Opens the fleet store, if configured: restores the live view and the
+/// unit baselines from it and adds its sink.
 fn open_store(
     config: &Arc<Config>,
     live: &LiveState,
     trends: &Arc<Trends>,
     metrics: &Arc<Metrics>,
     sinks: &mut Vec<Box<dyn Sink>>,
-) -> Result<Option<Arc<dyn FleetStore>>, ServeError> {
+) -> Result<OpenedStore, ServeError> {
     let Some(path) = &config.store.path else {
-        return Ok(None);
+        return Ok((None, Arc::default()));
     };
     let store: Arc<dyn FleetStore> = Arc::new(SqliteStore::open(path)?);
+    let baselines = Arc::new(Baselines::load(store.as_ref())?);
     let states = store.asset_states()?;
     tracing::info!(store = %path.display(), assets = states.len(), "fleet store opened");
     live.restore(&states, config);
@@ -262,7 +268,28 @@ fn open_store(
         source,
     })?;
     sinks.push(Box::new(sink));
-    Ok(Some(store))
+    Ok((Some(store), baselines))
+}
+
+/// The sink thread (a dedicated thread: the sinks do blocking file I/O);
+/// the receiver resolves when it has drained the queue and flushed.
+fn spawn_sinks(
+    sink_rx: mpsc::Receiver<sink::SinkMsg>,
+    sinks: Vec<Box<dyn Sink>>,
+    metrics: Arc<Metrics>,
+) -> Result<oneshot::Receiver<()>, ServeError> {
+    let (done_tx, done) = oneshot::channel::<()>();
+    std::thread::Builder::new()
+        .name("shocktwin-sinks".into())
+        .spawn(move || {
+            sink::dispatch(sink_rx, sinks, &metrics);
+            let _ = done_tx.send(());
+        })
+        .map_err(|source| ServeError::Io {
+            path: PathBuf::from("<sink thread>"),
+            source,
+        })?;
+    Ok(done)
 }
 
 /// Runs the daemon until `shutdown` resolves, then drains and flushes.
@@ -285,28 +312,17 @@ pub async fn run(
     if let Some(dir) = &config.server.record_dir {
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }
-    let store = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
+    let (store, baselines) = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
     let sources = sources(&config, listeners.ingest, tls.as_ref(), twins.as_ref())?;
 
     let (sink_tx, sink_rx) = mpsc::channel(limits.queue_depth);
-    let sink_metrics = Arc::clone(&metrics);
-    // A dedicated thread: the sinks do blocking file I/O.
-    let (sinks_done_tx, sinks_done) = oneshot::channel::<()>();
-    std::thread::Builder::new()
-        .name("shocktwin-sinks".into())
-        .spawn(move || {
-            sink::dispatch(sink_rx, sinks, &sink_metrics);
-            let _ = sinks_done_tx.send(());
-        })
-        .map_err(|source| ServeError::Io {
-            path: PathBuf::from("<sink thread>"),
-            source,
-        })?;
+    let sinks_done = spawn_sinks(sink_rx, sinks, Arc::clone(&metrics))?;
     let ingest = Ingest::new(
         Arc::clone(&config),
         Arc::clone(&twins),
         sink_tx,
         Arc::clone(&metrics),
+        Arc::clone(&baselines),
     );
 
     let cancel = CancellationToken::new();
@@ -339,6 +355,8 @@ pub async fn run(
         stop: http_stop.clone(),
         tokens,
         uploads: app_uploads.clone(),
+        baselines,
+        model: twins.as_estimator().cloned(),
     });
     let uploads = app_uploads;
     let http_addr = listeners

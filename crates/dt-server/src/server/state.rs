@@ -197,12 +197,14 @@ impl LiveState {
                 last_update_unix_ms: last.map_or(0, |p| u64::try_from(p.t_ms).unwrap_or(0)),
                 ticks: st.ticks,
                 active_runs: 0,
-                last_run_status: Some(match st.last_run_status.as_str() {
-                    "completed" => "completed",
-                    "failed" => "failed",
-                    "running" => "running",
-                    _ => "interrupted",
-                }),
+                // An asset known only by its baseline has no run yet.
+                last_run_status: match st.last_run_status.as_str() {
+                    "completed" => Some("completed"),
+                    "failed" => Some("failed"),
+                    "running" => Some("running"),
+                    _ if st.run_id.is_empty() => None,
+                    _ => Some("interrupted"),
+                },
                 last_run_reason: st.last_run_reason.clone(),
             };
             assets.insert(

@@ -103,6 +103,15 @@ pub struct RunRecord {
     pub summary: Option<RunPoint>,
 }
 
+/// A unit baseline set over the API (`PUT /v1/assets/{id}/baseline`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StoredBaseline {
+    /// The three numbers.
+    pub baseline: dt_core::charge::UnitBaseline,
+    /// When it was set (wall clock), ms since the Unix epoch.
+    pub set_ms: i64,
+}
+
 /// One 1 s point of an asset's history (or the mean of several).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HistoryPoint {
@@ -227,6 +236,15 @@ pub trait FleetStore: Send + Sync + Debug {
     /// The asset's health changes, newest first, at most `limit`.
     fn health_changes(&self, asset_id: &str, limit: usize)
         -> Result<Vec<HealthChange>, StoreError>;
+    /// Keeps (`Some`) or forgets (`None`) the asset's unit baseline set over
+    /// the API (see [`super::baselines`]); committed before it returns.
+    fn set_baseline(
+        &self,
+        asset_id: &str,
+        baseline: Option<&StoredBaseline>,
+    ) -> Result<(), StoreError>;
+    /// Every asset's unit baseline set over the API.
+    fn baselines(&self) -> Result<Vec<(String, StoredBaseline)>, StoreError>;
     /// Deletes points and health changes older than `before_ms`; returns
     /// how many rows went.
     fn prune(&self, before_ms: i64) -> Result<usize, StoreError>;

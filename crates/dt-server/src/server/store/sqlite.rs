@@ -12,19 +12,21 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
+use dt_core::charge::UnitBaseline;
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
 
 use super::{
     health_code, health_from_code, health_from_str, AssetState, FleetStore, HealthChange,
-    HistoryPoint, RunRecord, StoreError, StoreOp,
+    HistoryPoint, RunRecord, StoreError, StoreOp, StoredBaseline,
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 1;
+pub const SCHEMA_VERSION: i64 = 2;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 1] = [r"
+const MIGRATIONS: [&str; 2] = [
+    r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
     asset_id TEXT NOT NULL UNIQUE
@@ -62,7 +64,17 @@ CREATE TABLE health_changes (
     to_health   TEXT NOT NULL
 );
 CREATE INDEX health_by_asset ON health_changes(asset, t_ms);
-"];
+",
+    r"
+CREATE TABLE baselines (
+    asset       INTEGER PRIMARY KEY REFERENCES assets(id),
+    charge_bar  REAL NOT NULL,
+    read_bar    REAL NOT NULL,
+    read_sd_bar REAL NOT NULL,
+    set_ms      INTEGER NOT NULL
+);
+",
+];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
 
@@ -447,6 +459,68 @@ impl FleetStore for SqliteStore {
         })
     }
 
+    fn set_baseline(
+        &self,
+        asset_id: &str,
+        baseline: Option<&StoredBaseline>,
+    ) -> Result<(), StoreError> {
+        self.with_writer(|c| {
+            let tx = c.transaction()?;
+            match baseline {
+                Some(b) => {
+                    tx.execute(
+                        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
+                        [asset_id],
+                    )?;
+                    tx.execute(
+                        &format!(
+                            "INSERT OR REPLACE INTO baselines \
+                             (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
+                             VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+                        ),
+                        params![
+                            asset_id,
+                            b.baseline.charge_bar,
+                            b.baseline.read_bar,
+                            b.baseline.read_sd_bar,
+                            b.set_ms
+                        ],
+                    )?;
+                }
+                None => {
+                    tx.execute(
+                        &format!("DELETE FROM baselines WHERE asset = {ASSET}"),
+                        [asset_id],
+                    )?;
+                }
+            }
+            tx.commit()
+        })
+    }
+
+    fn baselines(&self) -> Result<Vec<(String, StoredBaseline)>, StoreError> {
+        self.with_reader(|c| {
+            let mut stmt = c.prepare(
+                "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms \
+                 FROM baselines b JOIN assets a ON a.id = b.asset ORDER BY a.asset_id",
+            )?;
+            let rows = stmt.query_map([], |r| {
+                Ok((
+                    r.get(0)?,
+                    StoredBaseline {
+                        baseline: UnitBaseline {
+                            charge_bar: r.get(1)?,
+                            read_bar: r.get(2)?,
+                            read_sd_bar: r.get(3)?,
+                        },
+                        set_ms: r.get(4)?,
+                    },
+                ))
+            })?;
+            rows.collect()
+        })
+    }
+
     fn prune(&self, before_ms: i64) -> Result<usize, StoreError> {
         self.with_writer(|c| {
             let tx = c.transaction()?;
@@ -528,6 +602,47 @@ mod tests {
         // Reopened: the same data, nothing migrated twice.
         let again = SqliteStore::open(&path).unwrap();
         assert_eq!(again.asset_states().unwrap()[0].ticks, 500);
+    }
+
+    #[test]
+    fn a_version_1_file_is_migrated_and_keeps_baselines_across_reopens() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fleet.sqlite");
+        {
+            // A store as the first schema left it, with one run.
+            let c = Connection::open(&path).unwrap();
+            c.execute_batch(MIGRATIONS[0]).unwrap();
+            c.pragma_update(None, "user_version", 1).unwrap();
+            c.execute_batch(
+                "INSERT INTO assets (asset_id) VALUES ('a1'); \
+                 INSERT INTO runs (key, asset, run_id, source, start_ms, status, ticks) \
+                 VALUES ('k', 1, 'r', 's', 0, 'completed', 7);",
+            )
+            .unwrap();
+        }
+        let store = SqliteStore::open(&path).unwrap();
+        assert_eq!(store.runs("a1", 5).unwrap()[0].ticks, 7);
+        assert!(store.baselines().unwrap().is_empty());
+        let b = StoredBaseline {
+            baseline: UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 10.84,
+                read_sd_bar: 0.7,
+            },
+            set_ms: 1_700_000_000_000,
+        };
+        // An asset the store has never seen a run of can be given one too.
+        store.set_baseline("new-van", Some(&b)).unwrap();
+        store.set_baseline("a1", Some(&b)).unwrap();
+        store.set_baseline("a1", None).unwrap();
+        drop(store);
+        let again = SqliteStore::open(&path).unwrap();
+        assert_eq!(again.baselines().unwrap(), vec![("new-van".to_owned(), b)]);
+        let version: i64 = Connection::open(&path)
+            .unwrap()
+            .query_row("PRAGMA user_version", [], |r| r.get(0))
+            .unwrap();
+        assert_eq!(version, SCHEMA_VERSION);
     }
 
     #[test]

@@ -1,0 +1,128 @@
+//! Unit baselines a maintainer sets over the API after a service
+//! (`PUT /v1/assets/{id}/baseline`), kept in the fleet store.
+//!
+//! A baseline is one reading of the charge observer at a known charge
+//! ([`UnitBaseline`], `dt_core::charge`): it conditions the unit's own offset
+//! and gain, which narrows every later interval of that asset. An asset's
+//! baseline is, in order: the one set over the API (kept in the store,
+//! restored at start-up), else `[assets.<id>] observer_baseline` in the
+//! configuration, else none. A run takes the baseline in effect when it
+//! starts; runs in progress keep theirs.
+//!
+//! The NATS worker group reads baselines from its configuration only: a
+//! baseline set over one daemon's API reaches the runs that daemon
+//! processes itself.
+
+use std::collections::HashMap;
+use std::sync::{PoisonError, RwLock};
+
+use dt_core::charge::UnitBaseline;
+use serde::Serialize;
+
+use super::config::{AssetConfig, Config};
+use super::store::{rfc3339_ms, FleetStore, StoreError, StoredBaseline};
+
+/// Where an asset's baseline comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BaselineSource {
+    /// Set over the API, kept in the fleet store.
+    Api,
+    /// `[assets.<id>] observer_baseline`.
+    Config,
+}
+
+/// An asset's baseline in effect, as the API shows it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BaselineView {
+    /// The charge the unit held, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// What the observer read meanwhile, bar.
+    pub read_bar: f64,
+    /// That reading's standard deviation, bar.
+    pub read_sd_bar: f64,
+    /// `api` or `config`.
+    pub source: BaselineSource,
+    /// When it was set over the API (RFC 3339), `null` for `config`.
+    pub set_at: Option<String>,
+}
+
+/// The baselines set over the API, by asset (a copy of the store's table).
+#[derive(Debug, Default)]
+pub struct Baselines {
+    by_asset: RwLock<HashMap<String, StoredBaseline>>,
+}
+
+impl Baselines {
+    /// The baselines `store` keeps.
+    pub fn load(store: &dyn FleetStore) -> Result<Self, StoreError> {
+        Ok(Self {
+            by_asset: RwLock::new(store.baselines()?.into_iter().collect()),
+        })
+    }
+
+    /// Sets (`Some`) or removes (`None`) the asset's API baseline: in the
+    /// store first, so that what the daemon uses is always what it would
+    /// restore.
+    pub fn set(
+        &self,
+        store: &dyn FleetStore,
+        asset_id: &str,
+        baseline: Option<StoredBaseline>,
+    ) -> Result<(), StoreError> {
+        store.set_baseline(asset_id, baseline.as_ref())?;
+        let mut map = self
+            .by_asset
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        match baseline {
+            Some(b) => map.insert(asset_id.to_owned(), b),
+            None => map.remove(asset_id),
+        };
+        Ok(())
+    }
+
+    /// The asset's API baseline, if any.
+    #[must_use]
+    pub fn get(&self, asset_id: &str) -> Option<StoredBaseline> {
+        self.by_asset
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .copied()
+    }
+
+    /// The asset's configuration with the baseline in effect (see the
+    /// module doc).
+    #[must_use]
+    pub fn asset_config(&self, config: &Config, asset_id: &str) -> AssetConfig {
+        let mut asset = config.asset(asset_id);
+        if let Some(b) = self.get(asset_id) {
+            asset.observer_baseline = Some(b.baseline);
+        }
+        asset
+    }
+
+    /// The asset's baseline in effect, for the API.
+    #[must_use]
+    pub fn view(&self, config: &Config, asset_id: &str) -> Option<BaselineView> {
+        let view = |b: UnitBaseline, source, set_at| BaselineView {
+            charge_bar: b.charge_bar,
+            read_bar: b.read_bar,
+            read_sd_bar: b.read_sd_bar,
+            source,
+            set_at,
+        };
+        match self.get(asset_id) {
+            Some(b) => Some(view(
+                b.baseline,
+                BaselineSource::Api,
+                Some(rfc3339_ms(b.set_ms)),
+            )),
+            None => config
+                .asset(asset_id)
+                .observer_baseline
+                .map(|b| view(b, BaselineSource::Config, None)),
+        }
+    }
+}
