@@ -271,6 +271,10 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     assert r.json()["source"] == "api" and r.json()["read_bar"] == 10.5
     shutil.copy(run, inbox / run.name)
     d.wait_runs("dyno-unit-A", 1)
+    # The trend restarts at the baseline: this run was recorded days before it.
+    trend = d.get("/v1/assets/dyno-unit-A/trend")
+    assert trend["since"] is not None and trend["status"] == "insufficient_data", trend
+    assert "since the unit baseline" in trend["reason"] and trend["points"] == [], trend
     secs = sorted(with_b)
     hist = d.get("/v1/assets/dyno-unit-A/history", since=f"{np.datetime64(secs[0], 's')}Z",
                  until=f"{np.datetime64(secs[-1], 's')}Z", step_s=1)["points"]
@@ -283,8 +287,11 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
     assert row["baseline"]["source"] == "api" and row["baseline"]["charge_bar"] == 12.0, row
     url = f"http://{d2.http}/v1/assets/dyno-unit-A/baseline"
+    assert d2.get("/v1/assets/dyno-unit-A/trend")["since"] == trend["since"]
     gone = httpx.delete(url)
     assert gone.status_code == 200 and gone.json() == {"baseline": None}, gone.text
+    trend = d2.get("/v1/assets/dyno-unit-A/trend")
+    assert trend["since"] is None and len(trend["points"]) == 1, trend
     assert httpx.get(url).status_code == 404
     assert httpx.delete(url).status_code == 404
     d2.stop()

@@ -375,8 +375,9 @@ function trendText(t) {
     const hi = x.t_hi ? fmtDate(tsec(x.t_hi)) : "unbounded";
     return `${name} ≈ <b>${fmtDate(tsec(x.t))}</b> [${x.t_lo ? fmtDate(tsec(x.t_lo)) : DASH} – ${hi}]`;
   };
+  const since = t.since ? ` since the unit baseline of ${fmtDate(tsec(t.since))}` : "";
   return `leak rate <b>${num(t.leak_rate_bar_per_day, 3)}</b>${half === null ? "" : ` ± ${num(half, 3)}`} bar/day; ` +
-    `${c("warn", t.warn)}; ${c("fault", t.fault)} <span class="small">(${t.runs_used} runs)</span>`;
+    `${c("warn", t.warn)}; ${c("fault", t.fault)} <span class="small">(${t.runs_used} runs${since})</span>`;
 }
 
 // ---- live events ---------------------------------------------------------------------

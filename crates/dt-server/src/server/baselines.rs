@@ -7,7 +7,8 @@
 //! baseline is, in order: the one set over the API (kept in the store,
 //! restored at start-up), else `[assets.<id>] observer_baseline` in the
 //! configuration, else none. A run takes the baseline in effect when it
-//! starts; runs in progress keep theirs.
+//! starts; runs in progress keep theirs. An API baseline also restarts the
+//! asset's leak trend: it is fitted on the runs that started after it.
 //!
 //! The NATS worker group reads baselines from its configuration only: a
 //! baseline set over one daemon's API reaches the runs that daemon
@@ -20,7 +21,7 @@ use dt_core::charge::UnitBaseline;
 use serde::Serialize;
 
 use super::config::{AssetConfig, Config};
-use super::store::{rfc3339_ms, FleetStore, StoreError, StoredBaseline};
+use super::store::{rfc3339_ms, FleetStore, StoreError, StoredBaseline, Trends};
 
 /// Where an asset's baseline comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -61,16 +62,32 @@ impl Baselines {
         })
     }
 
+    /// Every asset's trend starts at its API baseline (see
+    /// [`Trends::set_since`]).
+    pub fn restart_trends(&self, trends: &Trends) {
+        for (asset, b) in self
+            .by_asset
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+        {
+            trends.set_since(asset, Some(b.set_ms));
+        }
+    }
+
     /// Sets (`Some`) or removes (`None`) the asset's API baseline: in the
     /// store first, so that what the daemon uses is always what it would
-    /// restore.
+    /// restore; the asset's trend then starts at the baseline (or spans
+    /// every run again).
     pub fn set(
         &self,
         store: &dyn FleetStore,
+        trends: &Trends,
         asset_id: &str,
         baseline: Option<StoredBaseline>,
     ) -> Result<(), StoreError> {
         store.set_baseline(asset_id, baseline.as_ref())?;
+        trends.set_since(asset_id, baseline.map(|b| b.set_ms));
         let mut map = self
             .by_asset
             .write()

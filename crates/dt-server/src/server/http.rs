@@ -474,12 +474,7 @@ async fn put_baseline(
         .duration_since(SystemTime::UNIX_EPOCH)
         .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
     let stored = StoredBaseline { baseline, set_ms };
-    let (baselines, asset) = (Arc::clone(&app.baselines), id.clone());
-    if let Err(r) = blocking(&app, move |store| {
-        baselines.set(store, &asset, Some(stored))
-    })
-    .await
-    {
+    if let Err(r) = set_baseline(&app, &id, Some(stored)).await {
         return r;
     }
     tracing::info!(asset = %id, charge_bar = baseline.charge_bar, read_bar = baseline.read_bar,
@@ -493,6 +488,26 @@ async fn put_baseline(
     }
 }
 
+/// Keeps or forgets the asset's API baseline, then recomputes its trend.
+async fn set_baseline(
+    app: &AppState,
+    id: &str,
+    baseline: Option<StoredBaseline>,
+) -> Result<(), Response> {
+    let (baselines, trends) = (Arc::clone(&app.baselines), Arc::clone(&app.trends));
+    let (config, metrics, asset) = (
+        Arc::clone(&app.config),
+        Arc::clone(&app.metrics),
+        id.to_owned(),
+    );
+    blocking(app, move |store| {
+        baselines.set(store, &trends, &asset, baseline)?;
+        trends.refresh(store, &config, &metrics, &asset);
+        Ok(())
+    })
+    .await
+}
+
 async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) -> Response {
     if app.baselines.get(&id).is_none() {
         return error(
@@ -500,8 +515,7 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
             format!("asset `{id}` has no baseline set over the API"),
         );
     }
-    let (baselines, asset) = (Arc::clone(&app.baselines), id.clone());
-    if let Err(r) = blocking(&app, move |store| baselines.set(store, &asset, None)).await {
+    if let Err(r) = set_baseline(&app, &id, None).await {
         return r;
     }
     tracing::info!(asset = %id, "unit baseline removed; used from the asset's next run");

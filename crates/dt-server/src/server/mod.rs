@@ -254,6 +254,7 @@ fn open_store(
     };
     let store: Arc<dyn FleetStore> = Arc::new(SqliteStore::open(path)?);
     let baselines = Arc::new(Baselines::load(store.as_ref())?);
+    baselines.restart_trends(trends);
     let states = store.asset_states()?;
     tracing::info!(store = %path.display(), assets = states.len(), "fleet store opened");
     live.restore(&states, config);

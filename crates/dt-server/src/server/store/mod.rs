@@ -395,6 +395,9 @@ pub struct TrendView {
     pub points: Vec<TrendPoint>,
     /// The line.
     pub fit: Option<TrendFit>,
+    /// The trend uses the runs from this time on (RFC 3339): the asset's
+    /// unit baseline was set then. `null`: every run.
+    pub since: Option<String>,
 }
 
 /// The part of a [`TrendView`] that `GET /v1/assets` gives per asset
@@ -421,6 +424,8 @@ pub struct TrendSummary<'a> {
     pub fault: Option<&'a CrossingView>,
     /// See [`TrendView`].
     pub days_to_fault: Option<f64>,
+    /// See [`TrendView`].
+    pub since: Option<&'a str>,
 }
 
 impl TrendView {
@@ -438,7 +443,23 @@ impl TrendView {
             warn: self.warn.as_ref(),
             fault: self.fault.as_ref(),
             days_to_fault: self.days_to_fault,
+            since: self.since.as_deref(),
         }
+    }
+
+    /// This trend, fitted on the runs from `since_ms` on (see
+    /// [`Trends::set_since`]); the reason it has no line then says so.
+    #[must_use]
+    pub fn since(mut self, since_ms: Option<i64>) -> Self {
+        if let Some(t) = since_ms {
+            let at = rfc3339_ms(t);
+            if let Some(reason) = &mut self.reason {
+                reason.push_str(" since the unit baseline of ");
+                reason.push_str(&at);
+            }
+            self.since = Some(at);
+        }
+        self
     }
 
     /// The trend of run summaries `points` (`(run_id, point)`) against the
@@ -473,6 +494,7 @@ impl TrendView {
                 days_to_fault: None,
                 points: view_points,
                 fit: None,
+                since: None,
             },
             Ok(tr) => {
                 let (lo, hi) = tr.slope_interval();
@@ -496,6 +518,7 @@ impl TrendView {
                         intercept_bar: tr.intercept_bar,
                         slope_bar_per_day: tr.slope_bar_per_day,
                     }),
+                    since: None,
                 }
             }
         }

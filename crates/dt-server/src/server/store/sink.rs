@@ -38,6 +38,7 @@ const PRUNE_EVERY_S: u64 = 600;
 pub struct Trends {
     map: RwLock<HashMap<String, Arc<TrendView>>>,
     problem: RwLock<Option<String>>,
+    since_ms: RwLock<HashMap<String, i64>>,
 }
 
 impl Trends {
@@ -72,6 +73,22 @@ impl Trends {
             .insert(asset_id.to_owned(), Arc::new(view));
     }
 
+    /// From now on the asset's trend is fitted on the runs that started at
+    /// or after `since_ms` (calendar ms; its unit baseline was set then: the
+    /// runs before were estimated with another correction, and a baseline
+    /// usually follows a service that refilled the charge), or on every run
+    /// (`None`). Takes effect at the next [`Trends::refresh`].
+    pub fn set_since(&self, asset_id: &str, since_ms: Option<i64>) {
+        let mut map = self
+            .since_ms
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        match since_ms {
+            Some(t) => map.insert(asset_id.to_owned(), t),
+            None => map.remove(asset_id),
+        };
+    }
+
     /// Recomputes the trend of `asset_id` from the store and publishes it
     /// (also to the metrics).
     pub fn refresh(
@@ -89,12 +106,19 @@ impl Trends {
                 return;
             }
         };
+        let since = self
+            .since_ms
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .copied();
         let points: Vec<(String, RunPoint)> = runs
             .into_iter()
+            .filter(|r| since.is_none_or(|t| r.start_ms >= t))
             .filter_map(|r| r.summary.map(|s| (r.run_id, s)))
             .collect();
         let a = config.asset(asset_id);
-        let view = TrendView::compute(&points, a.warn_bar, a.fault_bar);
+        let view = TrendView::compute(&points, a.warn_bar, a.fault_bar).since(since);
         metrics.set_trend(asset_id, view.leak_rate_bar_per_day, view.days_to_fault);
         self.set(asset_id, view);
     }
