@@ -1213,6 +1213,7 @@ impl ChargeObserver {
                 times: times.to_vec(),
                 data: data.to_vec(),
                 theta: start,
+                last: std::cell::RefCell::new(None),
             };
             let (fitted, report) = LevenbergMarquardt::new()
                 .with_patience(40)
@@ -1496,6 +1497,25 @@ struct WindowFit<'a> {
     times: Vec<f64>,
     data: Vec<f64>,
     theta: Vector5<f64>,
+    /// The model at the last parameters the residuals were taken at:
+    /// Levenberg–Marquardt asks for the Jacobian where it last took the
+    /// residuals after every accepted step, and the Jacobian's base point
+    /// is then that same model (one window simulation of six saved).
+    last: std::cell::RefCell<Option<(Vector5<f64>, Vec<f64>)>>,
+}
+
+impl WindowFit<'_> {
+    /// The model at the current parameters (from the cache when it holds them).
+    fn model_now(&self) -> Vec<f64> {
+        if let Some((theta, model)) = self.last.borrow().as_ref() {
+            if *theta == self.theta {
+                return model.clone();
+            }
+        }
+        let model = self.model.simulate(&self.theta, &self.times);
+        *self.last.borrow_mut() = Some((self.theta, model.clone()));
+        model
+    }
 }
 
 /// Forward-difference steps of the scaled parameters (not the offset).
@@ -1515,7 +1535,7 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
     }
 
     fn residuals(&self) -> Option<DVector<f64>> {
-        let model = self.model.simulate(&self.theta, &self.times);
+        let model = self.model_now();
         Some(DVector::from_iterator(
             model.len(),
             model.iter().zip(&self.data).map(|(m, d)| m - d),
@@ -1523,7 +1543,7 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
     }
 
     fn jacobian(&self) -> Option<OMatrix<f64, Dyn, U5>> {
-        let base = self.model.simulate(&self.theta, &self.times);
+        let base = self.model_now();
         let mut jac = OMatrix::<f64, Dyn, U5>::zeros(base.len());
         // The offset `c0` enters the model as itself: its column is 1.
         jac.column_mut(4).fill(1.0);
