@@ -155,6 +155,7 @@ fn fleet(c: &mut Criterion) {
         uploads: dt_server::server::http::Uploads::disabled(),
         baselines: Arc::default(),
         model: None,
+        group: None,
     });
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -210,6 +210,17 @@ def replay_binned(bundle: Path, run: Path, out: Path, *extra: str) -> dict[int, 
     return {int(s): float(pressure[sec == s].mean()) for s in np.unique(sec)}
 
 
+def assert_history_is(d: Daemon, asset: str, binned: dict[int, float]) -> None:
+    """The daemon's 1 s history of ``asset`` is ``binned`` (Unix s -> bar, from ``replay_binned``)
+    to 1e-9, second by second."""
+    secs = sorted(binned)
+    hist = d.get(f"/v1/assets/{asset}/history", since=f"{np.datetime64(secs[0], 's')}Z",
+                 until=f"{np.datetime64(secs[-1], 's')}Z", step_s=1)["points"]
+    assert len(hist) == len(secs)
+    for p in hist:
+        assert p["pressure_bar"] == pytest.approx(binned[int(unix_s(p["t"]))], abs=1e-9)
+
+
 def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path], tmp_path: Path,
                                                           daemons: list[Daemon]) -> None:
     """`[assets.<id>] observer_baseline` in the daemon's config: that asset's estimates are
@@ -234,12 +245,7 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     d = Daemon(world["bundle"], tmp_path / "fleet.sqlite", inbox, config)
     daemons.append(d)
     d.wait_runs("dyno-unit-A", 1)
-    secs = sorted(with_b)
-    hist = d.get("/v1/assets/dyno-unit-A/history", since=f"{np.datetime64(secs[0], 's')}Z",
-                 until=f"{np.datetime64(secs[-1], 's')}Z", step_s=1)["points"]
-    assert len(hist) == len(secs)
-    for p in hist:
-        assert p["pressure_bar"] == pytest.approx(with_b[int(unix_s(p["t"]))], abs=1e-9)
+    assert_history_is(d, "dyno-unit-A", with_b)
     d.stop()
 
 
@@ -275,12 +281,7 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     trend = d.get("/v1/assets/dyno-unit-A/trend")
     assert trend["since"] is not None and trend["status"] == "insufficient_data", trend
     assert "since the unit baseline" in trend["reason"] and trend["points"] == [], trend
-    secs = sorted(with_b)
-    hist = d.get("/v1/assets/dyno-unit-A/history", since=f"{np.datetime64(secs[0], 's')}Z",
-                 until=f"{np.datetime64(secs[-1], 's')}Z", step_s=1)["points"]
-    assert len(hist) == len(secs)
-    for p in hist:
-        assert p["pressure_bar"] == pytest.approx(with_b[int(unix_s(p["t"]))], abs=1e-9)
+    assert_history_is(d, "dyno-unit-A", with_b)
     d.stop()
     d2 = Daemon(world["bundle"], db, inbox)
     daemons.append(d2)

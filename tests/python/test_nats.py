@@ -422,3 +422,67 @@ def wait_ended_tls(server: NatsServer, ca_pem: Path, assets: set[str], timeout_s
         if time.monotonic() > deadline:
             raise AssertionError(f"not ended: {assets - set(done)}\n{w.text()[-3000:]}")
         time.sleep(1.0)
+
+
+def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
+        shocktwin_bin: Path, nats_server: NatsServer, calibrated_campaign: tuple[Path, Path],
+        tmp_path: Path) -> None:
+    """`PUT /v1/assets/{id}/baseline` on a fleet view of the group goes to the group's
+    baseline bucket; the worker (another daemon) applies it, and its estimates of the
+    asset's next run equal `replay --observer-baseline` (1e-9). `DELETE` on the worker's API
+    reaches the fleet view the same way."""
+    import httpx
+
+    sys.path.insert(0, str(ROOT))
+    from train import train as train_tool
+
+    campaign, physics = calibrated_campaign
+    bundle = tmp_path / "perm17"  # the observer alone: a baseline changes every estimate
+    assert train_tool.main(["--campaign", str(campaign), "--permutation", "17", "--physics", str(physics),
+                            "--out", str(bundle)]) == 0
+    run = sorted(campaign.glob("p4.0-f2.0-*.mcap"))[0]
+    doc = {"observer_baseline": {"charge_bar": 12.0, "read_bar": 10.5, "read_sd_bar": 0.3}}
+    (tmp_path / "unit.json").write_text(json.dumps(doc))
+    out = tmp_path / "replayed.mcap"
+    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(bundle), str(run), "--out", str(out),
+                           "--observer-baseline", str(tmp_path / "unit.json")], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with out.open("rb") as f:
+        want = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/estimate"])]
+    (tmp_path / "view.toml").write_text("[nats]\nworker = false\n")
+    w = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--model", str(bundle),
+                      "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
+    view = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--model", str(bundle),
+                         "--config", str(tmp_path / "view.toml"), "--listen", "127.0.0.1:0",
+                         "--http", "127.0.0.1:0", "--no-db"])
+    try:
+        def baseline_on(d: ServeProcess) -> int:
+            return httpx.get(f"http://{d.http}/v1/assets/veh-b0/baseline", timeout=5).status_code
+
+        deadline = time.monotonic() + 20
+        while True:  # until the fleet view has joined the group
+            r = httpx.put(f"http://{view.http}/v1/assets/veh-b0/baseline", json=doc, timeout=10)
+            if r.status_code != 503 or time.monotonic() > deadline:
+                break
+            time.sleep(0.3)
+        assert r.status_code == 200 and r.json()["source"] == "api", r.text
+        deadline = time.monotonic() + 20
+        while baseline_on(w) != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert baseline_on(w) == 200, w.text()[-3000:]
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "veh-b",
+                               str(run)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(nats_server.url, {"veh-b0"}, 120, [w, view])
+        assert done["veh-b0"]["meta"]["outcome"] == "completed", done
+        assert_equal_to_replay(estimates_by_asset(nats_server.url)["veh-b0"], want, "veh-b0")
+        gone = httpx.delete(f"http://{w.http}/v1/assets/veh-b0/baseline", timeout=10)
+        assert gone.status_code == 200, gone.text
+        deadline = time.monotonic() + 20
+        while baseline_on(view) != 404 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert baseline_on(view) == 404
+    finally:
+        w.stop()
+        view.stop()

@@ -12,6 +12,7 @@
 //! Streams and buckets are created (or checked) by whoever connects first;
 //! every definition is here.
 
+pub mod baselines;
 pub mod fleet;
 pub mod payload;
 pub mod publish;
@@ -33,6 +34,8 @@ pub const DEADLETTER_STREAM: &str = "SHOCKTWIN_DEADLETTER";
 pub const CHECKPOINT_BUCKET: &str = "shocktwin_checkpoints";
 /// Partition leases and worker heartbeats.
 pub const LEASE_BUCKET: &str = "shocktwin_leases";
+/// Unit baselines set over any daemon's API, one key per asset.
+pub const BASELINE_BUCKET: &str = "shocktwin_baselines";
 
 /// Default number of partitions of the telemetry subject space.
 pub const DEFAULT_PARTITIONS: u32 = 16;
@@ -219,6 +222,21 @@ pub async fn checkpoint_bucket(js: &jetstream::Context) -> Result<kv::Store, Nat
     })
     .await
     .map_err(|e| NatsError::new(format!("bucket {CHECKPOINT_BUCKET}"), e))
+}
+
+/// The unit-baseline bucket (one key per asset, the latest value only).
+pub async fn baseline_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
+    if let Ok(s) = js.get_key_value(BASELINE_BUCKET).await {
+        return Ok(s);
+    }
+    js.create_key_value(kv::Config {
+        bucket: BASELINE_BUCKET.into(),
+        history: 1,
+        storage: stream::StorageType::File,
+        ..Default::default()
+    })
+    .await
+    .map_err(|e| NatsError::new(format!("bucket {BASELINE_BUCKET}"), e))
 }
 
 /// The lease bucket (entries expire after [`LEASE_TTL`] without renewal).

@@ -134,6 +134,7 @@ struct PartCtx {
     checkpoints: kv::Store,
     factory: EstimatorFactory,
     config: Arc<Config>,
+    baselines: Arc<crate::server::baselines::Baselines>,
     metrics: Arc<MetricsHandle>,
 }
 
@@ -168,6 +169,7 @@ impl NatsWorker {
             js,
             factory: self.factory.clone(),
             config: Arc::new(ctx.ingest.config().clone()),
+            baselines: Arc::clone(ctx.ingest.baselines()),
             metrics: Arc::new(MetricsHandle(ctx.ingest.clone())),
         };
         tracing::info!(worker = %self.id, partitions, "joined the worker group");
@@ -615,7 +617,10 @@ impl Partition {
             let meta = b
                 .metadata()
                 .map_err(|e| Refused::Input(e.kind(), e.to_string()))?;
-            let cfg = self.ctx.factory.config_for(&self.ctx.config.asset(&asset));
+            let cfg = self
+                .ctx
+                .factory
+                .config_for(&self.ctx.baselines.asset_config(&self.ctx.config, &asset));
             let est = Estimator::new(Arc::clone(self.ctx.factory.bundle()), cfg).map_err(|e| {
                 Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
             })?;

@@ -10,9 +10,11 @@
 //! starts; runs in progress keep theirs. An API baseline also restarts the
 //! asset's leak trend: it is fitted on the runs that started after it.
 //!
-//! The NATS worker group reads baselines from its configuration only: a
-//! baseline set over one daemon's API reaches the runs that daemon
-//! processes itself.
+//! In a NATS group (`serve --nats`) the group's key-value bucket
+//! `shocktwin_baselines` holds them instead: a `PUT` on any daemon writes
+//! there, and every daemon of the group (workers and fleet views) applies
+//! what the bucket holds to its own copy and store ([`crate::nats::baselines`]),
+//! so whichever worker takes the asset's next run uses it.
 
 use std::collections::HashMap;
 use std::sync::{PoisonError, RwLock};
@@ -48,6 +50,30 @@ pub struct BaselineView {
     pub set_at: Option<String>,
 }
 
+impl BaselineView {
+    /// A baseline set over the API at `set_ms`.
+    #[must_use]
+    pub fn api(b: UnitBaseline, set_ms: i64) -> Self {
+        Self::of(b, BaselineSource::Api, Some(rfc3339_ms(set_ms)))
+    }
+
+    /// A baseline from the configuration.
+    #[must_use]
+    pub fn config(b: UnitBaseline) -> Self {
+        Self::of(b, BaselineSource::Config, None)
+    }
+
+    fn of(b: UnitBaseline, source: BaselineSource, set_at: Option<String>) -> Self {
+        Self {
+            charge_bar: b.charge_bar,
+            read_bar: b.read_bar,
+            read_sd_bar: b.read_sd_bar,
+            source,
+            set_at,
+        }
+    }
+}
+
 /// The baselines set over the API, by asset (a copy of the store's table).
 #[derive(Debug, Default)]
 pub struct Baselines {
@@ -76,17 +102,19 @@ impl Baselines {
     }
 
     /// Sets (`Some`) or removes (`None`) the asset's API baseline: in the
-    /// store first, so that what the daemon uses is always what it would
-    /// restore; the asset's trend then starts at the baseline (or spans
-    /// every run again).
+    /// store first, if the daemon keeps one, so that what the daemon uses is
+    /// always what it would restore; the asset's trend then starts at the
+    /// baseline (or spans every run again).
     pub fn set(
         &self,
-        store: &dyn FleetStore,
+        store: Option<&dyn FleetStore>,
         trends: &Trends,
         asset_id: &str,
         baseline: Option<StoredBaseline>,
     ) -> Result<(), StoreError> {
-        store.set_baseline(asset_id, baseline.as_ref())?;
+        if let Some(store) = store {
+            store.set_baseline(asset_id, baseline.as_ref())?;
+        }
         trends.set_since(asset_id, baseline.map(|b| b.set_ms));
         let mut map = self
             .by_asset
@@ -123,23 +151,12 @@ impl Baselines {
     /// The asset's baseline in effect, for the API.
     #[must_use]
     pub fn view(&self, config: &Config, asset_id: &str) -> Option<BaselineView> {
-        let view = |b: UnitBaseline, source, set_at| BaselineView {
-            charge_bar: b.charge_bar,
-            read_bar: b.read_bar,
-            read_sd_bar: b.read_sd_bar,
-            source,
-            set_at,
-        };
         match self.get(asset_id) {
-            Some(b) => Some(view(
-                b.baseline,
-                BaselineSource::Api,
-                Some(rfc3339_ms(b.set_ms)),
-            )),
+            Some(b) => Some(BaselineView::api(b.baseline, b.set_ms)),
             None => config
                 .asset(asset_id)
                 .observer_baseline
-                .map(|b| view(b, BaselineSource::Config, None)),
+                .map(BaselineView::config),
         }
     }
 }

@@ -83,6 +83,9 @@ pub struct AppState {
     /// The model, when the twin is the estimator (to check a baseline
     /// against it).
     pub model: Option<EstimatorFactory>,
+    /// The NATS group's baseline bucket, when the daemon is in one: baselines
+    /// are written there, and reach this daemon through its watcher.
+    pub group: Option<crate::nats::baselines::BaselineBucket>,
 }
 
 /// The ingest behind `POST /v1/runs`, until the daemon stops taking runs.
@@ -467,7 +470,12 @@ async fn put_baseline(
         Ok(b) => b,
         Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
     };
-    if let Some(why) = refuse_baseline(app.model.as_ref(), &app.config, &id, baseline) {
+    // A fleet view of a NATS group runs no model: the workers check it when they use it.
+    let checkable = app.model.is_some() || app.group.is_none();
+    if let Some(why) = checkable
+        .then(|| refuse_baseline(app.model.as_ref(), &app.config, &id, baseline))
+        .flatten()
+    {
         return error(StatusCode::CONFLICT, why);
     }
     let set_ms = SystemTime::now()
@@ -479,21 +487,23 @@ async fn put_baseline(
     }
     tracing::info!(asset = %id, charge_bar = baseline.charge_bar, read_bar = baseline.read_bar,
         read_sd_bar = baseline.read_sd_bar, "unit baseline set; used from the asset's next run");
-    match app.baselines.view(&app.config, &id) {
-        Some(v) => Json(v).into_response(),
-        None => error(
-            StatusCode::INTERNAL_SERVER_ERROR,
-            "the baseline was not kept",
-        ),
-    }
+    Json(BaselineView::api(baseline, set_ms)).into_response()
 }
 
-/// Keeps or forgets the asset's API baseline, then recomputes its trend.
+/// Keeps or forgets the asset's API baseline, then recomputes its trend; in
+/// a NATS group, writes it to the group's bucket instead (this daemon's
+/// watcher then applies it like every other daemon's).
 async fn set_baseline(
     app: &AppState,
     id: &str,
     baseline: Option<StoredBaseline>,
 ) -> Result<(), Response> {
+    if let Some(group) = &app.group {
+        return group.write(id, baseline).await.map_err(|e| {
+            tracing::error!("{e}");
+            error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
+        });
+    }
     let (baselines, trends) = (Arc::clone(&app.baselines), Arc::clone(&app.trends));
     let (config, metrics, asset) = (
         Arc::clone(&app.config),
@@ -501,7 +511,7 @@ async fn set_baseline(
         id.to_owned(),
     );
     blocking(app, move |store| {
-        baselines.set(store, &trends, &asset, baseline)?;
+        baselines.set(Some(store), &trends, &asset, baseline)?;
         trends.refresh(store, &config, &metrics, &asset);
         Ok(())
     })
@@ -519,7 +529,12 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
         return r;
     }
     tracing::info!(asset = %id, "unit baseline removed; used from the asset's next run");
-    Json(serde_json::json!({ "baseline": app.baselines.view(&app.config, &id) })).into_response()
+    let now = app
+        .config
+        .asset(&id)
+        .observer_baseline
+        .map(BaselineView::config);
+    Json(serde_json::json!({ "baseline": now })).into_response()
 }
 
 #[derive(Debug, Deserialize)]

@@ -128,6 +128,12 @@ impl Ingest {
         &self.inner.metrics
     }
 
+    /// The unit baselines set over the API (or from the NATS group).
+    #[must_use]
+    pub fn baselines(&self) -> &Arc<Baselines> {
+        &self.inner.baselines
+    }
+
     /// The daemon's configuration.
     #[must_use]
     pub fn config(&self) -> &Config {

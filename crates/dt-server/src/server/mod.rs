@@ -272,6 +272,25 @@ fn open_store(
     Ok((Some(store), baselines))
 }
 
+/// In a NATS group: the watcher of the group's baseline bucket (a source)
+/// and the bucket's handle for the API.
+fn group_baselines(
+    config: &Config,
+    store: Option<&Arc<dyn FleetStore>>,
+    trends: &Arc<Trends>,
+    sources: &mut Vec<Box<dyn Source>>,
+) -> Option<crate::nats::baselines::BaselineBucket> {
+    config.nats.url.as_ref()?;
+    let bucket = crate::nats::baselines::BaselineBucket::default();
+    sources.push(Box::new(crate::nats::baselines::NatsBaselines::new(
+        config.nats.clone(),
+        bucket.clone(),
+        store.cloned(),
+        Arc::clone(trends),
+    )));
+    Some(bucket)
+}
+
 /// The sink thread (a dedicated thread: the sinks do blocking file I/O);
 /// the receiver resolves when it has drained the queue and flushed.
 fn spawn_sinks(
@@ -314,7 +333,8 @@ pub async fn run(
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }
     let (store, baselines) = open_store(&config, &live, &trends, &metrics, &mut sinks)?;
-    let sources = sources(&config, listeners.ingest, tls.as_ref(), twins.as_ref())?;
+    let mut sources = sources(&config, listeners.ingest, tls.as_ref(), twins.as_ref())?;
+    let group = group_baselines(&config, store.as_ref(), &trends, &mut sources);
 
     let (sink_tx, sink_rx) = mpsc::channel(limits.queue_depth);
     let sinks_done = spawn_sinks(sink_rx, sinks, Arc::clone(&metrics))?;
@@ -358,6 +378,7 @@ pub async fn run(
         uploads: app_uploads.clone(),
         baselines,
         model: twins.as_estimator().cloned(),
+        group,
     });
     let uploads = app_uploads;
     let http_addr = listeners
