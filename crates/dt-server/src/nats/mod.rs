@@ -208,51 +208,51 @@ pub async fn ensure_topology(js: &jetstream::Context, cfg: &NatsConfig) -> Resul
     Ok(partitions)
 }
 
-/// The checkpoint bucket.
-pub async fn checkpoint_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
-    if let Ok(s) = js.get_key_value(CHECKPOINT_BUCKET).await {
+/// The bucket `config.bucket`, created with `config` if missing (an
+/// existing bucket's settings win).
+async fn bucket(js: &jetstream::Context, config: kv::Config) -> Result<kv::Store, NatsError> {
+    if let Ok(s) = js.get_key_value(&config.bucket).await {
         return Ok(s);
     }
-    js.create_key_value(kv::Config {
+    let name = config.bucket.clone();
+    js.create_key_value(config)
+        .await
+        .map_err(|e| NatsError::new(format!("bucket {name}"), e))
+}
+
+/// The checkpoint bucket.
+pub async fn checkpoint_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
+    let config = kv::Config {
         bucket: CHECKPOINT_BUCKET.into(),
         history: 1,
         storage: stream::StorageType::File,
         max_value_size: 8 << 20,
         ..Default::default()
-    })
-    .await
-    .map_err(|e| NatsError::new(format!("bucket {CHECKPOINT_BUCKET}"), e))
+    };
+    bucket(js, config).await
 }
 
 /// The unit-baseline bucket (one key per asset, the latest value only).
 pub async fn baseline_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
-    if let Ok(s) = js.get_key_value(BASELINE_BUCKET).await {
-        return Ok(s);
-    }
-    js.create_key_value(kv::Config {
+    let config = kv::Config {
         bucket: BASELINE_BUCKET.into(),
         history: 1,
         storage: stream::StorageType::File,
         ..Default::default()
-    })
-    .await
-    .map_err(|e| NatsError::new(format!("bucket {BASELINE_BUCKET}"), e))
+    };
+    bucket(js, config).await
 }
 
 /// The lease bucket (entries expire after [`LEASE_TTL`] without renewal).
 pub async fn lease_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
-    if let Ok(s) = js.get_key_value(LEASE_BUCKET).await {
-        return Ok(s);
-    }
-    js.create_key_value(kv::Config {
+    let config = kv::Config {
         bucket: LEASE_BUCKET.into(),
         history: 1,
         max_age: LEASE_TTL,
         storage: stream::StorageType::File,
         ..Default::default()
-    })
-    .await
-    .map_err(|e| NatsError::new(format!("bucket {LEASE_BUCKET}"), e))
+    };
+    bucket(js, config).await
 }
 
 /// `N` of a `…{{partition(N,1)}}…` transform destination.
