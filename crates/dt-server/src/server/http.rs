@@ -13,7 +13,7 @@
 //! | `GET /v1/assets/{id}/runs` | runs seen, newest first |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
 //! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
-//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store, used from the asset's next run; the ingest role when tokens are on |
+//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
 //! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
 //! | `POST /v1/runs` | upload one run (the body is an MCAP stream, as on the TCP ingest); answers its `RunReport`; the ingest role when tokens are on |
@@ -51,10 +51,9 @@ use super::estimator::EstimatorFactory;
 use super::metrics::Metrics;
 use super::security::{Role, Tokens};
 use super::state::{AssetSummary, LiveState};
-use super::store::StoredBaseline;
 use super::store::{
-    parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, StoreError, TrendSummary, TrendView,
-    Trends,
+    parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, StoreError, StoredBaseline, TrendSummary,
+    TrendView, Trends,
 };
 
 /// What the handlers share.
