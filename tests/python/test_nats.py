@@ -40,9 +40,9 @@ def worker(shocktwin_bin: Path, server: NatsServer, *extra: str) -> ServeProcess
                          "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db", *extra])
 
 
-def replay(shocktwin_bin: Path, run: Path, out_dir: Path) -> list[dict[str, Any]]:
+def replay(shocktwin_bin: Path, run: Path, out_dir: Path, bundle: Path = BUNDLE) -> list[dict[str, Any]]:
     out = out_dir / f"{run.stem}.replayed.mcap"
-    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(BUNDLE), str(run), "--out", str(out)],
+    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(bundle), str(run), "--out", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     with out.open("rb") as f:
@@ -450,6 +450,9 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
     assert proc.returncode == 0, proc.stderr
     with out.open("rb") as f:
         want = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/estimate"])]
+    # A worker that ignored the baseline would give the model's own estimates: they differ.
+    alone = replay(shocktwin_bin, run, tmp_path, bundle)
+    assert any(not same(a.get("pressure_bar"), b.get("pressure_bar")) for a, b in zip(alone, want))
     (tmp_path / "view.toml").write_text("[nats]\nworker = false\n")
     w = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--model", str(bundle),
                       "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])

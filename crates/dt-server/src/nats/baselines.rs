@@ -142,6 +142,7 @@ impl NatsBaselines {
             .map_err(|e| NatsError::new(format!("watch bucket {BASELINE_BUCKET}"), e))?;
         // A second connection of the same daemon cannot have set it first.
         let _ = self.bucket.0.set(kv.clone());
+        let config = Arc::new(ctx.ingest.config().clone());
         loop {
             let entry = tokio::select! {
                 () = ctx.cancel.cancelled() => break,
@@ -192,11 +193,8 @@ impl NatsBaselines {
                 self.store.clone(),
                 Arc::clone(&self.trends),
             );
-            let (config, ingest, asset) = (
-                Arc::new(ctx.ingest.config().clone()),
-                ctx.ingest.clone(),
-                entry.key.clone(),
-            );
+            let (config, ingest, asset) =
+                (Arc::clone(&config), ctx.ingest.clone(), entry.key.clone());
             let applied = tokio::task::spawn_blocking(move || {
                 baselines.set(store.as_deref(), &trends, &asset, baseline)?;
                 if let Some(store) = &store {
