@@ -6,7 +6,8 @@ whatever unit the workshop uses, and its geometry from the datasheet.
 - :func:`load_datasheet` reads a damper datasheet (TOML; keys, units and an example in
   ``docs/datasheet.example.toml``): the geometric constants of the force model
   (SPEC §3.3 ``a_rod``, ``v_gas``), which calibration then holds fixed instead of
-  fitting them, and optionally the nominal charge.
+  fitting them, optionally the nominal charge, and the oil volume and steel mass
+  that give the thermal model's heat capacities (``c_oil``, ``c_cyl``) a physical prior.
 
 Errors are ``ValueError`` with a message that names the value, key or file at fault.
 """
@@ -72,7 +73,19 @@ DATASHEET_KEYS: dict[str, dict[str, tuple[str, str]]] = {
         "v_gas_m3": ("m³", "gas volume at mid-stroke (force model v_gas)"),
         "gas_volume_cm3": ("cm³", "gas volume at mid-stroke, cm³ = ml (instead of v_gas_m3)"),
     },
+    "thermal": {
+        "oil_volume_cm3": ("cm³", "damping-oil fill (inner tube + reservoir): c_oil = V · 860 kg/m³ · 1.9 kJ/(kg K)"),
+        "steel_mass_kg": ("kg", "steel of the tubes, rod, piston and end caps (the damper without oil): "
+                                "c_cyl = m · 480 J/(kg K)"),
+    },
 }
+
+#: Textbook properties that turn a datasheet's oil volume and steel mass into heat
+#: capacities: mineral damper oil (density 850–870 kg/m³, specific heat 1.8–2.0 kJ/(kg K))
+#: and carbon steel (460–500 J/(kg K)).
+OIL_DENSITY_KG_M3 = 860.0
+OIL_CP_J_PER_KGK = 1900.0
+STEEL_CP_J_PER_KGK = 480.0
 
 
 @dataclass
@@ -84,6 +97,8 @@ class Datasheet:
     nominal_charge: str | None = None
     #: Force-model parameters it fixes (SPEC §3.3 names, SI units).
     geometry: dict[str, float] = field(default_factory=dict)
+    #: Heat capacities it implies (``c_oil``, ``c_cyl``, J/K): priors of the thermal fit.
+    heat_capacities: dict[str, float] = field(default_factory=dict)
     #: The file's tables as read (recorded in physics.json).
     values: dict[str, Any] = field(default_factory=dict)
 
@@ -135,4 +150,12 @@ def load_datasheet(path: str | Path) -> Datasheet:
             sheet.geometry[param] = _positive(path, "geometry", si, geo[si])
         elif alt in geo:
             sheet.geometry[param] = convert(_positive(path, "geometry", alt, geo[alt]))
+
+    thermal = raw.get("thermal", {})
+    if "oil_volume_cm3" in thermal:
+        volume_m3 = _positive(path, "thermal", "oil_volume_cm3", thermal["oil_volume_cm3"]) * 1e-6
+        sheet.heat_capacities["c_oil"] = volume_m3 * OIL_DENSITY_KG_M3 * OIL_CP_J_PER_KGK
+    if "steel_mass_kg" in thermal:
+        mass_kg = _positive(path, "thermal", "steel_mass_kg", thermal["steel_mass_kg"])
+        sheet.heat_capacities["c_cyl"] = mass_kg * STEEL_CP_J_PER_KGK
     return sheet

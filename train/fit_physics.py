@@ -52,6 +52,7 @@ from typing import Any, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.signal import lfilter
 
 import shocktwin
 
@@ -182,37 +183,85 @@ def reduced_table(run: Run, params: dict[str, Any]) -> dict[str, np.ndarray]:
 
 THERMAL_SIGMA_C = 0.5  # expected model + thermocouple error, °C
 THERMAL_PRIOR_FACTOR = 3.0  # a prior is believed to within this factor (one sigma)
+#: One-sigma relative uncertainty of the heat capacities a datasheet implies: oil fill
+#: ±2 %, the oil's density and specific heat ±3 %, steel mass ±1 %, its specific heat ±3 %.
+DATASHEET_CAPACITY_SD_REL = 0.05
+TC_LAG_PRIOR_S = 5.0  # a surface thermocouple's lag: seconds to tens of seconds (factor 3)
+TC_GAIN_BOUNDS = (0.5, 1.0)  # a surface sensor reads at most the tube's rise above the air
+#: The thermal model's heat balance (SPEC §3.2) and the shock thermocouple's model (tc_*).
+TC_NAMES = ["tc_lag_s", "tc_gain"]
+
+
+def heat_balance(thermal: dict[str, float]) -> Any:
+    """The node model (``shocktwin.ThermalModel``) of a physics.json ``thermal`` part."""
+    return shocktwin.ThermalModel(**{k: thermal[k] for k in THERMAL_NAMES})
+
+
+def thermocouple_reading(tab: dict[str, np.ndarray], cyl: np.ndarray, gain: float, lag_s: float) -> np.ndarray:
+    """What the shock thermocouple reads with the cylinder at ``cyl`` (the pipeline's
+    ``thermocouple_model_c``): ``T_amb + κ (T_cyl − T_amb) + (1 − κ) (T_shock,0 − T_amb,0)``
+    through a first-order lag ``lag_s``, starting at the first shock reading."""
+    amb = tab["temp_ambient_c"]
+    shock = tab["temp_shock_c"]
+    first = np.flatnonzero(np.isfinite(shock) & np.isfinite(amb))
+    k0 = first[0] if len(first) else 0
+    target = amb + gain * (cyl - amb) + (1.0 - gain) * (shock[k0] - amb[k0])
+    if lag_s <= 0:
+        return target
+    a = np.exp(-np.median(np.diff(tab["t_s"])) / lag_s)
+    read = target.copy()
+    read[k0:] = lfilter([1.0 - a], [1.0, -a], target[k0:] - target[k0]) + target[k0]
+    return read
 
 
 def thermal_residuals(
-    theta: np.ndarray, tabs: Sequence[dict[str, np.ndarray]], stride: int, theta0: np.ndarray
+    theta: np.ndarray, names: Sequence[str], fixed: dict[str, float], tabs: Sequence[dict[str, np.ndarray]],
+    stride: int, theta0: np.ndarray, prior_sd: np.ndarray,
 ) -> np.ndarray:
-    """Temperature residuals (in units of ``THERMAL_SIGMA_C``) and the log-normal prior terms.
+    """Thermocouple residuals (in units of ``THERMAL_SIGMA_C``) and the log-normal prior terms.
 
-    Only the cylinder temperature is measured: the split of the heat capacity between oil
-    and cylinder, and of the conductances, is weakly identified on its own. The priors
-    (``shocktwin.default_params``, a typical damper's oil and steel masses) make the fit a
-    maximum a posteriori estimate instead of letting those parameters run to their bounds.
+    Only the tube's outside temperature is measured, through a thermocouple: the split of
+    the heat capacity between oil and cylinder, and of the conductances, is weakly
+    identified on its own, and a sensor that reads a fraction ``tc_gain`` of the tube's rise
+    is indistinguishable from a damper with ``1/tc_gain`` times the heat capacity. The
+    priors (``shocktwin.default_params``, or the datasheet's oil volume and steel mass,
+    believed to ``DATASHEET_CAPACITY_SD_REL``) make the fit a maximum a posteriori estimate.
     """
-    params = dict(zip(THERMAL_NAMES, np.exp(theta)))
-    model = shocktwin.ThermalModel(**params)
+    params = {**fixed, **dict(zip(names, np.exp(theta)))}
+    model = heat_balance(params)
     res = []
     for tab in tabs:
         power = np.nan_to_num(tab["force_n"] * tab["velocity_mps"])
         t0 = tab["temp_shock_c"][np.isfinite(tab["temp_shock_c"])][0]
         _, cyl = model.simulate(tab["t_s"], power, tab["temp_ambient_c"], t0, t0)
-        r = (cyl - tab["temp_shock_c"])[::stride]
+        read = thermocouple_reading(tab, cyl, params["tc_gain"], params["tc_lag_s"])
+        r = (read - tab["temp_shock_c"])[::stride]
         res.append(r[np.isfinite(r)] / THERMAL_SIGMA_C)
-    res.append((theta - theta0) / np.log(THERMAL_PRIOR_FACTOR))
+    res.append((theta - theta0) / prior_sd)
     return np.concatenate(res)
 
 
-def fit_thermal(tabs: Sequence[dict[str, np.ndarray]], prior: dict[str, float]) -> dict[str, float]:
-    theta0 = np.log([prior[n] for n in THERMAL_NAMES])
-    # Hard bounds: a factor of 30 either side of the prior.
+def fit_thermal(
+    tabs: Sequence[dict[str, np.ndarray]], prior: dict[str, float], capacities: dict[str, float] | None = None
+) -> dict[str, float]:
+    """The thermal model and the shock thermocouple's lag; with the datasheet's heat
+    capacities (``c_oil`` and ``c_cyl``) also the thermocouple's gain, otherwise that stays 1."""
+    capacities = capacities or {}
+    pinned = {"c_oil", "c_cyl"} <= set(capacities)
+    start = {**prior, **capacities, "tc_lag_s": TC_LAG_PRIOR_S, "tc_gain": 0.95}
+    names = THERMAL_NAMES + TC_NAMES[: 2 if pinned else 1]
+    fixed = {} if pinned else {"tc_gain": 1.0}
+    theta0 = np.log([start[n] for n in names])
+    sd = np.array([np.log1p(DATASHEET_CAPACITY_SD_REL) if n in capacities else np.log(THERMAL_PRIOR_FACTOR)
+                   for n in names])
+    # Hard bounds: a factor of 30 either side of the prior; the gain within its physical range, flat.
     lo, hi = theta0 - np.log(30.0), theta0 + np.log(30.0)
-    sol = least_squares(thermal_residuals, theta0, bounds=(lo, hi), args=(tabs, 50, theta0))
-    return dict(zip(THERMAL_NAMES, map(float, np.exp(sol.x))))
+    if pinned:
+        lo[-1], hi[-1] = np.log(TC_GAIN_BOUNDS)
+        sd[-1] = np.inf
+    sol = least_squares(thermal_residuals, theta0, bounds=(lo, hi),
+                        args=(names, fixed, tabs, 50, theta0, sd))
+    return {**fixed, **dict(zip(names, map(float, np.exp(sol.x))))}
 
 
 # ---------------------------------------------------------------------------------------
@@ -223,7 +272,7 @@ def fit_thermal(tabs: Sequence[dict[str, np.ndarray]], prior: dict[str, float]) 
 def oil_temperature(tab: dict[str, np.ndarray], thermal: dict[str, float]) -> np.ndarray:
     power = np.nan_to_num(tab["force_n"] * tab["velocity_mps"])
     t0 = tab["temp_shock_c"][np.isfinite(tab["temp_shock_c"])][0]
-    oil, _ = shocktwin.ThermalModel(**thermal).simulate(
+    oil, _ = heat_balance(thermal).simulate(
         tab["t_s"], power, tab["temp_ambient_c"], t0, t0
     )
     return oil
@@ -290,7 +339,10 @@ def evaluate(runs: Sequence[Run], params: dict[str, Any]) -> list[dict[str, Any]
             {
                 "run": run.name,
                 "frequency_hz": run.frequency_hz,
-                "temperature_rmse_c": rmse(tab["cyl_temp_model_c"] - tab["temp_shock_c"]),
+                # the thermocouple against what the model says it reads (tc_gain, tc_lag_s)
+                "temperature_rmse_c": rmse(thermocouple_reading(
+                    tab, tab["cyl_temp_model_c"], params["thermal"].get("tc_gain", 1.0),
+                    params["thermal"].get("tc_lag_s", 0.0)) - tab["temp_shock_c"]),
                 "force_rmse_n": rmse(tab["force_model_n"] - tab["force_n"]),
                 "velocity_rmse_mps": velocity_rmse(run, params),
             }
@@ -438,14 +490,15 @@ class PiecewiseLinearDamping:
 
 
 def fit_models(
-    runs: Sequence[Run], base: dict[str, Any], fixed: Sequence[str]
+    runs: Sequence[Run], base: dict[str, Any], fixed: Sequence[str], capacities: dict[str, float] | None = None
 ) -> tuple[dict[str, Any], list[dict[str, np.ndarray]]]:
-    """Steps 1–3 on ``runs``: Kalman noise, thermal model, force model. Returns the
-    parameters and the runs' tables (with the fitted Kalman filter, prior thermal/force)."""
+    """Steps 1–3 on ``runs``: Kalman noise, thermal model (with the datasheet's heat
+    ``capacities`` as its prior), force model. Returns the parameters and the runs' tables
+    (with the fitted Kalman filter, prior thermal/force)."""
     params: dict[str, Any] = {k: dict(v) for k, v in base.items()}
     params["kalman"] = fit_kalman(runs, params["kalman"])
     tabs = [table(run, params) for run in progress(runs, desc="features", unit="run")]
-    params["thermal"] = fit_thermal(tabs, params["thermal"])
+    params["thermal"] = fit_thermal(tabs, params["thermal"], capacities)
     oils = [oil_temperature(tab, params["thermal"]) for tab in tabs]
     params["force"] = fit_force(tabs, oils, params["force"], fixed)
     return params, tabs
@@ -456,7 +509,9 @@ def _force_pairs(tab: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return tab["velocity_mps"][ok], tab["force_n"][ok]
 
 
-def held_out_comparison(runs: Sequence[Run], base: dict[str, Any], fixed: Sequence[str]) -> dict[str, Any]:
+def held_out_comparison(
+    runs: Sequence[Run], base: dict[str, Any], fixed: Sequence[str], capacities: dict[str, float] | None = None
+) -> dict[str, Any]:
     """Physics force model vs :class:`PiecewiseLinearDamping`, leave one nominal run out.
 
     Each fold fits steps 1–3 and the baseline on the other nominal runs only; on the left-out
@@ -470,7 +525,7 @@ def held_out_comparison(runs: Sequence[Run], base: dict[str, Any], fixed: Sequen
     folds, se_phys, se_base = [], [], []
     for k, run in enumerate(runs):
         train = [r for i, r in enumerate(runs) if i != k]
-        params, tabs = fit_models(train, base, fixed)
+        params, tabs = fit_models(train, base, fixed, capacities)
         pairs = [_force_pairs(tab) for tab in tabs]
         baseline = PiecewiseLinearDamping.fit(np.concatenate([v for v, _ in pairs]),
                                               np.concatenate([f for _, f in pairs]))
@@ -535,12 +590,17 @@ def calibrate(
     base["force"].update(geometry)
     started = time.perf_counter()
 
-    params, _ = fit_models(runs, base, fixed=list(geometry))
+    capacities = dict(datasheet.heat_capacities) if datasheet else {}
+    if not {"c_oil", "c_cyl"} <= set(capacities):
+        log.warning("no oil volume and steel mass in a datasheet: the thermal model's heat capacities keep "
+                    "their loose priors and the shock thermocouple is taken to read the tube (tc_gain 1); "
+                    "the modelled oil can then run tens of kelvin hot")
+    params, _ = fit_models(runs, base, fixed=list(geometry), capacities=capacities)
     log.info("Kalman noise: %s", params["kalman"])
     log.info("thermal: %s", params["thermal"])
     log.info("force: %s", params["force"])
     per_run = evaluate(runs, params)
-    comparison = held_out_comparison(runs, base, fixed=list(geometry))
+    comparison = held_out_comparison(runs, base, fixed=list(geometry), capacities=capacities)
     elapsed = time.perf_counter() - started
     return {
         "format": PHYSICS_FORMAT,
@@ -582,6 +642,10 @@ def print_report(physics: dict[str, Any]) -> None:
         v = row["velocity_rmse_mps"]
         print(f"{row['run']:<32} {row['temperature_rmse_c']:>12.2f} {row['force_rmse_n']:>11.1f} "
               f"{'n/a' if v is None else f'{v:.4f}':>13}")
+    th = physics["thermal"]
+    print(f"thermal model: c_oil {th['c_oil']:.0f} J/K, c_cyl {th['c_cyl']:.0f} J/K, ha_in {th['ha_in']:.1f} W/K, "
+          f"ha_out {th['ha_out']:.2f} W/K; shock thermocouple reads {th.get('tc_gain', 1.0):.2f} of the tube's "
+          f"rise, lag {th.get('tc_lag_s', 0.0):.1f} s")
     geo = physics.get("geometry") or {}
     if geo.get("fixed"):
         print(f"geometry from {geo['source']}: " + ", ".join(f"{k} = {v:.6g}" for k, v in geo["fixed"].items()))

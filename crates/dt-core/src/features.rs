@@ -44,7 +44,10 @@
 //!   [`TwinState::velocity_rms_1s_mps`], m/s.
 //! - `temp_resid_c`: `temp_shock_c − cyl_temp_model_c`, °C: how far the
 //!   measured temperature is from the nominal thermal model (less damping
-//!   force, less heat).
+//!   force, less heat). With a calibrated thermocouple model (`tc_gain`,
+//!   `tc_lag_s` in the thermal parameters, an extension of SPEC §3.2) the
+//!   model side is what the thermocouple should read instead of
+//!   `cyl_temp_model_c` (`FeaturePipeline::thermocouple_model_c`).
 //! - `temp_resid_rate_cps`: `(temp_resid_c(t_k) − temp_resid_c(t_k − 10 s)) /
 //!   10 s` (500 ticks back), °C/s; NaN until 10 s of history.
 //! - `force_resid_mean_n`: mean over the last 1 s (50 ticks, NaN ticks
@@ -942,6 +945,12 @@ pub struct FeaturePipeline {
     thermal: Option<ThermalState>,
     prev_power_w: f64,
     prev_ambient_c: f64,
+    /// The shock thermocouple as modelled (`tc_gain`, `tc_lag_s`): its
+    /// offset against the ambient when the thermal model started and its
+    /// lagged reading, °C. `None` before the model starts (and in a
+    /// checkpoint written before it existed: restarted then).
+    #[serde(default)]
+    tc_model: Option<(f64, f64)>,
 
     #[serde(with = "serde_big_array::BigArray")]
     v_sq: [f64; EXCITATION_WINDOW_TICKS],
@@ -1013,6 +1022,7 @@ impl FeaturePipeline {
             first_shock_c: f64::NAN,
             truth_bar: f64::NAN,
             thermal: None,
+            tc_model: None,
             prev_power_w: 0.0,
             prev_ambient_c: f64::NAN,
             v_sq: [f64::NAN; EXCITATION_WINDOW_TICKS],
@@ -1219,6 +1229,35 @@ impl FeaturePipeline {
     /// Pushes the tick's within-tick `a_rel` variance, temperature residual
     /// and force residual into the causal windows of the `signature` and
     /// `residual` groups (this tick and the ones before it only); returns
+    /// What the shock thermocouple should read with the cylinder at `cyl_c`
+    /// (°C): `T_amb + κ (T_cyl − T_amb) + (1 − κ) (T_shock,0 − T_amb,0)`
+    /// through a first-order lag of `tc_lag_s`, with `T_amb` the ambient
+    /// thermocouple (the first shock reading without one). With the SPEC's
+    /// κ = 1 and no lag it is `cyl_c` exactly.
+    fn thermocouple_model_c(&mut self, cyl_c: f64) -> f64 {
+        let p = *self.thermal_model.params();
+        if (p.tc_gain == 1.0 && p.tc_lag_s == 0.0) || cyl_c.is_nan() {
+            return cyl_c;
+        }
+        let ambient_c = if self.temp_ambient_c.is_nan() {
+            self.first_shock_c
+        } else {
+            self.temp_ambient_c
+        };
+        let (offset_c, last_c) = *self
+            .tc_model
+            .get_or_insert((self.first_shock_c - ambient_c, f64::NAN));
+        let target_c =
+            ambient_c + p.tc_gain * (cyl_c - ambient_c) + (1.0 - p.tc_gain) * offset_c;
+        let reading_c = if last_c.is_nan() || p.tc_lag_s == 0.0 {
+            target_c
+        } else {
+            last_c + (1.0 - (-TICK_S / p.tc_lag_s).exp()) * (target_c - last_c)
+        };
+        self.tc_model = Some((offset_c, reading_c));
+        reading_c
+    }
+
     /// `[accel_hf_rms_mps2, temp_resid_c, temp_resid_rate_cps,
     /// force_resid_mean_n, force_resid_rms_n]`.
     fn window_columns(&mut self, acc_var: f64, temp_resid_c: f64, force_resid_n: f64) -> [f64; 5] {
@@ -1286,8 +1325,9 @@ impl FeaturePipeline {
             .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
         let velocity_rms_1s_mps = if n > 0.0 { (sum / n).sqrt() } else { f64::NAN };
 
+        let tc_model_c = self.thermocouple_model_c(cyl_c);
         let [accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] =
-            self.window_columns(acc_var, self.temp_shock_c - cyl_c, force_n - fb.total_n);
+            self.window_columns(acc_var, self.temp_shock_c - tc_model_c, force_n - fb.total_n);
 
         let mut values = [
             force_n,
@@ -2082,6 +2122,43 @@ mod tests {
         }
         // The thermocouple rises 0.05 °C/s, the model otherwise: not zero.
         assert!(rate[699].abs() > 1e-3, "{}", rate[699]);
+    }
+
+    #[test]
+    fn temp_resid_reads_the_model_through_the_thermocouple_gain_and_lag() {
+        let log = synth_log(14, TopicSet::all());
+        let mut params = PhysicsParams::default();
+        params.thermal.tc_gain = 0.9;
+        let groups = [Group::Thermal, Group::Signature];
+        let table = compute_features(&log, &params, &groups).unwrap();
+        let col = |name| table.column(name).unwrap();
+        let (shock, amb, cyl, resid) = (
+            col("temp_shock_c"),
+            col("temp_ambient_c"),
+            col("cyl_temp_model_c"),
+            col("temp_resid_c"),
+        );
+        // The model starts at row 12 from the shock reading there; the
+        // offset against the ambient at that row is carried unchanged.
+        let offset = shock[12] - amb[12];
+        for k in 12..700 {
+            let reading = amb[k] + 0.9 * (cyl[k] - amb[k]) + 0.1 * offset;
+            assert!((resid[k] - (shock[k] - reading)).abs() < 1e-9, "row {k}");
+        }
+        // A lag of 2 s: a first-order filter of that reading, tick by tick.
+        params.thermal.tc_lag_s = 2.0;
+        let lagged = compute_features(&log, &params, &groups).unwrap();
+        let resid_lag = lagged.column("temp_resid_c").unwrap();
+        let a = 1.0 - (-TICK_S / 2.0f64).exp();
+        let mut reading = shock[12];
+        for k in 12..700 {
+            let target = amb[k] + 0.9 * (cyl[k] - amb[k]) + 0.1 * offset;
+            if k > 12 {
+                reading += a * (target - reading);
+            }
+            assert!((resid_lag[k] - (shock[k] - reading)).abs() < 1e-9, "row {k}");
+        }
+        assert!((resid_lag[699] - resid[699]).abs() > 1e-4, "the lag shows");
     }
 
     #[test]

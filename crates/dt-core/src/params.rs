@@ -102,6 +102,24 @@ pub struct ThermalParams {
     /// Prior 2.3e-9 W/K⁴: ε ≈ 0.8 (painted steel) × σ = 5.67e-8 W/(m² K⁴)
     /// × 0.05 m².
     pub eps_sigma_a: f64,
+    /// The shock thermocouple's contact gain κ (dimensionless, 0 < κ ≤ 1 for a
+    /// surface sensor): it reads `T_amb + κ (T_cyl − T_amb)` plus the offset it
+    /// had against the ambient thermocouple when the model started, because
+    /// a sensor taped to the tube loses heat to the air through its leads.
+    /// An extension of SPEC §3.2 (default 1: the reading is `T_cyl`). It
+    /// does not enter the heat balance, only `temp_resid_c`; calibration
+    /// needs it because with κ = 1 the fit pays for a sensor that reads low
+    /// with an oil node that runs hot.
+    #[serde(default = "unit_gain")]
+    pub tc_gain: f64,
+    /// First-order lag of the shock thermocouple, s (default 0: none).
+    /// Like `tc_gain`, only in `temp_resid_c`.
+    #[serde(default)]
+    pub tc_lag_s: f64,
+}
+
+fn unit_gain() -> f64 {
+    1.0
 }
 
 impl Default for ThermalParams {
@@ -112,6 +130,8 @@ impl Default for ThermalParams {
             ha_in: 10.0,
             ha_out: 2.5,
             eps_sigma_a: 2.3e-9,
+            tc_gain: 1.0,
+            tc_lag_s: 0.0,
         }
     }
 }
@@ -124,7 +144,9 @@ impl ThermalParams {
         positive("c_cyl", self.c_cyl)?;
         non_negative("ha_in", self.ha_in)?;
         non_negative("ha_out", self.ha_out)?;
-        non_negative("eps_sigma_a", self.eps_sigma_a)
+        non_negative("eps_sigma_a", self.eps_sigma_a)?;
+        positive("tc_gain", self.tc_gain)?;
+        non_negative("tc_lag_s", self.tc_lag_s)
     }
 }
 

@@ -157,6 +157,7 @@ mod tests {
             ha_in: 8.0,
             ha_out: 3.0,
             eps_sigma_a: 0.0,
+            ..ThermalParams::default()
         }
     }
 
@@ -304,7 +305,7 @@ mod tests {
             oil0 in -20.0..120.0f64,
             cyl0 in -20.0..120.0f64,
         ) {
-            let p = ThermalParams { c_oil, c_cyl, ha_in, ha_out: 0.0, eps_sigma_a: 0.0 };
+            let p = ThermalParams { c_oil, c_cyl, ha_in, ha_out: 0.0, eps_sigma_a: 0.0, ..ThermalParams::default() };
             let model = ThermalModel::new(p);
             let mut s = ThermalState { oil_c: oil0, cyl_c: cyl0 };
             let mut heat_in = 0.0;

@@ -15,7 +15,9 @@ use crate::gil::without_gil;
 ///
 /// Keyword-only parameters ``c_oil``, ``c_cyl`` (J/K), ``ha_in``, ``ha_out``
 /// (W/K), ``eps_sigma_a`` (W/K⁴); each defaults to dt-core's prior
-/// (``default_params()["thermal"]``).
+/// (``default_params()["thermal"]``). ``tc_gain`` and ``tc_lag_s`` (the shock
+/// thermocouple's model: what it reads of the cylinder, and its lag) are
+/// kept with them but do not enter the heat balance ``simulate`` integrates.
 ///
 /// >>> import shocktwin
 /// >>> model = shocktwin.ThermalModel(c_oil=500.0, c_cyl=700.0, ha_in=10.0, ha_out=2.5, eps_sigma_a=0.0)
@@ -37,14 +39,27 @@ impl PyThermalModel {
         ha_in = ThermalParams::default().ha_in,
         ha_out = ThermalParams::default().ha_out,
         eps_sigma_a = ThermalParams::default().eps_sigma_a,
+        tc_gain = ThermalParams::default().tc_gain,
+        tc_lag_s = ThermalParams::default().tc_lag_s,
     ))]
-    fn new(c_oil: f64, c_cyl: f64, ha_in: f64, ha_out: f64, eps_sigma_a: f64) -> PyResult<Self> {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        c_oil: f64,
+        c_cyl: f64,
+        ha_in: f64,
+        ha_out: f64,
+        eps_sigma_a: f64,
+        tc_gain: f64,
+        tc_lag_s: f64,
+    ) -> PyResult<Self> {
         let params = ThermalParams {
             c_oil,
             c_cyl,
             ha_in,
             ha_out,
             eps_sigma_a,
+            tc_gain,
+            tc_lag_s,
         };
         params.validate().map_err(CoreError::from)?;
         Ok(Self {
@@ -86,6 +101,8 @@ impl PyThermalModel {
         out.set_item("ha_in", p.ha_in)?;
         out.set_item("ha_out", p.ha_out)?;
         out.set_item("eps_sigma_a", p.eps_sigma_a)?;
+        out.set_item("tc_gain", p.tc_gain)?;
+        out.set_item("tc_lag_s", p.tc_lag_s)?;
         Ok(out)
     }
 
