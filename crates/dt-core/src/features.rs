@@ -1247,8 +1247,7 @@ impl FeaturePipeline {
         let (offset_c, last_c) = *self
             .tc_model
             .get_or_insert((self.first_shock_c - ambient_c, f64::NAN));
-        let target_c =
-            ambient_c + p.tc_gain * (cyl_c - ambient_c) + (1.0 - p.tc_gain) * offset_c;
+        let target_c = ambient_c + p.tc_gain * (cyl_c - ambient_c) + (1.0 - p.tc_gain) * offset_c;
         let reading_c = if last_c.is_nan() || p.tc_lag_s == 0.0 {
             target_c
         } else {
@@ -1326,8 +1325,12 @@ impl FeaturePipeline {
         let velocity_rms_1s_mps = if n > 0.0 { (sum / n).sqrt() } else { f64::NAN };
 
         let tc_model_c = self.thermocouple_model_c(cyl_c);
-        let [accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] =
-            self.window_columns(acc_var, self.temp_shock_c - tc_model_c, force_n - fb.total_n);
+        let [accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] = self
+            .window_columns(
+                acc_var,
+                self.temp_shock_c - tc_model_c,
+                force_n - fb.total_n,
+            );
 
         let mut values = [
             force_n,
@@ -2156,7 +2159,10 @@ mod tests {
             if k > 12 {
                 reading += a * (target - reading);
             }
-            assert!((resid_lag[k] - (shock[k] - reading)).abs() < 1e-9, "row {k}");
+            assert!(
+                (resid_lag[k] - (shock[k] - reading)).abs() < 1e-9,
+                "row {k}"
+            );
         }
         assert!((resid_lag[699] - resid[699]).abs() > 1e-4, "the lag shows");
     }
