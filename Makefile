@@ -15,6 +15,8 @@ CARGO_PROFILE := --release
 BIN      := target/release/shocktwin
 OUT      ?= out
 CAMPAIGN ?= $(OUT)/campaign
+# The simulated damper's datasheet (rod, gas volume, oil volume, steel mass): calibration holds them.
+DATASHEET ?= docs/datasheet.example.toml
 
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py crates/workspace-hack -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
@@ -53,17 +55,18 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
 	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
-	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures
-	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json
+	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures --datasheet $(DATASHEET) --nominal-bar 12
+	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --datasheet $(DATASHEET)
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
-	@echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures, dashboard $(OUT)/serve-demo/dashboard.png (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
+	@shot=$(OUT)/serve-demo/dashboard.png; [ -f $$shot ] || shot="not taken (no chromium)"; \
+	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
 
 study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)
 	rm -rf $(OUT)/full-campaign
 	$(BIN) simulate --out $(OUT)/full-campaign
-	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --out docs/study
+	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --out docs/study --datasheet $(DATASHEET)
 
 test-rust: ## Rust unit and integration tests
 	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py

@@ -525,6 +525,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--shocktwin", default=os.environ.get("SHOCKTWIN_BIN", "target/release/shocktwin"),
                    help="the shocktwin binary (for simulating the generalisation sets)")
     p.add_argument("--bundles", default="12,13,16,18", help="permutations to export as model bundles")
+    p.add_argument("--datasheet", type=Path,
+                   help="the damper's datasheet for the calibration when --physics is not given "
+                        "(docs/datasheet.example.toml: geometry, oil volume, steel mass)")
     args = p.parse_args(argv)
     started = time.perf_counter()
     cfg = settings(args.quick, args.seed, args.jobs)
@@ -537,7 +540,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.physics:
         physics = json.loads(args.physics.read_text())
     else:
-        physics = calibrate(campaign)
+        from train.datasheet import load_datasheet
+
+        physics = calibrate(campaign, datasheet=load_datasheet(args.datasheet) if args.datasheet else None)
         print_report(physics)
     (args.out / "physics.json").write_text(json.dumps(physics, indent=2) + "\n")
     save_figures(campaign.nominal(physics.get("nominal_bar", 12.0)), physics, args.out)
