@@ -1226,9 +1226,6 @@ impl FeaturePipeline {
         self.pending_a2 = f64::NAN;
     }
 
-    /// Pushes the tick's within-tick `a_rel` variance, temperature residual
-    /// and force residual into the causal windows of the `signature` and
-    /// `residual` groups (this tick and the ones before it only); returns
     /// What the shock thermocouple should read with the cylinder at `cyl_c`
     /// (°C): `T_amb + κ (T_cyl − T_amb) + (1 − κ) (T_shock,0 − T_amb,0)`
     /// through a first-order lag of `tc_lag_s`, with `T_amb` the ambient
@@ -1257,6 +1254,9 @@ impl FeaturePipeline {
         reading_c
     }
 
+    /// Pushes the tick's within-tick `a_rel` variance, temperature residual
+    /// and force residual into the causal windows of the `signature` and
+    /// `residual` groups (this tick and the ones before it only); returns
     /// `[accel_hf_rms_mps2, temp_resid_c, temp_resid_rate_cps,
     /// force_resid_mean_n, force_resid_rms_n]`.
     fn window_columns(&mut self, acc_var: f64, temp_resid_c: f64, force_resid_n: f64) -> [f64; 5] {
