@@ -79,7 +79,11 @@ def test_properties_are_twin_json():
     assert bundle.groups == perm["groups"]
     assert bundle.permutation == perm
     assert bundle.columns == [c for g in perm["groups"] for c in shocktwin.group_columns(g)]
-    assert bundle.physics == {k: twin["physics"][k] for k in ("kalman", "thermal", "force")}
+    # parameters added since the bundle was written (the thermocouple's tc_gain, tc_lag_s)
+    # read as their defaults, which reproduce the older model exactly
+    defaults = shocktwin.default_params()
+    assert bundle.physics == {k: {**defaults[k], **twin["physics"][k]} for k in ("kalman", "thermal", "force")}
+    assert set(bundle.physics["thermal"]) - set(twin["physics"]["thermal"]) == {"tc_gain", "tc_lag_s"}
     assert bundle.nominal_bar == twin["nominal_bar"]
     assert bundle.health == twin["health"]
     got = bundle.twin

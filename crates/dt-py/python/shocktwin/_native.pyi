@@ -84,6 +84,8 @@ class ThermalModel:
         ha_in: float = ...,
         ha_out: float = ...,
         eps_sigma_a: float = ...,
+        tc_gain: float = ...,
+        tc_lag_s: float = ...,
     ) -> ThermalModel: ...
     def simulate(
         self, t_s: _ArrayLike, power_w: _ArrayLike, ambient_c: _ArrayLike, oil0_c: float, cyl0_c: float
