@@ -128,12 +128,16 @@ def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str
 
 
 def fit_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
-                    max_nfev: int = 200) -> dict[str, Any]:
+                    max_nfev: int = 200, beta_per_k: float | None = None) -> dict[str, Any]:
     """The law that fits every window at once (scipy ``least_squares``, TRF with a sparse
     Jacobian, soft-L1 loss): the law shared, per window the friction amplitude, the time
     shift and the offset; the law's per-side scales held at 1 — the window model as the
-    observer runs it (``shocktwin.reversal_window``). Returns the law (``law_dict``), the
-    residual RMS and the per-window amplitudes and residuals."""
+    observer runs it (``shocktwin.reversal_window``). ``beta_per_k``: the viscosity
+    coefficient held at the oil's datasheet value (``Datasheet.viscosity_coefficient_per_k``)
+    instead of fitted — fitted, it trades against the knees the family cannot move and
+    lands where the oil does not (0.073 /K on the full campaign, for an oil of 0.030).
+    Returns the law (``law_dict``), the residual RMS and the per-window amplitudes and
+    residuals."""
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
 
@@ -165,11 +169,13 @@ def fit_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], 
     slope = float(np.median([w["slope_nspm"] for w in windows]))
     c0 = np.zeros(n_law)
     c0[0] = c0[N_COEF] = 0.5 * slope
-    c0[-1] = BETA_START
+    c0[-1] = BETA_START if beta_per_k is None else beta_per_k
     z0 = np.concatenate([c0 / scale] + [np.array([max(w["alpha0"], 5.0) / 10.0, 0.0, float(np.mean(w["a2"][:5]))])
                                         for w in windows])
     lower = np.concatenate([np.full(2 * N_COEF, -np.inf), [BETA_MIN / 0.01]] + [np.array([0.0, -10.0, -np.inf])] * n)
     upper = np.concatenate([np.full(2 * N_COEF, np.inf), [10.0]] + [np.array([np.inf, 10.0, np.inf])] * n)
+    if beta_per_k is not None:  # held: a band of 1e-6 relative (least_squares needs lower < upper)
+        lower[n_law - 1], upper[n_law - 1] = beta_per_k / 0.01 * (1.0 - 1e-6), beta_per_k / 0.01 * (1.0 + 1e-6)
     sol = least_squares(model, np.clip(z0, lower + 1e-9, upper - 1e-9), jac_sparsity=sparsity,
                         bounds=(lower, upper), x_scale="jac", loss="soft_l1", f_scale=0.3,
                         max_nfev=max_nfev)

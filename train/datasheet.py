@@ -7,7 +7,8 @@ whatever unit the workshop uses, and its geometry from the datasheet.
   ``docs/datasheet.example.toml``): the geometric constants of the force model
   (SPEC §3.3 ``a_rod``, ``v_gas``), which calibration then holds fixed instead of
   fitting them, optionally the nominal charge, and the oil volume and steel mass
-  that give the thermal model's heat capacities (``c_oil``, ``c_cyl``) a physical prior.
+  that give the thermal model's heat capacities (``c_oil``, ``c_cyl``) a physical prior,
+  and the oil's two viscosities that fix how fast the observer's damping law thins with heat.
 
 Errors are ``ValueError`` with a message that names the value, key or file at fault.
 """
@@ -78,6 +79,11 @@ DATASHEET_KEYS: dict[str, dict[str, tuple[str, str]]] = {
         "steel_mass_kg": ("kg", "steel of the tubes, rod, piston and end caps (the damper without oil): "
                                 "c_cyl = m · 480 J/(kg K)"),
     },
+    "oil": {
+        "viscosity_40c_cst": ("mm²/s", "kinematic viscosity of the damping oil at 40 °C (cSt)"),
+        "viscosity_100c_cst": ("mm²/s", "kinematic viscosity at 100 °C (cSt); with the 40 °C value it "
+                                        "fixes the oil's ASTM D341 (Walther) line"),
+    },
 }
 
 #: Textbook properties that turn a datasheet's oil volume and steel mass into heat
@@ -99,6 +105,9 @@ class Datasheet:
     geometry: dict[str, float] = field(default_factory=dict)
     #: Heat capacities it implies (``c_oil``, ``c_cyl``, J/K): priors of the thermal fit.
     heat_capacities: dict[str, float] = field(default_factory=dict)
+    #: How fast the oil thins at 40 °C, ``−d ln ν / dT`` (1/K), from its two viscosities
+    #: (:func:`walther_coefficient_per_k`): the observer's damping law holds it (None: fitted).
+    viscosity_coefficient_per_k: float | None = None
     #: The file's tables as read (recorded in physics.json).
     values: dict[str, Any] = field(default_factory=dict)
 
@@ -158,4 +167,31 @@ def load_datasheet(path: str | Path) -> Datasheet:
     if "steel_mass_kg" in thermal:
         mass_kg = _positive(path, "thermal", "steel_mass_kg", thermal["steel_mass_kg"])
         sheet.heat_capacities["c_cyl"] = mass_kg * STEEL_CP_J_PER_KGK
+
+    oil = raw.get("oil", {})
+    if oil:
+        missing = [k for k in DATASHEET_KEYS["oil"] if k not in oil]
+        if missing:
+            raise ValueError(f"{path}: [oil] needs both viscosities; {', '.join(missing)} is missing")
+        nu40, nu100 = (_positive(path, "oil", k, oil[k]) for k in DATASHEET_KEYS["oil"])
+        if nu100 >= nu40:
+            raise ValueError(f"{path}: [oil] viscosity_100c_cst = {nu100:g} is not below viscosity_40c_cst "
+                             f"= {nu40:g}: an oil thins as it heats")
+        sheet.viscosity_coefficient_per_k = walther_coefficient_per_k(nu40, nu100)
     return sheet
+
+
+def walther_coefficient_per_k(nu40_cst: float, nu100_cst: float, temp_c: float = 40.0) -> float:
+    """``−d ln ν / dT`` (1/K) at ``temp_c`` on the oil's viscosity–temperature line of ASTM D341
+    (Walther): ``log10 log10(ν + 0.7) = A − B log10 T`` through the two datasheet viscosities
+    (cSt, at 40 and 100 °C; T in kelvin).
+
+    >>> round(walther_coefficient_per_k(15.0, 4.0), 4)   # an ISO VG 15 damper oil: 3 %/K
+    0.0303
+    """
+    t40, t100, t = 313.15, 373.15, temp_c + 273.15
+    z40, z100 = (math.log10(math.log10(nu + 0.7)) for nu in (nu40_cst, nu100_cst))
+    b = (z40 - z100) / (math.log10(t100) - math.log10(t40))
+    loglog = z40 - b * (math.log10(t) - math.log10(t40))
+    nu = 10.0 ** (10.0 ** loglog) - 0.7
+    return b * 10.0 ** loglog * (nu + 0.7) * math.log(10.0) / (t * nu)

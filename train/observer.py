@@ -293,10 +293,11 @@ def residual_cut(revs: Sequence[dict[str, Any]], cal: dict[str, Any]) -> float:
 
 
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
-                   per_run: int, min_span_k: float) -> dict[str, Any] | None:
+                   per_run: int, min_span_k: float, beta_per_k: float | None = None) -> dict[str, Any] | None:
     """The window model's damping law, fitted on the nominal runs' reversal windows
-    (``train.damping_law``); None (with the reason) without nominal windows or when they
-    span less than ``min_span_k`` of oil temperature."""
+    (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
+    datasheet, held); None (with the reason) without nominal windows or when they span less
+    than ``min_span_k`` of oil temperature."""
     from train.damping_law import LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_windows, reversal_windows
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
@@ -315,10 +316,11 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     if span < LAW_MIN_TEMP_SPAN_K:
         log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
                     "is poorly determined", span)
-    fit = fit_law_windows(wins, physics, obs)
+    fit = fit_law_windows(wins, physics, obs, beta_per_k=beta_per_k)
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
           f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
-          f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K)")
+          f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
+          f"{'fitted' if beta_per_k is None else 'the datasheet oil'})")
     return fit["law"]
 
 
@@ -326,11 +328,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     campaign = load_campaign(args.campaign)
     obs = dict(shocktwin.default_observer_params())
+    beta_per_k = None
     if args.datasheet and args.datasheet.suffix == ".toml":
         # The same datasheet file as fit_physics (docs/datasheet.example.toml).
         from train.datasheet import load_datasheet
 
-        geometry = load_datasheet(args.datasheet).geometry
+        sheet = load_datasheet(args.datasheet)
+        geometry, beta_per_k = sheet.geometry, sheet.viscosity_coefficient_per_k
         obs.update({f"{k}_m2" if k == "a_rod" else f"{k}_m3": v for k, v in geometry.items()
                     if k in ("a_rod", "v_gas")})
     elif args.datasheet:
@@ -339,7 +343,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     cal, law = None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
-                             LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0)
+                             LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0, beta_per_k)
         if law is None and args.damping == "law":
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
     if law is not None:
@@ -491,7 +495,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--campaign", required=True, type=Path)
     f.add_argument("--physics", required=True, type=Path, help="physics.json from train.fit_physics")
     f.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
-    f.add_argument("--datasheet", type=Path, help="the damper's datasheet: TOML as for fit_physics (docs/datasheet.example.toml), or JSON with a_rod_m2 and v_gas_m3")
+    f.add_argument("--datasheet", type=Path, help="the damper's datasheet: TOML as for fit_physics (docs/datasheet.example.toml: geometry; [oil] holds the damping law's viscosity coefficient), or JSON with a_rod_m2 and v_gas_m3")
     f.add_argument("--unit-tolerance-pct", type=float, default=10.0,
                    help="one-sigma unit-to-unit tolerance of the seal friction (datasheet), %%")
     f.add_argument("--jobs", type=int, default=2)

@@ -10,11 +10,17 @@ and the law's thinning with the heat."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 from scipy.optimize import least_squares
 
 import shocktwin
 from train.damping_law import fit_law_windows, law
+from train.datasheet import load_datasheet
+
+ROOT = Path(__file__).resolve().parents[2]
 
 A_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "width_mps": 0.008,
          "viscous_nspm": [2500.0, 0, 0, 0, 0, 5000.0, 0, 0, 0],
@@ -22,11 +28,12 @@ A_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "w
 NOISE_MPS2 = 0.07  # the simulated body accelerometer's noise (README: the 1 Hz residual)
 
 
-def test_the_law_fitted_on_windows_gives_back_a_known_law() -> None:
+def synthetic_windows(law_: dict) -> tuple[list[dict], list[float]]:
+    """Windows of the observer's own model with the law ``law_`` at both excitations and four
+    oil temperatures, noisy, each with its amplitude (the fit starts 8 N off)."""
     rng = np.random.default_rng(7)
-    params = shocktwin.default_params()
     obs = dict(shocktwin.default_observer_params())
-    truth = {**params, "observer": {**obs, "damping_law": A_LAW}}
+    truth = {**shocktwin.default_params(), "observer": {**obs, "damping_law": law_}}
     times = np.arange(-obs["window_pre_s"], obs["window_post_s"] + 1e-9, 1e-3)
     windows, alphas = [], []
     for accel in (1.5, -1.5, 6.0, -6.0):
@@ -37,6 +44,15 @@ def test_the_law_fitted_on_windows_gives_back_a_known_law() -> None:
                             "a2": a2 + rng.normal(0.0, NOISE_MPS2, len(times)),
                             "slope_nspm": 2000.0, "alpha0": alpha - 8.0})
             alphas.append(alpha)
+    return windows, alphas
+
+
+def test_the_law_fitted_on_windows_gives_back_a_known_law() -> None:
+    params = shocktwin.default_params()
+    obs = dict(shocktwin.default_observer_params())
+    truth = {**params, "observer": {**obs, "damping_law": A_LAW}}
+    times = np.arange(-obs["window_pre_s"], obs["window_post_s"] + 1e-9, 1e-3)
+    windows, alphas = synthetic_windows(A_LAW)
     fit = fit_law_windows(windows, params, obs)
 
     # the windows fit to the noise
@@ -63,3 +79,36 @@ def test_the_law_fitted_on_windows_gives_back_a_known_law() -> None:
     # and it thins with the heat, as the known law does
     beta = fit["law"]["beta_per_k"]
     assert 0.5 * A_LAW["beta_per_k"] < beta < 2.0 * A_LAW["beta_per_k"], beta
+
+
+def test_the_oils_viscosity_coefficient_from_the_datasheet_is_held(tmp_path) -> None:
+    # the datasheet's two viscosities give the slope of the oil's ASTM D341 line at 40 °C;
+    # reference: the line fitted through the two points with numpy, differentiated numerically
+    sheet = tmp_path / "sheet.toml"
+    sheet.write_text("[oil]\nviscosity_40c_cst = 15.0\nviscosity_100c_cst = 4.0\n")
+    beta = load_datasheet(sheet).viscosity_coefficient_per_k
+    slope, icpt = np.polyfit(np.log10([313.15, 373.15]), np.log10(np.log10(np.array([15.0, 4.0]) + 0.7)), 1)
+    def nu(t_k: float) -> float:
+        return 10.0 ** (10.0 ** (icpt + slope * np.log10(t_k))) - 0.7
+    ref = -(np.log(nu(313.16)) - np.log(nu(313.14))) / 0.02
+    assert beta == pytest.approx(ref, rel=1e-6) and 0.025 < beta < 0.035
+    assert load_datasheet(ROOT / "docs" / "datasheet.example.toml").viscosity_coefficient_per_k == pytest.approx(beta)
+    for text, msg in (("viscosity_40c_cst = 15.0\n", "viscosity_100c_cst is missing"),
+                      ("viscosity_40c_cst = 4.0\nviscosity_100c_cst = 15.0\n", "an oil thins as it heats"),
+                      ("viscosity_40c_cst = 15.0\nviscosity_100c_cst = -4\n", "viscosity_100c_cst = -4: expected")):
+        sheet.write_text("[oil]\n" + text)
+        with pytest.raises(ValueError, match=msg):
+            load_datasheet(sheet)
+
+    # held in the fit: a law that thins at 0.045 /K, fitted with 0.030 given, keeps 0.030, where
+    # a free fit finds the law's own coefficient; both fit the windows to the noise (on
+    # these windows the viscous and dry slopes absorb the other coefficient: the windows
+    # alone hardly pin it, which is why the datasheet's value is worth holding)
+    law_ = {**A_LAW, "beta_per_k": 0.045}
+    windows, _ = synthetic_windows(law_)
+    params, obs = shocktwin.default_params(), dict(shocktwin.default_observer_params())
+    held = fit_law_windows(windows, params, obs, beta_per_k=0.030)
+    assert held["law"]["beta_per_k"] == pytest.approx(0.030, rel=1e-5)
+    free = fit_law_windows(windows, params, obs)
+    assert abs(free["law"]["beta_per_k"] - 0.045) < abs(held["law"]["beta_per_k"] - 0.045)
+    assert max(free["residual_rms_mps2"], held["residual_rms_mps2"]) < 1.5 * NOISE_MPS2
