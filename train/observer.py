@@ -313,7 +313,7 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
               f"({min(temps):.0f}-{max(temps):.0f} °C), under the {min_span_k:.0f} K its viscosity "
               "coefficient needs (runs that heat up do): linear damping slopes")
         return None
-    if span < LAW_MIN_TEMP_SPAN_K:
+    if span < LAW_MIN_TEMP_SPAN_K and beta_per_k is None:
         log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
                     "is poorly determined", span)
     fit = fit_law_windows(wins, physics, obs, beta_per_k=beta_per_k)
