@@ -83,6 +83,9 @@ DATASHEET_KEYS: dict[str, dict[str, tuple[str, str]]] = {
         "viscosity_40c_cst": ("mm²/s", "kinematic viscosity of the damping oil at 40 °C (cSt)"),
         "viscosity_100c_cst": ("mm²/s", "kinematic viscosity at 100 °C (cSt); with the 40 °C value it "
                                         "fixes the oil's ASTM D341 (Walther) line"),
+        "thermal_expansion_per_k": ("1/K", "volumetric thermal expansion of the oil (mineral oils "
+                                           "6.5–7.5e-4); with [thermal] oil_volume_cm3, how much gas "
+                                           "volume the heated oil takes"),
     },
 }
 
@@ -108,6 +111,9 @@ class Datasheet:
     #: How fast the oil thins at 40 °C, ``−d ln ν / dT`` (1/K), from its two viscosities
     #: (:func:`walther_coefficient_per_k`): the observer's damping law holds it (None: fitted).
     viscosity_coefficient_per_k: float | None = None
+    #: How much gas volume the oil takes per kelvin above 20 °C, ``V_oil β_oil`` (m³/K), from
+    #: ``[thermal] oil_volume_cm3`` and ``[oil] thermal_expansion_per_k`` (None: either is missing).
+    oil_expansion_m3_per_k: float | None = None
     #: The file's tables as read (recorded in physics.json).
     values: dict[str, Any] = field(default_factory=dict)
 
@@ -169,15 +175,23 @@ def load_datasheet(path: str | Path) -> Datasheet:
         sheet.heat_capacities["c_cyl"] = mass_kg * STEEL_CP_J_PER_KGK
 
     oil = raw.get("oil", {})
-    if oil:
-        missing = [k for k in DATASHEET_KEYS["oil"] if k not in oil]
+    viscosities = ("viscosity_40c_cst", "viscosity_100c_cst")
+    if any(k in oil for k in viscosities):
+        missing = [k for k in viscosities if k not in oil]
         if missing:
             raise ValueError(f"{path}: [oil] needs both viscosities; {', '.join(missing)} is missing")
-        nu40, nu100 = (_positive(path, "oil", k, oil[k]) for k in DATASHEET_KEYS["oil"])
+        nu40, nu100 = (_positive(path, "oil", k, oil[k]) for k in viscosities)
         if nu100 >= nu40:
             raise ValueError(f"{path}: [oil] viscosity_100c_cst = {nu100:g} is not below viscosity_40c_cst "
                              f"= {nu40:g}: an oil thins as it heats")
         sheet.viscosity_coefficient_per_k = walther_coefficient_per_k(nu40, nu100)
+    if "thermal_expansion_per_k" in oil:
+        expansion = _positive(path, "oil", "thermal_expansion_per_k", oil["thermal_expansion_per_k"])
+        if expansion > 5e-3:
+            raise ValueError(f"{path}: [oil] thermal_expansion_per_k = {expansion:g}: liquids expand "
+                             "by 1e-4 to 2e-3 per kelvin (mineral oil ≈ 7e-4); is it in 1/K?")
+        if "oil_volume_cm3" in thermal:
+            sheet.oil_expansion_m3_per_k = thermal["oil_volume_cm3"] * 1e-6 * expansion
     return sheet
 
 

@@ -67,9 +67,13 @@ WARN_BAR, FAULT_BAR, HYST_BAR, DWELL_S = 9.0, 5.0, 0.5, 3.0
 
 
 def theta(rev: dict[str, np.ndarray], obs: dict[str, float]) -> np.ndarray:
-    """Gas-pressure ratio ``(T / 293.15 K) (v_gas / (v_gas + a_rod y))^n`` per reversal."""
-    vol = obs["v_gas_m3"] / (obs["v_gas_m3"] + obs["a_rod_m2"] * rev["extension_m"])
-    return (rev["gas_temp_c"] + 273.15) / T_REF_K * vol ** obs["polytropic_n"]
+    """Gas-pressure ratio per reversal, ``(T / 293.15 K) (v_gas / V) (V / (V + a_rod y))^n`` with
+    ``V = v_gas − e (T − 20 °C)`` the gas volume the oil leaves as it expands (dt-core
+    ``charge::gas_ratio``)."""
+    t_c = rev["gas_temp_c"]
+    v_ref = obs["v_gas_m3"] - obs.get("oil_expansion_m3_per_k", 0.0) * (t_c - 20.0)
+    spring = (v_ref / (v_ref + obs["a_rod_m2"] * rev["extension_m"])) ** obs["polytropic_n"]
+    return (t_c + 273.15) / T_REF_K * obs["v_gas_m3"] / v_ref * spring
 
 
 def label_at(run: Run, t_s: np.ndarray) -> np.ndarray:
@@ -337,6 +341,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         geometry, beta_per_k = sheet.geometry, sheet.viscosity_coefficient_per_k
         obs.update({f"{k}_m2" if k == "a_rod" else f"{k}_m3": v for k, v in geometry.items()
                     if k in ("a_rod", "v_gas")})
+        if sheet.oil_expansion_m3_per_k is not None:
+            obs["oil_expansion_m3_per_k"] = sheet.oil_expansion_m3_per_k
     elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
     obs["window_sd"] = bool(args.window_sd)

@@ -126,16 +126,46 @@ def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, varian
     used = rev["used"] == 1.0
     assert used.sum() > 20
     mean, post_var = batch(used)
+    if variant == "stroke_ends":  # each end of the stroke from its own reversals; their average
+        (m1, v1), (m2, v2) = (batch(used & (np.sign(rev["accel_mps2"]) == s)) for s in (1, -1))
+        split = max((m1 - m2) ** 2 - v1 - v2, 0.0) / 4
+        assert split > 1.0, (m1, v1, m2, v2)
+        mean, post_var = (m1 + m2) / 2, (v1 + v2) / 4 + split
     x, cols, _ = shocktwin.features(run_4bar, params, ["observer"])
     final, sd = x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]
     assert abs(final - mean) < 1e-9 * max(1.0, abs(mean))
-    split = 0.0
-    if variant == "stroke_ends":  # each end of the stroke from all its fitted reversals, gate or not
-        (m1, v1), (m2, v2) = (batch(np.sign(rev["accel_mps2"]) == s) for s in (1, -1))
-        split = max((m1 - m2) ** 2 - v1 - v2, 0.0) / 4
-        assert split > 1.0, (m1, v1, m2, v2)
-    expect_sd = np.sqrt(post_var + o["systematic_sd_bar"] ** 2 + (o["systematic_rel"] * mean) ** 2 + split)
+    expect_sd = np.sqrt(post_var + o["systematic_sd_bar"] ** 2 + (o["systematic_rel"] * mean) ** 2)
     assert abs(sd - expect_sd) < 1e-9
+
+
+def test_the_heated_oils_expansion_in_the_gas_law(run_4bar: Path, tmp_path: Path) -> None:
+    # the datasheet's oil volume and expansion reach the observer, and the calibration's gas
+    # ratio (train.observer.theta, numpy) is the one the streaming observer applies (its b_r)
+    from train.datasheet import load_datasheet
+
+    sheet = load_datasheet(ROOT / "docs" / "datasheet.example.toml")
+    assert sheet.oil_expansion_m3_per_k == pytest.approx(360e-6 * 7e-4)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[thermal]\noil_volume_cm3 = 360\n[oil]\nthermal_expansion_per_k = 0.7\n")
+    with pytest.raises(ValueError, match="thermal_expansion_per_k = 0.7: liquids expand"):
+        load_datasheet(bad)
+    bad.write_text("[oil]\nthermal_expansion_per_k = 7e-4\n")  # without the oil volume: no term
+    assert load_datasheet(bad).oil_expansion_m3_per_k is None
+
+    params = observer_physics(oil_expansion_m3_per_k=sheet.oil_expansion_m3_per_k)
+    rev = shocktwin.charge_reversals(run_4bar, params)
+    o = params["observer"]
+    assert np.ptp(rev["gas_temp_c"]) > 5.0, "the run does not heat: nothing to check"
+    th = obs_tool.theta(rev, o)
+    np.testing.assert_allclose(rev["b_n_per_bar"], o["step_per_bar_n"] * th, rtol=1e-12)
+    # the ideal gas law written out: p V / T at y = 0, then p V^n about the heated volume
+    v = o["v_gas_m3"] - sheet.oil_expansion_m3_per_k * (rev["gas_temp_c"] - 20.0)
+    ref = ((rev["gas_temp_c"] + 273.15) / 293.15 * o["v_gas_m3"] / v
+           * (v / (v + o["a_rod_m2"] * rev["extension_m"])) ** o["polytropic_n"])
+    np.testing.assert_allclose(th, ref, rtol=1e-12)
+    plain = obs_tool.theta(rev, {**o, "oil_expansion_m3_per_k": 0.0})
+    hot = rev["gas_temp_c"] > 20.0
+    assert np.all(th[hot] > plain[hot])
 
 
 def test_no_look_ahead(run_4bar: Path, tmp_path: Path) -> None:

@@ -1231,6 +1231,8 @@ impl FeaturePipeline {
     /// through a first-order lag of `tc_lag_s`, with `T_amb` the ambient
     /// thermocouple (the first shock reading without one). With the SPEC's
     /// κ = 1 and no lag it is `cyl_c` exactly.
+    // The exact defaults mean "the SPEC's thermocouple": the cylinder itself.
+    #[allow(clippy::float_cmp)]
     fn thermocouple_model_c(&mut self, cyl_c: f64) -> f64 {
         let p = *self.thermal_model.params();
         if (p.tc_gain == 1.0 && p.tc_lag_s == 0.0) || cyl_c.is_nan() {
@@ -1269,6 +1271,23 @@ impl FeaturePipeline {
         self.force_resid.push(force_resid_n);
         let (mean, rms) = self.force_resid.mean_and_rms();
         [accel_hf_rms, temp_resid_c, temp_resid_rate, mean, rms]
+    }
+
+    /// The RMS of the tick velocity over the last second, with `v` the
+    /// newest (NaN ticks left out; NaN when all are).
+    fn velocity_rms_1s(&mut self, v: f64) -> f64 {
+        self.v_sq[self.v_idx] = v * v;
+        self.v_idx = (self.v_idx + 1) % EXCITATION_WINDOW_TICKS;
+        let (sum, n) = self
+            .v_sq
+            .iter()
+            .filter(|x| !x.is_nan())
+            .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
+        if n > 0.0 {
+            (sum / n).sqrt()
+        } else {
+            f64::NAN
+        }
     }
 
     fn complete_tick(&mut self) {
@@ -1315,15 +1334,7 @@ impl FeaturePipeline {
             self.temp_ambient_c
         };
 
-        self.v_sq[self.v_idx] = v * v;
-        self.v_idx = (self.v_idx + 1) % EXCITATION_WINDOW_TICKS;
-        let (sum, n) = self
-            .v_sq
-            .iter()
-            .filter(|x| !x.is_nan())
-            .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
-        let velocity_rms_1s_mps = if n > 0.0 { (sum / n).sqrt() } else { f64::NAN };
-
+        let velocity_rms_1s_mps = self.velocity_rms_1s(v);
         let tc_model_c = self.thermocouple_model_c(cyl_c);
         let [accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] = self
             .window_columns(
