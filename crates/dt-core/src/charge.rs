@@ -100,12 +100,13 @@
 //! added to the reported variance (not to the filter's), so the interval stays honest
 //! after thousands of reversals.
 //!
-//! Two options widen what each reversal or the interval carries (both off
+//! Two options change what each reversal or the interval carries (both off
 //! by default): `window_sd` takes `σ_α²` per reversal as the larger of
 //! `step_sd_n²` and its window fit's own variance of `α`; `stroke_ends`
-//! estimates the charge apart from each end of the stroke (`ÿ_r > 0`,
-//! `ÿ_r < 0`) and adds their split beyond their noise,
-//! `max(0, (m₊ − m₋)² − v₊ − v₋) / 4`, to the reported variance.
+//! runs one such filter per end of the stroke (`ÿ_r > 0`, `ÿ_r < 0`), each
+//! gated against its own estimate, and reports their average `(m₊ + m₋)/2`
+//! with the variance `(v₊ + v₋)/4` plus their split beyond their noise,
+//! `max(0, (m₊ − m₋)² − v₊ − v₋) / 4`.
 //!
 //! # Assumptions
 //! - A dyno-like excitation: reversals with `|ÿ|` above the threshold; the
