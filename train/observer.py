@@ -354,7 +354,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
     if law is not None:
         # Between the excitations the two ends of the stroke can disagree (the window model
-        # interpolated): the interval then widens by their split.
+        # interpolated, one end high, the other low): each end gets its own filter, the
+        # estimate is their average and the interval widens by their split.
         law_obs = {**obs, "damping_law": law, "between_excitations": not args.no_between,
                    "stroke_ends": not (args.no_between or args.no_stroke_ends)}
         log.info("fitting reversals of %d runs with the damping law", len(campaign.runs))
@@ -385,7 +386,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     o = cal["observer"]
     law_on = law_calibrated(o)
     print("window model: " + ("the damping law" + (", reversals between calibrated excitations used"
-                                                   + (", the interval widened when the stroke's ends disagree"
+                                                   + (", each end of the stroke filtered apart and averaged"
                                                       if o.get("stroke_ends") else "")
                                                    if o.get("between_excitations") else "")
                               if law_on else "linear damping slopes"))
@@ -514,8 +515,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="weigh each reversal by its window fit's own sd of the friction amplitude when "
                         "larger than the calibrated one (dt-core ObserverParams::window_sd)")
     f.add_argument("--no-stroke-ends", action="store_true",
-                   help="with reversals between excitations, do not widen the interval by the disagreement "
-                        "of the charge read at the two ends of the stroke (dt-core ObserverParams::stroke_ends)")
+                   help="with reversals between excitations, one filter for both ends of the stroke instead "
+                        "of one per end, averaged, with their disagreement in the interval (dt-core "
+                        "ObserverParams::stroke_ends)")
     f.add_argument("--no-between", action="store_true",
                    help="with the law, skip reversals between calibrated excitations")
     f.add_argument("--law-windows", type=int, default=40,
