@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -192,6 +193,9 @@ def load_datasheet(path: str | Path) -> Datasheet:
                              "by 1e-4 to 2e-3 per kelvin (mineral oil ≈ 7e-4); is it in 1/K?")
         if "oil_volume_cm3" in thermal:
             sheet.oil_expansion_m3_per_k = thermal["oil_volume_cm3"] * 1e-6 * expansion
+        else:
+            warnings.warn(f"{path}: [oil] thermal_expansion_per_k is not used without [thermal] "
+                          "oil_volume_cm3 (how much oil expands); the gas volume stays fixed", stacklevel=2)
     return sheet
 
 

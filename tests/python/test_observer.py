@@ -149,8 +149,9 @@ def test_the_heated_oils_expansion_in_the_gas_law(run_4bar: Path, tmp_path: Path
     bad.write_text("[thermal]\noil_volume_cm3 = 360\n[oil]\nthermal_expansion_per_k = 0.7\n")
     with pytest.raises(ValueError, match="thermal_expansion_per_k = 0.7: liquids expand"):
         load_datasheet(bad)
-    bad.write_text("[oil]\nthermal_expansion_per_k = 7e-4\n")  # without the oil volume: no term
-    assert load_datasheet(bad).oil_expansion_m3_per_k is None
+    bad.write_text("[oil]\nthermal_expansion_per_k = 7e-4\n")  # without the oil volume: no term, said
+    with pytest.warns(UserWarning, match="not used without \\[thermal\\] oil_volume_cm3"):
+        assert load_datasheet(bad).oil_expansion_m3_per_k is None
 
     params = observer_physics(oil_expansion_m3_per_k=sheet.oil_expansion_m3_per_k)
     rev = shocktwin.charge_reversals(run_4bar, params)
