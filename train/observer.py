@@ -11,7 +11,10 @@ model by robust least squares (scipy ``least_squares``, soft-L1 loss)::
     alpha = f0 + f_d sgn(a) + g |a| + (s + h |a|) p_g,   p_g = (p + p_atm) theta - p_atm
 
 ``theta`` from the reversal's gas temperature and extension (the datasheet's ``a_rod``,
-``v_gas``). The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the
+``v_gas``). With the damping law, a cold term ``k_c x(T) |a|`` joins the offset
+(``x = max(0, r(T)/r(T_c) − 1)``, the law's viscosity ratio; ``T_c`` the grid value that leaves
+the calibration runs' cold bins least biased), and what it leaves in those bins is fitted as
+``k_b x(T) |a|``, the bias the cold reversals share (dt-core carries it through the filter). The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the
 residuals. The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
 run's charge is estimated by the model fitted *without that run* (leave one run out), and
 the RMS of those errors beyond their statistical part is kept; the unit-to-unit
@@ -64,6 +67,9 @@ CLUSTER_MAX_LORO_BAR = 2.0
 MIN_CLUSTER_REVERSALS = 20  # a run with fewer fitted reversals calibrates no excitation
 SKIP_AFTER_ONSET_S = 5.0  # the actuator's ramp
 WARN_BAR, FAULT_BAR, HYST_BAR, DWELL_S = 9.0, 5.0, 0.5, 3.0
+DEFAULT_COLD_REF_C = 50.0  # dt-core charge::DEFAULT_COLD_REF_C
+COLD_REF_GRID_C = (30.0, 40.0, 50.0, 60.0, 70.0)
+COLD_BIN_K, COLD_BIN_MIN = 3.0, 10
 
 
 def theta(rev: dict[str, np.ndarray], obs: dict[str, float]) -> np.ndarray:
@@ -106,28 +112,49 @@ def reversals(runs: Sequence[Run], params: dict[str, Any], jobs: int) -> list[di
     return out
 
 
-def design(rev: dict[str, np.ndarray], p_bar: np.ndarray, obs: dict[str, float]) -> np.ndarray:
+def cold_excess(rev: dict[str, np.ndarray], obs: dict[str, Any]) -> np.ndarray:
+    """``x(T) |ÿ_r|`` per reversal, the regressor of the cold term (dt-core
+    ``ObserverParams::cold_excess``): ``x = max(0, r(T)/r(T_c) − 1)``, ``r`` the damping law's
+    viscosity ratio; zero without a calibrated law."""
+    a = np.abs(rev["accel_mps2"])
+    if not law_calibrated(obs):
+        return np.zeros_like(a)
+    beta = obs["damping_law"]["beta_per_k"]
+    x = np.exp(-beta * (rev["gas_temp_c"] - obs.get("cold_ref_c", DEFAULT_COLD_REF_C))) - 1.0
+    return np.maximum(x, 0.0) * a
+
+
+def design(rev: dict[str, np.ndarray], p_bar: np.ndarray, obs: dict[str, Any]) -> np.ndarray:
     th = theta(rev, obs)
     pg = (p_bar + P_ATM_BAR) * th - P_ATM_BAR
     a = rev["accel_mps2"]
-    return np.column_stack([np.ones_like(a), np.sign(a), np.abs(a), pg, np.abs(a) * pg])
+    return np.column_stack([np.ones_like(a), np.sign(a), np.abs(a), pg, np.abs(a) * pg, cold_excess(rev, obs)])
 
 
-def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, float],
+def coef_of(o: dict[str, Any]) -> np.ndarray:
+    """The measurement model's coefficients in ``design``'s column order."""
+    return np.array([o["step_offset_n"], o["step_dir_n"], o["step_per_accel_ns2pm"], o["step_per_bar_n"],
+                     o["step_per_bar_accel"], o.get("cold_per_accel_ns2pm", 0.0)])
+
+
+def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, Any],
                     with_accel: bool = True) -> tuple[np.ndarray, float]:
-    """Robust LS of ``alpha`` on ``[1, sgn a, |a|, p_g, |a| p_g]`` (without the ``|a|`` terms,
-    which one excitation cannot identify, when not ``with_accel``); returns the five
-    coefficients and the MAD spread."""
+    """Robust LS of ``alpha`` on ``[1, sgn a, |a|, p_g, |a| p_g, x(T) |a|]`` (without the ``|a|``
+    terms, which one excitation cannot identify, when not ``with_accel``; without the cold
+    term when no reversal is colder than ``cold_ref_c``); returns the six coefficients and
+    the MAD spread."""
     x = np.vstack([design(r, r["label_bar"], obs) for r in revs])
     y = np.concatenate([r["alpha_n"] for r in revs])
     cols = [0, 1, 2, 3, 4] if with_accel else [0, 1, 3]
+    if np.count_nonzero(x[:, 5]) >= MIN_CLUSTER_REVERSALS:
+        cols.append(5)
     xs = x[:, cols]
     c0, *_ = np.linalg.lstsq(xs, y, rcond=None)
     res0 = y - xs @ c0
     scale = max(1.4826 * float(np.median(np.abs(res0 - np.median(res0)))), 1e-3)
     sol = least_squares(lambda c: xs @ c - y, c0, loss="soft_l1", f_scale=scale)
     res = y - xs @ sol.x
-    coef = np.zeros(5)
+    coef = np.zeros(6)
     coef[cols] = sol.x
     return coef, 1.4826 * float(np.median(np.abs(res - np.median(res))))
 
@@ -138,7 +165,8 @@ def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: 
     th = theta(rev, obs)
     acc = np.abs(rev["accel_mps2"])
     gain = coef[3] + coef[4] * acc
-    a = coef[0] + coef[1] * np.sign(rev["accel_mps2"]) + coef[2] * acc + gain * P_ATM_BAR * (th - 1.0)
+    a = (coef[0] + coef[1] * np.sign(rev["accel_mps2"]) + coef[2] * acc + coef[5] * cold_excess(rev, obs)
+         + gain * P_ATM_BAR * (th - 1.0))
     b = gain * th
     keep = np.ones(len(a), bool)
     p = np.nan
@@ -247,11 +275,62 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
     out["reversal_spacings_s"] = [c[1] for c in clusters] + [0.0] * (4 - len(clusters))
     out.update(step_offset_n=float(coef[0]), step_dir_n=float(coef[1]), step_per_accel_ns2pm=float(coef[2]),
                step_per_bar_n=float(coef[3]), step_per_bar_accel=float(coef[4]), step_sd_n=float(sd_n),
-               systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
+               cold_per_accel_ns2pm=float(coef[5]), systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
     out["systematic_rel"] = tol
+    out["cold_bias_sd_ns2pm"] = cold_bias_sd(used, out)
     return {"observer": out, "loro": loro, "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))),
             "loro_rms_per_cluster_bar": [v if np.isfinite(v) else None for v in per_cluster], "dropped_clusters": dropped,
             "systematic_loro_bar": sys_sd, "spacing_spread_rel": spread}
+
+
+def _cold_bins(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> np.ndarray:
+    """Per run, end of the stroke and ``COLD_BIN_K`` band of gas temperature (``COLD_BIN_MIN``
+    reversals or more): ``[mean residual of alpha at the label (N), mean x(T) |a|]``."""
+    coef = coef_of(obs)
+    rows = []
+    for r in revs:
+        if not len(r["alpha_n"]):
+            continue
+        res = r["alpha_n"] - design(r, r["label_bar"], obs) @ coef
+        d = cold_excess(r, obs)
+        band = np.floor(r["gas_temp_c"] / COLD_BIN_K)
+        for end in (1.0, -1.0):
+            for b in np.unique(band):
+                m = (band == b) & (np.sign(r["accel_mps2"]) == end)
+                if m.sum() >= COLD_BIN_MIN:
+                    rows.append((float(np.mean(res[m])), float(np.mean(d[m]))))
+    return np.array(rows).reshape(-1, 2)
+
+
+def cold_bias_sd(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> float:
+    """``k_b`` (N·s²/m): what the cold term leaves in the calibration's cold bins, scaled to
+    ``x(T) |a|`` — the least-squares fit of their squared mean residual on ``(x |a|)²``
+    (through 0: warm bins are the systematic sd's). A bias shared by a bin's reversals, not
+    their noise: the observer carries it through the filter's weights (module docs)."""
+    if not law_calibrated(obs):
+        return 0.0
+    bins = _cold_bins(revs, obs)
+    cold = bins[bins[:, 1] > 0]
+    if len(cold) < 2:
+        return 0.0
+    return float(np.sqrt(np.sum(cold[:, 0] ** 2 * cold[:, 1] ** 2) / np.sum(cold[:, 1] ** 4)))
+
+
+def cold_reference(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> float:
+    """``T_c`` (°C), the oil temperature above which the cold term vanishes: of
+    ``COLD_REF_GRID_C``, the one whose fitted measurement model leaves the smallest RMS of the
+    per-bin mean residuals (``_cold_bins``) on the calibration runs."""
+    best = (np.inf, DEFAULT_COLD_REF_C)
+    for t_c in COLD_REF_GRID_C:
+        o = {**obs, "cold_ref_c": t_c}
+        coef, _ = fit_measurement(revs, o)
+        o.update(step_offset_n=coef[0], step_dir_n=coef[1], step_per_accel_ns2pm=coef[2], step_per_bar_n=coef[3],
+                 step_per_bar_accel=coef[4], cold_per_accel_ns2pm=coef[5])
+        bins = _cold_bins(revs, o)
+        rms = float(np.sqrt(np.mean(bins[:, 0] ** 2))) if len(bins) else np.inf
+        log.info("cold term at T_c = %.0f °C: per-bin mean residual RMS %.2f N", t_c, rms)
+        best = min(best, (rms, t_c))
+    return best[1]
 
 
 def spacing_spread(revs: Sequence[dict[str, Any]], clusters: Sequence[tuple[float, float]], rel: float) -> float:
@@ -282,8 +361,7 @@ def residual_cut(revs: Sequence[dict[str, Any]], cal: dict[str, Any]) -> float:
     the damping law the windows the law misses (the simulated dyno's cold 2 Hz reversals)
     read the friction low by several bar; with linear slopes every 2 Hz window does."""
     o = cal["observer"]
-    coef = np.array([o["step_offset_n"], o["step_dir_n"], o["step_per_accel_ns2pm"], o["step_per_bar_n"],
-                     o["step_per_bar_accel"]])
+    coef = coef_of(o)
     res = np.concatenate([r["residual_mps2"] for r in revs])
     err = np.concatenate([(r["alpha_n"] - design(r, r["label_bar"], o) @ coef)
                           / (coef[3] + coef[4] * np.abs(r["accel_mps2"])) for r in revs])
@@ -360,6 +438,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                    "stroke_ends": not (args.no_between or args.no_stroke_ends)}
         log.info("fitting reversals of %d runs with the damping law", len(campaign.runs))
         revs = reversals(campaign.runs, {**physics, "observer": law_obs}, args.jobs)
+        law_obs["cold_ref_c"] = cold_reference(revs, law_obs)
         cal = calibrate(revs, law_obs, args.unit_tolerance_pct)
         cut = residual_cut(revs, cal)
         if cut < law_obs["max_residual_mps2"]:
@@ -398,6 +477,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"{o['step_offset_n']:.2f} {o['step_dir_n']:+.2f} sgn(a) {o['step_per_accel_ns2pm']:+.3f} |a| "
           f"+ ({o['step_per_bar_n']:.3f} {o['step_per_bar_accel']:+.4f} |a|) p_g  (N), per-reversal sd "
           f"{o['step_sd_n']:.2f} N")
+    if o.get("cold_per_accel_ns2pm") or o.get("cold_bias_sd_ns2pm"):
+        print(f"cold oil (below {o['cold_ref_c']:.0f} °C): {o['cold_per_accel_ns2pm']:+.2f} x(T) |a| N, what it leaves "
+              f"± {o['cold_bias_sd_ns2pm']:.2f} x(T) |a| N, carried as a bias the reversals share")
     print("calibrated at reversals " + ", ".join(f"{c:.2f} m/s² {h:.3f} s apart"
                                                    for c, h in zip(o["accel_clusters_mps2"], o["reversal_spacings_s"])
                                                    if c > 0)

@@ -103,14 +103,27 @@ def test_window_fit_matches_scipy(run_4bar: Path, with_law: bool) -> None:
         assert abs(rms - rev["residual_mps2"][i]) < 0.01 + 0.02 * rms
 
 
-@pytest.mark.parametrize("variant", ["step_sd", "window_sd", "stroke_ends"])
+@pytest.mark.parametrize("variant", ["step_sd", "window_sd", "stroke_ends", "cold"])
 def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, variant: str) -> None:
+    # "cold": the cold oil's term (a law, so that the viscosity ratio exists; T_c above the
+    # run's temperatures, so that every reversal is cold) and its shared bias
+    cold = dict(damping_law=A_LAW, cold_per_accel_ns2pm=-2.0, cold_bias_sd_ns2pm=1.5, cold_ref_c=80.0)
     params = observer_physics(random_walk_bar2_per_s=0.0, window_sd=variant == "window_sd",
                               stroke_ends=variant == "stroke_ends", step_sd_n=1.0,
                               # with the ends: a wrong direction term, so that they disagree
-                              step_dir_n=3.0 if variant == "stroke_ends" else 0.0)
+                              step_dir_n=3.0 if variant == "stroke_ends" else 0.0,
+                              **(cold if variant == "cold" else {}))
     rev = shocktwin.charge_reversals(run_4bar, params)
     o = params["observer"]
+    # the offset a_r written out (the cold term: x(T) |a| with x = r(T)/r(T_c) - 1 of the law's viscosity)
+    acc = np.abs(rev["accel_mps2"])
+    x_cold = np.exp(-A_LAW["beta_per_k"] * (rev["gas_temp_c"] - 80.0)) - 1.0 if variant == "cold" else 0.0
+    a_ref = (o["step_offset_n"] + o["step_dir_n"] * np.sign(rev["accel_mps2"]) + o["step_per_accel_ns2pm"] * acc
+             + o["cold_per_accel_ns2pm"] * x_cold * acc
+             + (o["step_per_bar_n"] + o["step_per_bar_accel"] * acc) * obs_tool.P_ATM_BAR * (obs_tool.theta(rev, o) - 1))
+    np.testing.assert_allclose(rev["a_n"], a_ref, rtol=1e-12, atol=1e-12)
+    if variant == "cold":
+        assert np.all(x_cold > 0.1), "the run is not cold against T_c: nothing to check"
     # each reversal's variance: the calibrated one, or its window's own when larger
     var_all = np.full(len(rev["alpha_n"]), o["step_sd_n"] ** 2)
     if variant == "window_sd":
@@ -123,6 +136,13 @@ def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, varian
         info = 1 / o["prior_sd_bar"] ** 2 + np.sum(b ** 2 / var)
         return (o["prior_mean_bar"] / o["prior_sd_bar"] ** 2 + np.sum(b * (y - a) / var)) / info, 1 / info
 
+    def bias(m: np.ndarray) -> float:
+        """The cold bias the batch estimate carries: its weights b²/σ² / info on each reading's
+        k_b x |a| / b (bar), all of one sign."""
+        b, var = rev["b_n_per_bar"][m], var_all[m]
+        info = 1 / o["prior_sd_bar"] ** 2 + np.sum(b ** 2 / var)
+        return float(np.sum(b * o["cold_bias_sd_ns2pm"] * (x_cold * acc)[m] / var) / info) if variant == "cold" else 0.0
+
     used = rev["used"] == 1.0
     assert used.sum() > 20
     mean, post_var = batch(used)
@@ -131,6 +151,9 @@ def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, varian
         split = max((m1 - m2) ** 2 - v1 - v2, 0.0) / 4
         assert split > 1.0, (m1, v1, m2, v2)
         mean, post_var = (m1 + m2) / 2, (v1 + v2) / 4 + split
+    if variant == "cold":
+        assert bias(used) > 0.5, bias(used)
+        post_var += bias(used) ** 2
     x, cols, _ = shocktwin.features(run_4bar, params, ["observer"])
     final, sd = x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]
     assert abs(final - mean) < 1e-9 * max(1.0, abs(mean))

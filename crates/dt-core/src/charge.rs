@@ -77,8 +77,9 @@
 //! θ_r = (T / 293.15 K) · (v_gas / V_r) · (V_r / (V_r + a_rod y_r))^n
 //! p_g = (p + p_atm) θ_r − p_atm                         (bar gauge)
 //! s_r = s + h |ÿ_r|
-//! α_r = f0 + f_d sgn(ÿ_r) + g |ÿ_r| + s_r p_g + ε_r,   ε_r ~ N(0, σ_α²)
-//!     = [f0 + f_d sgn(ÿ_r) + g |ÿ_r| + s_r p_atm (θ_r − 1)] + (s_r θ_r) p + ε_r
+//! d_r = max(0, r(T)/r(T_c) − 1) |ÿ_r|                  (cold oil, with a damping law)
+//! α_r = f0 + f_d sgn(ÿ_r) + g |ÿ_r| + k_c d_r + s_r p_g + ε_r,   ε_r ~ N(0, σ_α²)
+//!     = [f0 + f_d sgn(ÿ_r) + g |ÿ_r| + k_c d_r + s_r p_atm (θ_r − 1)] + (s_r θ_r) p + ε_r
 //!     =: a_r + b_r p + ε_r
 //! ```
 //!
@@ -87,7 +88,18 @@
 //! valves' own transitions near a reversal differ between the two ends of
 //! the stroke and grow with the excitation), `s` (`step_per_bar_n`), `h`
 //! (`step_per_bar_accel`) and `σ_α` (`step_sd_n`) calibrated on labelled runs
-//! by `python -m train.observer fit`. The state is the charge
+//! by `python -m train.observer fit`. The **cold term** `k_c d_r`
+//! (`cold_per_accel_ns2pm`, `cold_ref_c`) holds what the window model misses
+//! while the oil is thick: on the simulated dyno the amplitude reads several
+//! newtons low below ≈ 50 °C, more at the faster excitation, whatever the
+//! charge (`r` is the [`DampingLaw`]'s viscosity ratio; without a law the
+//! term is 0). What it leaves is not noise but a bias the cold reversals
+//! share (`k_b d_r`, `cold_bias_sd_ns2pm`): each filter carries it as
+//! `B ← (1 − K b_r) B + K k_b d_r` — the same weights that make its mean —
+//! and the reported variance adds `B²` (with the ends, `((B₊ + B₋)/2)²`).
+//! A thousand cold reversals therefore leave the interval as wide as one
+//! cold bias; the warm reversals after them take over the estimate and
+//! wash it out. The state is the charge
 //! `p` alone, a random walk (`random_walk_bar2_per_s`: a leak is slow, but the
 //! estimate must be able to follow one), with a Gaussian prior
 //! (`prior_mean_bar`, `prior_sd_bar`). Each reversal is one scalar Kalman
@@ -153,12 +165,19 @@ const SLOPE_HALF_S: f64 = 0.02;
 const TEMPLATE_LEAD_S: f64 = 0.015;
 /// Atmospheric pressure, bar.
 const P_ATM_BAR: f64 = P_ATM_PA / 1e5;
+/// Default oil temperature above which the cold term vanishes
+/// ([`ObserverParams::cold_ref_c`]), °C.
+pub const DEFAULT_COLD_REF_C: f64 = 50.0;
 /// Default relative half-width of a calibrated reversal spacing
 /// ([`ObserverParams::spacing_rel`]).
 pub const DEFAULT_SPACING_REL: f64 = 0.15;
 
 fn default_spacing_rel() -> f64 {
     DEFAULT_SPACING_REL
+}
+
+fn default_cold_ref_c() -> f64 {
+    DEFAULT_COLD_REF_C
 }
 
 fn nan() -> f64 {
@@ -210,6 +229,22 @@ pub struct ObserverParams {
     pub step_per_bar_accel: f64,
     /// `σ_α`: per-reversal standard deviation of the amplitude, N.
     pub step_sd_n: f64,
+    /// `k_c`: the cold oil's offset of the amplitude per m/s² of `|ÿ_r|` and
+    /// per unit of the viscosity excess `x(T) = max(0, r(T)/r(T_c) − 1)`
+    /// (`r` the [`DampingLaw`]'s viscosity ratio, `T_c` =
+    /// [`cold_ref_c`](Self::cold_ref_c)), N·s²/m. 0 (the default, and what a
+    /// physics file written before this field means): no cold term.
+    #[serde(default)]
+    pub cold_per_accel_ns2pm: f64,
+    /// `k_b`: standard deviation of what the cold term leaves, per m/s² of
+    /// `|ÿ_r|` and unit of `x(T)`, N·s²/m. A systematic error, shared by
+    /// every cold reversal: it is carried through the filter's weights and
+    /// never averaged away (see the module docs). 0 (the default): none.
+    #[serde(default)]
+    pub cold_bias_sd_ns2pm: f64,
+    /// `T_c`: the oil temperature above which the cold term vanishes, °C.
+    #[serde(default = "default_cold_ref_c")]
+    pub cold_ref_c: f64,
     /// Systematic (non-averaging) standard deviation of the charge, bar.
     pub systematic_sd_bar: f64,
     /// Systematic standard deviation per bar of the estimated charge (the
@@ -676,6 +711,9 @@ impl Default for ObserverParams {
             step_per_bar_n: 0.0,
             step_per_bar_accel: 0.0,
             step_sd_n: 5.0,
+            cold_per_accel_ns2pm: 0.0,
+            cold_bias_sd_ns2pm: 0.0,
+            cold_ref_c: DEFAULT_COLD_REF_C,
             systematic_sd_bar: 1.0,
             systematic_rel: 0.0,
             prior_mean_bar: 6.0,
@@ -700,6 +738,18 @@ impl Default for ObserverParams {
 }
 
 impl ObserverParams {
+    /// `x(T) |ÿ_r|`: the viscosity excess of oil at `temp_c` over oil at
+    /// [`cold_ref_c`](Self::cold_ref_c), `max(0, r(T)/r(T_c) − 1)`, times the
+    /// reversal's `|ÿ_r|` (m/s²); 0 without a calibrated [`DampingLaw`].
+    #[must_use]
+    pub fn cold_excess(&self, temp_c: f64, accel: f64) -> f64 {
+        if !self.damping_law.is_calibrated() || !temp_c.is_finite() {
+            return 0.0;
+        }
+        let x = (-self.damping_law.beta_per_k * (temp_c - self.cold_ref_c)).exp() - 1.0;
+        x.max(0.0) * accel.abs()
+    }
+
     /// Whether the measurement model was calibrated at a reversal with
     /// acceleration `abs_accel` (m/s²) and spacing `spacing_s` (s since the
     /// previous reversal; NaN when there was none): some cluster `k` has
@@ -788,6 +838,7 @@ impl ObserverParams {
             ),
             ("observer.systematic_sd_bar", self.systematic_sd_bar),
             ("observer.systematic_rel", self.systematic_rel),
+            ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             (
                 "observer.random_walk_bar2_per_s",
                 self.random_walk_bar2_per_s,
@@ -820,6 +871,8 @@ impl ObserverParams {
             ("observer.step_dir_n", self.step_dir_n),
             ("observer.step_per_accel_ns2pm", self.step_per_accel_ns2pm),
             ("observer.step_per_bar_accel", self.step_per_bar_accel),
+            ("observer.cold_per_accel_ns2pm", self.cold_per_accel_ns2pm),
+            ("observer.cold_ref_c", self.cold_ref_c),
             ("observer.prior_mean_bar", self.prior_mean_bar),
         ] {
             if !value.is_finite() {
@@ -977,6 +1030,11 @@ pub struct ChargeObserver {
     /// Consecutive innovations rejected by each end's gate.
     #[serde(default)]
     ends_rejected_run: [u32; 2],
+    /// The cold bias the estimate carries, bar: the filter's weights applied
+    /// to each used reversal's `k_b x(T) |ÿ_r| / b_r` (one per end with
+    /// [`ObserverParams::stroke_ends`]; otherwise the first).
+    #[serde(default)]
+    cold_bias_bar: [f64; 2],
 }
 
 impl ChargeObserver {
@@ -1005,6 +1063,7 @@ impl ChargeObserver {
             record: None,
             ends: None,
             ends_rejected_run: [0; 2],
+            cold_bias_bar: [0.0; 2],
         })
     }
 
@@ -1283,6 +1342,7 @@ impl ChargeObserver {
             p.step_offset_n
                 + p.step_dir_n * accel.signum()
                 + p.step_per_accel_ns2pm * accel.abs()
+                + p.cold_per_accel_ns2pm * p.cold_excess(self.gas_temp_c, accel)
                 + gain * P_ATM_BAR * (theta - 1.0),
             gain * theta,
         )
@@ -1297,18 +1357,25 @@ impl ChargeObserver {
             r = r.max(rev.alpha_sd_n * rev.alpha_sd_n);
         }
         let prior_var = self.p.prior_sd_bar * self.p.prior_sd_bar;
-        let (mean, var, rejected_run) = if self.p.stroke_ends {
+        let cold_n = self.p.cold_bias_sd_ns2pm * self.p.cold_excess(rev.gas_temp_c, rev.accel_mps2);
+        let (mean, var, rejected_run, bias) = if self.p.stroke_ends {
             let end = usize::from(rev.accel_mps2 < 0.0);
             let ends = self
                 .ends
                 .get_or_insert([(self.p.prior_mean_bar, prior_var); 2]);
             let (m, v) = &mut ends[end];
-            (m, v, &mut self.ends_rejected_run[end])
+            (
+                m,
+                v,
+                &mut self.ends_rejected_run[end],
+                &mut self.cold_bias_bar[end],
+            )
         } else {
             (
                 &mut self.mean_bar,
                 &mut self.var_bar2,
                 &mut self.rejected_run,
+                &mut self.cold_bias_bar[0],
             )
         };
         let innov = rev.alpha_n - (rev.a_n + b * *mean);
@@ -1317,6 +1384,10 @@ impl ChargeObserver {
             let gain = *var * b / s;
             *mean += gain * innov;
             *var *= 1.0 - gain * b;
+            // The mean is `(1 − K b) m + K b z_r` with the reading
+            // `z_r = (α_r − a_r) / b`: a bias shared by the readings passes
+            // through the same weights (signs alike: the worst case).
+            *bias = (1.0 - gain * b) * *bias + gain * cold_n;
             rev.used = true;
             self.counters.used += 1;
             *rejected_run = 0;
@@ -1360,12 +1431,17 @@ impl ChargeObserver {
         // beyond their noise. The charge walks the same for both ends: the
         // walk since the last update adds to the average in full and cancels
         // in the split.
+        let [b1, b2] = self.cold_bias_bar;
         let (read, read_var) = match self.ends {
             Some([(m1, v1), (m2, v2)]) if self.p.stroke_ends => {
                 let split = ((m1 - m2).powi(2) - v1 - v2).max(0.0) / 4.0;
-                (0.5 * (m1 + m2), (v1 + v2) / 4.0 + grown + split)
+                let bias = 0.5 * (b1 + b2);
+                (
+                    0.5 * (m1 + m2),
+                    (v1 + v2) / 4.0 + grown + split + bias * bias,
+                )
             }
-            _ => (self.mean_bar, self.var_bar2 + grown),
+            _ => (self.mean_bar, self.var_bar2 + grown + b1 * b1),
         };
         let (mean_bar, sd_bar) = if self.p.baseline.is_some() {
             let unit = UnitCorrection::of(&self.p);
@@ -1866,6 +1942,89 @@ mod tests {
         );
         assert!(ends.sd_bar > 0.45 * (a(52.0) - a(28.0)), "{ends:?}");
         assert!(one.sd_bar < 0.5 * ends.sd_bar, "{one:?}");
+    }
+
+    /// A reversal read at `temp_c` whose amplitude is the measurement model's
+    /// at charge `p_bar` (noise-free), given to the filter directly.
+    fn read_at(obs: &mut ChargeObserver, t_ns: i64, temp_c: f64, accel: f64, p_bar: f64) {
+        obs.set_gas_temp_c(temp_c);
+        let (a, b) = obs.measurement(0.0, accel);
+        obs.update(Reversal {
+            t_ns,
+            accel_mps2: accel,
+            spacing_s: 0.25,
+            extension_m: 0.0,
+            gas_temp_c: temp_c,
+            alpha_n: a + b * p_bar,
+            damping_ext_nspm: 1000.0,
+            damping_comp_nspm: 1000.0,
+            shift_s: 0.0,
+            residual_mps2: 0.1,
+            alpha_sd_n: f64::NAN,
+            samples: 40,
+            a_n: a,
+            b_n_per_bar: b,
+            used: false,
+        });
+    }
+
+    /// The cold term against its formula written out, and its bias: shared
+    /// by every cold reversal, so a thousand of them leave it whole in the
+    /// interval (the filter's own variance shrinks), and the warm reversals
+    /// after them wash it out as they take over the estimate.
+    #[test]
+    fn the_cold_oils_bias_is_carried_not_averaged() {
+        let (k_c, k_b, t_c) = (-3.0, 0.5, 50.0);
+        let p = ObserverParams {
+            damping_law: a_law(),
+            cold_per_accel_ns2pm: k_c,
+            cold_bias_sd_ns2pm: k_b,
+            cold_ref_c: t_c,
+            systematic_sd_bar: 0.5,
+            random_walk_bar2_per_s: 0.0,
+            ..params()
+        };
+        let warm = ObserverParams {
+            cold_per_accel_ns2pm: 0.0,
+            ..p
+        };
+        let (accel, cold_c) = (6.0, 22.0);
+        let x = (-0.03_f64 * (cold_c - t_c)).exp() - 1.0;
+        let mut obs = ChargeObserver::new(p).unwrap();
+        obs.set_gas_temp_c(cold_c);
+        let mut obs_warm = ChargeObserver::new(warm).unwrap();
+        obs_warm.set_gas_temp_c(cold_c);
+        let (a, b) = obs.measurement(0.0, accel);
+        let (a0, b0) = obs_warm.measurement(0.0, accel);
+        assert!(
+            (a - a0 - k_c * x * accel).abs() < 1e-9 && b.to_bits() == b0.to_bits(),
+            "{a} {a0}"
+        );
+        assert!(p.cold_excess(60.0, accel).abs() < f64::MIN_POSITIVE);
+        let n = 1000;
+        for k in 0..n {
+            read_at(&mut obs, k * 250_000_000, cold_c, accel, 8.0);
+        }
+        let est = obs.estimate(n * 250_000_000);
+        let bias = k_b * x * accel / b;
+        assert!((est.mean_bar - 8.0).abs() < 0.05, "{est:?}");
+        // What is left beyond the systematic 0.5 bar is the bias (the
+        // filter's own variance after 1000 noise-free reversals is ~0.01 bar²).
+        let carried = (est.sd_bar.powi(2) - 0.25).sqrt();
+        assert!(
+            (carried - bias).abs() < 0.02 * bias,
+            "sd {} against the bias {bias} bar",
+            est.sd_bar
+        );
+        for k in n..4 * n {
+            read_at(&mut obs, k * 250_000_000, 70.0, accel, 8.0);
+        }
+        let later = obs.estimate(4 * n * 250_000_000);
+        let left = (later.sd_bar.powi(2) - 0.25).max(0.0).sqrt();
+        assert!(
+            left < 0.3 * bias && left > 0.15 * bias,
+            "{later:?}: a quarter of the reversals were cold, {bias} bar"
+        );
     }
 
     /// The gas ratio against the ideal gas law written out: the oil's
