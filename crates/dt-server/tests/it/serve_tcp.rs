@@ -317,6 +317,13 @@ async fn connections_beyond_the_limit_are_refused_at_once() {
     let mut reply = String::new();
     holder.read_to_string(&mut reply).await.unwrap();
     assert!(reply.contains("\"completed\""), "{reply}");
+    // The slot is given back when the connection's task ends, just after its
+    // reply: a client that reconnects within that instant is refused (it
+    // was, once, in a clean-clone run), so wait for it as a vehicle's retry would.
+    crate::common::wait_until("the first connection's slot", || async {
+        metric(&d.metrics().await, "shocktwin_connections_active") == Some(0.0)
+    })
+    .await;
     let next = good_stream("next", "r1", 0, 600);
     let r = send(d.ingest, &next.bytes, 1000).await;
     assert_eq!(r["status"], "completed", "{r}");
