@@ -14,8 +14,9 @@ model by robust least squares (scipy ``least_squares``, soft-L1 loss)::
 ``v_gas``). With the damping law, a cold term ``k_c x(T) |a|`` joins the offset
 (``x = max(0, r(T)/r(T_c) − 1)``, the law's viscosity ratio; ``T_c`` the grid value that leaves
 the calibration runs' cold bins least biased), and what it leaves in those bins is fitted as
-``k_b x(T) |a|``, the bias the cold reversals share (dt-core carries it through the filter). The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the
-residuals. The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
+``k_b x(T) |a|``, the bias the cold reversals share (dt-core carries it through the filter).
+The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
+The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
 run's charge is estimated by the model fitted *without that run* (leave one run out), and
 the RMS of those errors beyond their statistical part is kept; the unit-to-unit
 tolerance of the friction (``--unit-tolerance-pct`` of ``f0`` and ``s``, a datasheet
@@ -128,7 +129,8 @@ def design(rev: dict[str, np.ndarray], p_bar: np.ndarray, obs: dict[str, Any]) -
     th = theta(rev, obs)
     pg = (p_bar + P_ATM_BAR) * th - P_ATM_BAR
     a = rev["accel_mps2"]
-    return np.column_stack([np.ones_like(a), np.sign(a), np.abs(a), pg, np.abs(a) * pg, cold_excess(rev, obs)])
+    return np.column_stack([np.ones_like(a), np.sign(a), np.abs(a), pg, np.abs(a) * pg,
+                            cold_excess(rev, obs)])
 
 
 def coef_of(o: dict[str, Any]) -> np.ndarray:
@@ -275,7 +277,8 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
     out["reversal_spacings_s"] = [c[1] for c in clusters] + [0.0] * (4 - len(clusters))
     out.update(step_offset_n=float(coef[0]), step_dir_n=float(coef[1]), step_per_accel_ns2pm=float(coef[2]),
                step_per_bar_n=float(coef[3]), step_per_bar_accel=float(coef[4]), step_sd_n=float(sd_n),
-               cold_per_accel_ns2pm=float(coef[5]), systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
+               cold_per_accel_ns2pm=float(coef[5]),
+               systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
     out["systematic_rel"] = tol
     out["cold_bias_sd_ns2pm"] = cold_bias_sd(used, out)
     return {"observer": out, "loro": loro, "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))),
@@ -478,7 +481,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"+ ({o['step_per_bar_n']:.3f} {o['step_per_bar_accel']:+.4f} |a|) p_g  (N), per-reversal sd "
           f"{o['step_sd_n']:.2f} N")
     if o.get("cold_per_accel_ns2pm") or o.get("cold_bias_sd_ns2pm"):
-        print(f"cold oil (below {o['cold_ref_c']:.0f} °C): {o['cold_per_accel_ns2pm']:+.2f} x(T) |a| N, what it leaves "
+        print(f"cold oil (below {o['cold_ref_c']:.0f} °C): {o['cold_per_accel_ns2pm']:+.2f} x(T) |a| N, "
+              "what it leaves "
               f"± {o['cold_bias_sd_ns2pm']:.2f} x(T) |a| N, carried as a bias the reversals share")
     print("calibrated at reversals " + ", ".join(f"{c:.2f} m/s² {h:.3f} s apart"
                                                    for c, h in zip(o["accel_clusters_mps2"], o["reversal_spacings_s"])

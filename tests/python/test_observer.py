@@ -120,7 +120,8 @@ def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, varian
     x_cold = np.exp(-A_LAW["beta_per_k"] * (rev["gas_temp_c"] - 80.0)) - 1.0 if variant == "cold" else 0.0
     a_ref = (o["step_offset_n"] + o["step_dir_n"] * np.sign(rev["accel_mps2"]) + o["step_per_accel_ns2pm"] * acc
              + o["cold_per_accel_ns2pm"] * x_cold * acc
-             + (o["step_per_bar_n"] + o["step_per_bar_accel"] * acc) * obs_tool.P_ATM_BAR * (obs_tool.theta(rev, o) - 1))
+             + (o["step_per_bar_n"] + o["step_per_bar_accel"] * acc) * obs_tool.P_ATM_BAR
+             * (obs_tool.theta(rev, o) - 1))
     np.testing.assert_allclose(rev["a_n"], a_ref, rtol=1e-12, atol=1e-12)
     if variant == "cold":
         assert np.all(x_cold > 0.1), "the run is not cold against T_c: nothing to check"
