@@ -91,8 +91,8 @@
 //! by `python -m train.observer fit`. The **cold term** `k_c d_r`
 //! (`cold_per_accel_ns2pm`, `cold_ref_c`) holds what the window model misses
 //! while the oil is thick: on the simulated dyno the amplitude reads several
-//! newtons low below ≈ 50 °C, more at the faster excitation, whatever the
-//! charge (`r` is the [`DampingLaw`]'s viscosity ratio; without a law the
+//! newtons low until the oil passes ≈ 50–60 °C (the calibration picks
+//! `T_c` = 60 °C), more at the faster excitation, whatever the charge (`r` is the [`DampingLaw`]'s viscosity ratio; without a law the
 //! term is 0). What it leaves is not noise but a bias the cold reversals
 //! share (`k_b d_r`, `cold_bias_sd_ns2pm`): each filter carries it as
 //! `B ← (1 − K b_r) B + K k_b d_r` — the same weights that make its mean —
