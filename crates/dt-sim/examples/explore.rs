@@ -2,6 +2,8 @@
 //! cavitation onset speeds, and a summary of each paper run (no files).
 //!
 //! `cargo run --release -p dt-sim --example explore [-- --quick] [-- --curves]`
+//! `cargo run --release -p dt-sim --example explore -- --units 2,3,4`: the
+//! friction parameters of those units (`simulate --unit N`) beside unit A's.
 
 use dt_sim::hydraulics::TwinTube;
 use dt_sim::params::{KELVIN, P_ATM_PA};
@@ -41,6 +43,21 @@ fn main() {
     let p = PlantParams::nominal();
     if args.iter().any(|a| a == "--curves") {
         curves(&p);
+        return;
+    }
+    if let Some(i) = args.iter().position(|a| a == "--units") {
+        let list = args.get(i + 1).map_or("", String::as_str);
+        println!("unit  friction_coulomb_n  friction_seal_n_per_bar  friction_viscous_ns_m");
+        let row = |name: &str, q: &PlantParams| {
+            println!(
+                "{name:>4}  {:17.3}  {:23.4}  {:21.2}",
+                q.friction_coulomb_n, q.friction_seal_n_per_bar, q.friction_viscous_ns_m
+            );
+        };
+        row("A", &p);
+        for seed in list.split(',').filter_map(|s| s.trim().parse::<u64>().ok()) {
+            row(&seed.to_string(), &p.varied(seed));
+        }
         return;
     }
     let quick = args.iter().any(|a| a == "--quick");
