@@ -15,6 +15,9 @@ model by robust least squares (scipy ``least_squares``, soft-L1 loss)::
 (``x = max(0, r(T)/r(T_c) − 1)``, the law's viscosity ratio; ``T_c`` the grid value that leaves
 the calibration runs' cold bins least biased), and what it leaves in those bins is fitted as
 ``k_b x(T) |a|``, the bias the cold reversals share (dt-core carries it through the filter).
+With each end of the stroke filtered apart, ``single_end_sd_bar`` is how far one end sits
+from the charge in the warm bins: while only one end has been read at a calibrated
+excitation, the observer reports that end with this spread added.
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
 The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
 run's charge is estimated by the model fitted *without that run* (leave one run out), and
@@ -281,6 +284,7 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
                systematic_sd_bar=float(np.hypot(sys_sd, tol * coef[0] / coef[3])))
     out["systematic_rel"] = tol
     out["cold_bias_sd_ns2pm"] = cold_bias_sd(used, out)
+    out["single_end_sd_bar"] = single_end_sd(used, out)
     return {"observer": out, "loro": loro, "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))),
             "loro_rms_per_cluster_bar": [v if np.isfinite(v) else None for v in per_cluster], "dropped_clusters": dropped,
             "systematic_loro_bar": sys_sd, "spacing_spread_rel": spread}
@@ -317,6 +321,33 @@ def cold_bias_sd(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> float:
     if len(cold) < 2:
         return 0.0
     return float(np.sqrt(np.sum(cold[:, 0] ** 2 * cold[:, 1] ** 2) / np.sum(cold[:, 1] ** 4)))
+
+
+def single_end_sd(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> float:
+    """``s_e`` (bar): how far one end of the stroke, read alone, sits from the charge once the
+    cold term has done its part — the RMS, over the calibration's warm bins (run × end ×
+    ``COLD_BIN_K`` band of gas temperature, ``COLD_BIN_MIN`` reversals or more, the cold term
+    zero), of the bin's mean charge error, less the bins' own noise. The cold bins' excess is
+    the cold bias's (``cold_bias_sd``), carried apart. dt-core ``ObserverParams::single_end_sd_bar``."""
+    coef, sd_n = coef_of(obs), float(obs["step_sd_n"])
+    err2, noise2 = [], []
+    for r in revs:
+        if not len(r["alpha_n"]):
+            continue
+        x = design(r, r["label_bar"], obs)
+        b = (coef[3] + coef[4] * np.abs(r["accel_mps2"])) * theta(r, obs)
+        err = (r["alpha_n"] - x @ coef) / b
+        warm = cold_excess(r, obs) <= 0.0
+        band = np.floor(r["gas_temp_c"] / COLD_BIN_K)
+        for end in (1.0, -1.0):
+            for k in np.unique(band):
+                m = warm & (band == k) & (np.sign(r["accel_mps2"]) == end)
+                if m.sum() >= COLD_BIN_MIN:
+                    err2.append(float(np.mean(err[m])) ** 2)
+                    noise2.append(float(np.mean((sd_n / b[m]) ** 2)) / int(m.sum()))
+    if not err2:
+        return 0.0
+    return float(np.sqrt(max(np.mean(err2) - np.mean(noise2), 0.0)))
 
 
 def cold_reference(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> float:
@@ -484,6 +515,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"cold oil (below {o['cold_ref_c']:.0f} °C): {o['cold_per_accel_ns2pm']:+.2f} x(T) |a| N, "
               "what it leaves "
               f"± {o['cold_bias_sd_ns2pm']:.2f} x(T) |a| N, carried as a bias the reversals share")
+    if o.get("stroke_ends") and o.get("single_end_sd_bar"):
+        print(f"one end of the stroke read alone (at a calibrated excitation): ± {o['single_end_sd_bar']:.2f} bar "
+              "from the charge (the calibration's warm bins)")
     print("calibrated at reversals " + ", ".join(f"{c:.2f} m/s² {h:.3f} s apart"
                                                    for c, h in zip(o["accel_clusters_mps2"], o["reversal_spacings_s"])
                                                    if c > 0)

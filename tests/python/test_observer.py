@@ -317,6 +317,28 @@ def test_calibration_records_each_excitations_spacing() -> None:
                                   [True, False, False, True, False, False])
 
 
+def test_one_ends_spread_is_the_warm_bins_offsets() -> None:
+    """``single_end_sd``: runs whose two ends read the charge off by known amounts (warm, so no
+    cold term) give back the RMS of those offsets, the bins' noise taken off."""
+    rng = np.random.default_rng(1)
+    obs = observer_physics()["observer"]
+    offsets = [(1.0, -1.0), (0.5, -0.5), (-1.5, 1.5), (0.0, 0.0)]  # bar, ÿ > 0 and ÿ < 0 end
+    revs = []
+    for truth, (up, down) in zip([2.0, 5.0, 8.0, 11.0], offsets):
+        n = 4000
+        accel = 6.0 * np.where(np.arange(n) % 2, 1.0, -1.0)
+        rev = {"accel_mps2": accel, "gas_temp_c": np.full(n, 80.0), "extension_m": np.zeros(n),
+               "label_bar": np.full(n, truth)}
+        x = obs_tool.design(rev, rev["label_bar"], obs)
+        b = obs["step_per_bar_n"] * obs_tool.theta(rev, obs)
+        off = np.where(accel > 0, up, down)
+        rev["alpha_n"] = x @ obs_tool.coef_of(obs) + b * off + obs["step_sd_n"] * rng.standard_normal(n)
+        revs.append(rev)
+    want = float(np.sqrt(np.mean(np.square(offsets))))
+    got = obs_tool.single_end_sd(revs, obs)
+    assert abs(got - want) < 0.05, (got, want)
+
+
 def test_a_damping_law_of_the_wrong_shape_is_named() -> None:
     params = observer_physics(damping_law={**A_LAW, "dry_nspm": [500.0, 0.0]})
     with pytest.raises(shocktwin.ParamsError, match=r"observer\.damping_law\.dry_nspm"):

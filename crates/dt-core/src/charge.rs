@@ -327,6 +327,20 @@ pub struct ObserverParams {
     /// both have been seen. Default false (one filter for every reversal).
     #[serde(default)]
     pub stroke_ends: bool,
+    /// `s_e`: standard deviation of one end's own offset from the charge,
+    /// bar — how far one end of the stroke read alone may sit from the
+    /// charge once the cold bias is carried apart (on the calibration
+    /// runs, the warm bins of each end; `python -m train.observer fit`).
+    /// With [`stroke_ends`](Self::stroke_ends), while exactly one end has
+    /// been read and every reading so far was at a calibrated excitation
+    /// (not [between](Self::between_excitations) them), the estimate is
+    /// that end's, its variance plus `s_e²`, instead of the average with the
+    /// unread end's prior. Between the excitations the ends were seen to
+    /// disagree by 2–14 bar and both are still needed. 0 (the default, and
+    /// what a physics file written before this field means): both ends are
+    /// always averaged.
+    #[serde(default)]
+    pub single_end_sd_bar: f64,
     /// Hysteresis band of the reversal detector, m/s: a reversal is the
     /// velocity passing from beyond `+band` to beyond `−band` (or back), so
     /// the mount's ringing in `ẏ̂` after a friction flip (several mm/s) does
@@ -732,6 +746,7 @@ impl Default for ObserverParams {
             between_excitations: false,
             window_sd: false,
             stroke_ends: false,
+            single_end_sd_bar: 0.0,
             baseline: None,
         }
     }
@@ -763,6 +778,16 @@ impl ObserverParams {
     /// steady stroke between the clusters (see there).
     #[must_use]
     pub fn calibrated_at(&self, abs_accel: f64, spacing_s: f64) -> bool {
+        self.at_excitation(abs_accel, spacing_s)
+            || (self.between_excitations && self.between_calibrated(abs_accel, spacing_s))
+    }
+
+    /// Whether a reversal matches a calibrated excitation itself (one of
+    /// the clusters, or every reversal when there is none): what
+    /// [`calibrated_at`](Self::calibrated_at) accepts less the reversals
+    /// between the excitations.
+    #[must_use]
+    pub fn at_excitation(&self, abs_accel: f64, spacing_s: f64) -> bool {
         let mut clusters = self
             .accel_clusters_mps2
             .iter()
@@ -774,7 +799,6 @@ impl ObserverParams {
                 (abs_accel - c).abs() <= self.accel_cluster_rel * c
                     && (h <= 0.0 || (spacing_s - h).abs() <= self.spacing_rel * h)
             })
-            || (self.between_excitations && self.between_calibrated(abs_accel, spacing_s))
     }
 
     /// A steady stroke of a calibrated amplitude at a `|ÿ_r|` inside the
@@ -839,6 +863,7 @@ impl ObserverParams {
             ("observer.systematic_sd_bar", self.systematic_sd_bar),
             ("observer.systematic_rel", self.systematic_rel),
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
+            ("observer.single_end_sd_bar", self.single_end_sd_bar),
             (
                 "observer.random_walk_bar2_per_s",
                 self.random_walk_bar2_per_s,
@@ -1035,6 +1060,12 @@ pub struct ChargeObserver {
     /// [`ObserverParams::stroke_ends`]; otherwise the first).
     #[serde(default)]
     cold_bias_bar: [f64; 2],
+    /// Reversals each end's filter has used (`ÿ_r > 0`, `ÿ_r < 0`).
+    #[serde(default)]
+    ends_used: [u64; 2],
+    /// Whether a reversal between the calibrated excitations was used.
+    #[serde(default)]
+    used_between: bool,
 }
 
 impl ChargeObserver {
@@ -1064,6 +1095,8 @@ impl ChargeObserver {
             ends: None,
             ends_rejected_run: [0; 2],
             cold_bias_bar: [0.0; 2],
+            ends_used: [0; 2],
+            used_between: false,
         })
     }
 
@@ -1390,6 +1423,10 @@ impl ChargeObserver {
             *bias = (1.0 - gain * b) * *bias + gain * cold_n;
             rev.used = true;
             self.counters.used += 1;
+            self.ends_used[usize::from(rev.accel_mps2 < 0.0)] += 1;
+            if !self.p.at_excitation(rev.accel_mps2.abs(), rev.spacing_s) {
+                self.used_between = true;
+            }
             *rejected_run = 0;
         } else {
             self.counters.rejected += 1;
@@ -1420,6 +1457,17 @@ impl ChargeObserver {
         }
     }
 
+    /// The one end of the stroke read so far, when it may stand alone
+    /// ([`ObserverParams::single_end_sd_bar`]).
+    fn single_end(&self) -> Option<usize> {
+        let one = match self.ends_used {
+            [n, 0] if n > 0 => Some(0),
+            [0, n] if n > 0 => Some(1),
+            _ => None,
+        };
+        one.filter(|_| self.p.single_end_sd_bar > 0.0 && !self.used_between)
+    }
+
     /// The estimate at `t_ns` (the random walk grown to that time; the
     /// state itself is not changed).
     #[must_use]
@@ -1433,6 +1481,12 @@ impl ChargeObserver {
         // in the split.
         let [b1, b2] = self.cold_bias_bar;
         let (read, read_var) = match self.ends {
+            Some(ends) if self.p.stroke_ends && self.single_end().is_some() => {
+                let e = self.single_end().unwrap_or_default();
+                let (m, v) = ends[e];
+                let (s, bias) = (self.p.single_end_sd_bar, self.cold_bias_bar[e]);
+                (m, v + grown + s * s + bias * bias)
+            }
             Some([(m1, v1), (m2, v2)]) if self.p.stroke_ends => {
                 let split = ((m1 - m2).powi(2) - v1 - v2).max(0.0) / 4.0;
                 let bias = 0.5 * (b1 + b2);
@@ -1966,6 +2020,91 @@ mod tests {
             b_n_per_bar: b,
             used: false,
         });
+    }
+
+    /// With `single_end_sd_bar`, one end read at a calibrated excitation
+    /// stands alone (its mean, its variance plus `s_e²`), not averaged with
+    /// the unread end's prior; once the other end is read, or after a
+    /// reading between the excitations, the ends' average as before.
+    #[test]
+    fn one_end_read_at_a_calibrated_excitation_stands_alone() {
+        let s_e = 0.8;
+        let p = ObserverParams {
+            stroke_ends: true,
+            single_end_sd_bar: s_e,
+            random_walk_bar2_per_s: 0.0,
+            accel_clusters_mps2: [1.5, 6.0, 0.0, 0.0],
+            reversal_spacings_s: [0.5, 0.25, 0.0, 0.0],
+            between_excitations: true,
+            ..params()
+        };
+        let (sys, prior) = (p.systematic_sd_bar, p.prior_mean_bar);
+        let mut obs = ChargeObserver::new(p).unwrap();
+        for k in 0..20 {
+            read_at(&mut obs, k * 250_000_000, 20.0, -6.0, 1.0);
+        }
+        let (m, v) = obs.ends.unwrap()[1];
+        let one = obs.estimate(20 * 250_000_000);
+        assert!(
+            (one.mean_bar - m).abs() < 1e-12 && (m - 1.0).abs() < 0.05,
+            "{one:?}"
+        );
+        let want = (v + s_e * s_e + sys * sys).sqrt();
+        assert!((one.sd_bar - want).abs() < 1e-12, "{one:?} against {want}");
+        // without the field: the average with the prior of the unread end
+        let mut avg = ChargeObserver::new(ObserverParams {
+            single_end_sd_bar: 0.0,
+            ..p
+        })
+        .unwrap();
+        for k in 0..20 {
+            read_at(&mut avg, k * 250_000_000, 20.0, -6.0, 1.0);
+        }
+        let before = avg.estimate(20 * 250_000_000);
+        assert!(
+            (before.mean_bar - 0.5 * (m + prior)).abs() < 1e-9,
+            "{before:?}"
+        );
+        assert!(
+            before.sd_bar > 2.0 * one.sd_bar,
+            "{before:?} against {one:?}"
+        );
+        // the other end read: the average again, the same as without the field
+        let mut both = obs.clone();
+        read_at(&mut both, 21 * 250_000_000, 20.0, 6.0, 1.0);
+        read_at(&mut avg, 21 * 250_000_000, 20.0, 6.0, 1.0);
+        let (e1, e2) = (
+            both.estimate(22 * 250_000_000),
+            avg.estimate(22 * 250_000_000),
+        );
+        assert!((e1.mean_bar - e2.mean_bar).abs() < 1e-12 && (e1.sd_bar - e2.sd_bar).abs() < 1e-12);
+        // a reading between the excitations (3 m/s², 0.36 s apart): both ends needed
+        let mut between = obs.clone();
+        between.set_gas_temp_c(20.0);
+        let (a, b) = between.measurement(0.0, -3.0);
+        between.update(Reversal {
+            t_ns: 21 * 250_000_000,
+            accel_mps2: -3.0,
+            spacing_s: 0.36,
+            extension_m: 0.0,
+            gas_temp_c: 20.0,
+            alpha_n: a + b,
+            damping_ext_nspm: 1000.0,
+            damping_comp_nspm: 1000.0,
+            shift_s: 0.0,
+            residual_mps2: 0.1,
+            alpha_sd_n: f64::NAN,
+            samples: 40,
+            a_n: a,
+            b_n_per_bar: b,
+            used: false,
+        });
+        assert!(
+            between.params().calibrated_at(3.0, 0.36) && !between.params().at_excitation(3.0, 0.36)
+        );
+        let e = between.estimate(22 * 250_000_000);
+        let (m1, _) = between.ends.unwrap()[1];
+        assert!((e.mean_bar - 0.5 * (m1 + prior)).abs() < 1e-9, "{e:?}");
     }
 
     /// The cold term against its formula written out, and its bias: shared
