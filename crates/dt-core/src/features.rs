@@ -878,14 +878,9 @@ impl<const N: usize> TickWindow<N> {
         old
     }
 
-    /// `(mean, RMS about the mean)` of the finite values (two-pass); NaN
-    /// when there is none.
-    fn mean_and_rms(&self) -> (f64, f64) {
-        let (sum, n) = self
-            .values
-            .iter()
-            .filter(|x| !x.is_nan())
-            .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
+    /// `(mean, RMS about the mean)` from the [`non_nan_sums`] of the values
+    /// (the second pass); NaN when there is none.
+    fn rms_about(&self, sum: f64, n: f64) -> (f64, f64) {
         if n == 0.0 {
             return (f64::NAN, f64::NAN);
         }
@@ -898,10 +893,31 @@ impl<const N: usize> TickWindow<N> {
             .sum::<f64>();
         (mean, (ss / n).sqrt())
     }
+}
 
-    /// Mean of the finite values; NaN when there is none.
-    fn mean(&self) -> f64 {
-        self.mean_and_rms().0
+/// `(sum, count)` of the non-NaN values of each of `K` windows of `N`
+/// values, each summed in index order: the same sums as `K` separate loops,
+/// taken in one loop so that the `K` chains of additions run side by side.
+fn non_nan_sums<const N: usize, const K: usize>(windows: [&[f64; N]; K]) -> [(f64, f64); K] {
+    let mut acc = [(0.0, 0.0); K];
+    for i in 0..N {
+        for ((sum, n), w) in acc.iter_mut().zip(&windows) {
+            let x = w[i];
+            if !x.is_nan() {
+                *sum += x;
+                *n += 1.0;
+            }
+        }
+    }
+    acc
+}
+
+/// Mean of `sum` over `n` values; NaN when `n` is 0.
+fn mean_of(sum: f64, n: f64) -> f64 {
+    if n == 0.0 {
+        f64::NAN
+    } else {
+        sum / n
     }
 }
 
@@ -1256,38 +1272,43 @@ impl FeaturePipeline {
         reading_c
     }
 
-    /// Pushes the tick's within-tick `a_rel` variance, temperature residual
-    /// and force residual into the causal windows of the `signature` and
-    /// `residual` groups (this tick and the ones before it only); returns
-    /// `[accel_hf_rms_mps2, temp_resid_c, temp_resid_rate_cps,
-    /// force_resid_mean_n, force_resid_rms_n]`.
-    fn window_columns(&mut self, acc_var: f64, temp_resid_c: f64, force_resid_n: f64) -> [f64; 5] {
+    /// Pushes the tick velocity `v`, the tick's within-tick `a_rel`
+    /// variance, temperature residual and force residual into the causal
+    /// windows (this tick and the ones before it only) of the excitation
+    /// measure and of the `signature` and `residual` groups; returns
+    /// `[velocity_rms_1s_mps, accel_hf_rms_mps2, temp_resid_c,
+    /// temp_resid_rate_cps, force_resid_mean_n, force_resid_rms_n]`.
+    ///
+    /// The velocity RMS is that of the last second's tick velocities (NaN
+    /// ticks left out; NaN when all are).
+    fn window_columns(
+        &mut self,
+        v: f64,
+        acc_var: f64,
+        temp_resid_c: f64,
+        force_resid_n: f64,
+    ) -> [f64; 6] {
+        self.v_sq[self.v_idx] = v * v;
+        self.v_idx = (self.v_idx + 1) % EXCITATION_WINDOW_TICKS;
         self.acc_var.push(acc_var);
-        let accel_hf_rms = self.acc_var.mean().sqrt();
+        self.force_resid.push(force_resid_n);
+        let [(v_sum, v_n), (acc_sum, acc_n), (force_sum, force_n)] =
+            non_nan_sums([&self.v_sq, &self.acc_var.values, &self.force_resid.values]);
+        let velocity_rms = mean_of(v_sum, v_n).sqrt();
+        let accel_hf_rms = mean_of(acc_sum, acc_n).sqrt();
+        let (mean, rms) = self.force_resid.rms_about(force_sum, force_n);
         let temp_resid_10s_ago = self.temp_resid.push(temp_resid_c);
         #[allow(clippy::cast_precision_loss)] // 500
         let temp_resid_rate =
             (temp_resid_c - temp_resid_10s_ago) / (TEMP_RATE_WINDOW_TICKS as f64 * TICK_S);
-        self.force_resid.push(force_resid_n);
-        let (mean, rms) = self.force_resid.mean_and_rms();
-        [accel_hf_rms, temp_resid_c, temp_resid_rate, mean, rms]
-    }
-
-    /// The RMS of the tick velocity over the last second, with `v` the
-    /// newest (NaN ticks left out; NaN when all are).
-    fn velocity_rms_1s(&mut self, v: f64) -> f64 {
-        self.v_sq[self.v_idx] = v * v;
-        self.v_idx = (self.v_idx + 1) % EXCITATION_WINDOW_TICKS;
-        let (sum, n) = self
-            .v_sq
-            .iter()
-            .filter(|x| !x.is_nan())
-            .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
-        if n > 0.0 {
-            (sum / n).sqrt()
-        } else {
-            f64::NAN
-        }
+        [
+            velocity_rms,
+            accel_hf_rms,
+            temp_resid_c,
+            temp_resid_rate,
+            mean,
+            rms,
+        ]
     }
 
     fn complete_tick(&mut self) {
@@ -1334,10 +1355,10 @@ impl FeaturePipeline {
             self.temp_ambient_c
         };
 
-        let velocity_rms_1s_mps = self.velocity_rms_1s(v);
         let tc_model_c = self.thermocouple_model_c(cyl_c);
-        let [accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] = self
-            .window_columns(
+        let [velocity_rms_1s_mps, accel_hf_rms, temp_resid_c, temp_resid_rate, force_resid_mean, force_resid_rms] =
+            self.window_columns(
+                v,
                 acc_var,
                 self.temp_shock_c - tc_model_c,
                 force_n - fb.total_n,

@@ -89,6 +89,113 @@ pub struct KalmanFilter {
     u_mps2: f64,
     missing_accel: u64,
     missing_position: u64,
+    /// `F`, `Q` of the last propagation interval (samples come at a fixed
+    /// rate, so the next interval is usually the same): a cache, not state.
+    #[serde(skip)]
+    last_transition: Option<Transition>,
+}
+
+/// `F(dt)`, `B(dt)` and `Q(dt)` of one interval of `dt_ns`, written for their
+/// structure: `F = [[1, dt, f02], [0, 1, f12], [0, 0, 1]]`, `B = [dt²/2, dt, 0]ᵀ`
+/// and the upper triangle of the symmetric `Q`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Transition {
+    dt_ns: i64,
+    dt_s: f64,
+    half_dt2: f64,
+    f02: f64,
+    f12: f64,
+    /// `[Q00, Q01, Q02, Q11, Q12, Q22]`.
+    q: [f64; 6],
+}
+
+impl Transition {
+    /// The model of `mode` over `dt_ns` (the same values, entry for entry,
+    /// as the matrices of the module docs).
+    fn new(mode: KalmanMode, params: &KalmanParams, dt_ns: i64) -> Self {
+        let dt = dt_ns as f64 / NS_PER_S;
+        let dt2 = dt * dt;
+        let half_dt2 = 0.5 * dt2;
+        match mode {
+            KalmanMode::AccelBias => {
+                // Q = σ_a² G Gᵀ + diag(0, 0, σ_b² dt), G = [dt²/2, dt, 0]ᵀ.
+                let sa2 = params.sigma_accel * params.sigma_accel;
+                let sb2 = params.sigma_bias * params.sigma_bias;
+                Self {
+                    dt_ns,
+                    dt_s: dt,
+                    half_dt2,
+                    f02: -0.5 * dt2,
+                    f12: -dt,
+                    q: [
+                        half_dt2 * half_dt2 * sa2,
+                        half_dt2 * dt * sa2,
+                        0.0,
+                        dt * dt * sa2,
+                        0.0,
+                        sb2 * dt,
+                    ],
+                }
+            }
+            KalmanMode::PositionOnly { jerk_psd: q } => {
+                let dt3 = dt2 * dt;
+                let dt4 = dt3 * dt;
+                let dt5 = dt4 * dt;
+                Self {
+                    dt_ns,
+                    dt_s: dt,
+                    half_dt2,
+                    f02: 0.5 * dt2,
+                    f12: dt,
+                    q: [
+                        dt5 / 20.0 * q,
+                        dt4 / 8.0 * q,
+                        dt3 / 6.0 * q,
+                        dt3 / 3.0 * q,
+                        dt2 / 2.0 * q,
+                        dt * q,
+                    ],
+                }
+            }
+        }
+    }
+
+    /// `F x + B u`.
+    fn mean(&self, x: &Vector3<f64>, u: f64) -> Vector3<f64> {
+        Vector3::new(
+            x[0] + self.dt_s * x[1] + self.f02 * x[2] + self.half_dt2 * u,
+            x[1] + self.f12 * x[2] + self.dt_s * u,
+            x[2],
+        )
+    }
+
+    /// `F P Fᵀ + Q` for a symmetric `P` (its upper triangle is read; the
+    /// result is symmetric).
+    fn covariance(&self, p: &Matrix3<f64>) -> Matrix3<f64> {
+        let (a, c, e) = (self.dt_s, self.f02, self.f12);
+        let (p00, p01, p02) = (p[(0, 0)], p[(0, 1)], p[(0, 2)]);
+        let (p11, p12, p22) = (p[(1, 1)], p[(1, 2)], p[(2, 2)]);
+        // F P (the entries F P Fᵀ needs), then (F P) Fᵀ.
+        let fp00 = p00 + a * p01 + c * p02;
+        let fp01 = p01 + a * p11 + c * p12;
+        let fp02 = p02 + a * p12 + c * p22;
+        let fp11 = p11 + e * p12;
+        let fp12 = p12 + e * p22;
+        let [q00, q01, q02, q11, q12, q22] = self.q;
+        symmetric(
+            fp00 + a * fp01 + c * fp02 + q00,
+            fp01 + e * fp02 + q01,
+            fp02 + q02,
+            fp11 + e * fp12 + q11,
+            fp12 + q12,
+            p22 + q22,
+        )
+    }
+}
+
+/// The symmetric matrix with this upper triangle.
+fn symmetric(p00: f64, p01: f64, p02: f64, p11: f64, p12: f64, p22: f64) -> Matrix3<f64> {
+    Matrix3::new(p00, p01, p02, p01, p11, p12, p02, p12, p22)
 }
 
 impl KalmanFilter {
@@ -117,6 +224,7 @@ impl KalmanFilter {
             u_mps2: 0.0,
             missing_accel: 0,
             missing_position: 0,
+            last_transition: None,
         }
     }
 
@@ -194,10 +302,13 @@ impl KalmanFilter {
         }
         self.propagate_to(t_ns, "kalman position sample")?;
 
-        // Update with H = [1, 0, 0], R = σ_z².
+        // Update with H = [1, 0, 0], R = σ_z²; P is symmetric, so only its
+        // upper triangle is computed.
         let R = self.params.sigma_position * self.params.sigma_position;
         let p = &self.p;
-        let s = p[(0, 0)] + R;
+        let (p00, p01, p02) = (p[(0, 0)], p[(0, 1)], p[(0, 2)]);
+        let (p11, p12, p22) = (p[(1, 1)], p[(1, 2)], p[(2, 2)]);
+        let s = p00 + R;
         if !(s.is_finite() && s > 0.0) {
             return Err(PhysicsError::Numerical {
                 model: "kalman",
@@ -205,22 +316,27 @@ impl KalmanFilter {
                 what: format!("innovation variance {s} is not finite and positive"),
             });
         }
-        let k = Vector3::new(p[(0, 0)] / s, p[(1, 0)] / s, p[(2, 0)] / s);
+        let (k0, k1, k2) = (p00 / s, p01 / s, p02 / s);
         let innovation = z_m - self.x[0];
-        self.x += k * innovation;
-        // I − K H: identity with the first column replaced by e₁ − K.
-        let mut ikh: Matrix3<f64> = Matrix3::identity();
-        ikh[(0, 0)] -= k[0];
-        ikh[(1, 0)] -= k[1];
-        ikh[(2, 0)] -= k[2];
-        let joseph: Matrix3<f64> = ikh * self.p * ikh.transpose() + k * k.transpose() * R;
-        // Symmetrise away round-off (changes P by ~1e-16 relative).
-        self.p = (joseph + joseph.transpose()) * 0.5;
+        self.x += Vector3::new(k0, k1, k2) * innovation;
+        // Joseph form P ← L P Lᵀ + K R Kᵀ with L = I − K H: the identity
+        // with the first column e₁ − K. `lp` = L P (the entries needed).
+        let l00 = 1.0 - k0;
+        let (lp00, lp01, lp02) = (l00 * p00, l00 * p01, l00 * p02);
+        let (lp10, lp11, lp12) = (p01 - k1 * p00, p11 - k1 * p01, p12 - k1 * p02);
+        let (lp20, lp22) = (p02 - k2 * p00, p22 - k2 * p02);
+        self.p = symmetric(
+            lp00 * l00 + k0 * k0 * R,
+            lp01 - lp00 * k1 + k0 * k1 * R,
+            lp02 - lp00 * k2 + k0 * k2 * R,
+            lp11 - lp10 * k1 + k1 * k1 * R,
+            lp12 - lp10 * k2 + k1 * k2 * R,
+            lp22 - lp20 * k2 + k2 * k2 * R,
+        );
         self.check_finite(t_ns)
     }
 
     /// Propagates to `t_ns` with the held input (SPEC §3.1 predict step).
-    #[allow(non_snake_case)]
     fn propagate_to(&mut self, t_ns: i64, what: &str) -> Result<(), PhysicsError> {
         if t_ns < self.t_ns {
             return Err(PhysicsError::OutOfOrder {
@@ -232,67 +348,64 @@ impl KalmanFilter {
         if t_ns == self.t_ns {
             return Ok(());
         }
-        let dt = (t_ns - self.t_ns) as f64 / NS_PER_S;
-        let (F, Q) = self.transition(dt);
-        let u = match self.mode {
-            KalmanMode::AccelBias => self.u_mps2,
-            KalmanMode::PositionOnly { .. } => 0.0,
-        };
-        let half_dt2 = 0.5 * dt * dt;
-        self.x = F * self.x + Vector3::new(half_dt2 * u, dt * u, 0.0);
-        self.p = F * self.p * F.transpose() + Q;
+        let tr = self.transition(t_ns - self.t_ns);
+        self.x = tr.mean(&self.x, self.input());
+        self.p = tr.covariance(&self.p);
         self.t_ns = t_ns;
         self.check_finite(t_ns)
     }
 
-    /// `F(dt)`, `Q(dt)` of the filter's mode.
-    #[allow(non_snake_case)]
-    fn transition(&self, dt: f64) -> (Matrix3<f64>, Matrix3<f64>) {
-        let dt2 = dt * dt;
-        match self.mode {
-            KalmanMode::AccelBias => {
-                let F = Matrix3::new(1.0, dt, -0.5 * dt2, 0.0, 1.0, -dt, 0.0, 0.0, 1.0);
-                let g = Vector3::new(0.5 * dt2, dt, 0.0);
-                let sa2 = self.params.sigma_accel * self.params.sigma_accel;
-                let mut Q = g * g.transpose() * sa2;
-                Q[(2, 2)] += self.params.sigma_bias * self.params.sigma_bias * dt;
-                (F, Q)
-            }
-            KalmanMode::PositionOnly { jerk_psd: q } => {
-                let F = Matrix3::new(1.0, dt, 0.5 * dt2, 0.0, 1.0, dt, 0.0, 0.0, 1.0);
-                let dt3 = dt2 * dt;
-                let dt4 = dt3 * dt;
-                let dt5 = dt4 * dt;
-                let Q = Matrix3::new(
-                    dt5 / 20.0,
-                    dt4 / 8.0,
-                    dt3 / 6.0,
-                    dt4 / 8.0,
-                    dt3 / 3.0,
-                    dt2 / 2.0,
-                    dt3 / 6.0,
-                    dt2 / 2.0,
-                    dt,
-                ) * q;
-                (F, Q)
+    /// The model over `dt_ns`: the last interval's when it repeats.
+    fn transition(&mut self, dt_ns: i64) -> Transition {
+        match self.last_transition {
+            Some(tr) if tr.dt_ns == dt_ns => tr,
+            _ => {
+                let tr = Transition::new(self.mode, &self.params, dt_ns);
+                self.last_transition = Some(tr);
+                tr
             }
         }
     }
 
+    /// The input `u` of the mode (the held relative acceleration, or 0).
+    fn input(&self) -> f64 {
+        match self.mode {
+            KalmanMode::AccelBias => self.u_mps2,
+            KalmanMode::PositionOnly { .. } => 0.0,
+        }
+    }
+
     fn check_finite(&self, t_ns: i64) -> Result<(), PhysicsError> {
-        let diag_ok = (0..3).all(|i| self.p[(i, i)] >= 0.0);
-        if self.x.iter().all(|v| v.is_finite()) && self.p.iter().all(|v| v.is_finite()) && diag_ok {
+        let (x, p) = (&self.x, &self.p);
+        // P is symmetric: its upper triangle; `v * 0.0` is 0 for a finite `v`
+        // and NaN otherwise.
+        let zero = x[0] * 0.0
+            + x[1] * 0.0
+            + x[2] * 0.0
+            + p[(0, 0)] * 0.0
+            + p[(0, 1)] * 0.0
+            + p[(0, 2)] * 0.0
+            + p[(1, 1)] * 0.0
+            + p[(1, 2)] * 0.0
+            + p[(2, 2)] * 0.0;
+        let diag_ok = p[(0, 0)] >= 0.0 && p[(1, 1)] >= 0.0 && p[(2, 2)] >= 0.0;
+        if zero == 0.0 && diag_ok {
             Ok(())
         } else {
-            Err(PhysicsError::Numerical {
-                model: "kalman",
-                t_ns,
-                what: format!(
-                    "state or covariance not finite / negative variance: x = {:?}, diag P = {:?}",
-                    self.x.as_slice(),
-                    [self.p[(0, 0)], self.p[(1, 1)], self.p[(2, 2)]]
-                ),
-            })
+            Err(self.not_finite(t_ns))
+        }
+    }
+
+    #[cold]
+    fn not_finite(&self, t_ns: i64) -> PhysicsError {
+        PhysicsError::Numerical {
+            model: "kalman",
+            t_ns,
+            what: format!(
+                "state or covariance not finite / negative variance: x = {:?}, diag P = {:?}",
+                self.x.as_slice(),
+                [self.p[(0, 0)], self.p[(1, 1)], self.p[(2, 2)]]
+            ),
         }
     }
 
@@ -317,13 +430,8 @@ impl KalmanFilter {
         if !self.initialised || t_ns < self.t_ns {
             return None;
         }
-        let dt = (t_ns - self.t_ns) as f64 / NS_PER_S;
-        let (f, _) = self.transition(dt);
-        let u = match self.mode {
-            KalmanMode::AccelBias => self.u_mps2,
-            KalmanMode::PositionOnly { .. } => 0.0,
-        };
-        let x = f * self.x + Vector3::new(0.5 * dt * dt * u, dt * u, 0.0);
+        let x =
+            Transition::new(self.mode, &self.params, t_ns - self.t_ns).mean(&self.x, self.input());
         Some([x[0], x[1], x[2]])
     }
 
