@@ -330,7 +330,10 @@ pub struct ObserverParams {
     /// `s_e`: standard deviation of one end's own offset from the charge,
     /// bar — how far one end of the stroke read alone may sit from the
     /// charge once the cold bias is carried apart (on the calibration
-    /// runs, the warm bins of each end; `python -m train.observer fit`).
+    /// runs, the warm bins of each end; `python -m train.observer fit
+    /// --single-end` writes it, and without that flag 0: on ten simulated
+    /// units one end read cold called `leak` sooner but raised false
+    /// alarms on nominal runs, README "One end alone").
     /// With [`stroke_ends`](Self::stroke_ends), while exactly one end has
     /// been read and every reading so far was at a calibrated excitation
     /// (not [between](Self::between_excitations) them), the estimate is
