@@ -2004,12 +2004,24 @@ mod tests {
     /// A reversal read at `temp_c` whose amplitude is the measurement model's
     /// at charge `p_bar` (noise-free), given to the filter directly.
     fn read_at(obs: &mut ChargeObserver, t_ns: i64, temp_c: f64, accel: f64, p_bar: f64) {
+        read_spaced(obs, t_ns, temp_c, accel, p_bar, 0.25);
+    }
+
+    /// As [`read_at`], `spacing_s` after the previous reversal.
+    fn read_spaced(
+        obs: &mut ChargeObserver,
+        t_ns: i64,
+        temp_c: f64,
+        accel: f64,
+        p_bar: f64,
+        spacing_s: f64,
+    ) {
         obs.set_gas_temp_c(temp_c);
         let (a, b) = obs.measurement(0.0, accel);
         obs.update(Reversal {
             t_ns,
             accel_mps2: accel,
-            spacing_s: 0.25,
+            spacing_s,
             extension_m: 0.0,
             gas_temp_c: temp_c,
             alpha_n: a + b * p_bar,
@@ -2083,25 +2095,7 @@ mod tests {
         assert!((e1.mean_bar - e2.mean_bar).abs() < 1e-12 && (e1.sd_bar - e2.sd_bar).abs() < 1e-12);
         // a reading between the excitations (3 m/s², 0.36 s apart): both ends needed
         let mut between = obs.clone();
-        between.set_gas_temp_c(20.0);
-        let (a, b) = between.measurement(0.0, -3.0);
-        between.update(Reversal {
-            t_ns: 21 * 250_000_000,
-            accel_mps2: -3.0,
-            spacing_s: 0.36,
-            extension_m: 0.0,
-            gas_temp_c: 20.0,
-            alpha_n: a + b,
-            damping_ext_nspm: 1000.0,
-            damping_comp_nspm: 1000.0,
-            shift_s: 0.0,
-            residual_mps2: 0.1,
-            alpha_sd_n: f64::NAN,
-            samples: 40,
-            a_n: a,
-            b_n_per_bar: b,
-            used: false,
-        });
+        read_spaced(&mut between, 21 * 250_000_000, 20.0, -3.0, 1.0, 0.36);
         assert!(
             between.params().calibrated_at(3.0, 0.36) && !between.params().at_excitation(3.0, 0.36)
         );
