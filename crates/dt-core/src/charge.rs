@@ -1483,14 +1483,13 @@ impl ChargeObserver {
         // walk since the last update adds to the average in full and cancels
         // in the split.
         let [b1, b2] = self.cold_bias_bar;
-        let (read, read_var) = match self.ends {
-            Some(ends) if self.p.stroke_ends && self.single_end().is_some() => {
-                let e = self.single_end().unwrap_or_default();
+        let (read, read_var) = match (self.ends, self.single_end()) {
+            (Some(ends), Some(e)) if self.p.stroke_ends => {
                 let (m, v) = ends[e];
                 let (s, bias) = (self.p.single_end_sd_bar, self.cold_bias_bar[e]);
                 (m, v + grown + s * s + bias * bias)
             }
-            Some([(m1, v1), (m2, v2)]) if self.p.stroke_ends => {
+            (Some([(m1, v1), (m2, v2)]), _) if self.p.stroke_ends => {
                 let split = ((m1 - m2).powi(2) - v1 - v2).max(0.0) / 4.0;
                 let bias = 0.5 * (b1 + b2);
                 (
