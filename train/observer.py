@@ -50,7 +50,7 @@ import json
 import logging
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -165,6 +165,11 @@ def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, Any],
     return coef, 1.4826 * float(np.median(np.abs(res - np.median(res))))
 
 
+def reading_gain(rev: dict[str, np.ndarray], coef: np.ndarray, obs: dict[str, Any]) -> np.ndarray:
+    """``b_r`` (N/bar) per reversal: how much ``alpha`` moves per bar of charge."""
+    return (coef[3] + coef[4] * np.abs(rev["accel_mps2"])) * theta(rev, obs)
+
+
 def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: dict[str, float]) -> tuple[float, float]:
     """Batch weighted LS charge of one run (the observer with no random walk and a flat
     prior), with a 3-sigma-clipped second pass; returns (estimate, statistical sd)."""
@@ -173,7 +178,7 @@ def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: 
     gain = coef[3] + coef[4] * acc
     a = (coef[0] + coef[1] * np.sign(rev["accel_mps2"]) + coef[2] * acc + coef[5] * cold_excess(rev, obs)
          + gain * P_ATM_BAR * (th - 1.0))
-    b = gain * th
+    b = reading_gain(rev, coef, obs)
     keep = np.ones(len(a), bool)
     p = np.nan
     for _ in range(2):
@@ -291,6 +296,17 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
             "systematic_loro_bar": sys_sd, "spacing_spread_rel": spread}
 
 
+def _end_bins(rev: dict[str, np.ndarray], keep: np.ndarray) -> Iterator[np.ndarray]:
+    """The masks of one run's bins: end of the stroke × ``COLD_BIN_K`` band of gas
+    temperature, among the ``keep`` reversals, ``COLD_BIN_MIN`` reversals or more."""
+    band = np.floor(rev["gas_temp_c"] / COLD_BIN_K)
+    for end in (1.0, -1.0):
+        for k in np.unique(band):
+            m = keep & (band == k) & (np.sign(rev["accel_mps2"]) == end)
+            if m.sum() >= COLD_BIN_MIN:
+                yield m
+
+
 def _cold_bins(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> np.ndarray:
     """Per run, end of the stroke and ``COLD_BIN_K`` band of gas temperature (``COLD_BIN_MIN``
     reversals or more): ``[mean residual of alpha at the label (N), mean x(T) |a|]``."""
@@ -301,12 +317,8 @@ def _cold_bins(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> np.ndarra
             continue
         res = r["alpha_n"] - design(r, r["label_bar"], obs) @ coef
         d = cold_excess(r, obs)
-        band = np.floor(r["gas_temp_c"] / COLD_BIN_K)
-        for end in (1.0, -1.0):
-            for b in np.unique(band):
-                m = (band == b) & (np.sign(r["accel_mps2"]) == end)
-                if m.sum() >= COLD_BIN_MIN:
-                    rows.append((float(np.mean(res[m])), float(np.mean(d[m]))))
+        for m in _end_bins(r, np.ones(len(res), bool)):
+            rows.append((float(np.mean(res[m])), float(np.mean(d[m]))))
     return np.array(rows).reshape(-1, 2)
 
 
@@ -335,17 +347,11 @@ def single_end_sd(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> float:
     for r in revs:
         if not len(r["alpha_n"]):
             continue
-        x = design(r, r["label_bar"], obs)
-        b = (coef[3] + coef[4] * np.abs(r["accel_mps2"])) * theta(r, obs)
-        err = (r["alpha_n"] - x @ coef) / b
-        warm = cold_excess(r, obs) <= 0.0
-        band = np.floor(r["gas_temp_c"] / COLD_BIN_K)
-        for end in (1.0, -1.0):
-            for k in np.unique(band):
-                m = warm & (band == k) & (np.sign(r["accel_mps2"]) == end)
-                if m.sum() >= COLD_BIN_MIN:
-                    err2.append(float(np.mean(err[m])) ** 2)
-                    noise2.append(float(np.mean((sd_n / b[m]) ** 2)) / int(m.sum()))
+        b = reading_gain(r, coef, obs)
+        err = (r["alpha_n"] - design(r, r["label_bar"], obs) @ coef) / b
+        for m in _end_bins(r, cold_excess(r, obs) <= 0.0):
+            err2.append(float(np.mean(err[m])) ** 2)
+            noise2.append(float(np.mean((sd_n / b[m]) ** 2)) / int(m.sum()))
     if not err2:
         return 0.0
     return float(np.sqrt(max(np.mean(err2) - np.mean(noise2), 0.0)))
