@@ -9,6 +9,7 @@
 use std::hint::black_box;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use dt_core::charge::{reversal_window_a2, ChargeObserver, DampingLaw, ObserverParams};
 use dt_core::features::{compute_features, FeaturePipeline, Group, TopicSet};
 use dt_core::force::ForceModel;
 use dt_core::kalman::KalmanFilter;
@@ -164,5 +165,67 @@ fn bench_pipeline(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_models, bench_pipeline);
+/// The damping law `observer fit` calibrated on the simulated default campaign
+/// (seed 1, sixth session), rounded: the window fit's cost depends on it.
+fn campaign_law() -> DampingLaw {
+    DampingLaw {
+        knots_mps: [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15],
+        width_mps: 0.008,
+        viscous_nspm: [
+            -88.1, 1001.4, -1531.1, 5797.5, -4938.6, 684.7, -4582.5, -1725.4, 6335.4,
+        ],
+        dry_nspm: [
+            1520.3, 699.4, 2471.1, -6397.2, 8009.5, 1672.9, 2712.2, 2920.3, -7568.3,
+        ],
+        beta_per_k: 0.0303,
+    }
+}
+
+/// The charge observer's work per reversal, all of it in the window fit
+/// (Levenberg–Marquardt on the RK4 window model): a 2 Hz stroke (`|ÿ|` 6.16
+/// m/s², reversals 0.25 s apart) whose `a2` is the window model itself with
+/// the campaign's law, friction amplitude 45 N and 0.05 m/s² of noise, at
+/// 1 kHz; one observer over 16 reversals per iteration.
+fn bench_charge(c: &mut Criterion) {
+    const REVERSALS: usize = 16;
+    let params = ObserverParams {
+        damping_law: campaign_law(),
+        step_offset_n: 26.7,
+        step_per_bar_n: 1.3,
+        step_sd_n: 2.4,
+        ..ObserverParams::default()
+    };
+    let (half, accel_mag, oil_c) = (0.25, 6.16, 60.0);
+    let mut noise = Noise(0x5DEE_CE66_D1CE_5EED);
+    let mut samples = Vec::new();
+    for k in 0..REVERSALS {
+        let accel = if k % 2 == 0 { -accel_mag } else { accel_mag };
+        let t0 = k as f64 * half;
+        let t_r = t0 + 0.5 * half;
+        let times: Vec<f64> = (0..250).map(|i| t0 + f64::from(i) * 1e-3 - t_r).collect();
+        let a2 = reversal_window_a2(&params, accel, oil_c, [45.0, 1.0, 1.0, 0.0, -9.8], &times);
+        for (&s, &a) in times.iter().zip(&a2) {
+            let t_ns = ((s + t_r) * 1e9).round() as i64;
+            samples.push((t_ns, a + 0.05 * noise.next(), accel * s));
+        }
+    }
+    let mut group = c.benchmark_group("charge");
+    group.sample_size(10);
+    group.throughput(Throughput::Elements(REVERSALS as u64));
+    group.bench_function("window_fit_2hz", |b| {
+        b.iter(|| {
+            let mut obs = ChargeObserver::new(params).unwrap();
+            obs.set_gas_temp_c(oil_c);
+            for &(t_ns, a2, v) in &samples {
+                obs.sample(t_ns, black_box(a2), 0.0, v);
+            }
+            let c = obs.counters();
+            assert!(c.used + c.rejected >= REVERSALS as u64 - 2, "{c:?}");
+            black_box(obs.estimate(samples.last().unwrap().0))
+        });
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_models, bench_pipeline, bench_charge);
 criterion_main!(benches);
