@@ -1875,6 +1875,18 @@ mod tests {
     }
 
     #[test]
+    fn the_friction_shape_is_tanh_to_the_bit() {
+        // Where it skips `tanh` (|x| ≥ 20) `tanh` is exactly ±1; elsewhere it is `tanh`.
+        for i in -4000..=4000 {
+            let x = f64::from(i) * 0.01;
+            assert_eq!(friction_shape(x).to_bits(), x.tanh().to_bits(), "x = {x}");
+        }
+        for x in [19.999_999, 20.0, 1e3, f64::INFINITY, -20.0, -1e300] {
+            assert_eq!(friction_shape(x).to_bits(), x.tanh().to_bits(), "x = {x}");
+        }
+    }
+
+    #[test]
     fn the_law_has_its_knees_and_thins_with_the_heat() {
         let law = a_law();
         assert!(law.is_calibrated() && !DampingLaw::default().is_calibrated());
