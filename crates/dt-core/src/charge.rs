@@ -1701,7 +1701,7 @@ pub fn reversal_window_a2(
 
 /// `tanh(x)`, and its exact value `±1` where it is (`|x| ≥ 20`: `1 − tanh`
 /// is below 1e-17 there, under half an ulp of 1), without calling `tanh`: a
-/// window at 2 Hz spends half its steps that far from the reversal.
+/// window at 2 Hz spends four steps in ten that far from the reversal.
 fn friction_shape(x: f64) -> f64 {
     if x.abs() >= 20.0 {
         x.signum()
