@@ -7,7 +7,9 @@
 use std::io::Cursor;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use dt_core::log::{read_log_bytes, Compression, LogWriter, RunMetadata, Sample, WriteOptions};
+use dt_core::log::{
+    read_log_bytes, Compression, LogDecoder, LogEvent, LogWriter, RunMetadata, Sample, WriteOptions,
+};
 
 /// Samples of `ms` milliseconds of a run.
 fn samples(ms: i64) -> Vec<Sample> {
@@ -80,6 +82,24 @@ fn bench(c: &mut Criterion) {
     let bytes = write(&samples, Compression::Zstd);
     group.bench_function("read_zstd", |b| {
         b.iter(|| read_log_bytes("bench", &bytes).unwrap());
+    });
+    // what `shocktwin replay` does with a clean file: decode while reading,
+    // 1 MiB at a time, nothing kept
+    group.bench_function("stream_zstd", |b| {
+        b.iter(|| {
+            let mut decoder = LogDecoder::new("bench");
+            let mut n = 0usize;
+            for piece in bytes.chunks(1 << 20) {
+                decoder.feed(piece);
+                while let Some(event) = decoder.next_event() {
+                    if let Ok(LogEvent::Sample(s)) = event {
+                        n += usize::from(s.t_ns() >= 0);
+                    }
+                }
+            }
+            decoder.finish().unwrap();
+            n
+        });
     });
     group.finish();
 }

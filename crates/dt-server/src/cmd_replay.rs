@@ -17,7 +17,7 @@
 
 use std::fmt::Write as _;
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -29,7 +29,9 @@ use dt_core::charge::UnitBaseline;
 use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
 use dt_core::estimator::{Estimator, EstimatorConfig, EstimatorCounters};
 use dt_core::features::Group;
-use dt_core::log::{read_log, topic, LogWriter, RunLog, WriteOptions};
+use dt_core::log::{
+    read_log, topic, LogDecoder, LogEvent, LogWriter, RunLog, RunMetadata, WriteOptions,
+};
 
 use crate::cli::ReplayArgs;
 
@@ -160,6 +162,9 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     })
 }
 
+/// Replays one file: as it is read when it is clean and in order
+/// ([`replay_streaming`]), else the whole-file way, which sorts the samples
+/// and reports what it skipped.
 fn replay_file(
     file: &Path,
     bundle: &Arc<Bundle>,
@@ -168,6 +173,124 @@ fn replay_file(
     mcap_out: &dyn Fn(&str) -> PathBuf,
 ) -> Result<Replayed> {
     let started = Instant::now();
+    if let Some(replayed) = replay_streaming(file, bundle, cfg, format, mcap_out, started)? {
+        return Ok(replayed);
+    }
+    replay_whole(file, bundle, cfg, format, mcap_out, started)
+}
+
+/// Replays `file` while reading it, with neither the file nor its samples
+/// held in memory. Valid when every message decodes, every topic is known,
+/// the file is complete and its samples come in the order the whole-file
+/// path sorts them into, `(t_ns, topic rank)`: the estimator then sees the
+/// same samples in the same order and both paths give the same output.
+/// `Ok(None)` at the first thing that is not so; the caller then replays
+/// the file the whole-file way ([`replay_whole`]), which sorts and reports.
+fn replay_streaming(
+    file: &Path,
+    bundle: &Arc<Bundle>,
+    cfg: EstimatorConfig,
+    format: Format,
+    mcap_out: &dyn Fn(&str) -> PathBuf,
+    started: Instant,
+) -> Result<Option<Replayed>> {
+    let name = file.display().to_string();
+    let mut input = File::open(file).with_context(|| format!("opening {name}"))?;
+    let mut decoder = LogDecoder::new(&name);
+    let mut est =
+        Estimator::new(Arc::clone(bundle), cfg).with_context(|| format!("{name}: estimator"))?;
+    let mut metadata: Option<RunMetadata> = None;
+    let mut writer = None;
+    let mut estimates = Vec::new();
+    let mut last: Option<(i64, u8)> = None;
+    let (mut t0_ns, mut samples) = (0i64, 0usize);
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = input
+            .read(&mut buf)
+            .with_context(|| format!("reading {name}"))?;
+        if n == 0 {
+            break;
+        }
+        decoder.feed(&buf[..n]);
+        while let Some(event) = decoder.next_event() {
+            let s = match event {
+                Ok(LogEvent::Sample(s)) => s,
+                Ok(LogEvent::Metadata(m)) => {
+                    if format == Format::Mcap {
+                        writer = Some(LogWriter::create(
+                            mcap_out(&m.run_id),
+                            &m,
+                            WriteOptions::default(),
+                        )?);
+                    }
+                    metadata = Some(m);
+                    continue;
+                }
+                Ok(LogEvent::End) => continue,
+                Ok(LogEvent::Unknown { .. }) | Err(_) => return Ok(None),
+            };
+            let key = (s.t_ns(), s.topic_rank());
+            if last.is_some_and(|l| key < l) {
+                return Ok(None);
+            }
+            if last.is_none() {
+                t0_ns = key.0;
+            }
+            last = Some(key);
+            samples += 1;
+            if est.push(s).is_err() {
+                return Ok(None);
+            }
+            if let Some(w) = writer.as_mut() {
+                w.write_sample(&s)?;
+                for e in est.drain() {
+                    w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
+                    estimates.push(e);
+                }
+            } else {
+                estimates.extend(est.drain());
+            }
+        }
+    }
+    let Some(metadata) = metadata else {
+        return Ok(None);
+    };
+    if decoder.finish().is_err() || est.finish().is_err() {
+        return Ok(None);
+    }
+    for e in est.drain() {
+        if let Some(w) = writer.as_mut() {
+            w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
+        }
+        estimates.push(e);
+    }
+    if let Some(w) = writer {
+        w.finish()?;
+    }
+    Ok(Some(Replayed {
+        file: file.to_path_buf(),
+        run_id: metadata.run_id,
+        asset_id: metadata.asset_id,
+        label_bar: metadata.charge_pressure_bar,
+        t0_ns,
+        counters: est.counters(),
+        samples,
+        estimates,
+        seconds: started.elapsed().as_secs_f64(),
+    }))
+}
+
+/// Replays `file` read whole: the samples sorted by `(t_ns, topic rank)`,
+/// skipped messages and ignored topics reported.
+fn replay_whole(
+    file: &Path,
+    bundle: &Arc<Bundle>,
+    cfg: EstimatorConfig,
+    format: Format,
+    mcap_out: &dyn Fn(&str) -> PathBuf,
+    started: Instant,
+) -> Result<Replayed> {
     let log = read_log(file)?;
     for problem in &log.problems {
         tracing::warn!(file = %file.display(), "{problem}");
@@ -175,7 +298,6 @@ fn replay_file(
     let mut est = Estimator::new(Arc::clone(bundle), cfg)
         .with_context(|| format!("{}: estimator", file.display()))?;
     let mut estimates = Vec::new();
-    let samples = log.samples_sorted();
     let mut writer = match format {
         Format::Mcap => {
             let path = mcap_out(&log.metadata.run_id);
@@ -187,11 +309,10 @@ fn replay_file(
         }
         _ => None,
     };
-    for s in &samples {
-        est.push(*s)
-            .with_context(|| format!("{}", file.display()))?;
+    for s in log.samples_in_order() {
+        est.push(s).with_context(|| format!("{}", file.display()))?;
         if let Some(w) = writer.as_mut() {
-            w.write_sample(s)?;
+            w.write_sample(&s)?;
             for e in est.drain() {
                 w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
                 estimates.push(e);
@@ -218,7 +339,7 @@ fn replay_file(
         label_bar: log.metadata.charge_pressure_bar,
         t0_ns: t0(&log),
         counters: est.counters(),
-        samples: samples.len(),
+        samples: log.sample_count(),
         estimates,
         seconds: started.elapsed().as_secs_f64(),
     })
@@ -244,11 +365,11 @@ const FIELDS: [&str; 13] = [
     "label_bar",
 ];
 
-fn num(x: f64) -> String {
+/// `,x` (empty when not finite), written in place: no `String` per field.
+fn push_num(line: &mut String, x: f64) {
+    line.push(',');
     if x.is_finite() {
-        format!("{x}")
-    } else {
-        String::new()
+        let _ = write!(line, "{x}");
     }
 }
 
@@ -264,22 +385,17 @@ fn write_table(out: &Path, format: Format, runs: &[Replayed]) -> Result<()> {
             let t_s = (e.t_ns - r.t0_ns) as f64 * 1e-9;
             line.clear();
             if format == Format::Csv {
-                let _ = write!(
-                    line,
-                    "{},{},{t_s:.3},{},{},{},{},{},{},{},{},{},{}",
-                    r.run_id,
-                    r.asset_id,
-                    num(e.pressure_bar),
-                    num(e.pressure_avg_bar),
-                    num(e.pressure_lo_bar),
-                    num(e.pressure_hi_bar),
-                    num(e.expected_bar),
-                    e.health,
-                    num(e.velocity_mps),
-                    num(e.force_model_n),
-                    num(e.oil_temp_c),
-                    r.label_bar.map_or(String::new(), num),
-                );
+                let _ = write!(line, "{},{},{t_s:.3}", r.run_id, r.asset_id);
+                push_num(&mut line, e.pressure_bar);
+                push_num(&mut line, e.pressure_avg_bar);
+                push_num(&mut line, e.pressure_lo_bar);
+                push_num(&mut line, e.pressure_hi_bar);
+                push_num(&mut line, e.expected_bar);
+                let _ = write!(line, ",{}", e.health);
+                push_num(&mut line, e.velocity_mps);
+                push_num(&mut line, e.force_model_n);
+                push_num(&mut line, e.oil_temp_c);
+                push_num(&mut line, r.label_bar.unwrap_or(f64::NAN));
             } else {
                 let mut v = serde_json::to_value(e)?;
                 let obj = v.as_object_mut().expect("an Estimate is an object");
@@ -367,4 +483,149 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
             ""
         }
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dt_core::log::{Compression, Sample};
+
+    fn bundle() -> Arc<Bundle> {
+        let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../dt-core/tests/fixtures/bundle-mlp13");
+        Arc::new(Bundle::load(&dir).expect("fixture bundle"))
+    }
+
+    /// 30 s of a 2 Hz stroke with every topic the fixture bundle reads, in
+    /// `(t_ns, topic rank)` order.
+    fn samples() -> Vec<Sample> {
+        let mut out = Vec::new();
+        for ms in 0..30_000i64 {
+            let t_ns = 1_000_000_000 + ms * 1_000_000;
+            let phase = ms as f64 * 1e-3 * 2.0 * std::f64::consts::PI * 2.0;
+            out.push(Sample::Acceleration {
+                t_ns,
+                a1_mps2: 6.0 * phase.sin(),
+                a2_mps2: 0.3 * phase.cos(),
+            });
+            if ms % 10 == 0 {
+                out.push(Sample::Position {
+                    t_ns,
+                    position_m: 0.04 * phase.sin(),
+                });
+            }
+            if ms % 20 == 0 {
+                out.push(Sample::Force {
+                    t_ns,
+                    force_n: 800.0 * phase.cos(),
+                });
+            }
+            if ms % 1000 == 0 {
+                out.push(Sample::TempShock {
+                    t_ns,
+                    temperature_c: 30.0 + ms as f64 * 1e-4,
+                });
+                out.push(Sample::TempAmbient {
+                    t_ns,
+                    temperature_c: 20.0,
+                });
+            }
+        }
+        out
+    }
+
+    fn write(path: &Path, samples: &[Sample]) {
+        let meta = RunMetadata {
+            asset_id: "unit-a".into(),
+            run_id: "r1".into(),
+            charge_pressure_bar: Some(7.0),
+            ..RunMetadata::default()
+        };
+        let options = WriteOptions {
+            compression: Compression::Zstd,
+            chunk_size: Some(64 << 10),
+        };
+        let mut w = LogWriter::create(path, &meta, options).unwrap();
+        for s in samples {
+            w.write_sample(s).unwrap();
+        }
+        w.finish().unwrap();
+    }
+
+    fn rows(r: &Replayed) -> Vec<String> {
+        r.estimates
+            .iter()
+            .map(|e| serde_json::to_string(e).unwrap())
+            .collect()
+    }
+
+    #[test]
+    fn a_file_in_order_streams_and_replays_as_the_same_samples_sorted() {
+        let dir = tempfile::tempdir().unwrap();
+        let in_order = dir.path().join("in-order.mcap");
+        let shuffled = dir.path().join("shuffled.mcap");
+        let samples = samples();
+        write(&in_order, &samples);
+        // the same samples with every 997th one written after its
+        // successor: out of `(t_ns, topic rank)` order in the file
+        let mut moved = samples.clone();
+        for k in (0..moved.len() - 1).step_by(997) {
+            moved.swap(k, k + 1);
+        }
+        assert!(moved
+            .windows(2)
+            .any(|w| (w[1].t_ns(), w[1].topic_rank()) < (w[0].t_ns(), w[0].topic_rank())));
+        write(&shuffled, &moved);
+
+        let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
+        let no_mcap = |_: &str| PathBuf::new();
+        let t = Instant::now();
+        let streamed = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t)
+            .unwrap()
+            .expect("a clean file in order streams");
+        assert!(
+            replay_streaming(&shuffled, &b, cfg, Format::Csv, &no_mcap, t)
+                .unwrap()
+                .is_none(),
+            "a file out of order must not stream"
+        );
+        let whole = replay_file(&shuffled, &b, cfg, Format::Csv, &no_mcap).unwrap();
+        let whole_in_order = replay_whole(&in_order, &b, cfg, Format::Csv, &no_mcap, t).unwrap();
+
+        assert!(
+            streamed.estimates.len() > 1000,
+            "{}",
+            streamed.estimates.len()
+        );
+        assert_eq!(rows(&streamed), rows(&whole));
+        assert_eq!(rows(&streamed), rows(&whole_in_order));
+        assert_eq!(streamed.samples, samples.len());
+        assert_eq!(whole.samples, samples.len());
+        assert_eq!(streamed.t0_ns, whole.t0_ns);
+        assert_eq!(streamed.label_bar, Some(7.0));
+        assert_eq!(
+            (streamed.run_id.as_str(), streamed.asset_id.as_str()),
+            ("r1", "unit-a")
+        );
+    }
+
+    #[test]
+    fn a_truncated_file_does_not_stream_and_is_reported_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let full = dir.path().join("full.mcap");
+        write(&full, &samples());
+        let bytes = std::fs::read(&full).unwrap();
+        let cut = dir.path().join("cut.mcap");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
+        let no_mcap = |_: &str| PathBuf::new();
+        let t = Instant::now();
+        assert!(replay_streaming(&cut, &b, cfg, Format::Csv, &no_mcap, t)
+            .unwrap()
+            .is_none());
+        let err = replay_file(&cut, &b, cfg, Format::Csv, &no_mcap)
+            .err()
+            .expect("a truncated file is an error, as before");
+        assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}");
+    }
 }

@@ -303,10 +303,10 @@ impl<'a> Parser<'a> {
                 {
                     self.pos += 1;
                 }
-                let text = std::str::from_utf8(&self.data[start..self.pos]).unwrap_or("");
-                text.parse::<f64>()
-                    .map(Ok)
-                    .map_err(|_| format!("malformed number `{text}`"))
+                let text = &self.data[start..self.pos];
+                fast_float2::parse::<f64, _>(text).map(Ok).map_err(|_| {
+                    format!("malformed number `{}`", String::from_utf8_lossy(text))
+                })
             }
             b'"' => {
                 self.string()?;

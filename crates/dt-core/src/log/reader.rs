@@ -17,6 +17,7 @@
 //! A field that is `null`, `NaN`, `Infinity` or `-Infinity` (Python's `json`
 //! writes the last three) is read as NaN: a missing sample, kept in its place.
 
+use std::borrow::Cow;
 use std::path::Path;
 
 use super::decode::SampleDecoder;
@@ -136,52 +137,37 @@ impl RunLog {
     #[must_use]
     pub fn samples_sorted(&self) -> Vec<Sample> {
         let mut out = Vec::with_capacity(self.sample_count());
-        out.extend(self.acceleration.iter().map(|&(t_ns, a1_mps2, a2_mps2)| {
-            Sample::Acceleration {
-                t_ns,
-                a1_mps2,
-                a2_mps2,
-            }
-        }));
-        out.extend(
-            self.position
-                .iter()
-                .map(|&(t_ns, position_m)| Sample::Position { t_ns, position_m }),
-        );
-        out.extend(
-            self.force
-                .iter()
-                .map(|&(t_ns, force_n)| Sample::Force { t_ns, force_n }),
-        );
-        out.extend(
-            self.temp_shock
-                .iter()
-                .map(|&(t_ns, temperature_c)| Sample::TempShock {
-                    t_ns,
-                    temperature_c,
-                }),
-        );
-        out.extend(
-            self.temp_ambient
-                .iter()
-                .map(|&(t_ns, temperature_c)| Sample::TempAmbient {
-                    t_ns,
-                    temperature_c,
-                }),
-        );
-        out.extend(
-            self.truth_pressure
-                .iter()
-                .map(|&(t_ns, static_bar)| Sample::TruthPressure { t_ns, static_bar }),
-        );
-        out.extend(
-            self.truth_velocity
-                .iter()
-                .map(|&(t_ns, velocity_mps)| Sample::TruthVelocity { t_ns, velocity_mps }),
-        );
-        // stable: equal keys keep file order within a topic
-        out.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
+        out.extend(self.samples_in_order());
         out
+    }
+
+    /// The samples of [`RunLog::samples_sorted`], in the same order, without
+    /// building the vector: the topics' columns merged as they are read (a
+    /// column out of time order is sorted first, stably, in a copy).
+    #[must_use]
+    pub fn samples_in_order(&self) -> SamplesInOrder<'_> {
+        fn in_order<T: Copy>(col: &[T], t: impl Fn(&T) -> i64) -> Cow<'_, [T]> {
+            if col.is_sorted_by_key(&t) {
+                Cow::Borrowed(col)
+            } else {
+                let mut v = col.to_vec();
+                v.sort_by_key(t); // stable: equal times keep file order
+                Cow::Owned(v)
+            }
+        }
+        let pair = |col| in_order(col, |s: &(i64, f64)| s.0);
+        SamplesInOrder {
+            acceleration: in_order(&self.acceleration, |s| s.0),
+            pairs: [
+                pair(&self.position),
+                pair(&self.force),
+                pair(&self.temp_shock),
+                pair(&self.temp_ambient),
+                pair(&self.truth_pressure),
+                pair(&self.truth_velocity),
+            ],
+            next: [0; 7],
+        }
     }
 
     /// Time of the first message over all sensor topics, ns.
@@ -287,6 +273,9 @@ pub enum LogEvent {
 /// See the module docs for what is fatal; after a fatal error
 /// `next_event` returns `None`.
 pub struct LogDecoder {
+    /// The stream's name, for errors (the raw layer's, kept here so that a
+    /// message's decoding borrows it instead of copying it).
+    name: String,
     raw: RawDecoder,
     samples: SampleDecoder,
     pending: Vec<u8>,
@@ -308,6 +297,7 @@ impl LogDecoder {
     #[must_use]
     pub fn with_limits(source_name: &str, limits: ReadLimits) -> Self {
         LogDecoder {
+            name: source_name.to_owned(),
             raw: RawDecoder::new(source_name, limits),
             samples: SampleDecoder::default(),
             pending: Vec::new(),
@@ -342,7 +332,7 @@ impl LogDecoder {
     }
 
     fn next_inner(&mut self) -> Option<Result<LogEvent, LogError>> {
-        let file = self.raw.source_name().to_owned();
+        let file = self.name.as_str();
         loop {
             let mut input = &self.pending[self.pos..];
             let before = input.len();
@@ -354,7 +344,7 @@ impl LogDecoder {
             };
             match event {
                 RawEvent::Channel(channel) => {
-                    if let Err(err) = self.samples.on_channel(&file, &channel) {
+                    if let Err(err) = self.samples.on_channel(file, &channel) {
                         return Some(Err(err));
                     }
                 }
@@ -362,7 +352,7 @@ impl LogDecoder {
                     if name == RUN_METADATA_NAME && !self.metadata_seen =>
                 {
                     self.metadata_seen = true;
-                    return Some(RunMetadata::from_map(&file, &metadata).map(LogEvent::Metadata));
+                    return Some(RunMetadata::from_map(file, &metadata).map(LogEvent::Metadata));
                 }
                 RawEvent::Message {
                     channel,
@@ -372,14 +362,14 @@ impl LogDecoder {
                 } => {
                     if !self.metadata_seen {
                         return Some(Err(LogError::MissingMetadata {
-                            file,
+                            file: file.to_owned(),
                             reason: format!(
                                 "does not come before the first message (topic `{}`)",
                                 channel.topic
                             ),
                         }));
                     }
-                    return Some(match self.samples.decode(&file, &channel, log_time, data) {
+                    return Some(match self.samples.decode(file, &channel, log_time, data) {
                         Ok(Some(sample)) => Ok(LogEvent::Sample(sample)),
                         Ok(None) => Ok(LogEvent::Unknown {
                             topic: channel.topic.clone(),
@@ -435,3 +425,89 @@ impl LogError {
         !matches!(self, LogError::Message { .. })
     }
 }
+
+/// Iterator of [`RunLog::samples_in_order`]: a merge of the topics' columns
+/// by `(t_ns, topic rank)`, each column in time order.
+#[derive(Debug)]
+pub struct SamplesInOrder<'a> {
+    acceleration: Cow<'a, [(i64, f64, f64)]>,
+    /// Position, force, shock and ambient temperature, truth pressure and
+    /// velocity: topic ranks 1 to 6.
+    pairs: [Cow<'a, [(i64, f64)]>; 6],
+    /// Next index in each column, by topic rank.
+    next: [usize; 7],
+}
+
+impl SamplesInOrder<'_> {
+    fn head_t(&self, rank: usize) -> Option<i64> {
+        if rank == 0 {
+            self.acceleration.get(self.next[0]).map(|s| s.0)
+        } else {
+            self.pairs[rank - 1].get(self.next[rank]).map(|s| s.0)
+        }
+    }
+}
+
+impl Iterator for SamplesInOrder<'_> {
+    type Item = Sample;
+
+    fn next(&mut self) -> Option<Sample> {
+        // the earliest head; at equal times the lowest rank (strict `<`)
+        let mut best: Option<(i64, usize)> = None;
+        for rank in 0..7 {
+            if let Some(t) = self.head_t(rank) {
+                if best.is_none_or(|(bt, _)| t < bt) {
+                    best = Some((t, rank));
+                }
+            }
+        }
+        let (t_ns, rank) = best?;
+        let i = self.next[rank];
+        self.next[rank] += 1;
+        if rank == 0 {
+            let (_, a1_mps2, a2_mps2) = self.acceleration[i];
+            return Some(Sample::Acceleration {
+                t_ns,
+                a1_mps2,
+                a2_mps2,
+            });
+        }
+        let v = self.pairs[rank - 1][i].1;
+        Some(match rank {
+            1 => Sample::Position {
+                t_ns,
+                position_m: v,
+            },
+            2 => Sample::Force { t_ns, force_n: v },
+            3 => Sample::TempShock {
+                t_ns,
+                temperature_c: v,
+            },
+            4 => Sample::TempAmbient {
+                t_ns,
+                temperature_c: v,
+            },
+            5 => Sample::TruthPressure {
+                t_ns,
+                static_bar: v,
+            },
+            _ => Sample::TruthVelocity {
+                t_ns,
+                velocity_mps: v,
+            },
+        })
+    }
+
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        let left = self.acceleration.len() - self.next[0]
+            + self
+                .pairs
+                .iter()
+                .zip(&self.next[1..])
+                .map(|(c, &i)| c.len() - i)
+                .sum::<usize>();
+        (left, Some(left))
+    }
+}
+
+impl ExactSizeIterator for SamplesInOrder<'_> {}
