@@ -97,11 +97,26 @@ def law_dict(coef: np.ndarray) -> dict[str, Any]:
             "dry_nspm": [float(x) for x in coef[N_COEF:2 * N_COEF]], "beta_per_k": float(coef[-1])}
 
 
+def pick_by_time(t_s: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the reversals (times ``t_s``, ascending) nearest to ``n`` times spread
+    evenly over their span, at the middles of ``n`` equal parts. A reversal more or less
+    (one window fit that converges or fails differently after a change of the fit) moves
+    at most the one pick nearest to it; a pick by rank among the reversals, as before,
+    moved every pick after it and redrew the law's windows."""
+    t_s = np.asarray(t_s, float)
+    if len(t_s) <= n:
+        return np.arange(len(t_s))
+    targets = t_s[0] + (np.arange(n) + 0.5) / n * (t_s[-1] - t_s[0])
+    i = np.clip(np.searchsorted(t_s, targets), 1, len(t_s) - 1)
+    return np.unique(np.where(targets - t_s[i - 1] <= t_s[i] - targets, i - 1, i))
+
+
 def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any],
                      per_run: int = WINDOWS_PER_RUN) -> list[dict[str, Any]]:
     """The observer's reversal windows of ``runs`` (every detected reversal the window fit
-    accepts with any residual), ``per_run`` of them per run spread evenly over it: times (s
-    from the reversal), raw ``a2``, the velocity slope and the twin's oil temperature."""
+    accepts with any residual), ``per_run`` of them per run spread evenly over its time
+    (``pick_by_time``): times (s from the reversal), raw ``a2``, the velocity slope and the
+    twin's oil temperature."""
     linear = shocktwin.default_observer_params()["damping_law"]  # uncalibrated: linear slopes
     loose = {**obs, "max_residual_mps2": 1e3, "damping_law": linear}
     out = []
@@ -111,7 +126,7 @@ def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str
         ok = np.nonzero(rev["t_s"] > onset)[0]
         if len(ok) == 0:
             continue
-        pick = ok[np.unique(np.linspace(0, len(ok) - 1, min(per_run, len(ok))).round().astype(int))]
+        pick = ok[pick_by_time(rev["t_s"][ok], per_run)]
         acc = run.log.topic("/acceleration")
         t0 = min(run.log.topic(t)["t_s"][0] for t in run.log.topics if len(run.log.topic(t)["t_s"]))
         for i in pick:

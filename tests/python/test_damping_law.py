@@ -112,3 +112,24 @@ def test_the_oils_viscosity_coefficient_from_the_datasheet_is_held(tmp_path) -> 
     free = fit_law_windows(windows, params, obs)
     assert abs(free["law"]["beta_per_k"] - 0.045) < abs(held["law"]["beta_per_k"] - 0.045)
     assert max(free["residual_rms_mps2"], held["residual_rms_mps2"]) < 1.5 * NOISE_MPS2
+
+
+def test_the_law_windows_are_picked_by_time_so_one_reversal_more_or_less_moves_one_pick() -> None:
+    """``pick_by_time``: evenly spread over the run's time; dropping any one reversal (a window
+    fit that fails after a change of the fit) changes at most the one pick nearest to it."""
+    from train.damping_law import pick_by_time
+
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.24, 0.26, 1700))  # a 2 Hz run's reversals, ~7 min
+    picks = pick_by_time(t, 40)
+    assert len(picks) == 40
+    gaps = np.diff(t[picks])
+    assert gaps.max() < 1.1 * (t[-1] - t[0]) / 40 and gaps.min() > 0.9 * (t[-1] - t[0]) / 40
+    for drop in rng.choice(len(t), 25, replace=False):
+        kept = np.delete(t, drop)
+        moved = set(t[picks]) ^ set(kept[pick_by_time(kept, 40)])
+        assert len(moved) <= 2, (drop, sorted(moved))  # one pick out, its neighbour in
+    # the pick by rank this replaced: one reversal dropped early redraws about half the windows
+    by_rank = lambda x: x[np.unique(np.linspace(0, len(x) - 1, 40).round().astype(int))]  # noqa: E731
+    assert len(set(by_rank(t)) ^ set(by_rank(np.delete(t, 5)))) > 20
+    assert list(pick_by_time(t[:30], 40)) == list(range(30))
