@@ -17,7 +17,7 @@
 
 use std::fmt::Write as _;
 use std::fs::File;
-use std::io::{BufWriter, Read, Write};
+use std::io::{BufWriter, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -30,7 +30,7 @@ use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
 use dt_core::estimator::{Estimator, EstimatorConfig, EstimatorCounters};
 use dt_core::features::Group;
 use dt_core::log::{
-    read_log, topic, LogDecoder, LogEvent, LogWriter, RunLog, RunMetadata, WriteOptions,
+    read_log, topic, LogDecoder, LogEvent, LogWriter, RunLog, RunMetadata, Sample, WriteOptions,
 };
 
 use crate::cli::ReplayArgs;
@@ -242,15 +242,7 @@ fn replay_streaming(
             if est.push(s).is_err() {
                 return Ok(None);
             }
-            if let Some(w) = writer.as_mut() {
-                w.write_sample(&s)?;
-                for e in est.drain() {
-                    w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
-                    estimates.push(e);
-                }
-            } else {
-                estimates.extend(est.drain());
-            }
+            take_estimates(&mut est, writer.as_mut(), Some(&s), &mut estimates)?;
         }
     }
     let Some(metadata) = metadata else {
@@ -259,12 +251,7 @@ fn replay_streaming(
     if decoder.finish().is_err() || est.finish().is_err() {
         return Ok(None);
     }
-    for e in est.drain() {
-        if let Some(w) = writer.as_mut() {
-            w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
-        }
-        estimates.push(e);
-    }
+    take_estimates(&mut est, writer.as_mut(), None, &mut estimates)?;
     if let Some(w) = writer {
         w.finish()?;
     }
@@ -311,24 +298,11 @@ fn replay_whole(
     };
     for s in log.samples_in_order() {
         est.push(s).with_context(|| format!("{}", file.display()))?;
-        if let Some(w) = writer.as_mut() {
-            w.write_sample(&s)?;
-            for e in est.drain() {
-                w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
-                estimates.push(e);
-            }
-        } else {
-            estimates.extend(est.drain());
-        }
+        take_estimates(&mut est, writer.as_mut(), Some(&s), &mut estimates)?;
     }
     est.finish()
         .with_context(|| format!("{}", file.display()))?;
-    for e in est.drain() {
-        if let Some(w) = writer.as_mut() {
-            w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
-        }
-        estimates.push(e);
-    }
+    take_estimates(&mut est, writer.as_mut(), None, &mut estimates)?;
     if let Some(w) = writer {
         w.finish()?;
     }
@@ -343,6 +317,29 @@ fn replay_whole(
         estimates,
         seconds: started.elapsed().as_secs_f64(),
     })
+}
+
+/// After a sample (`Some`, written to the MCAP output first) or at the end
+/// (`None`): moves the estimator's new estimates into `estimates` and, with an
+/// MCAP output, into the log after the sample.
+fn take_estimates<W: Write + Seek>(
+    est: &mut Estimator,
+    writer: Option<&mut LogWriter<W>>,
+    sample: Option<&Sample>,
+    estimates: &mut Vec<Estimate>,
+) -> Result<()> {
+    let Some(w) = writer else {
+        estimates.extend(est.drain());
+        return Ok(());
+    };
+    if let Some(s) = sample {
+        w.write_sample(s)?;
+    }
+    for e in est.drain() {
+        w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
+        estimates.push(e);
+    }
+    Ok(())
 }
 
 fn t0(log: &RunLog) -> i64 {

@@ -82,34 +82,7 @@ impl SampleDecoder {
             }
         }
         let [v0, v1] = values;
-        Ok(Some(match rank {
-            0 => Sample::Acceleration {
-                t_ns,
-                a1_mps2: v0,
-                a2_mps2: v1,
-            },
-            1 => Sample::Position {
-                t_ns,
-                position_m: v0,
-            },
-            2 => Sample::Force { t_ns, force_n: v0 },
-            3 => Sample::TempShock {
-                t_ns,
-                temperature_c: v0,
-            },
-            4 => Sample::TempAmbient {
-                t_ns,
-                temperature_c: v0,
-            },
-            5 => Sample::TruthPressure {
-                t_ns,
-                static_bar: v0,
-            },
-            _ => Sample::TruthVelocity {
-                t_ns,
-                velocity_mps: v0,
-            },
-        }))
+        Ok(Some(Sample::from_rank(rank, t_ns, v0, v1)))
     }
 }
 
@@ -304,9 +277,9 @@ impl<'a> Parser<'a> {
                     self.pos += 1;
                 }
                 let text = &self.data[start..self.pos];
-                fast_float2::parse::<f64, _>(text).map(Ok).map_err(|_| {
-                    format!("malformed number `{}`", String::from_utf8_lossy(text))
-                })
+                fast_float2::parse::<f64, _>(text)
+                    .map(Ok)
+                    .map_err(|_| format!("malformed number `{}`", String::from_utf8_lossy(text)))
             }
             b'"' => {
                 self.string()?;

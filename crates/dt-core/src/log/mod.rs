@@ -174,6 +174,41 @@ impl Sample {
         }
     }
 
+    /// The sample of topic rank `rank` ([`Sample::topic_rank`]; 6 and above:
+    /// truth velocity) at `t_ns` with the topic's fields in SPEC order: `v1`
+    /// is the second field of `/acceleration` (`a2_mps2`), unused elsewhere.
+    #[must_use]
+    pub fn from_rank(rank: u8, t_ns: i64, v0: f64, v1: f64) -> Sample {
+        match rank {
+            0 => Sample::Acceleration {
+                t_ns,
+                a1_mps2: v0,
+                a2_mps2: v1,
+            },
+            1 => Sample::Position {
+                t_ns,
+                position_m: v0,
+            },
+            2 => Sample::Force { t_ns, force_n: v0 },
+            3 => Sample::TempShock {
+                t_ns,
+                temperature_c: v0,
+            },
+            4 => Sample::TempAmbient {
+                t_ns,
+                temperature_c: v0,
+            },
+            5 => Sample::TruthPressure {
+                t_ns,
+                static_bar: v0,
+            },
+            _ => Sample::TruthVelocity {
+                t_ns,
+                velocity_mps: v0,
+            },
+        }
+    }
+
     /// The SPEC §2 topic this sample belongs to.
     #[must_use]
     pub fn topic(&self) -> &'static str {

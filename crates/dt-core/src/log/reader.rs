@@ -453,49 +453,25 @@ impl Iterator for SamplesInOrder<'_> {
 
     fn next(&mut self) -> Option<Sample> {
         // the earliest head; at equal times the lowest rank (strict `<`)
-        let mut best: Option<(i64, usize)> = None;
-        for rank in 0..7 {
-            if let Some(t) = self.head_t(rank) {
+        let mut best: Option<(i64, u8)> = None;
+        for rank in 0..7u8 {
+            if let Some(t) = self.head_t(usize::from(rank)) {
                 if best.is_none_or(|(bt, _)| t < bt) {
                     best = Some((t, rank));
                 }
             }
         }
         let (t_ns, rank) = best?;
-        let i = self.next[rank];
-        self.next[rank] += 1;
-        if rank == 0 {
-            let (_, a1_mps2, a2_mps2) = self.acceleration[i];
-            return Some(Sample::Acceleration {
-                t_ns,
-                a1_mps2,
-                a2_mps2,
-            });
-        }
-        let v = self.pairs[rank - 1][i].1;
-        Some(match rank {
-            1 => Sample::Position {
-                t_ns,
-                position_m: v,
-            },
-            2 => Sample::Force { t_ns, force_n: v },
-            3 => Sample::TempShock {
-                t_ns,
-                temperature_c: v,
-            },
-            4 => Sample::TempAmbient {
-                t_ns,
-                temperature_c: v,
-            },
-            5 => Sample::TruthPressure {
-                t_ns,
-                static_bar: v,
-            },
-            _ => Sample::TruthVelocity {
-                t_ns,
-                velocity_mps: v,
-            },
-        })
+        let r = usize::from(rank);
+        let i = self.next[r];
+        self.next[r] += 1;
+        let (v0, v1) = if r == 0 {
+            let (_, a1, a2) = self.acceleration[i];
+            (a1, a2)
+        } else {
+            (self.pairs[r - 1][i].1, f64::NAN)
+        };
+        Some(Sample::from_rank(rank, t_ns, v0, v1))
     }
 
     fn size_hint(&self) -> (usize, Option<usize>) {
