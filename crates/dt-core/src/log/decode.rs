@@ -66,6 +66,9 @@ impl SampleDecoder {
                 format!("{log_time} does not fit in i64 nanoseconds"),
             ));
         };
+        if let Some([v0, v1]) = members_as_written(data, spec.fields) {
+            return Ok(Some(Sample::from_rank(rank, t_ns, v0, v1)));
+        }
         let mut values = [f64::NAN; 2];
         let mut found = [false; 2];
         parse_flat_object(data, |key, value| {
@@ -125,6 +128,51 @@ fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(
         }
     }
     Ok(())
+}
+
+/// The message's numbers when it is written as the writers write it: the
+/// topic's fields in SPEC order and nothing else, each a JSON number (a
+/// digit first, or `-` and a digit), ASCII whitespace allowed between
+/// tokens (Python's `json` puts spaces there). Read without the general
+/// parser; anything else — `null`, escapes, other members, another order, a
+/// number followed by anything but `,` or `}` — gives `None` and goes
+/// through [`parse_flat_object`], which reads what this accepts to the same
+/// values (the same number text through the same parser).
+fn members_as_written(data: &[u8], fields: &[&str]) -> Option<[f64; 2]> {
+    fn ws(b: &[u8]) -> &[u8] {
+        let n = b
+            .iter()
+            .take_while(|c| matches!(c, b' ' | b'\t' | b'\n' | b'\r'))
+            .count();
+        &b[n..]
+    }
+    let mut rest = ws(data).strip_prefix(b"{")?;
+    let mut out = [f64::NAN; 2];
+    for (i, field) in fields.iter().enumerate() {
+        if i > 0 {
+            rest = ws(rest).strip_prefix(b",")?;
+        }
+        rest = ws(rest)
+            .strip_prefix(b"\"")?
+            .strip_prefix(field.as_bytes())?
+            .strip_prefix(b"\"")?;
+        rest = ws(ws(rest).strip_prefix(b":")?);
+        let unsigned = rest.strip_prefix(b"-").unwrap_or(rest);
+        if !unsigned.first()?.is_ascii_digit() {
+            return None;
+        }
+        let (value, used) = fast_float2::parse_partial::<f64, _>(rest).ok()?;
+        out[i] = value;
+        rest = &rest[used..];
+        // the general parser's number is the run of `[0-9+-.eE]`: it must end here
+        if matches!(
+            rest.first(),
+            Some(b'0'..=b'9' | b'+' | b'-' | b'.' | b'e' | b'E')
+        ) {
+            return None;
+        }
+    }
+    ws(ws(rest).strip_prefix(b"}")?).is_empty().then_some(out)
 }
 
 /// Parses a flat JSON object, calling `f(key, value)` (the key unescaped,
@@ -322,7 +370,7 @@ impl<'a> Parser<'a> {
 
 #[cfg(test)]
 mod tests {
-    use super::parse_flat_object;
+    use super::{members_as_written, parse_flat_object};
 
     type Fields = Vec<(String, Result<f64, String>)>;
 
@@ -383,6 +431,75 @@ mod tests {
             let (field, reason) = fields(bad).unwrap_err();
             assert_eq!(field, key);
             assert!(reason.starts_with("malformed JSON: "), "{reason}");
+        }
+    }
+
+    /// What the fast path reads, the general parser reads to the same bits;
+    /// what it refuses goes to the general parser.
+    #[test]
+    fn members_as_written_reads_what_the_general_parser_reads() {
+        const F: [&str; 2] = ["a1_mps2", "a2_mps2"];
+        let general = |json: &str| -> [u64; 2] {
+            let got = fields(json).unwrap();
+            [0, 1].map(|i| {
+                let (_, v) = got.iter().find(|(k, _)| k == F[i]).unwrap();
+                v.clone().unwrap().to_bits()
+            })
+        };
+        let mut cases: Vec<String> = [
+            r#"{"a1_mps2":1.5,"a2_mps2":-2e-3}"#,
+            " { \"a1_mps2\" :\t0.1 ,\n\"a2_mps2\" : 7 } \r\n",
+            r#"{"a1_mps2":1.,"a2_mps2":01}"#,
+            r#"{"a1_mps2":-0,"a2_mps2":1E+300}"#,
+            r#"{"a1_mps2":1e999,"a2_mps2":5e-400}"#,
+            r#"{"a1_mps2":0.30000000000000004,"a2_mps2":-1.7976931348623157e308}"#,
+        ]
+        .map(String::from)
+        .to_vec();
+        // the writers' own text (shortest round trip) and Python's (`repr`, spaces)
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        for _ in 0..2000 {
+            // a 64-bit LCG: a mantissa in [0, 1) and a decade in 1e-20 .. 1e19
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            let x = (state >> 11) as f64 / (1u64 << 53) as f64
+                * 10f64.powi(((state >> 3) % 40) as i32 - 20);
+            let mut z = zmij::Buffer::new();
+            cases.push(format!(
+                r#"{{"a1_mps2":{},"a2_mps2":{:e}}}"#,
+                z.format_finite(x),
+                -x
+            ));
+            cases.push(format!(r#"{{"a1_mps2": {x:?}, "a2_mps2": {x}}}"#));
+        }
+        for c in &cases {
+            let fast = members_as_written(c.as_bytes(), &F).unwrap_or_else(|| panic!("{c}"));
+            assert_eq!(fast.map(f64::to_bits), general(c), "{c}");
+        }
+        for c in [
+            r#"{"a1_mps2":null,"a2_mps2":1}"#,
+            r#"{"a1_mps2":NaN,"a2_mps2":1}"#,
+            r#"{"a1_mps2":nan,"a2_mps2":1}"#,
+            r#"{"a1_mps2":-inf,"a2_mps2":1}"#,
+            r#"{"a1_mps2":-Infinity,"a2_mps2":1}"#,
+            r#"{"a2_mps2":1,"a1_mps2":2}"#,
+            r#"{"a1_mps2":1,"a2_mps2":2,"x":3}"#,
+            r#"{"a1_mps2":1,"a1_mps2":2}"#,
+            r#"{"a1_mps2":1.5e,"a2_mps2":1}"#,
+            r#"{"a1_mps2":1-2,"a2_mps2":1}"#,
+            r#"{"a1_mps2":1 2,"a2_mps2":1}"#,
+            r#"{"a1_mps2":+1,"a2_mps2":1}"#,
+            r#"{"a1_mps2":.5,"a2_mps2":1}"#,
+            r#"{"a1_mps2":"1","a2_mps2":1}"#,
+            r#"{"a1\u005fmps2":1,"a2_mps2":1}"#,
+            r#"{"a1_mps2x":1,"a2_mps2":1}"#,
+            r#"{"a1_mps2":1,"a2_mps2":2}x"#,
+            r#"{"a1_mps2":1,"a2_mps2":2"#,
+            r#"{"a1_mps2":1}"#,
+            "",
+        ] {
+            assert!(members_as_written(c.as_bytes(), &F).is_none(), "{c}");
         }
     }
 }
