@@ -102,7 +102,7 @@ def pick_by_time(t_s: np.ndarray, n: int) -> np.ndarray:
     evenly over their span, at the middles of ``n`` equal parts. A reversal more or less
     (one window fit that converges or fails differently after a change of the fit) moves
     at most the one pick nearest to it; a pick by rank among the reversals, as before,
-    moved every pick after it and redrew the law's windows."""
+    moved about half of the picks after it and redrew the law's windows."""
     t_s = np.asarray(t_s, float)
     if len(t_s) <= n:
         return np.arange(len(t_s))
