@@ -136,9 +136,7 @@ impl RunLog {
     /// ([`Sample::topic_rank`]: acceleration first), then in file order.
     #[must_use]
     pub fn samples_sorted(&self) -> Vec<Sample> {
-        let mut out = Vec::with_capacity(self.sample_count());
-        out.extend(self.samples_in_order());
-        out
+        self.samples_in_order().collect()
     }
 
     /// The samples of [`RunLog::samples_sorted`], in the same order, without
