@@ -62,6 +62,8 @@ def law_calibrated(obs: dict[str, Any]) -> bool:
     """Whether the observer parameters ``obs`` carry a calibrated damping law (dt-core
     ``DampingLaw::is_calibrated``)."""
     d = obs.get("damping_law") or {}
+    if d.get("valves") and d["valves"].get("extension") and d["valves"].get("compression"):
+        return True
     slope0 = (d.get("viscous_nspm") or [0.0])[0] + (d.get("dry_nspm") or [0.0])[0]
     return d.get("width_mps", 0.0) > 0 and slope0 != 0
 
@@ -79,7 +81,42 @@ def law(v: np.ndarray, temp_c: np.ndarray | float, d: dict[str, Any]) -> np.ndar
             f = f + c * w * (_sp((v - k) / w) - _sp(-k / w))
         elif k < 0:
             f = f - c * w * (_sp((k - v) / w) - _sp(k / w))
+    vs = d.get("valves")
+    if vs:  # a side with a valve takes the valve alone (dt-core ``LawValves``)
+        if vs.get("extension"):
+            f = np.where(v >= 0, valve_force(np.maximum(v, 0.0), r, vs["extension"], vs["knee_n"]), f)
+        if vs.get("compression"):
+            f = np.where(v < 0, -valve_force(np.maximum(-v, 0.0), r, vs["compression"], vs["knee_n"]), f)
     return f
+
+
+def valve_velocity(f: np.ndarray, ratio: np.ndarray | float, valve: dict[str, float],
+                   knee_n: float) -> np.ndarray:
+    """The velocity (m/s) through one valve of the valve form (dt-core ``LawValve``) at force
+    ``f`` ≥ 0 N: the bleed ``F = r a v + b v²`` and the shims ``g ρ(F − F_c) √F``."""
+    f = np.asarray(f, float)
+    a = valve["laminar_nspm"] * np.asarray(ratio, float)
+    b = valve["turbulent_ns2pm2"]
+    vb = 2.0 * f / (a + np.sqrt(a * a + 4.0 * b * f))
+    c = valve["crack_n"]
+    ramp = np.maximum(0.5 * (f - c + np.hypot(f - c, knee_n)) - 0.5 * (np.hypot(c, knee_n) - c), 0.0)
+    return vb + valve["shim_mps_per_n15"] * ramp * np.sqrt(f)
+
+
+def valve_force(v: np.ndarray, ratio: np.ndarray | float, valve: dict[str, float], knee_n: float) -> np.ndarray:
+    """The force (N) of one valve at velocity ``v`` ≥ 0: ``valve_velocity`` inverted by
+    bisection (monotone; bracketed by the bleed alone, the shims only add flow) — a
+    reference independent of dt-core's Newton iteration."""
+    v = np.asarray(v, float)
+    r = np.broadcast_to(np.asarray(ratio, float), v.shape)
+    lo = np.zeros_like(v)
+    hi = valve["laminar_nspm"] * r * v + valve["turbulent_ns2pm2"] * v * v
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        above = valve_velocity(mid, r, valve, knee_n) > v
+        hi = np.where(above, mid, hi)
+        lo = np.where(above, lo, mid)
+    return 0.5 * (lo + hi)
 
 
 # ---------------------------------------------------------------------------------------
@@ -198,6 +235,98 @@ def fit_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], 
     per = sol.x[n_law:].reshape(n, 3)
     rms = [float(np.sqrt(np.mean(r[offs[i]:offs[i + 1]] ** 2))) for i in range(n)]
     return {"law": law_dict(sol.x[:n_law] * scale),
+            "residual_rms_mps2": float(np.sqrt(np.mean(r ** 2))), "windows": n, "nfev": int(sol.nfev),
+            "per_window": [{"run": w["run"], "t_s": w["t_s"], "accel_mps2": w["accel"], "oil_c": w["oil_c"],
+                            "alpha_n": float(q[0] * 10.0), "shift_ms": float(q[1]), "residual_mps2": e}
+                           for w, q, e in zip(windows, per, rms)]}
+
+
+
+VALVE_SCALE = np.array([1000.0, 10_000.0, 100.0, 1e-5])  # a N·s/m, b N·s²/m², F_c N, g m/(s·N^1.5)
+VALVE_KNEE_SCALE = 10.0                                   # N
+NEG_KNOTS = [j for j, k in enumerate(KNOTS_MPS) if k < 0]
+
+
+def valve_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
+    """The dt-core ``DampingLaw`` fields of the mixed form for the scaled parameters ``z``:
+    the hinges for compression (``[a_0, a_j (k_j < 0)…, b_0, b_j…]`` in kN·s/m; the
+    positive knots unused) and the extension valve ``[a, b, F_c, g]`` and knee width."""
+    nh = len(NEG_KNOTS) + 1
+    visc, dry = np.zeros(N_COEF), np.zeros(N_COEF)
+    idx = [0] + [j + 1 for j in NEG_KNOTS]
+    visc[idx], dry[idx] = np.asarray(z[:nh]) * 1000.0, np.asarray(z[nh:2 * nh]) * 1000.0
+    ext = dict(zip(("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15"),
+                   (float(x) for x in np.asarray(z[2 * nh:2 * nh + 4]) * VALVE_SCALE)))
+    return {"knots_mps": [k if k < 0 else 0.0 for k in KNOTS_MPS], "width_mps": WIDTH_MPS,
+            "viscous_nspm": [float(x) for x in visc], "dry_nspm": [float(x) for x in dry],
+            "beta_per_k": float(beta_per_k),
+            "valves": {"extension": ext, "knee_n": float(z[2 * nh + 4] * VALVE_KNEE_SCALE)}}
+
+
+def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
+                          beta_per_k: float, start: dict[str, Any] | None = None,
+                          max_nfev: int = 200) -> dict[str, Any]:
+    """As ``fit_law_windows`` with the extension side a valve (dt-core ``LawValves``: a bleed
+    and a preloaded shim stack, whose knee sits at a force and so moves with the viscosity)
+    and the compression side the hinges (``--law valve``): the law shared by every window,
+    per window the friction amplitude, the time shift and the offset; the viscosity
+    coefficient held at the oil's (the datasheet). The valve's start assumes nothing of it
+    but the windows' median linear slope ``c``: a laminar bleed of slope ``c`` that cracks
+    at ``c · 0.1 m/s``, the shims then adding as much flow again; the hinges start as in
+    ``fit_law_windows``, or, given ``start`` (``fit_law_windows``' result on the same windows),
+    from its compression hinges and its windows' amplitudes and shifts: at 2 Hz each window
+    has two minima of nearly the same residual (the module docs of dt-core ``charge``), and a
+    fit from the linear start lands the compression windows in the one of ≈ 15 N."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    n = len(windows)
+    if n == 0:
+        raise ValueError("no reversal windows to measure the damping law on")
+    nh = len(NEG_KNOTS) + 1
+    n_law = 2 * nh + 5
+    sizes = [len(w["times"]) for w in windows]
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+
+    def model(z: np.ndarray) -> np.ndarray:
+        params = {**physics, "observer": {**obs, "damping_law": valve_law_dict(z[:n_law], beta_per_k)}}
+        per = z[n_law:].reshape(n, 3)
+        hinges = np.concatenate([z[1:nh], z[nh + 1:2 * nh]]) * 1000.0 / RIDGE_NSPM
+        return np.concatenate([RIDGE_MPS2 * hinges] + [
+            shocktwin.reversal_window(params, w["accel"], w["oil_c"], [alpha * 10.0, 1.0, 1.0, shift, off],
+                                      w["times"]) - w["a2"]
+            for w, (alpha, shift, off) in zip(windows, per)])
+
+    n_pen = 2 * (nh - 1)
+    sparsity = lil_matrix((n_pen + int(offs[-1]), n_law + 3 * n), dtype=int)
+    sparsity[:, :n_law] = 1
+    for i in range(n):
+        sparsity[n_pen + offs[i]:n_pen + offs[i + 1], n_law + 3 * i: n_law + 3 * i + 3] = 1
+    slope = float(np.median([w["slope_nspm"] for w in windows]))
+    crack = slope * 0.1
+    z_law = np.zeros(n_law)
+    z_law[0] = z_law[nh] = 0.5 * slope / 1000.0
+    z_law[2 * nh:2 * nh + 4] = np.array([slope, 0.0, crack, 1.0 / (slope * np.sqrt(crack))]) / VALVE_SCALE
+    z_law[2 * nh + 4] = 0.05 * crack / VALVE_KNEE_SCALE
+    per0 = [(max(w["alpha0"], 5.0), 0.0) for w in windows]
+    if start is not None:
+        idx = [0] + [j + 1 for j in NEG_KNOTS]
+        z_law[:nh] = np.asarray(start["law"]["viscous_nspm"])[idx] / 1000.0
+        z_law[nh:2 * nh] = np.asarray(start["law"]["dry_nspm"])[idx] / 1000.0
+        per0 = [(max(q["alpha_n"], 5.0), q["shift_ms"]) for q in start["per_window"]]
+    z0 = np.concatenate([z_law] + [np.array([a / 10.0, sh, float(np.mean(w["a2"][:5]))])
+                                   for w, (a, sh) in zip(windows, per0)])
+    lower = np.concatenate([np.full(2 * nh, -np.inf), np.zeros(4), [0.1 / VALVE_KNEE_SCALE]]
+                           + [np.array([0.0, -10.0, -np.inf])] * n)
+    upper = np.concatenate([np.full(n_law, np.inf)] + [np.array([np.inf, 10.0, np.inf])] * n)
+    lower[2 * nh] = 1e-3  # a bleed with a laminar part
+    sol = least_squares(model, np.clip(z0, lower + 1e-9, upper - 1e-9), jac_sparsity=sparsity,
+                        bounds=(lower, upper), x_scale="jac", loss="soft_l1", f_scale=0.3,
+                        max_nfev=max_nfev)
+    r = model(sol.x)[n_pen:]
+    per = sol.x[n_law:].reshape(n, 3)
+    rms = [float(np.sqrt(np.mean(r[offs[i]:offs[i + 1]] ** 2))) for i in range(n)]
+    return {"law": valve_law_dict(sol.x[:n_law], beta_per_k),
             "residual_rms_mps2": float(np.sqrt(np.mean(r ** 2))), "windows": n, "nfev": int(sol.nfev),
             "per_window": [{"run": w["run"], "t_s": w["t_s"], "accel_mps2": w["accel"], "oil_c": w["oil_c"],
                             "alpha_n": float(q[0] * 10.0), "shift_ms": float(q[1]), "residual_mps2": e}

@@ -416,12 +416,15 @@ def residual_cut(revs: Sequence[dict[str, Any]], cal: dict[str, Any]) -> float:
 
 
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
-                   per_run: int, min_span_k: float, beta_per_k: float | None = None) -> dict[str, Any] | None:
+                   per_run: int, min_span_k: float, beta_per_k: float | None = None,
+                   form: str = "hinges") -> dict[str, Any] | None:
     """The window model's damping law, fitted on the nominal runs' reversal windows
     (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
-    than ``min_span_k`` of oil temperature."""
-    from train.damping_law import LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_windows, reversal_windows
+    than ``min_span_k`` of oil temperature. ``form`` ``valve``: the hinges' law refined
+    with an extension valve (``fit_valve_law_windows``, started from the hinges' fit)."""
+    from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_windows, fit_valve_law_windows,
+                                   reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
     wins = [w for w in reversal_windows(runs, physics, obs, per_run)
@@ -440,6 +443,11 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
         log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
                     "is poorly determined", span)
     fit = fit_law_windows(wins, physics, obs, beta_per_k=beta_per_k)
+    if form == "valve":
+        hinges = fit
+        fit = fit_valve_law_windows(wins, physics, obs, fit["law"]["beta_per_k"], start=hinges)
+        print(f"damping law, the hinges alone: residual {hinges['residual_rms_mps2']:.3f} m/s² RMS; "
+              "with the extension valve:")
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
           f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
@@ -468,7 +476,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     cal, law = None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
-                             LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0, beta_per_k)
+                             LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0, beta_per_k,
+                             args.law_form)
         if law is None and args.damping == "law":
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
     if law is not None:
@@ -659,6 +668,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with the law, skip reversals between calibrated excitations")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
+    f.add_argument("--law-form", choices=("hinges", "valve"), default="hinges",
+                   help="the damping law's form: hinges at fixed velocities, or those refined with an "
+                        "extension valve whose knee sits at a force (README, \"The extension valve\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)

@@ -133,3 +133,52 @@ def test_the_law_windows_are_picked_by_time_so_one_reversal_more_or_less_moves_o
     by_rank = lambda x: x[np.unique(np.linspace(0, len(x) - 1, 40).round().astype(int))]  # noqa: E731
     assert len(set(by_rank(t)) ^ set(by_rank(np.delete(t, 5)))) > 20
     assert list(pick_by_time(t[:30], 40)) == list(range(30))
+
+
+# A law whose extension side is a bleed-and-shim valve (dt-core ``LawValves``) cracking at
+# 500 N, which the 6 m/s² windows cross at 0.08-0.12 m/s depending on the oil; compression the
+# hinges of ``A_LAW``.
+A_VALVE = {"laminar_nspm": 2000.0, "turbulent_ns2pm2": 20_000.0, "crack_n": 500.0, "shim_mps_per_n15": 8e-6}
+A_MIXED_LAW = {**A_LAW, "knots_mps": [k if k < 0 else 0.0 for k in A_LAW["knots_mps"]],
+               "viscous_nspm": [2500.0, 0, 0, 0, 0, 0, 0, 0, 0],
+               "valves": {"extension": A_VALVE, "knee_n": 20.0}}
+
+
+def test_the_valve_law_is_the_valve_and_moves_its_knee_with_the_oil() -> None:
+    """The numpy law (the reports' curves) against its definition: the velocity through the
+    valve at the law's force is the velocity asked (bisection, not dt-core's Newton); a side
+    without a valve is the hinges'; the knee, a force, sits at a higher velocity as the oil
+    thins."""
+    from train.damping_law import valve_velocity
+
+    v = np.linspace(1e-4, 0.3, 300)
+    for oil_c in (25.0, 100.0):
+        r = np.exp(-0.03 * (oil_c - 40.0))
+        f = law(v, oil_c, A_MIXED_LAW)
+        assert np.all(np.diff(f) > 0)
+        assert np.max(np.abs(valve_velocity(f, r, A_VALVE, 20.0) - v)) < 1e-9
+        hinges = {k: x for k, x in A_MIXED_LAW.items() if k != "valves"}
+        assert np.array_equal(law(-v, oil_c, A_MIXED_LAW), law(-v, oil_c, hinges))
+    knee = {t: v[np.argmax(law(v, t, A_MIXED_LAW) >= 500.0)] for t in (25.0, 100.0)}
+    assert knee[100.0] > knee[25.0] + 0.03, knee
+
+
+def test_the_valve_law_fitted_on_windows_gives_back_a_known_valve() -> None:
+    """Windows made with the mixed law: the hinges alone miss them where the knee moves (cold
+    against hot at 6 m/s²); refined with the extension valve (``fit_valve_law_windows``, from
+    the hinges' fit), the windows fit to the noise and the amplitudes come back."""
+    from train.damping_law import fit_valve_law_windows
+
+    params, obs = shocktwin.default_params(), dict(shocktwin.default_observer_params())
+    windows, alphas = synthetic_windows(A_MIXED_LAW)
+    hinges = fit_law_windows(windows, params, obs, beta_per_k=0.03)
+    fit = fit_valve_law_windows(windows, params, obs, 0.03, start=hinges)
+    assert fit["residual_rms_mps2"] < 1.5 * NOISE_MPS2, fit["residual_rms_mps2"]
+    assert hinges["residual_rms_mps2"] > 1.3 * fit["residual_rms_mps2"], hinges["residual_rms_mps2"]
+    err = np.array([w["alpha_n"] for w in fit["per_window"]]) - np.array(alphas)
+    assert np.sqrt(np.mean(err ** 2)) < 3.0, err
+    # the extension force where the fast windows look, cold and hot, within 10 % of its span
+    v = np.linspace(0.0, 0.15, 31)
+    for oil_c in (25.0, 115.0):
+        want, got = law(v, oil_c, A_MIXED_LAW), law(v, oil_c, fit["law"])
+        assert np.max(np.abs(got - want)) < 0.10 * np.ptp(want), (oil_c, got - want)
