@@ -63,9 +63,19 @@ A_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "w
          "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
 
 
-@pytest.mark.parametrize("with_law", [False, True], ids=["linear", "law"])
-def test_window_fit_matches_scipy(run_4bar: Path, with_law: bool) -> None:
-    params = observer_physics(**({"damping_law": A_LAW} if with_law else {}))
+# The same with an extension valve (dt-core ``LawValves``) in place of the extension hinges:
+# the scipy reference solves the valve by bisection (``train.damping_law.valve_force``),
+# dt-core by Newton's method.
+A_VALVE_LAW = {**A_LAW, "knots_mps": [k if k < 0 else 0.0 for k in A_LAW["knots_mps"]],
+               "viscous_nspm": [2500.0, 0, 0, 0, 0, 0, 0, 0, 0],
+               "valves": {"extension": {"laminar_nspm": 2000.0, "turbulent_ns2pm2": 20_000.0, "crack_n": 300.0,
+                                        "shim_mps_per_n15": 1e-5}, "knee_n": 20.0}}
+
+
+@pytest.mark.parametrize("law", [None, A_LAW, A_VALVE_LAW], ids=["linear", "law", "valve"])
+def test_window_fit_matches_scipy(run_4bar: Path, law: dict | None) -> None:
+    with_law = law is not None
+    params = observer_physics(**({"damping_law": law} if with_law else {}))
     rev = shocktwin.charge_reversals(run_4bar, params)
     assert rev["detected"] > 50 and len(rev["alpha_n"]) > 30
     log = shocktwin.read_log(run_4bar)
