@@ -179,67 +179,83 @@ def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str
     return out
 
 
-def fit_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
-                    max_nfev: int = 200, beta_per_k: float | None = None) -> dict[str, Any]:
-    """The law that fits every window at once (scipy ``least_squares``, TRF with a sparse
-    Jacobian, soft-L1 loss): the law shared, per window the friction amplitude, the time
-    shift and the offset; the law's per-side scales held at 1 — the window model as the
-    observer runs it (``shocktwin.reversal_window``). ``beta_per_k``: the viscosity
-    coefficient held at the oil's datasheet value (``Datasheet.viscosity_coefficient_per_k``)
-    instead of fitted — fitted, it trades against the knees the family cannot move and
-    lands where the oil does not (0.073 /K on the full campaign, for an oil of 0.030).
-    Returns the law (``law_dict``), the residual RMS and the per-window amplitudes and
-    residuals."""
+def _fit_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
+                 law_of: Any, z_law: np.ndarray, bounds_law: tuple[np.ndarray, np.ndarray],
+                 penalty: Any, per0: Sequence[tuple[float, float]], max_nfev: int) -> dict[str, Any]:
+    """The fit both law forms share: the law ``law_of(z[:n_law])`` shared by every window,
+    per window the friction amplitude, the time shift and the offset (from ``per0``'s
+    amplitudes and shifts, the offset from the data); ``penalty(z_law)`` are extra residual
+    rows (the hinges' ridge); scipy ``least_squares``, TRF with a sparse Jacobian, soft-L1."""
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
 
-    n = len(windows)
+    n, n_law = len(windows), len(z_law)
     if n == 0:
         raise ValueError("no reversal windows to measure the damping law on")
-    n_law = 2 * N_COEF + 1
-    scale = np.concatenate([np.full(2 * N_COEF, 1000.0), [0.01]])
     sizes = [len(w["times"]) for w in windows]
     offs = np.concatenate([[0], np.cumsum(sizes)])
 
     def model(z: np.ndarray) -> np.ndarray:
-        params = {**physics, "observer": {**obs, "damping_law": law_dict(z[:n_law] * scale)}}
+        params = {**physics, "observer": {**obs, "damping_law": law_of(z[:n_law])}}
         per = z[n_law:].reshape(n, 3)
-        # ridge on the hinges (``RIDGE_MPS2`` per ``RIDGE_NSPM``): knees of a few kN·s/m cost
-        # nothing against the windows, a viscous and a dry hinge cancelling at 50 kN·s/m do
-        hinges = np.concatenate([z[1:N_COEF], z[N_COEF + 1:2 * N_COEF]]) * 1000.0 / RIDGE_NSPM
-        return np.concatenate([RIDGE_MPS2 * hinges] + [
+        return np.concatenate([penalty(z[:n_law])] + [
             shocktwin.reversal_window(params, w["accel"], w["oil_c"], [alpha * 10.0, 1.0, 1.0, shift, off],
                                       w["times"]) - w["a2"]
             for w, (alpha, shift, off) in zip(windows, per)])
 
-    n_pen = 2 * (N_COEF - 1)
+    n_pen = len(penalty(z_law))
     sparsity = lil_matrix((n_pen + int(offs[-1]), n_law + 3 * n), dtype=int)
     sparsity[:, :n_law] = 1
     for i in range(n):
         sparsity[n_pen + offs[i]:n_pen + offs[i + 1], n_law + 3 * i: n_law + 3 * i + 3] = 1
-    # start: the linear law the windows were found with (median slopes), half of it viscous
-    slope = float(np.median([w["slope_nspm"] for w in windows]))
-    c0 = np.zeros(n_law)
-    c0[0] = c0[N_COEF] = 0.5 * slope
-    c0[-1] = BETA_START if beta_per_k is None else beta_per_k
-    z0 = np.concatenate([c0 / scale] + [np.array([max(w["alpha0"], 5.0) / 10.0, 0.0, float(np.mean(w["a2"][:5]))])
-                                        for w in windows])
-    lower = np.concatenate([np.full(2 * N_COEF, -np.inf), [BETA_MIN / 0.01]] + [np.array([0.0, -10.0, -np.inf])] * n)
-    upper = np.concatenate([np.full(2 * N_COEF, np.inf), [10.0]] + [np.array([np.inf, 10.0, np.inf])] * n)
-    if beta_per_k is not None:  # held: a band of 1e-6 relative (least_squares needs lower < upper)
-        lower[n_law - 1], upper[n_law - 1] = beta_per_k / 0.01 * (1.0 - 1e-6), beta_per_k / 0.01 * (1.0 + 1e-6)
+    z0 = np.concatenate([z_law] + [np.array([a / 10.0, sh, float(np.mean(w["a2"][:5]))])
+                                   for w, (a, sh) in zip(windows, per0)])
+    lower = np.concatenate([bounds_law[0]] + [np.array([0.0, -10.0, -np.inf])] * n)
+    upper = np.concatenate([bounds_law[1]] + [np.array([np.inf, 10.0, np.inf])] * n)
     sol = least_squares(model, np.clip(z0, lower + 1e-9, upper - 1e-9), jac_sparsity=sparsity,
                         bounds=(lower, upper), x_scale="jac", loss="soft_l1", f_scale=0.3,
                         max_nfev=max_nfev)
     r = model(sol.x)[n_pen:]
     per = sol.x[n_law:].reshape(n, 3)
     rms = [float(np.sqrt(np.mean(r[offs[i]:offs[i + 1]] ** 2))) for i in range(n)]
-    return {"law": law_dict(sol.x[:n_law] * scale),
+    return {"law": law_of(sol.x[:n_law]),
             "residual_rms_mps2": float(np.sqrt(np.mean(r ** 2))), "windows": n, "nfev": int(sol.nfev),
             "per_window": [{"run": w["run"], "t_s": w["t_s"], "accel_mps2": w["accel"], "oil_c": w["oil_c"],
                             "alpha_n": float(q[0] * 10.0), "shift_ms": float(q[1]), "residual_mps2": e}
                            for w, q, e in zip(windows, per, rms)]}
 
+
+def fit_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
+                    max_nfev: int = 200, beta_per_k: float | None = None) -> dict[str, Any]:
+    """The law that fits every window at once (``_fit_windows``): the law shared, per window
+    the friction amplitude, the time shift and the offset; the law's per-side scales held at
+    1 — the window model as the observer runs it (``shocktwin.reversal_window``).
+    ``beta_per_k``: the viscosity coefficient held at the oil's datasheet value
+    (``Datasheet.viscosity_coefficient_per_k``) instead of fitted — fitted, it trades against
+    the knees the family cannot move and lands where the oil does not (0.073 /K on the full
+    campaign, for an oil of 0.030). Returns the law (``law_dict``), the residual RMS and the
+    per-window amplitudes and residuals."""
+    if not windows:
+        raise ValueError("no reversal windows to measure the damping law on")
+    n_law = 2 * N_COEF + 1
+    scale = np.concatenate([np.full(2 * N_COEF, 1000.0), [0.01]])
+
+    def penalty(z: np.ndarray) -> np.ndarray:
+        # ridge on the hinges (``RIDGE_MPS2`` per ``RIDGE_NSPM``): knees of a few kN·s/m cost
+        # nothing against the windows, a viscous and a dry hinge cancelling at 50 kN·s/m do
+        return RIDGE_MPS2 * np.concatenate([z[1:N_COEF], z[N_COEF + 1:2 * N_COEF]]) * 1000.0 / RIDGE_NSPM
+
+    # start: the linear law the windows were found with (median slopes), half of it viscous
+    slope = float(np.median([w["slope_nspm"] for w in windows]))
+    c0 = np.zeros(n_law)
+    c0[0] = c0[N_COEF] = 0.5 * slope
+    c0[-1] = BETA_START if beta_per_k is None else beta_per_k
+    lower = np.concatenate([np.full(2 * N_COEF, -np.inf), [BETA_MIN / 0.01]])
+    upper = np.concatenate([np.full(2 * N_COEF, np.inf), [10.0]])
+    if beta_per_k is not None:  # held: a band of 1e-6 relative (least_squares needs lower < upper)
+        lower[n_law - 1], upper[n_law - 1] = beta_per_k / 0.01 * (1.0 - 1e-6), beta_per_k / 0.01 * (1.0 + 1e-6)
+    return _fit_windows(windows, physics, obs, lambda z: law_dict(z * scale), c0 / scale, (lower, upper),
+                        penalty, [(max(w["alpha0"], 5.0), 0.0) for w in windows], max_nfev)
 
 
 VALVE_SCALE = np.array([1000.0, 10_000.0, 100.0, 1e-5])  # a N·s/m, b N·s²/m², F_c N, g m/(s·N^1.5)
@@ -268,40 +284,22 @@ def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, 
                           max_nfev: int = 200) -> dict[str, Any]:
     """As ``fit_law_windows`` with the extension side a valve (dt-core ``LawValves``: a bleed
     and a preloaded shim stack, whose knee sits at a force and so moves with the viscosity)
-    and the compression side the hinges (``--law valve``): the law shared by every window,
-    per window the friction amplitude, the time shift and the offset; the viscosity
-    coefficient held at the oil's (the datasheet). The valve's start assumes nothing of it
-    but the windows' median linear slope ``c``: a laminar bleed of slope ``c`` that cracks
-    at ``c · 0.1 m/s``, the shims then adding as much flow again; the hinges start as in
-    ``fit_law_windows``, or, given ``start`` (``fit_law_windows``' result on the same windows),
-    from its compression hinges and its windows' amplitudes and shifts: at 2 Hz each window
-    has two minima of nearly the same residual (the module docs of dt-core ``charge``), and a
-    fit from the linear start lands the compression windows in the one of ≈ 15 N."""
-    from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
-
-    n = len(windows)
-    if n == 0:
+    and the compression side the hinges (``--law-form valve``); the viscosity coefficient held
+    at the oil's (the datasheet). The valve's start assumes nothing of it but the windows'
+    median linear slope ``c``: a laminar bleed of slope ``c`` that cracks at ``c · 0.1 m/s``,
+    the shims then adding as much flow again; the hinges start as in ``fit_law_windows``, or,
+    given ``start`` (``fit_law_windows``' result on the same windows), from its compression
+    hinges and its windows' amplitudes and shifts: at 2 Hz each window has two minima of
+    nearly the same residual (the module docs of dt-core ``charge``), and a fit from the
+    linear start lands the compression windows in the one of ≈ 15 N."""
+    if not windows:
         raise ValueError("no reversal windows to measure the damping law on")
     nh = len(NEG_KNOTS) + 1
     n_law = 2 * nh + 5
-    sizes = [len(w["times"]) for w in windows]
-    offs = np.concatenate([[0], np.cumsum(sizes)])
 
-    def model(z: np.ndarray) -> np.ndarray:
-        params = {**physics, "observer": {**obs, "damping_law": valve_law_dict(z[:n_law], beta_per_k)}}
-        per = z[n_law:].reshape(n, 3)
-        hinges = np.concatenate([z[1:nh], z[nh + 1:2 * nh]]) * 1000.0 / RIDGE_NSPM
-        return np.concatenate([RIDGE_MPS2 * hinges] + [
-            shocktwin.reversal_window(params, w["accel"], w["oil_c"], [alpha * 10.0, 1.0, 1.0, shift, off],
-                                      w["times"]) - w["a2"]
-            for w, (alpha, shift, off) in zip(windows, per)])
+    def penalty(z: np.ndarray) -> np.ndarray:
+        return RIDGE_MPS2 * np.concatenate([z[1:nh], z[nh + 1:2 * nh]]) * 1000.0 / RIDGE_NSPM
 
-    n_pen = 2 * (nh - 1)
-    sparsity = lil_matrix((n_pen + int(offs[-1]), n_law + 3 * n), dtype=int)
-    sparsity[:, :n_law] = 1
-    for i in range(n):
-        sparsity[n_pen + offs[i]:n_pen + offs[i + 1], n_law + 3 * i: n_law + 3 * i + 3] = 1
     slope = float(np.median([w["slope_nspm"] for w in windows]))
     crack = slope * 0.1
     z_law = np.zeros(n_law)
@@ -314,20 +312,8 @@ def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, 
         z_law[:nh] = np.asarray(start["law"]["viscous_nspm"])[idx] / 1000.0
         z_law[nh:2 * nh] = np.asarray(start["law"]["dry_nspm"])[idx] / 1000.0
         per0 = [(max(q["alpha_n"], 5.0), q["shift_ms"]) for q in start["per_window"]]
-    z0 = np.concatenate([z_law] + [np.array([a / 10.0, sh, float(np.mean(w["a2"][:5]))])
-                                   for w, (a, sh) in zip(windows, per0)])
-    lower = np.concatenate([np.full(2 * nh, -np.inf), np.zeros(4), [0.1 / VALVE_KNEE_SCALE]]
-                           + [np.array([0.0, -10.0, -np.inf])] * n)
-    upper = np.concatenate([np.full(n_law, np.inf)] + [np.array([np.inf, 10.0, np.inf])] * n)
-    lower[2 * nh] = 1e-3  # a bleed with a laminar part
-    sol = least_squares(model, np.clip(z0, lower + 1e-9, upper - 1e-9), jac_sparsity=sparsity,
-                        bounds=(lower, upper), x_scale="jac", loss="soft_l1", f_scale=0.3,
-                        max_nfev=max_nfev)
-    r = model(sol.x)[n_pen:]
-    per = sol.x[n_law:].reshape(n, 3)
-    rms = [float(np.sqrt(np.mean(r[offs[i]:offs[i + 1]] ** 2))) for i in range(n)]
-    return {"law": valve_law_dict(sol.x[:n_law], beta_per_k),
-            "residual_rms_mps2": float(np.sqrt(np.mean(r ** 2))), "windows": n, "nfev": int(sol.nfev),
-            "per_window": [{"run": w["run"], "t_s": w["t_s"], "accel_mps2": w["accel"], "oil_c": w["oil_c"],
-                            "alpha_n": float(q[0] * 10.0), "shift_ms": float(q[1]), "residual_mps2": e}
-                           for w, q, e in zip(windows, per, rms)]}
+    lower = np.concatenate([np.full(2 * nh, -np.inf), np.zeros(4), [0.1 / VALVE_KNEE_SCALE]])
+    lower[2 * nh] = 1e-3  # a bleed with a laminar part (dt-core: not both coefficients 0)
+    upper = np.full(n_law, np.inf)
+    return _fit_windows(windows, physics, obs, lambda z: valve_law_dict(z, beta_per_k), z_law, (lower, upper),
+                        penalty, per0, max_nfev)
