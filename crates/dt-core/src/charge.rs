@@ -769,14 +769,16 @@ impl LawTable {
     fn new(law: &DampingLaw, ratio: f64, half_span_mps: f64) -> Self {
         let n = (2.0 * half_span_mps / LAW_TABLE_STEP_MPS).ceil() as usize + 1;
         let lo = -half_span_mps;
-        let grid = (0..n).map(|i| lo + i as f64 * LAW_TABLE_STEP_MPS);
+        let (force, slope) = (0..n)
+            .map(|i| law.force_and_slope(lo + i as f64 * LAW_TABLE_STEP_MPS, ratio))
+            .unzip();
         Self {
             law: *law,
             ratio,
             lo,
             zero_at: -lo / LAW_TABLE_STEP_MPS,
-            force: grid.clone().map(|v| law.force_n(v, ratio)).collect(),
-            slope: grid.map(|v| law.slope_nspm(v, ratio)).collect(),
+            force,
+            slope,
         }
     }
 
@@ -843,6 +845,14 @@ impl DampingLaw {
             }
         }
         f
+    }
+
+    /// [`Self::force_n`] and [`Self::slope_nspm`] together (a valve is
+    /// solved once for both).
+    fn force_and_slope(&self, v_mps: f64, ratio: f64) -> (f64, f64) {
+        self.valves
+            .and_then(|x| x.force(v_mps, ratio))
+            .unwrap_or_else(|| (self.force_n(v_mps, ratio), self.slope_nspm(v_mps, ratio)))
     }
 
     /// The slope `∂L/∂ẏ` at stroke velocity `v_mps` and viscosity ratio
