@@ -473,6 +473,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
     obs["window_sd"] = bool(args.window_sd)
+    obs["scale_prior_sd"] = float(args.scale_prior_sd)
     cal, law = None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
@@ -668,6 +669,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with the law, skip reversals between calibrated excitations")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
+    f.add_argument("--scale-prior-sd", type=float, default=0.0,
+                   help="with a damping law, a prior sd on each window's per-side law scales about 1 "
+                        "(dt-core ObserverParams::scale_prior_sd; 0: none)")
     f.add_argument("--law-form", choices=("hinges", "valve"), default="hinges",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
                         "extension valve whose knee sits at a force (README, \"The extension valve\")")
