@@ -19,6 +19,9 @@ With each end of the stroke filtered apart, ``single_end_sd_bar`` is how far one
 from the charge in the warm bins; with ``--single-end``, while only one end has been read at
 a calibrated excitation, the observer reports that end with this spread added (off by
 default: README, "One end alone").
+The law's extension side is a valve whose knee sits at a force (``--law-form valve``, the
+default; ``hinges``: knees at fixed velocities only), and each window's two law scales get a
+Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by default; 0: free).
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
 The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
 run's charge is estimated by the model fitted *without that run* (leave one run out), and
@@ -75,6 +78,11 @@ WARN_BAR, FAULT_BAR, HYST_BAR, DWELL_S = 9.0, 5.0, 0.5, 3.0
 DEFAULT_COLD_REF_C = 50.0  # dt-core charge::DEFAULT_COLD_REF_C
 COLD_REF_GRID_C = (30.0, 40.0, 50.0, 60.0, 70.0)
 COLD_BIN_K, COLD_BIN_MIN = 3.0, 10
+# With a damping law, the window fit's per-side law scales get a prior about 1 of this sd: a
+# unit's valves differ from the calibrated law by a few percent (the simulator's scatter is
+# 3-5 %), and without it a window at the valve's knee can read the friction step against a
+# law twice as stiff (README, "The extension valve").
+SCALE_PRIOR_SD = 0.2
 
 
 def theta(rev: dict[str, np.ndarray], obs: dict[str, float]) -> np.ndarray:
@@ -473,7 +481,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
     elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
     obs["window_sd"] = bool(args.window_sd)
-    obs["scale_prior_sd"] = float(args.scale_prior_sd)
     cal, law = None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
@@ -486,6 +493,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         # interpolated, one end high, the other low): each end gets its own filter, the
         # estimate is their average and the interval widens by their split.
         law_obs = {**obs, "damping_law": law, "between_excitations": not args.no_between,
+                   "scale_prior_sd": float(args.scale_prior_sd),
                    "stroke_ends": not (args.no_between or args.no_stroke_ends)}
         log.info("fitting reversals of %d runs with the damping law", len(campaign.runs))
         revs = reversals(campaign.runs, {**physics, "observer": law_obs}, args.jobs)
@@ -669,10 +677,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with the law, skip reversals between calibrated excitations")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
-    f.add_argument("--scale-prior-sd", type=float, default=0.0,
+    f.add_argument("--scale-prior-sd", type=float, default=SCALE_PRIOR_SD,
                    help="with a damping law, a prior sd on each window's per-side law scales about 1 "
                         "(dt-core ObserverParams::scale_prior_sd; 0: none)")
-    f.add_argument("--law-form", choices=("hinges", "valve"), default="hinges",
+    f.add_argument("--law-form", choices=("hinges", "valve"), default="valve",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
                         "extension valve whose knee sits at a force (README, \"The extension valve\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
