@@ -2222,28 +2222,15 @@ mod tests {
             assert_eq!(mixed.force_n(v, 1.3).to_bits(), want.to_bits(), "{v}");
         }
         // Bad values are named.
-        let mut bad = law;
-        bad.valves
-            .as_mut()
-            .unwrap()
-            .extension
-            .as_mut()
-            .unwrap()
-            .crack_n = -1.0;
-        assert!(bad
-            .validate()
-            .unwrap_err()
-            .to_string()
-            .contains("valves.crack_n"));
-        bad.valves
-            .as_mut()
-            .unwrap()
-            .extension
-            .as_mut()
-            .unwrap()
-            .crack_n = 1.0;
-        bad.valves.as_mut().unwrap().knee_n = 0.0;
-        assert!(bad.validate().unwrap_err().to_string().contains("knee_n"));
+        let error_with = |edit: &dyn Fn(&mut LawValves)| {
+            let mut bad = law;
+            edit(bad.valves.as_mut().unwrap());
+            bad.validate().unwrap_err().to_string()
+        };
+        let crack = error_with(&|v| v.extension.as_mut().unwrap().crack_n = -1.0);
+        assert!(crack.contains("valves.crack_n"), "{crack}");
+        let knee = error_with(&|v| v.knee_n = 0.0);
+        assert!(knee.contains("knee_n"), "{knee}");
     }
 
     #[test]
