@@ -13,6 +13,12 @@ twin's modelled oil temperature, the one the observer uses at run time. The knot
 where a valve may crack or blow off; their slopes are what is fitted, so the law assumes
 nothing about how the valves are built.
 
+The valve form (``fit_valve_law_windows``, ``observer fit --law-form valve``, the default)
+keeps the hinges for compression and makes the extension side a bleed-and-shim valve
+(dt-core ``LawValves``), whose knee sits at a force and so moves to a higher velocity as the
+oil thins: hinges at fixed velocities cannot follow it, and the 2 Hz windows at the bottom
+of the stroke that cross it failed while the oil was cold.
+
 The fit (``fit_law_windows``, scipy ``least_squares``) runs the observer's own window
 model (``shocktwin.reversal_window``) on every window at once: the law shared, per window
 the friction amplitude, the time shift and the offset; the per-side scales held at 1.
