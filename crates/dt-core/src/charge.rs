@@ -63,7 +63,10 @@
 //! fields). The law is fitted once on the nominal runs' own reversal windows
 //! (`train/damping_law.py`); without it (the default) the linear slopes,
 //! which fit 1 Hz windows to the noise but not 2 Hz ones, whose window
-//! crosses a valve's knee.
+//! crosses a valve's knee. The law's extension side may be a valve whose
+//! knee sits at a force and so moves with the viscosity ([`LawValves`],
+//! the calibration's default), and the window fit may hold its two scales
+//! near 1 with a Gaussian prior ([`ObserverParams::scale_prior_sd`]).
 //!
 //! # Measurement model and the recursive update
 //!
