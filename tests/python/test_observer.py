@@ -113,16 +113,29 @@ def test_window_fit_matches_scipy(run_4bar: Path, law: dict | None) -> None:
         assert abs(rms - rev["residual_mps2"][i]) < 0.01 + 0.02 * rms
 
 
-@pytest.mark.parametrize("variant", ["step_sd", "window_sd", "stroke_ends", "cold"])
+# A measurement model per excitation and end (dt-core ``ExcitationModel``), one excitation at the
+# quick 1 Hz run's reversals: each end its own offset, gain, cold term, drift with the heat and sd.
+A_TABLE = {"offset_n": [[27.0, 23.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]],
+           "per_bar_n": [[1.3, 1.6], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]],
+           "cold_n": [[-1.0, 2.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]],
+           "per_kelvin_n": [[0.05, -0.1], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]],
+           "sd_n": [[1.0, 2.0], [1.0, 1.0], [1.0, 1.0], [1.0, 1.0]],
+           "max_residual_mps2": [0.6, 0.0, 0.0, 0.0], "own": [True, False, False, False]}
+
+
+@pytest.mark.parametrize("variant", ["step_sd", "window_sd", "stroke_ends", "cold", "excitations"])
 def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, variant: str) -> None:
     # "cold": the cold oil's term (a law, so that the viscosity ratio exists; T_c above the
     # run's temperatures, so that every reversal is cold) and its shared bias
     cold = dict(damping_law=A_LAW, cold_per_accel_ns2pm=-2.0, cold_bias_sd_ns2pm=1.5, cold_ref_c=80.0)
+    # "excitations": the per-excitation table (the ends apart, as the calibration writes it)
+    table = dict(damping_law=A_LAW, cold_ref_c=80.0, excitations=A_TABLE,
+                 accel_clusters_mps2=[1.5, 0.0, 0.0, 0.0], reversal_spacings_s=[0.5, 0.0, 0.0, 0.0])
     params = observer_physics(random_walk_bar2_per_s=0.0, window_sd=variant == "window_sd",
-                              stroke_ends=variant == "stroke_ends", step_sd_n=1.0,
+                              stroke_ends=variant in ("stroke_ends", "excitations"), step_sd_n=1.0,
                               # with the ends: a wrong direction term, so that they disagree
                               step_dir_n=3.0 if variant == "stroke_ends" else 0.0,
-                              **(cold if variant == "cold" else {}))
+                              **(cold if variant == "cold" else {}), **(table if variant == "excitations" else {}))
     rev = shocktwin.charge_reversals(run_4bar, params)
     o = params["observer"]
     # the offset a_r written out (the cold term: x(T) |a| with x = r(T)/r(T_c) - 1 of the law's viscosity)
@@ -132,11 +145,20 @@ def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, varian
              + o["cold_per_accel_ns2pm"] * x_cold * acc
              + (o["step_per_bar_n"] + o["step_per_bar_accel"] * acc) * obs_tool.P_ATM_BAR
              * (obs_tool.theta(rev, o) - 1))
+    # each reversal's variance: the calibrated one, or its window's own when larger
+    var_all = np.full(len(rev["alpha_n"]), o["step_sd_n"] ** 2)
+    if variant == "excitations":  # each end's own terms (train.observer.end_terms, written from the table)
+        for j, e in enumerate((1, -1)):
+            m = np.sign(rev["accel_mps2"]) == e
+            coef = np.array([A_TABLE[k][0][j] for k in ("offset_n", "per_bar_n", "cold_n", "per_kelvin_n")])
+            a_e, b_e = obs_tool.end_terms(rev, coef, o)
+            a_ref[m] = a_e[m]
+            np.testing.assert_allclose(rev["b_n_per_bar"][m], b_e[m], rtol=1e-12)
+            var_all[m] = A_TABLE["sd_n"][0][j] ** 2
+        assert np.all(obs_tool.cold_x(rev, o) > 0.1), "the run is not cold against T_c: nothing to check"
     np.testing.assert_allclose(rev["a_n"], a_ref, rtol=1e-12, atol=1e-12)
     if variant == "cold":
         assert np.all(x_cold > 0.1), "the run is not cold against T_c: nothing to check"
-    # each reversal's variance: the calibrated one, or its window's own when larger
-    var_all = np.full(len(rev["alpha_n"]), o["step_sd_n"] ** 2)
     if variant == "window_sd":
         var_all = np.maximum(var_all, rev["alpha_sd_n"] ** 2)
         assert (var_all > o["step_sd_n"] ** 2).sum() > 5, rev["alpha_sd_n"]
@@ -157,10 +179,10 @@ def test_recursive_equals_batch_and_interval_is_posterior(run_4bar: Path, varian
     used = rev["used"] == 1.0
     assert used.sum() > 20
     mean, post_var = batch(used)
-    if variant == "stroke_ends":  # each end of the stroke from its own reversals; their average
+    if variant in ("stroke_ends", "excitations"):  # each end of the stroke from its own reversals; their average
         (m1, v1), (m2, v2) = (batch(used & (np.sign(rev["accel_mps2"]) == s)) for s in (1, -1))
         split = max((m1 - m2) ** 2 - v1 - v2, 0.0) / 4
-        assert split > 1.0, (m1, v1, m2, v2)
+        assert variant != "stroke_ends" or split > 1.0, (m1, v1, m2, v2)
         mean, post_var = (m1 + m2) / 2, (v1 + v2) / 4 + split
     if variant == "cold":
         assert bias(used) > 0.5, bias(used)
@@ -397,3 +419,45 @@ def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0
     assert "--observer-baseline" in proc.stderr and "observer" in proc.stderr, proc.stderr
+
+
+def test_an_excitation_gets_a_measurement_model_of_its_own() -> None:
+    """``own_excitation``: runs at one excitation whose two ends read the charge through known,
+    different models (offset, gain, cold term, drift with the heat) give those models back,
+    validate leave one run out, and set the residual cut from their windows; ``excitation_table``
+    writes them beside the shared model's terms at the other excitations."""
+    rng = np.random.default_rng(4)
+    obs = observer_physics(damping_law=A_LAW, cold_ref_c=70.0)["observer"]
+    want = {1: np.array([43.0, 1.1, 2.0, -0.09]), -1: np.array([31.0, 1.8, 7.0, -0.3])}
+    sd = {1: 0.9, -1: 2.8}
+    revs = []
+    for truth in (0.5, 4.0, 7.0, 10.0, 12.0):
+        n = 3000
+        accel = 23.0 * np.where(np.arange(n) % 2, 1.0, -1.0)
+        rev = {"accel_mps2": accel, "gas_temp_c": np.linspace(25.0, 95.0, n), "extension_m": np.zeros(n),
+               "label_bar": np.full(n, truth), "residual_mps2": rng.uniform(0.5, 1.0, n),
+               "spacing_s": np.full(n, 0.125), "run": f"p{truth}", "truth_bar": truth}
+        rev["alpha_n"] = np.zeros(n)
+        for e in (1, -1):
+            m = np.sign(accel) == e
+            a, b = obs_tool.end_terms(rev, want[e], obs)
+            rev["alpha_n"][m] = (a + b * truth + sd[e] * rng.standard_normal(n))[m]
+        revs.append(rev)
+    fit = obs_tool.own_excitation(revs, obs)
+    assert fit is not None
+    for e in (1, -1):
+        coef, got_sd = fit["models"][e]
+        np.testing.assert_allclose(coef, want[e], rtol=0.05, atol=0.02 * sd[e])
+        assert abs(got_sd - sd[e]) < 0.1 * sd[e]
+    assert fit["loro_rms_bar"] < 0.2, fit["loro"]
+    assert 1.0 < fit["max_residual_mps2"] <= obs_tool.OWN_CUT_MARGIN * 1.0 + 1e-9
+    o = {**obs, "accel_clusters_mps2": [1.5, 6.0, 23.0, 0.0], "step_dir_n": -1.2, "step_per_accel_ns2pm": -0.25,
+         "step_per_bar_accel": 0.04, "cold_per_accel_ns2pm": -0.5}
+    table = obs_tool.excitation_table(o, {2: fit})
+    assert table["offset_n"][2] == [fit["models"][1][0][0], fit["models"][-1][0][0]]
+    assert table["max_residual_mps2"] == [o["max_residual_mps2"], o["max_residual_mps2"], fit["max_residual_mps2"], 0.0]
+    assert table["own"] == [False, False, True, False]
+    # the shared model at 6 m/s², the ÿ < 0 end: f0 − f_d + g |a|, s + h |a|, k_c |a|
+    assert table["offset_n"][1][1] == pytest.approx(o["step_offset_n"] + 1.2 - 0.25 * 6.0)
+    assert table["per_bar_n"][1][1] == pytest.approx(o["step_per_bar_n"] + 0.04 * 6.0)
+    assert table["cold_n"][1][1] == pytest.approx(-0.5 * 6.0)
