@@ -782,6 +782,12 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
         raise SystemExit("the physics already carries a unit baseline: give the model's own")
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
+    for path, (*_, own) in zip(paths, reads):
+        if own:
+            raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a measurement model of "
+                             "its own, which a baseline does not condition (dt-core UnitBaseline): take the baseline "
+                             "at one of the shared model's excitations (the calibration's 1 Hz run is one)")
+    reads = [r[:3] for r in reads]
     sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
     rows = []
     for path, (m, sd, drift) in zip(paths, reads):
@@ -804,21 +810,31 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
             "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
 
 
-def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float]:
+def own_reversals(rev: dict[str, np.ndarray], obs: dict[str, Any]) -> int:
+    """How many of ``rev``'s used reversals lie at an excitation with a model of its own
+    (dt-core ``ObserverParams::own_excitation``)."""
+    x = obs.get("excitations") or {}
+    own = [c for c, o in zip(obs["accel_clusters_mps2"], x.get("own", [False] * 4)) if o and c > 0]
+    a = np.abs(np.asarray(rev["accel_mps2"]))[np.asarray(rev["used"]) == 1.0]
+    return int(sum(np.count_nonzero(np.abs(a - c) <= obs["accel_cluster_rel"] * c) for c in own))
+
+
+def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float, int]:
     path, physics = args
+    own = own_reversals(shocktwin.charge_reversals(path, physics), physics["observer"])
     lg = shocktwin.read_log(path)
     x, cols, t = shocktwin.features(lg, physics, ["observer"])
     onset = rest_end_s(Run(path=Path(path), log=lg, run_id="", asset_id="", label_bar=None, frequency_hz=None))
     end = excitation_end_s(lg, float(t[-1]))
     idx = np.nonzero((t >= onset) & (t <= end))[0]
     if len(idx) == 0:
-        return None, float("nan"), float("nan")
+        return None, float("nan"), float("nan"), own
     i = idx[-1]
     mean = x[:, cols.index("observer_bar")]
     # how far the reading wanders at this constant charge, at the ticks a score would count
     scored = idx[t[idx] >= onset + BASELINE_SETTLE_S]
     drift = float(np.sqrt(np.mean((mean[scored] - mean[i]) ** 2))) if len(scored) else 0.0
-    return float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift
+    return float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift, own
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:

@@ -461,3 +461,18 @@ def test_an_excitation_gets_a_measurement_model_of_its_own() -> None:
     assert table["offset_n"][1][1] == pytest.approx(o["step_offset_n"] + 1.2 - 0.25 * 6.0)
     assert table["per_bar_n"][1][1] == pytest.approx(o["step_per_bar_n"] + 0.04 * 6.0)
     assert table["cold_n"][1][1] == pytest.approx(-0.5 * 6.0)
+
+
+def test_a_baseline_is_refused_at_an_excitation_with_its_own_model(run_4bar: Path) -> None:
+    """dt-core's baseline conditions the shared model's unit error only: a run read at an
+    excitation with a model of its own gives no baseline, and the error names the run."""
+    params = observer_physics(damping_law=A_LAW, cold_ref_c=80.0, excitations=A_TABLE, stroke_ends=True,
+                              accel_clusters_mps2=[1.5, 0.0, 0.0, 0.0], reversal_spacings_s=[0.5, 0.0, 0.0, 0.0])
+    with pytest.raises(SystemExit, match=f"{run_4bar.name}.*model of its own"):
+        obs_tool.baseline_of(params, [run_4bar], 4.0, jobs=1)
+    # the count behind it: every used reversal of the 1 Hz run at the 1.5 m/s² excitation, none
+    # once that excitation is the shared model's
+    rev = shocktwin.charge_reversals(run_4bar, params)
+    assert obs_tool.own_reversals(rev, params["observer"]) == int(np.sum(rev["used"] == 1.0)) > 20
+    shared = {**params["observer"], "excitations": {**A_TABLE, "own": [False, False, False, False]}}
+    assert obs_tool.own_reversals(rev, shared) == 0

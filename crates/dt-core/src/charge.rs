@@ -564,6 +564,12 @@ struct MeasurementTerms {
 /// the update splits `e` between them in proportion to their prior
 /// variances: near `p₀` the interval shrinks to about `σ_b`, far from it
 /// only by what the offset explained.
+///
+/// The error it conditions is the shared measurement model's: once the
+/// estimate holds a reversal from an excitation with a model of its own
+/// ([`ExcitationModel::own`]), the baseline no longer applies and the
+/// unconditioned systematic spread is reported (a baseline read at such an
+/// excitation is refused by `python -m train.observer baseline`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct UnitBaseline {
@@ -1522,6 +1528,11 @@ pub struct ChargeObserver {
     /// Whether a reversal between the calibrated excitations was used.
     #[serde(default)]
     used_between: bool,
+    /// Whether a reversal at an excitation with a model of its own
+    /// ([`ExcitationModel::own`]) was used: a [`UnitBaseline`] no longer
+    /// applies.
+    #[serde(default)]
+    used_own: bool,
 }
 
 impl ChargeObserver {
@@ -1553,6 +1564,7 @@ impl ChargeObserver {
             cold_bias_bar: [0.0; 2],
             ends_used: [0; 2],
             used_between: false,
+            used_own: false,
         })
     }
 
@@ -1902,6 +1914,9 @@ impl ChargeObserver {
             if !self.p.at_excitation(rev.accel_mps2.abs(), rev.spacing_s) {
                 self.used_between = true;
             }
+            if self.p.own_excitation(rev.accel_mps2.abs()).is_some() {
+                self.used_own = true;
+            }
             *rejected_run = 0;
         } else {
             self.counters.rejected += 1;
@@ -1971,7 +1986,11 @@ impl ChargeObserver {
             }
             _ => (self.mean_bar, self.var_bar2 + grown + b1 * b1),
         };
-        let (mean_bar, sd_bar) = if self.p.baseline.is_some() {
+        // A baseline conditions the unit's error under the shared model; at
+        // an excitation with its own model the unit errs otherwise (on the
+        // simulated second unit −1.7 bar at 12 bar and 1 Hz, +0.2 at 4 Hz),
+        // so a reading that holds one reports the unconditioned spread.
+        let (mean_bar, sd_bar) = if self.p.baseline.is_some() && !self.used_own {
             let unit = UnitCorrection::of(&self.p);
             let (mean, sys_var) = unit.apply(read);
             let scale = 1.0 + unit.gain_rel;
@@ -2578,6 +2597,53 @@ mod tests {
             err.to_string().contains("observer.baseline.read_bar"),
             "{err}"
         );
+    }
+
+    /// A baseline conditions the readings under the shared model; once a
+    /// reading from an excitation with its own model is in, the estimate
+    /// reports the unconditioned spread, as without a baseline.
+    #[test]
+    fn a_baseline_does_not_carry_over_to_an_excitation_with_its_own_model() {
+        let (shared, mut x) = shared_table();
+        x.offset_n[2] = [44.0, 31.0];
+        x.per_bar_n[2] = [1.1, 1.8];
+        x.sd_n[2] = [0.9, 2.8];
+        x.max_residual_mps2[2] = 1.2;
+        x.own[2] = true;
+        let p = ObserverParams {
+            accel_clusters_mps2: [1.5, 6.0, 24.0, 0.0],
+            reversal_spacings_s: [0.5, 0.25, 0.125, 0.0],
+            excitations: Some(x),
+            random_walk_bar2_per_s: 0.0,
+            ..shared
+        };
+        let based = ObserverParams {
+            baseline: Some(UnitBaseline {
+                charge_bar: 8.0,
+                read_bar: 8.0,
+                read_sd_bar: 0.1,
+            }),
+            ..p
+        };
+        let (mut with, mut without) = (
+            ChargeObserver::new(based).unwrap(),
+            ChargeObserver::new(p).unwrap(),
+        );
+        for k in 0..40 {
+            let accel = if k % 2 == 0 { 6.0 } else { -6.0 };
+            for obs in [&mut with, &mut without] {
+                read_at(obs, k * 250_000_000, 80.0, accel, 8.0);
+            }
+        }
+        let t = 40 * 250_000_000;
+        let (w, wo) = (with.estimate(t), without.estimate(t));
+        assert!(w.sd_bar < 0.5 * wo.sd_bar, "{w:?} against {wo:?}");
+        for obs in [&mut with, &mut without] {
+            read_spaced(obs, t, 80.0, -24.0, 8.0, 0.125);
+        }
+        let (w, wo) = (with.estimate(t + 1), without.estimate(t + 1));
+        assert!((w.mean_bar - wo.mean_bar).abs() < 1e-12 && (w.sd_bar - wo.sd_bar).abs() < 1e-12);
+        assert!(wo.sd_bar > p.systematic_sd_bar, "{wo:?}");
     }
 
     /// Ends of the stroke that read different charges widen the interval by
