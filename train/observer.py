@@ -529,6 +529,33 @@ def own_excitation(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> dict[
             "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else np.inf}
 
 
+def warm_terms(obs: dict[str, Any], accel: float) -> tuple[float, float]:
+    """``(offset N, gain N/bar)`` of the measurement model at velocity slope ``accel`` with warm oil
+    at ``T_c`` (no cold term, no drift), averaged over the two ends of the stroke: dt-core
+    ``ObserverParams::terms`` (the table's own excitation within its band, else the shared
+    excitations' line, extrapolated at its ends), or the one line without a table."""
+    a = abs(accel)
+    x = obs.get("excitations")
+    if not x:
+        return obs["step_offset_n"] + obs["step_per_accel_ns2pm"] * a, obs["step_per_bar_n"] + obs["step_per_bar_accel"] * a
+    clusters, rel = obs["accel_clusters_mps2"], obs["accel_cluster_rel"]
+    for k, c in enumerate(clusters):
+        if x["own"][k] and c > 0 and abs(a - c) <= rel * c:
+            return float(np.mean(x["offset_n"][k])), float(np.mean(x["per_bar_n"][k]))
+    ks = sorted((k for k, c in enumerate(clusters) if c > 0 and not x["own"][k]), key=lambda k: clusters[k])
+    if len(ks) == 1:
+        lo = hi = ks[0]
+        w = 0.0
+    else:
+        seg = next((i for i in range(len(ks) - 1) if a <= clusters[ks[i + 1]]), len(ks) - 2)
+        lo, hi = ks[seg], ks[seg + 1]
+        w = (a - clusters[lo]) / (clusters[hi] - clusters[lo])
+
+    def lerp(v: list[list[float]]) -> float:
+        return float(np.mean(v[lo]) + w * (np.mean(v[hi]) - np.mean(v[lo])))
+    return lerp(x["offset_n"]), lerp(x["per_bar_n"])
+
+
 def excitation_table(o: dict[str, Any], own: dict[int, dict[str, Any]]) -> dict[str, Any]:
     """dt-core ``ExcitationModel`` for ``o``'s clusters: the shared model's coefficients at each
     of its excitations (the same model, written per excitation and end), and ``own``'s models

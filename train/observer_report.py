@@ -41,7 +41,7 @@ from train.campaign import load_campaign
 from train.damping_law import law_calibrated
 from train.fit_physics import rest_end_s
 from train.progress import progress
-from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95, excitation_end_s
+from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95, excitation_end_s, warm_terms
 
 log = logging.getLogger("shocktwin.observer")
 
@@ -193,8 +193,8 @@ def fisher_per_reversal(obs: dict[str, float], freq_hz: float, p_bar: float) -> 
     """Fisher information on the charge (1/bar²) of one reversal, nuisances profiled out."""
     accel = STROKE_AMP_M * (2 * np.pi * freq_hz) ** 2
     times = np.arange(-obs["window_pre_s"], obs["window_post_s"] + 1e-9, 1e-3)
-    gain = obs["step_per_bar_n"] + obs.get("step_per_bar_accel", 0.0) * accel
-    alpha = obs["step_offset_n"] + gain * p_bar
+    offset, gain = warm_terms(obs, accel)  # the excitation's own model where it has one
+    alpha = offset + gain * p_bar
     if law_calibrated(obs):  # the law at 40 °C, its per-side scales at 1
         theta = np.array([alpha, 1.0, 1.0, 0.0, -9.8])
         steps = np.array([0.01 * alpha, 0.01, 0.01, 2e-5, 0.01])

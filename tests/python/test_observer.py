@@ -461,6 +461,13 @@ def test_an_excitation_gets_a_measurement_model_of_its_own() -> None:
     assert table["offset_n"][1][1] == pytest.approx(o["step_offset_n"] + 1.2 - 0.25 * 6.0)
     assert table["per_bar_n"][1][1] == pytest.approx(o["step_per_bar_n"] + 0.04 * 6.0)
     assert table["cold_n"][1][1] == pytest.approx(-0.5 * 6.0)
+    # what the bound reads (dt-core ObserverParams::terms, warm, the ends averaged): the own
+    # model within its band, the shared line elsewhere
+    with_table = {**o, "excitations": table}
+    own_terms = (np.mean(table["offset_n"][2]), np.mean(table["per_bar_n"][2]))
+    assert obs_tool.warm_terms(with_table, 20.0) == pytest.approx(own_terms)
+    assert obs_tool.warm_terms(with_table, 3.0) == pytest.approx(obs_tool.warm_terms(o, 3.0))
+    assert obs_tool.warm_terms(with_table, 7.0) == pytest.approx(obs_tool.warm_terms(o, 7.0))
 
 
 def test_a_baseline_is_refused_at_an_excitation_with_its_own_model(run_4bar: Path) -> None:
