@@ -162,15 +162,21 @@ def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, Any],
     cols = [0, 1, 2, 3, 4] if with_accel else [0, 1, 3]
     if np.count_nonzero(x[:, 5]) >= MIN_CLUSTER_REVERSALS:
         cols.append(5)
-    xs = x[:, cols]
+    sol, mad = robust_lstsq(x[:, cols], y)
+    coef = np.zeros(6)
+    coef[cols] = sol
+    return coef, mad
+
+
+def robust_lstsq(xs: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
+    """``y ≈ xs c`` by soft-L1 least squares (scale: the MAD of the plain fit's residuals), from
+    the plain fit; returns ``c`` and the MAD spread of its residuals."""
     c0, *_ = np.linalg.lstsq(xs, y, rcond=None)
     res0 = y - xs @ c0
     scale = max(1.4826 * float(np.median(np.abs(res0 - np.median(res0)))), 1e-3)
     sol = least_squares(lambda c: xs @ c - y, c0, loss="soft_l1", f_scale=scale)
     res = y - xs @ sol.x
-    coef = np.zeros(6)
-    coef[cols] = sol.x
-    return coef, 1.4826 * float(np.median(np.abs(res - np.median(res))))
+    return sol.x, 1.4826 * float(np.median(np.abs(res - np.median(res))))
 
 
 def reading_gain(rev: dict[str, np.ndarray], coef: np.ndarray, obs: dict[str, Any]) -> np.ndarray:
@@ -178,23 +184,28 @@ def reading_gain(rev: dict[str, np.ndarray], coef: np.ndarray, obs: dict[str, An
     return (coef[3] + coef[4] * np.abs(rev["accel_mps2"])) * theta(rev, obs)
 
 
-def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: dict[str, float]) -> tuple[float, float]:
-    """Batch weighted LS charge of one run (the observer with no random walk and a flat
-    prior), with a 3-sigma-clipped second pass; returns (estimate, statistical sd)."""
-    th = theta(rev, obs)
-    acc = np.abs(rev["accel_mps2"])
-    gain = coef[3] + coef[4] * acc
-    a = (coef[0] + coef[1] * np.sign(rev["accel_mps2"]) + coef[2] * acc + coef[5] * cold_excess(rev, obs)
-         + gain * P_ATM_BAR * (th - 1.0))
-    b = reading_gain(rev, coef, obs)
+def batch_charge(alpha: np.ndarray, a: np.ndarray, b: np.ndarray, sd_n: float) -> tuple[float, float]:
+    """Weighted LS charge from readings ``alpha = a + b p`` (the observer with no random walk
+    and a flat prior), with a 3-sigma-clipped second pass; (estimate, statistical sd), NaN
+    under three readings."""
     keep = np.ones(len(a), bool)
     p = np.nan
     for _ in range(2):
         if keep.sum() < 3:
             return np.nan, np.inf
-        p = float(np.sum(b[keep] * (rev["alpha_n"][keep] - a[keep])) / np.sum(b[keep] ** 2))
-        keep = np.abs(rev["alpha_n"] - a - b * p) < 3 * sd_n
+        p = float(np.sum(b[keep] * (alpha[keep] - a[keep])) / np.sum(b[keep] ** 2))
+        keep = np.abs(alpha - a - b * p) < 3 * sd_n
     return p, sd_n / float(np.sqrt(np.sum(b[keep] ** 2)))
+
+
+def charge_from(rev: dict[str, np.ndarray], coef: np.ndarray, sd_n: float, obs: dict[str, float]) -> tuple[float, float]:
+    """Batch charge of one run under the shared measurement model (``batch_charge``)."""
+    th = theta(rev, obs)
+    acc = np.abs(rev["accel_mps2"])
+    gain = coef[3] + coef[4] * acc
+    a = (coef[0] + coef[1] * np.sign(rev["accel_mps2"]) + coef[2] * acc + coef[5] * cold_excess(rev, obs)
+         + gain * P_ATM_BAR * (th - 1.0))
+    return batch_charge(rev["alpha_n"], a, reading_gain(rev, coef, obs), sd_n)
 
 
 def accel_clusters(revs: Sequence[dict[str, Any]], rel: float) -> list[tuple[float, float]]:
@@ -453,29 +464,11 @@ def fit_end(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> tuple[np.nda
     t = np.concatenate([r["gas_temp_c"] - obs["cold_ref_c"] for r in revs])
     y = np.concatenate([r["alpha_n"] for r in revs])
     has_x = np.count_nonzero(x) >= MIN_CLUSTER_REVERSALS
-    xs = np.column_stack([np.ones_like(y), pg, x if has_x else np.zeros_like(y), t])
-    if not has_x:
-        xs = xs[:, [0, 1, 3]]
-    c0, *_ = np.linalg.lstsq(xs, y, rcond=None)
-    res0 = y - xs @ c0
-    scale = max(1.4826 * float(np.median(np.abs(res0 - np.median(res0)))), 1e-3)
-    sol = least_squares(lambda c: xs @ c - y, c0, loss="soft_l1", f_scale=scale)
-    res = y - xs @ sol.x
-    coef = np.array(sol.x) if has_x else np.array([sol.x[0], sol.x[1], 0.0, sol.x[2]])
-    return coef, 1.4826 * float(np.median(np.abs(res - np.median(res))))
-
-
-def batch_charge(alpha: np.ndarray, a: np.ndarray, b: np.ndarray, sd_n: float) -> tuple[float, float]:
-    """Weighted LS charge from readings ``alpha = a + b p``, with a 3-sigma-clipped second pass
-    (as ``charge_from``); (estimate, statistical sd), NaN under three readings."""
-    keep = np.ones(len(a), bool)
-    p = np.nan
-    for _ in range(2):
-        if keep.sum() < 3:
-            return np.nan, np.inf
-        p = float(np.sum(b[keep] * (alpha[keep] - a[keep])) / np.sum(b[keep] ** 2))
-        keep = np.abs(alpha - a - b * p) < 3 * sd_n
-    return p, sd_n / float(np.sqrt(np.sum(b[keep] ** 2)))
+    cols = [0, 1, 2, 3] if has_x else [0, 1, 3]
+    sol, mad = robust_lstsq(np.column_stack([np.ones_like(y), pg, x, t])[:, cols], y)
+    coef = np.zeros(4)
+    coef[cols] = sol
+    return coef, mad
 
 
 def _end_of(rev: dict[str, Any], end: int, keep: np.ndarray | None = None) -> dict[str, Any]:
