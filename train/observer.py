@@ -23,6 +23,10 @@ The law's extension side is a valve whose knee sits at a force (``--law-form val
 default; ``hinges``: knees at fixed velocities only), and each window's two law scales get a
 Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by default; 0: free).
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
+An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
+model of its own per end of the stroke, with a drift in the gas temperature, when it validates
+leave one run out; its reversals are then read at that excitation only (``--no-own-excitations``:
+skipped as before; README, "4 Hz, read").
 The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
 run's charge is estimated by the model fitted *without that run* (leave one run out), and
 the RMS of those errors beyond their statistical part is kept; the unit-to-unit
@@ -471,8 +475,9 @@ def fit_end(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> tuple[np.nda
     return coef, mad
 
 
-def _end_of(rev: dict[str, Any], end: int, keep: np.ndarray | None = None) -> dict[str, Any]:
-    m = (np.sign(rev["accel_mps2"]) == end) & (True if keep is None else keep)
+def _end_of(rev: dict[str, Any], end: int) -> dict[str, Any]:
+    """The reversals of one end of the stroke (``end`` the sign of ``ÿ_r``)."""
+    m = np.sign(rev["accel_mps2"]) == end
     return {k: (v[m] if isinstance(v, np.ndarray) else v) for k, v in rev.items()}
 
 
@@ -578,8 +583,10 @@ def add_own_excitations(cal: dict[str, Any], campaign: Any, physics: dict[str, A
     """Excitations of the campaign the shared measurement model does not calibrate (dropped by
     ``calibrate``, or too few windows under its residual cut) get a model of their own
     (``own_excitation``) when it validates (leave-one-run-out RMS ≤ ``CLUSTER_MAX_LORO_BAR``)
-    and a cluster slot is free; the observer then takes their reversals and interpolates
-    between them (dt-core ``ExcitationModel``). Returns ``cal`` updated."""
+    and a cluster slot is free; the observer then reads their reversals with that model, at
+    that excitation only (dt-core ``ExcitationModel::own``: nothing validates a line between it
+    and another). The leave-one-run-out rows and the systematic sd take the new runs in.
+    Returns ``cal`` updated."""
     o = cal["observer"]
     rel, spacing_rel = o["accel_cluster_rel"], o["spacing_rel"]
     kept = [(c, h) for c, h in zip(o["accel_clusters_mps2"], o["reversal_spacings_s"]) if c > 0]
