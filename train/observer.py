@@ -523,8 +523,34 @@ def own_excitation(revs: Sequence[dict[str, Any]], obs: dict[str, Any]) -> dict[
                      "accel_mps2": float(np.median(np.abs(r["accel_mps2"]))) if len(r["alpha_n"]) else np.nan})
     err = np.array([row["error_bar"] for row in loro])
     ok = np.isfinite(err)
-    return {"models": models, "max_residual_mps2": cut, "loro": loro,
+    return {"models": models, "max_residual_mps2": cut, "loro": loro, "silent_below_bar": silent_bounds(revs),
             "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else np.inf}
+
+
+SILENT_WINDOWS = 40  # dt-core charge::SILENT_WINDOWS
+SILENT_SHARE = 0.1   # an end that fits under this share of the other end's windows is silent
+
+
+def silent_bounds(revs: Sequence[dict[str, Any]]) -> dict[int, float]:
+    """Per end of the stroke, the charge below which that end falls silent at this excitation
+    (dt-core ``ExcitationModel::silent_below_bar``): on a run whose other end fits
+    ``SILENT_WINDOWS`` windows or more, the end is silent when it fits under ``SILENT_SHARE`` of
+    them. The bound is the lowest charge at which the end fits (half the other end's windows or
+    more) above every charge at which it was silent; 0 (no bound) when it was never silent, or
+    never fit above."""
+    out = {}
+    for e in (1, -1):
+        silent, fits = [], []
+        for r in revs:
+            n_e = int(np.sum(np.sign(r["accel_mps2"]) == e))
+            n_o = int(np.sum(np.sign(r["accel_mps2"]) == -e))
+            if n_o >= SILENT_WINDOWS and n_e < SILENT_SHARE * n_o:
+                silent.append(r["truth_bar"])
+            elif n_o and n_e >= 0.5 * n_o:
+                fits.append(r["truth_bar"])
+        above = [p for p in fits if silent and p > max(silent)]
+        out[e] = float(min(above)) if above else 0.0
+    return out
 
 
 def warm_terms(obs: dict[str, Any], accel: float) -> tuple[float, float]:
@@ -558,7 +584,8 @@ def excitation_table(o: dict[str, Any], own: dict[int, dict[str, Any]]) -> dict[
     """dt-core ``ExcitationModel`` for ``o``'s clusters: the shared model's coefficients at each
     of its excitations (the same model, written per excitation and end), and ``own``'s models
     (by cluster index) at theirs."""
-    table = {k: [[0.0, 0.0] for _ in range(4)] for k in ("offset_n", "per_bar_n", "cold_n", "per_kelvin_n", "sd_n")}
+    table = {k: [[0.0, 0.0] for _ in range(4)]
+             for k in ("offset_n", "per_bar_n", "cold_n", "per_kelvin_n", "sd_n", "silent_below_bar")}
     table["max_residual_mps2"] = [0.0] * 4
     table["own"] = [k in own for k in range(4)]
     for k, acc in enumerate(o["accel_clusters_mps2"]):
@@ -575,6 +602,8 @@ def excitation_table(o: dict[str, Any], own: dict[int, dict[str, Any]]) -> dict[
             table["offset_n"][k][j], table["per_bar_n"][k][j] = float(a0), float(s0)
             table["cold_n"][k][j], table["per_kelvin_n"][k][j] = float(c0), float(d0)
             table["sd_n"][k][j] = float(sd)
+            if k in own:
+                table["silent_below_bar"][k][j] = float(own[k]["silent_below_bar"][e])
     return table
 
 
@@ -615,7 +644,9 @@ def add_own_excitations(cal: dict[str, Any], campaign: Any, physics: dict[str, A
             continue
         print(f"excitation at |a| = {c:.2f} m/s², {h:.3f} s apart: a measurement model of its own "
               f"(windows up to {fit['max_residual_mps2']:.2f} m/s²; leave-one-run-out RMS "
-              f"{fit['loro_rms_bar']:.2f} bar over {len(mine)} runs)")
+              f"{fit['loro_rms_bar']:.2f} bar over {len(mine)} runs)"
+              + "".join(f"; its {'ÿ > 0' if e > 0 else 'ÿ < 0'} end falls silent below {b:g} bar"
+                        for e, b in fit["silent_below_bar"].items() if b > 0))
         added.append((c, h, fit))
         own_rows += fit["loro"]
     if not added:

@@ -483,3 +483,18 @@ def test_a_baseline_is_refused_at_an_excitation_with_its_own_model(run_4bar: Pat
     assert obs_tool.own_reversals(rev, params["observer"]) == int(np.sum(rev["used"] == 1.0)) > 20
     shared = {**params["observer"], "excitations": {**A_TABLE, "own": [False, False, False, False]}}
     assert obs_tool.own_reversals(rev, shared) == 0
+
+
+def test_an_end_that_falls_silent_bounds_the_charge() -> None:
+    """``silent_bounds`` (dt-core ``ExcitationModel::silent_below_bar``): an end that fits (almost)
+    no window on the low-charge runs while the other end fits bounds the charge below the lowest
+    charge at which it fits again; an end never silent gives no bound."""
+    def run(truth: float, n_up: int, n_down: int) -> dict:
+        accel = np.r_[np.full(n_up, 23.0), np.full(n_down, -23.0)]
+        return {"accel_mps2": accel, "truth_bar": truth}
+
+    revs = [run(0.5, 400, 0), run(2.0, 400, 30), run(4.0, 400, 390), run(7.0, 400, 400), run(12.0, 380, 400)]
+    assert obs_tool.silent_bounds(revs) == {1: 0.0, -1: 4.0}
+    assert obs_tool.silent_bounds(revs[2:]) == {1: 0.0, -1: 0.0}
+    # too few windows on the other end to call an end silent
+    assert obs_tool.silent_bounds([run(0.5, 30, 0), run(4.0, 400, 400)]) == {1: 0.0, -1: 0.0}

@@ -153,6 +153,32 @@ use serde::{Deserialize, Serialize};
 use crate::error::PhysicsError;
 use crate::params::{CHARGE_REF_TEMP_C, KELVIN_OFFSET, P_ATM_PA};
 
+/// Windows in a row that make an end of an excitation silent (and that the
+/// other end must fit meanwhile): 5 s at 4 Hz
+/// ([`ExcitationModel::silent_below_bar`]).
+pub const SILENT_WINDOWS: u32 = 40;
+
+/// Mean and standard deviation of `N(mean, sd²)` truncated to `p < bound`.
+fn truncated_above(mean: f64, sd: f64, bound: f64) -> (f64, f64) {
+    use statrs::distribution::{Continuous, ContinuousCDF, Normal};
+    if !(sd > 0.0 && sd.is_finite()) {
+        return (mean.min(bound), sd);
+    }
+    let unit = Normal::standard();
+    let b = (bound - mean) / sd;
+    let mass = unit.cdf(b);
+    if mass < 1e-12 {
+        // The bound lies far below the estimate: the estimate is wrong, not
+        // the bound; keep it (its interval already reaches past the bound).
+        return (mean, sd);
+    }
+    let lambda = unit.pdf(b) / mass;
+    (
+        mean - sd * lambda,
+        sd * (1.0 - b * lambda - lambda * lambda).max(0.0).sqrt(),
+    )
+}
+
 /// Largest RK4 step of the window model, s. The mount (≈ 100 Hz) and the
 /// accelerometer's filter (400 Hz: `ω h` = 0.5) are resolved at it; halving
 /// it (1e-4, before the eighth session) moved the fitted `α` of the default
@@ -471,6 +497,18 @@ pub struct ExcitationModel {
     pub sd_n: [[f64; 2]; 4],
     /// The largest window residual RMS per excitation, m/s².
     pub max_residual_mps2: [f64; 4],
+    /// `B_ke`: a charge bound, bar (0: none). An end of an excitation with
+    /// its own model that stops fitting — [`SILENT_WINDOWS`] windows in a
+    /// row fail while the other end fits as many — shows the charge below
+    /// `B_ke`: the calibration saw that end fall silent on a run below it
+    /// and fit at `B_ke` (the lowest charge where it fit). On the simulated
+    /// dyno that is cavitation, the channel (b): at 0.5 bar and 4 Hz
+    /// the rebound stroke draws a void and the top reversal's window, which
+    /// runs into it, fits no more; at 4 bar it fits. The estimate is then
+    /// the other end's alone, its Gaussian truncated at `B_ke` (moments
+    /// matched).
+    #[serde(default)]
+    pub silent_below_bar: [[f64; 2]; 4],
     /// Whether excitation `k`'s model is its own (fitted on its runs alone,
     /// not the shared line's): its reversals are read at it only, with its
     /// own terms across its `±accel_cluster_rel`, never
@@ -487,6 +525,14 @@ impl ExcitationModel {
     fn validate(&self, clusters: &[f64; 4]) -> Result<(), PhysicsError> {
         for k in (0..4).filter(|&k| clusters[k] > 0.0) {
             for e in 0..2 {
+                let bound = self.silent_below_bar[k][e];
+                if !(bound.is_finite() && bound >= 0.0) {
+                    return Err(PhysicsError::InvalidParameter {
+                        name: "observer.excitations.silent_below_bar",
+                        value: bound,
+                        reason: "must be finite and non-negative (0: no bound)",
+                    });
+                }
                 for (name, value, positive) in [
                     ("observer.excitations.offset_n", self.offset_n[k][e], false),
                     (
@@ -1533,6 +1579,12 @@ pub struct ChargeObserver {
     /// applies.
     #[serde(default)]
     used_own: bool,
+    /// Windows in a row that fit, per excitation and end (own models only).
+    #[serde(default)]
+    fit_run: [[u32; 2]; 4],
+    /// Windows in a row that failed, per excitation and end (own models only).
+    #[serde(default)]
+    silent_run: [[u32; 2]; 4],
 }
 
 impl ChargeObserver {
@@ -1565,6 +1617,8 @@ impl ChargeObserver {
             ends_used: [0; 2],
             used_between: false,
             used_own: false,
+            fit_run: [[0; 2]; 4],
+            silent_run: [[0; 2]; 4],
         })
     }
 
@@ -1679,12 +1733,52 @@ impl ChargeObserver {
 
     fn fit(&mut self, pending: Pending) {
         match self.fit_window(pending) {
-            Some(rev) => self.update(rev),
+            Some(Ok(rev)) => {
+                self.note_window(rev.accel_mps2, true);
+                self.update(rev);
+            }
+            Some(Err(accel)) => {
+                self.note_window(accel, false);
+                self.counters.skipped += 1;
+            }
             None => self.counters.skipped += 1,
         }
     }
 
-    fn fit_window(&self, pending: Pending) -> Option<Reversal> {
+    /// Counts the windows in a row that fit, or failed, per excitation with
+    /// its own model and end of the stroke
+    /// ([`ExcitationModel::silent_below_bar`]).
+    fn note_window(&mut self, accel: f64, fitted: bool) {
+        if let Some(k) = self.p.own_excitation(accel.abs()) {
+            let e = usize::from(accel < 0.0);
+            let (fit, silent) = (&mut self.fit_run[k][e], &mut self.silent_run[k][e]);
+            if fitted {
+                (*fit, *silent) = (fit.saturating_add(1), 0);
+            } else {
+                (*fit, *silent) = (0, silent.saturating_add(1));
+            }
+        }
+    }
+
+    /// The end that reads and the bound, while an end of an excitation with
+    /// its own model is silent ([`ExcitationModel::silent_below_bar`]).
+    fn silent_end(&self) -> Option<(usize, f64)> {
+        let x = self.p.excitations.as_ref()?;
+        (0..4)
+            .flat_map(|k| [(k, 0), (k, 1)])
+            .filter(|&(k, e)| {
+                x.own[k]
+                    && x.silent_below_bar[k][e] > 0.0
+                    && self.silent_run[k][e] >= SILENT_WINDOWS
+                    && self.fit_run[k][1 - e] >= SILENT_WINDOWS
+            })
+            .map(|(k, e)| (1 - e, x.silent_below_bar[k][e]))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+    }
+
+    /// A fitted reversal; `Err(ÿ_r)` when its window was taken but no fit
+    /// passed; `None` when it was no candidate (gate, gaps, too few samples).
+    fn fit_window(&self, pending: Pending) -> Option<Result<Reversal, f64>> {
         let p = &self.p;
         let rel = |t_ns: i64| Self::rel_s(pending, t_ns);
         // Velocity slope across the reversal and the extension at it.
@@ -1727,12 +1821,14 @@ impl ChargeObserver {
         let data: Vec<f64> = window.iter().map(|w| w.1).collect();
         let pre_n = times.iter().filter(|&&s| s < -0.002).count().max(1);
         let c0 = data[..pre_n].iter().sum::<f64>() / pre_n as f64;
-        let (theta, residual, alpha_sd_n) = self.solve_window(
+        let Some((theta, residual, alpha_sd_n)) = self.solve_window(
             &ReversalModel::new(p, accel, self.gas_temp_c),
             &times,
             &data,
             c0,
-        )?;
+        ) else {
+            return Some(Err(accel));
+        };
         // Extension at the reversal: the window sample nearest to it.
         let y_r = window
             .iter()
@@ -1756,7 +1852,7 @@ impl ChargeObserver {
             b_n_per_bar,
             used: false,
         };
-        Some(rev)
+        Some(Ok(rev))
     }
 
     /// Least squares of one window from [`START_DAMPING_KNSPM`], then from
@@ -1970,7 +2066,8 @@ impl ChargeObserver {
         // walk since the last update adds to the average in full and cancels
         // in the split.
         let [b1, b2] = self.cold_bias_bar;
-        let (read, read_var) = match (self.ends, self.single_end()) {
+        let silent = self.silent_end().filter(|_| self.p.stroke_ends);
+        let (read, read_var) = match (self.ends, silent.map(|s| s.0).or(self.single_end())) {
             (Some(ends), Some(e)) if self.p.stroke_ends => {
                 let (m, v) = ends[e];
                 let (s, bias) = (self.p.single_end_sd_bar, self.cold_bias_bar[e]);
@@ -1999,6 +2096,10 @@ impl ChargeObserver {
             let sys = self.p.systematic_sd_bar;
             let rel = self.p.systematic_rel * read.abs();
             (read, (read_var + sys * sys + rel * rel).sqrt())
+        };
+        let (mean_bar, sd_bar) = match silent {
+            Some((_, bound)) => truncated_above(mean_bar, sd_bar, bound),
+            None => (mean_bar, sd_bar),
         };
         ChargeEstimate {
             mean_bar,
@@ -2644,6 +2745,95 @@ mod tests {
         let (w, wo) = (with.estimate(t + 1), without.estimate(t + 1));
         assert!((w.mean_bar - wo.mean_bar).abs() < 1e-12 && (w.sd_bar - wo.sd_bar).abs() < 1e-12);
         assert!(wo.sd_bar > p.systematic_sd_bar, "{wo:?}");
+    }
+
+    /// `N(m, s²)` truncated above: its moments against a numerical
+    /// integration; a bound far below the estimate leaves it alone.
+    #[test]
+    fn a_gaussian_truncated_above_matches_its_integral() {
+        for (m, s, b) in [
+            (1.8, 2.16, 4.0),
+            (4.1, 3.7, 4.0),
+            (0.0, 1.0, -1.5),
+            (3.0, 0.5, 10.0),
+        ] {
+            let (n, dx) = (200_000, 20.0 * s / 200_000.0);
+            let (mut w0, mut w1, mut w2) = (0.0, 0.0, 0.0);
+            for i in 0..n {
+                let x = m - 10.0 * s + (f64::from(i) + 0.5) * dx;
+                if x < b {
+                    let w = (-0.5 * ((x - m) / s).powi(2)).exp();
+                    (w0, w1, w2) = (w0 + w, w1 + w * x, w2 + w * x * x);
+                }
+            }
+            let (mean, var) = (w1 / w0, w2 / w0 - (w1 / w0).powi(2));
+            let (tm, ts) = truncated_above(m, s, b);
+            assert!(
+                (tm - mean).abs() < 1e-4 && (ts - var.sqrt()).abs() < 1e-4,
+                "{m} {s} {b}: ({tm}, {ts}) against ({mean}, {})",
+                var.sqrt()
+            );
+        }
+        assert_eq!(truncated_above(30.0, 1.0, 4.0), (30.0, 1.0));
+    }
+
+    /// An end of an excitation with its own model that stops fitting while
+    /// the other end fits: the estimate is the other end's, truncated at the
+    /// calibrated bound; one fitted window on the silent end ends it.
+    #[test]
+    fn a_silent_end_bounds_the_charge_from_above() {
+        let (shared, mut x) = shared_table();
+        x.offset_n[2] = [44.0, 31.0];
+        x.per_bar_n[2] = [1.1, 1.8];
+        x.sd_n[2] = [0.9, 2.8];
+        x.max_residual_mps2[2] = 1.2;
+        x.own[2] = true;
+        x.silent_below_bar[2] = [0.0, 4.0];
+        let p = ObserverParams {
+            accel_clusters_mps2: [1.5, 6.0, 24.0, 0.0],
+            reversal_spacings_s: [0.5, 0.25, 0.125, 0.0],
+            excitations: Some(x),
+            stroke_ends: true,
+            random_walk_bar2_per_s: 0.0,
+            ..shared
+        };
+        let mut obs = ChargeObserver::new(p).unwrap();
+        let step = 125_000_000;
+        for k in 0..2 * i64::from(SILENT_WINDOWS) {
+            if k % 2 == 0 {
+                obs.note_window(24.0, true);
+                read_spaced(&mut obs, k * step, 80.0, 24.0, 1.0, 0.125);
+            } else {
+                obs.note_window(-24.0, false);
+            }
+        }
+        let t = 2 * i64::from(SILENT_WINDOWS) * step;
+        let est = obs.estimate(t);
+        let (m, v) = obs.ends.unwrap()[0];
+        let sys2 = p.systematic_sd_bar.powi(2) + (p.systematic_rel * m).powi(2);
+        let want = truncated_above(m, (v + sys2).sqrt(), 4.0);
+        assert!(
+            (est.mean_bar - want.0).abs() < 1e-9 && (est.sd_bar - want.1).abs() < 1e-9,
+            "{est:?} against {want:?}"
+        );
+        assert!(est.mean_bar + 1.96 * est.sd_bar < 4.0, "{est:?}");
+        // The silent end fits one window: the ends' average with its prior again.
+        obs.note_window(-24.0, true);
+        let back = obs.estimate(t);
+        assert!(back.sd_bar > 2.0 * est.sd_bar, "{back:?} against {est:?}");
+        // No bound for that end: never truncated.
+        let mut unbounded = x;
+        unbounded.silent_below_bar[2] = [0.0, 0.0];
+        let mut obs = ChargeObserver::new(ObserverParams {
+            excitations: Some(unbounded),
+            ..p
+        })
+        .unwrap();
+        for _ in 0..SILENT_WINDOWS {
+            obs.note_window(24.0, true);
+            obs.note_window(-24.0, false);
+        }
+        assert!(obs.silent_end().is_none());
     }
 
     /// Ends of the stroke that read different charges widen the interval by
