@@ -125,6 +125,10 @@
 //! `σ_α` and residual cut; its reversals are read there only, never between
 //! it and another excitation. The calibration writes the shared model into
 //! the same table at its own excitations, where it reads exactly as above.
+//! An end of such an excitation that stops fitting while the other end fits
+//! (cavitation at a low charge on the simulated dyno: the channel
+//! (b)) bounds the charge from above
+//! ([`ExcitationModel::silent_below_bar`]).
 //!
 //! Two options change what each reversal or the interval carries (both off
 //! by default): `window_sd` takes `σ_α²` per reversal as the larger of
