@@ -2704,11 +2704,9 @@ mod tests {
         );
     }
 
-    /// A baseline conditions the readings under the shared model; once a
-    /// reading from an excitation with its own model is in, the estimate
-    /// reports the unconditioned spread, as without a baseline.
-    #[test]
-    fn a_baseline_does_not_carry_over_to_an_excitation_with_its_own_model() {
+    /// [`shared_table`]'s parameters with a third excitation at 24 m/s²
+    /// that has a model of its own.
+    fn own_table() -> (ObserverParams, ExcitationModel) {
         let (shared, mut x) = shared_table();
         x.offset_n[2] = [44.0, 31.0];
         x.per_bar_n[2] = [1.1, 1.8];
@@ -2719,8 +2717,19 @@ mod tests {
             accel_clusters_mps2: [1.5, 6.0, 24.0, 0.0],
             reversal_spacings_s: [0.5, 0.25, 0.125, 0.0],
             excitations: Some(x),
-            random_walk_bar2_per_s: 0.0,
             ..shared
+        };
+        (p, x)
+    }
+
+    /// A baseline conditions the readings under the shared model; once a
+    /// reading from an excitation with its own model is in, the estimate
+    /// reports the unconditioned spread, as without a baseline.
+    #[test]
+    fn a_baseline_does_not_carry_over_to_an_excitation_with_its_own_model() {
+        let p = ObserverParams {
+            random_walk_bar2_per_s: 0.0,
+            ..own_table().0
         };
         let based = ObserverParams {
             baseline: Some(UnitBaseline {
@@ -2786,20 +2795,13 @@ mod tests {
     /// calibrated bound; one fitted window on the silent end ends it.
     #[test]
     fn a_silent_end_bounds_the_charge_from_above() {
-        let (shared, mut x) = shared_table();
-        x.offset_n[2] = [44.0, 31.0];
-        x.per_bar_n[2] = [1.1, 1.8];
-        x.sd_n[2] = [0.9, 2.8];
-        x.max_residual_mps2[2] = 1.2;
-        x.own[2] = true;
+        let (own, mut x) = own_table();
         x.silent_below_bar[2] = [0.0, 4.0];
         let p = ObserverParams {
-            accel_clusters_mps2: [1.5, 6.0, 24.0, 0.0],
-            reversal_spacings_s: [0.5, 0.25, 0.125, 0.0],
             excitations: Some(x),
             stroke_ends: true,
             random_walk_bar2_per_s: 0.0,
-            ..shared
+            ..own
         };
         let mut obs = ChargeObserver::new(p).unwrap();
         let step = 125_000_000;
