@@ -63,10 +63,12 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	@shot=$(OUT)/serve-demo/dashboard.png; [ -f $$shot ] || shot="not taken (no chromium)"; \
 	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
 
-study: setup ## the full study on the default campaign (docs/study; ~20 min on 2 cores)
+study: setup ## the full study on the default campaign: physics, charge observer, Tables 2-3, suites (docs/study; simulated data)
 	rm -rf $(OUT)/full-campaign
 	$(BIN) simulate --out $(OUT)/full-campaign
-	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --out docs/study --datasheet $(DATASHEET)
+	$(PY) -m train.fit_physics --campaign $(OUT)/full-campaign --out $(OUT)/full-physics.json --datasheet $(DATASHEET) --nominal-bar 12
+	$(PY) -m train.observer fit --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --datasheet $(DATASHEET)
+	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --out docs/study
 
 test-rust: ## Rust unit and integration tests
 	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py

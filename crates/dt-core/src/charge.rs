@@ -1631,6 +1631,14 @@ impl ChargeObserver {
         self.record.get_or_insert_with(Vec::new);
     }
 
+    /// Whether a reversal at an excitation with a measurement model of its
+    /// own ([`ExcitationModel::own`]) was used: a [`UnitBaseline`] no longer
+    /// applies, and no baseline may be read from this run.
+    #[must_use]
+    pub fn used_own(&self) -> bool {
+        self.used_own
+    }
+
     /// The fitted reversals kept since [`record_reversals`](Self::record_reversals).
     #[must_use]
     pub fn reversals(&self) -> &[Reversal] {

@@ -461,6 +461,12 @@ impl Estimator {
         })
     }
 
+    /// The charge observer of the current segment, when the bundle reads it.
+    #[must_use]
+    pub fn observer(&self) -> Option<&crate::charge::ChargeObserver> {
+        self.s.pipe.observer()
+    }
+
     /// The counters so far.
     #[must_use]
     pub fn counters(&self) -> EstimatorCounters {

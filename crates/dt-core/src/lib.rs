@@ -16,5 +16,6 @@ pub mod force;
 pub mod kalman;
 pub mod log;
 pub mod params;
+pub mod service;
 pub mod thermal;
 pub mod trend;

@@ -10,6 +10,18 @@
 //! starts; runs in progress keep theirs. An API baseline also restarts the
 //! asset's leak trend: it is fitted on the runs that started after it.
 //!
+//! A maintainer who knows the charge the unit was filled to, but not what the
+//! observer reads of it, reports the service instead
+//! (`PUT /v1/assets/{id}/service`, `{"charge_bar": …}`): the service is kept
+//! in the store as pending, the asset's trend restarts at it, and the asset's
+//! runs that start after it run without a baseline while the daemon reads the
+//! unit ([`dt_core::service::ServiceReading`]). The first such run that ends
+//! with a usable reading completes it: the reading becomes the asset's API
+//! baseline (set at the service's time) and the service is forgotten, in one
+//! store transaction. A run that gives none (no excitation, an excitation the
+//! observer is not calibrated at, one with a model of its own) leaves it
+//! pending, with the reason kept for `GET …/service`.
+//!
 //! In a NATS group (`serve --nats`) the group's key-value bucket
 //! `shocktwin_baselines` holds them instead: a `PUT` on any daemon writes
 //! there, and every daemon of the group (workers and fleet views) applies
@@ -22,8 +34,8 @@ use std::sync::{PoisonError, RwLock};
 use dt_core::charge::UnitBaseline;
 use serde::Serialize;
 
-use super::config::{AssetConfig, Config};
-use super::store::{rfc3339_ms, FleetStore, StoreError, StoredBaseline, Trends};
+use super::config::{AssetConfig, Config, ServiceToRead};
+use super::store::{rfc3339_ms, FleetStore, PendingService, StoreError, StoredBaseline, Trends};
 
 /// Where an asset's baseline comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -74,30 +86,163 @@ impl BaselineView {
     }
 }
 
-/// The baselines set over the API, by asset (a copy of the store's table).
+/// A pending service, as the API shows it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ServiceView {
+    /// The charge the unit was filled to, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// When the service was reported (RFC 3339).
+    pub set_at: String,
+    /// `pending`: the baseline is read from the asset's next run.
+    pub state: &'static str,
+    /// Why the last run after it gave no baseline, or `null`.
+    pub last_refusal: Option<String>,
+}
+
+impl From<&PendingService> for ServiceView {
+    fn from(s: &PendingService) -> Self {
+        Self {
+            charge_bar: s.charge_bar,
+            set_at: rfc3339_ms(s.set_ms),
+            state: "pending",
+            last_refusal: s.refusal.clone(),
+        }
+    }
+}
+
+/// What a run made of a pending service.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ServiceOutcome {
+    /// The run's reading became the asset's baseline.
+    Completed,
+    /// The run gave no baseline; the service stays pending.
+    StillPending,
+    /// The service the run read for was replaced or withdrawn meanwhile.
+    Superseded,
+}
+
+/// The baselines set over the API and the pending services, by asset (a
+/// copy of the store's tables).
 #[derive(Debug, Default)]
 pub struct Baselines {
     by_asset: RwLock<HashMap<String, StoredBaseline>>,
+    services: RwLock<HashMap<String, PendingService>>,
 }
 
 impl Baselines {
-    /// The baselines `store` keeps.
+    /// The baselines and pending services `store` keeps.
     pub fn load(store: &dyn FleetStore) -> Result<Self, StoreError> {
         Ok(Self {
             by_asset: RwLock::new(store.baselines()?.into_iter().collect()),
+            services: RwLock::new(store.services()?.into_iter().collect()),
         })
     }
 
-    /// Every asset's trend starts at its API baseline (see
-    /// [`Trends::set_since`]).
+    /// Every asset's trend starts at its API baseline or its pending
+    /// service, the later of the two (see [`Trends::set_since`]).
     pub fn restart_trends(&self, trends: &Trends) {
+        let mut since: HashMap<String, i64> = HashMap::new();
         for (asset, b) in self
             .by_asset
             .read()
             .unwrap_or_else(PoisonError::into_inner)
             .iter()
         {
-            trends.set_since(asset, Some(b.set_ms));
+            since.insert(asset.clone(), b.set_ms);
+        }
+        for (asset, s) in self
+            .services
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+        {
+            let t = since.entry(asset.clone()).or_insert(s.set_ms);
+            *t = (*t).max(s.set_ms);
+        }
+        for (asset, t) in since {
+            trends.set_since(&asset, Some(t));
+        }
+    }
+
+    /// Reports (`Some`) or withdraws (`None`) a service of the asset: in the
+    /// store first, then here; a reported service restarts the asset's trend
+    /// at it.
+    pub fn set_service(
+        &self,
+        store: &dyn FleetStore,
+        trends: &Trends,
+        asset_id: &str,
+        service: Option<PendingService>,
+    ) -> Result<(), StoreError> {
+        store.set_service(asset_id, service.as_ref())?;
+        let mut map = self
+            .services
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        match service {
+            Some(s) => {
+                trends.set_since(asset_id, Some(s.set_ms));
+                map.insert(asset_id.to_owned(), s);
+            }
+            None => {
+                map.remove(asset_id);
+            }
+        }
+        Ok(())
+    }
+
+    /// The asset's pending service, if any.
+    #[must_use]
+    pub fn service(&self, asset_id: &str) -> Option<PendingService> {
+        self.services
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .cloned()
+    }
+
+    /// What a run that read the unit for `service` gives it: the baseline
+    /// (kept as the asset's API baseline, set at the service's time, and the
+    /// service forgotten) or why not (kept with the service). A service
+    /// replaced or withdrawn since the run started is left alone.
+    pub fn complete_service(
+        &self,
+        store: &dyn FleetStore,
+        asset_id: &str,
+        service: ServiceToRead,
+        read: Result<dt_core::charge::UnitBaseline, String>,
+    ) -> Result<ServiceOutcome, StoreError> {
+        let mut services = self
+            .services
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        let Some(pending) = services
+            .get_mut(asset_id)
+            .filter(|p| p.set_ms == service.set_ms)
+        else {
+            return Ok(ServiceOutcome::Superseded);
+        };
+        match read {
+            Ok(baseline) => {
+                let stored = StoredBaseline {
+                    baseline,
+                    set_ms: service.set_ms,
+                };
+                store.complete_service(asset_id, &stored)?;
+                services.remove(asset_id);
+                self.by_asset
+                    .write()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .insert(asset_id.to_owned(), stored);
+                Ok(ServiceOutcome::Completed)
+            }
+            Err(why) => {
+                let mut kept = pending.clone();
+                kept.refusal = Some(why);
+                store.set_service(asset_id, Some(&kept))?;
+                *pending = kept;
+                Ok(ServiceOutcome::StillPending)
+            }
         }
     }
 
@@ -138,19 +283,30 @@ impl Baselines {
     }
 
     /// The asset's configuration with the baseline in effect (see the
-    /// module doc).
+    /// module doc): while a service is pending, none, and the service to
+    /// read.
     #[must_use]
     pub fn asset_config(&self, config: &Config, asset_id: &str) -> AssetConfig {
         let mut asset = config.asset(asset_id);
-        if let Some(b) = self.get(asset_id) {
+        if let Some(s) = self.service(asset_id) {
+            asset.observer_baseline = None;
+            asset.read_service = Some(ServiceToRead {
+                charge_bar: s.charge_bar,
+                set_ms: s.set_ms,
+            });
+        } else if let Some(b) = self.get(asset_id) {
             asset.observer_baseline = Some(b.baseline);
         }
         asset
     }
 
-    /// The asset's baseline in effect, for the API.
+    /// The asset's baseline in effect, for the API (none while a service is
+    /// pending).
     #[must_use]
     pub fn view(&self, config: &Config, asset_id: &str) -> Option<BaselineView> {
+        if self.service(asset_id).is_some() {
+            return None;
+        }
         match self.get(asset_id) {
             Some(b) => Some(BaselineView::api(b.baseline, b.set_ms)),
             None => config

@@ -225,6 +225,10 @@ pub struct AssetConfig {
     /// only under `[assets.<id>]`), e.g. written by
     /// `python -m train.observer baseline`.
     pub observer_baseline: Option<UnitBaseline>,
+    /// A service reported over the API whose baseline this asset's next run
+    /// is read for (never from the configuration: the daemon sets it).
+    #[serde(skip)]
+    pub read_service: Option<ServiceToRead>,
 }
 
 impl Default for AssetConfig {
@@ -234,8 +238,20 @@ impl Default for AssetConfig {
             warn_bar: 9.0,
             fault_bar: 5.0,
             observer_baseline: None,
+            read_service: None,
         }
     }
+}
+
+/// A pending service (`PUT /v1/assets/{id}/service`) as a run sees it: the
+/// run reads the unit's baseline at this charge, without a baseline applied.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServiceToRead {
+    /// The charge the unit was filled to, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// When the service was reported, ms since the Unix epoch (the run
+    /// completes that service only, not one reported after it started).
+    pub set_ms: i64,
 }
 
 /// `[assets.<id>]`: any key left out comes from `[defaults]`.
@@ -500,6 +516,7 @@ impl Config {
                 warn_bar: o.warn_bar.unwrap_or(d.warn_bar),
                 fault_bar: o.fault_bar.unwrap_or(d.fault_bar),
                 observer_baseline: o.observer_baseline,
+                read_service: None,
             },
         }
     }

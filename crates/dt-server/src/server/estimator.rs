@@ -10,9 +10,12 @@ use std::path::Path;
 use std::sync::Arc;
 
 use dt_core::bundle::Bundle;
+use dt_core::charge::{ChargeObserver, UnitBaseline};
 use dt_core::estimate::Estimate;
 use dt_core::estimator::{Estimator, EstimatorConfig};
+use dt_core::features::col;
 use dt_core::log::{RunMetadata, Sample};
+use dt_core::service::ServiceReading;
 
 use super::config::AssetConfig;
 use super::twin::{AssetTwin, TwinCounters, TwinError, TwinFactory};
@@ -65,7 +68,11 @@ impl TwinFactory for EstimatorFactory {
         asset: &AssetConfig,
     ) -> Result<Box<dyn AssetTwin>, TwinError> {
         let est = Estimator::new(Arc::clone(&self.bundle), self.config_for(asset))?;
-        Ok(Box::new(EstimatorTwin(est)))
+        let service = asset
+            .read_service
+            .filter(|_| est.observer().is_some())
+            .map(|s| (s.charge_bar, ServiceReading::new()));
+        Ok(Box::new(EstimatorTwin { est, service }))
     }
 
     fn describe(&self) -> String {
@@ -77,27 +84,63 @@ impl TwinFactory for EstimatorFactory {
     }
 }
 
-/// [`Estimator`] as an [`AssetTwin`].
+/// [`Estimator`] as an [`AssetTwin`]; after a service it also reads the
+/// unit's baseline (the charge the unit was filled to, and the reading).
 #[derive(Debug)]
-pub struct EstimatorTwin(pub Estimator);
+pub struct EstimatorTwin {
+    est: Estimator,
+    service: Option<(f64, ServiceReading)>,
+}
+
+impl EstimatorTwin {
+    fn drain_into(&mut self, out: &mut Vec<Estimate>) {
+        let Some((_, reading)) = self.service.as_mut() else {
+            out.extend(self.est.drain());
+            return;
+        };
+        let min_excitation = self.est.config().health.min_excitation_mps;
+        for tick in self.est.drain_ticks() {
+            let row = &tick.row;
+            reading.push(
+                row.t_ns,
+                row.twin.velocity_rms_1s_mps >= min_excitation,
+                row.values[col::OBSERVER_BAR],
+                row.values[col::OBSERVER_SD_BAR],
+            );
+            out.push(tick.estimate);
+        }
+        reading.note_own(self.est.observer().is_some_and(ChargeObserver::used_own));
+    }
+}
 
 impl AssetTwin for EstimatorTwin {
     fn push(&mut self, sample: &Sample) -> Result<(), TwinError> {
-        Ok(self.0.push(*sample)?)
+        Ok(self.est.push(*sample)?)
     }
 
     fn drain(&mut self, out: &mut Vec<Estimate>) {
-        out.extend(self.0.drain());
+        self.drain_into(out);
     }
 
     fn finish(&mut self, out: &mut Vec<Estimate>) -> Result<(), TwinError> {
-        self.0.finish()?;
-        out.extend(self.0.drain());
+        self.est.finish()?;
+        self.drain_into(out);
         Ok(())
     }
 
+    fn service_baseline(&self) -> Option<Result<UnitBaseline, String>> {
+        let (charge_bar, reading) = self.service.as_ref()?;
+        let params = self.est.bundle().physics().observer?;
+        Some(
+            reading
+                .finish(*charge_bar, &params)
+                .map(|r| r.baseline)
+                .map_err(|e| e.to_string()),
+        )
+    }
+
     fn counters(&self) -> TwinCounters {
-        let c = self.0.counters();
+        let c = self.est.counters();
         TwinCounters {
             samples: c.samples,
             nan_samples: c.missing_samples,

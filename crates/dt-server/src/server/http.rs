@@ -15,6 +15,9 @@
 //! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
 //! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
 //! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
+//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …}`, the charge the unit was filled to): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (see [`super::baselines`]); the trend restarts at it; the ingest role when tokens are on; `409` in a NATS group or with a model that does not read the observer |
+//! | `GET /v1/assets/{id}/service` | the pending service (`charge_bar`, `set_at`, `state`, `last_refusal`: why the last run gave no baseline), 404 if none |
+//! | `DELETE /v1/assets/{id}/service` | withdraws the pending service (the API baseline before it applies again) |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
 //! | `POST /v1/runs` | upload one run (the body is an MCAP stream, as on the TCP ingest); answers its `RunReport`; the ingest role when tokens are on |
 //!
@@ -45,15 +48,15 @@ use tokio_util::sync::CancellationToken;
 
 use dt_core::estimate::Health;
 
-use super::baselines::{BaselineView, Baselines};
+use super::baselines::{BaselineView, Baselines, ServiceView};
 use super::config::Config;
 use super::estimator::EstimatorFactory;
 use super::metrics::Metrics;
 use super::security::{Role, Tokens};
 use super::state::{AssetSummary, LiveState};
 use super::store::{
-    parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, StoreError, StoredBaseline, TrendSummary,
-    TrendView, Trends,
+    parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, PendingService, StoreError,
+    StoredBaseline, TrendSummary, TrendView, Trends,
 };
 
 /// What the handlers share.
@@ -213,6 +216,10 @@ pub fn router(state: AppState) -> Router {
             "/v1/assets/{id}/baseline",
             get(get_baseline).put(put_baseline).delete(delete_baseline),
         )
+        .route(
+            "/v1/assets/{id}/service",
+            get(get_service).put(put_service).delete(delete_service),
+        )
         .route("/v1/events", get(events))
         .route("/v1/runs", axum::routing::post(post_run))
         .layer(axum::middleware::from_fn_with_state(
@@ -228,11 +235,12 @@ fn is_open(path: &str) -> bool {
 }
 
 /// Requests that change what the daemon computes (the ingest role's):
-/// uploads and setting or removing a baseline.
+/// uploads and setting or removing a baseline or a service.
 fn is_write(method: &axum::http::Method, path: &str) -> bool {
     use axum::http::Method;
     (method == Method::POST && path == "/v1/runs")
-        || ((method == Method::PUT || method == Method::DELETE) && path.ends_with("/baseline"))
+        || ((method == Method::PUT || method == Method::DELETE)
+            && (path.ends_with("/baseline") || path.ends_with("/service")))
 }
 
 /// The bearer token of a request: `Authorization: Bearer …`, else the
@@ -412,6 +420,13 @@ fn known(app: &AppState, id: &str) -> bool {
 async fn get_baseline(State(app): State<AppState>, Path(id): Path<String>) -> Response {
     match app.baselines.view(&app.config, &id) {
         Some(v) => Json(v).into_response(),
+        None if app.baselines.service(&id).is_some() => error(
+            StatusCode::NOT_FOUND,
+            format!(
+                "asset `{id}` has no unit baseline in effect: a service is pending, and its \
+                 baseline is read from the asset's next run (GET …/service)"
+            ),
+        ),
         None => error(
             StatusCode::NOT_FOUND,
             format!("asset `{id}` has no unit baseline"),
@@ -477,9 +492,7 @@ async fn put_baseline(
     {
         return error(StatusCode::CONFLICT, why);
     }
-    let set_ms = SystemTime::now()
-        .duration_since(SystemTime::UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
+    let set_ms = now_ms();
     let stored = StoredBaseline { baseline, set_ms };
     if let Err(r) = set_baseline(&app, &id, Some(stored)).await {
         return r;
@@ -510,6 +523,10 @@ async fn set_baseline(
         id.to_owned(),
     );
     blocking(app, move |store| {
+        // A baseline given outright supersedes a service still to be read.
+        if baseline.is_some() && baselines.service(&asset).is_some() {
+            baselines.set_service(store, &trends, &asset, None)?;
+        }
         baselines.set(Some(store), &trends, &asset, baseline)?;
         trends.refresh(store, &config, &metrics, &asset);
         Ok(())
@@ -534,6 +551,119 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
         .observer_baseline
         .map(BaselineView::config);
     Json(serde_json::json!({ "baseline": now })).into_response()
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ServiceBody {
+    charge_bar: f64,
+}
+
+async fn get_service(State(app): State<AppState>, Path(id): Path<String>) -> Response {
+    match app.baselines.service(&id) {
+        Some(s) => Json(ServiceView::from(&s)).into_response(),
+        None => error(
+            StatusCode::NOT_FOUND,
+            format!("asset `{id}` has no pending service"),
+        ),
+    }
+}
+
+async fn put_service(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    body: axum::body::Bytes,
+) -> Response {
+    if !dt_core::log::is_valid_id(&id) {
+        return error(
+            StatusCode::BAD_REQUEST,
+            format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
+        );
+    }
+    let charge_bar = match serde_json::from_slice::<ServiceBody>(&body) {
+        Ok(b) if b.charge_bar.is_finite() && b.charge_bar >= 0.0 => b.charge_bar,
+        Ok(b) => {
+            return error(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!(
+                    "body: charge_bar {} must be a finite charge ≥ 0 bar",
+                    b.charge_bar
+                ),
+            )
+        }
+        Err(e) => {
+            return error(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!("body: need {{\"charge_bar\": <the charge filled, bar>}} ({e})"),
+            )
+        }
+    };
+    if app.group.is_some() {
+        return error(
+            StatusCode::CONFLICT,
+            "in a NATS group the daemon does not read a service's baseline (not yet): read it \
+             with `python -m train.observer baseline` and PUT it to …/baseline",
+        );
+    }
+    let probe = dt_core::charge::UnitBaseline {
+        charge_bar,
+        read_bar: charge_bar,
+        read_sd_bar: 1.0,
+    };
+    if let Some(why) = refuse_baseline(app.model.as_ref(), &app.config, &id, probe) {
+        return error(StatusCode::CONFLICT, why);
+    }
+    let service = PendingService {
+        charge_bar,
+        set_ms: now_ms(),
+        refusal: None,
+    };
+    let view = ServiceView::from(&service);
+    if let Err(r) = set_service(&app, &id, Some(service)).await {
+        return r;
+    }
+    tracing::info!(asset = %id, charge_bar, "service reported; the unit's baseline is read from its next run");
+    (StatusCode::ACCEPTED, Json(view)).into_response()
+}
+
+async fn delete_service(State(app): State<AppState>, Path(id): Path<String>) -> Response {
+    if app.baselines.service(&id).is_none() {
+        return error(
+            StatusCode::NOT_FOUND,
+            format!("asset `{id}` has no pending service"),
+        );
+    }
+    if let Err(r) = set_service(&app, &id, None).await {
+        return r;
+    }
+    tracing::info!(asset = %id, "pending service withdrawn");
+    Json(serde_json::json!({ "baseline": app.baselines.view(&app.config, &id) })).into_response()
+}
+
+/// Keeps or withdraws the asset's pending service, then recomputes its trend.
+async fn set_service(
+    app: &AppState,
+    id: &str,
+    service: Option<PendingService>,
+) -> Result<(), Response> {
+    let (baselines, trends) = (Arc::clone(&app.baselines), Arc::clone(&app.trends));
+    let (config, metrics, asset) = (
+        Arc::clone(&app.config),
+        Arc::clone(&app.metrics),
+        id.to_owned(),
+    );
+    blocking(app, move |store| {
+        baselines.set_service(store, &trends, &asset, service)?;
+        trends.refresh(store, &config, &metrics, &asset);
+        Ok(())
+    })
+    .await
+}
+
+fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
 }
 
 #[derive(Debug, Deserialize)]

@@ -18,10 +18,11 @@ use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 
-use super::baselines::Baselines;
+use super::baselines::{Baselines, ServiceOutcome};
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
+use super::store::FleetStore;
 use super::twin::{AssetTwin, TwinError, TwinFactory};
 
 /// Bytes read from a stream at a time.
@@ -84,6 +85,8 @@ struct Inner {
     sink_tx: mpsc::Sender<SinkMsg>,
     metrics: Arc<Metrics>,
     baselines: Arc<Baselines>,
+    /// Where a service's baseline read by a run is kept.
+    store: Option<Arc<dyn FleetStore>>,
     next_seq: AtomicU64,
 }
 
@@ -109,6 +112,7 @@ impl Ingest {
         sink_tx: mpsc::Sender<SinkMsg>,
         metrics: Arc<Metrics>,
         baselines: Arc<Baselines>,
+        store: Option<Arc<dyn FleetStore>>,
     ) -> Self {
         Self {
             inner: Arc::new(Inner {
@@ -117,6 +121,7 @@ impl Ingest {
                 sink_tx,
                 metrics,
                 baselines,
+                store,
                 next_seq: AtomicU64::new(1),
             }),
         }
@@ -548,7 +553,55 @@ impl RunHandle {
                 Ok(()) => ack_rx.await.unwrap_or_else(|_| Err(SinkClosed.to_string())),
             };
         }
+        let read = self.twin.service_baseline();
+        if let (true, Some(read)) = (
+            result.is_ok() && matches!(outcome, RunOutcome::Completed),
+            read,
+        ) {
+            complete_service(&self.ingest, &self.info, read).await;
+        }
         (outcome, self.samples, self.ticks, result)
+    }
+}
+
+/// After a run that read the unit for a pending service: its reading
+/// becomes the asset's baseline, or the reason it gave none is kept (see
+/// [`super::baselines`]). A store error is logged: the service stays
+/// pending and the asset's next run reads it again.
+async fn complete_service(
+    ingest: &Ingest,
+    info: &RunInfo,
+    read: Result<dt_core::charge::UnitBaseline, String>,
+) {
+    let (Some(service), Some(store)) = (info.asset.read_service, ingest.inner.store.clone()) else {
+        return;
+    };
+    let baselines = Arc::clone(&ingest.inner.baselines);
+    let asset = info.meta.asset_id.clone();
+    let logged = read.clone();
+    let done = tokio::task::spawn_blocking(move || {
+        baselines.complete_service(store.as_ref(), &asset, service, read)
+    })
+    .await;
+    let (asset, run) = (&info.meta.asset_id, &info.meta.run_id);
+    match (done, logged) {
+        (Ok(Ok(ServiceOutcome::Completed)), Ok(b)) => tracing::info!(
+            asset = %asset, run = %run, charge_bar = b.charge_bar, read_bar = b.read_bar,
+            read_sd_bar = b.read_sd_bar,
+            "unit baseline read after the service; used from the asset's next run"
+        ),
+        (Ok(Ok(ServiceOutcome::StillPending)), Err(why)) => tracing::warn!(
+            asset = %asset, run = %run,
+            "no unit baseline from this run, the service stays pending: {why}"
+        ),
+        (Ok(Ok(_)), _) => tracing::info!(
+            asset = %asset, run = %run,
+            "the service this run read for was replaced or withdrawn meanwhile"
+        ),
+        (Ok(Err(e)), _) => tracing::error!(
+            asset = %asset, run = %run, "the service's baseline was not kept: {e}"
+        ),
+        (Err(e), _) => tracing::error!(asset = %asset, run = %run, "{e}"),
     }
 }
 

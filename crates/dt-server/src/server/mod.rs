@@ -344,6 +344,7 @@ pub async fn run(
         sink_tx,
         Arc::clone(&metrics),
         Arc::clone(&baselines),
+        store.clone(),
     );
 
     let cancel = CancellationToken::new();

@@ -44,6 +44,12 @@ pub trait AssetTwin: Send {
     fn finish(&mut self, out: &mut Vec<Estimate>) -> Result<(), TwinError>;
     /// Counters so far.
     fn counters(&self) -> TwinCounters;
+    /// After [`finish`](Self::finish): the unit's baseline this run read for
+    /// a pending service (`AssetConfig::read_service`), or why it read none;
+    /// `None` when the run was not reading one.
+    fn service_baseline(&self) -> Option<Result<dt_core::charge::UnitBaseline, String>> {
+        None
+    }
 }
 
 /// Error creating a twin (e.g. the run lacks a sensor the model needs).

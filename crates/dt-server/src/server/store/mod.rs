@@ -112,6 +112,19 @@ pub struct StoredBaseline {
     pub set_ms: i64,
 }
 
+/// A service reported over the API (`PUT /v1/assets/{id}/service`): the
+/// unit was filled to a known charge, and the daemon reads its baseline from
+/// the asset's next run (see [`super::baselines`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PendingService {
+    /// The charge the unit was filled to, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// When the service was reported (wall clock), ms since the Unix epoch.
+    pub set_ms: i64,
+    /// Why the last run after it gave no baseline, if one did not.
+    pub refusal: Option<String>,
+}
+
 /// One 1 s point of an asset's history (or the mean of several).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HistoryPoint {
@@ -245,6 +258,20 @@ pub trait FleetStore: Send + Sync + Debug {
     ) -> Result<(), StoreError>;
     /// Every asset's unit baseline set over the API.
     fn baselines(&self) -> Result<Vec<(String, StoredBaseline)>, StoreError>;
+    /// Keeps (`Some`) or forgets (`None`) the asset's pending service;
+    /// committed before it returns.
+    fn set_service(
+        &self,
+        asset_id: &str,
+        service: Option<&PendingService>,
+    ) -> Result<(), StoreError>;
+    /// Every asset's pending service.
+    fn services(&self) -> Result<Vec<(String, PendingService)>, StoreError>;
+    /// Completes the asset's pending service with the baseline read from its
+    /// run: the baseline is kept and the service forgotten, in one
+    /// transaction.
+    fn complete_service(&self, asset_id: &str, baseline: &StoredBaseline)
+        -> Result<(), StoreError>;
     /// Deletes points and health changes older than `before_ms`; returns
     /// how many rows went.
     fn prune(&self, before_ms: i64) -> Result<usize, StoreError>;

@@ -18,14 +18,14 @@ use rusqlite::{params, Connection, OptionalExtension as _};
 
 use super::{
     health_code, health_from_code, health_from_str, AssetState, FleetStore, HealthChange,
-    HistoryPoint, RunRecord, StoreError, StoreOp, StoredBaseline,
+    HistoryPoint, PendingService, RunRecord, StoreError, StoreOp, StoredBaseline,
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 2;
+pub const SCHEMA_VERSION: i64 = 3;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 2] = [
+const MIGRATIONS: [&str; 3] = [
     r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
@@ -72,6 +72,14 @@ CREATE TABLE baselines (
     read_bar    REAL NOT NULL,
     read_sd_bar REAL NOT NULL,
     set_ms      INTEGER NOT NULL
+);
+",
+    r"
+CREATE TABLE services (
+    asset      INTEGER PRIMARY KEY REFERENCES assets(id),
+    charge_bar REAL NOT NULL,
+    set_ms     INTEGER NOT NULL,
+    refusal    TEXT
 );
 ",
 ];
@@ -521,6 +529,87 @@ impl FleetStore for SqliteStore {
         })
     }
 
+    fn set_service(
+        &self,
+        asset_id: &str,
+        service: Option<&PendingService>,
+    ) -> Result<(), StoreError> {
+        self.with_writer(|c| {
+            let tx = c.transaction()?;
+            match service {
+                Some(s) => {
+                    tx.execute(
+                        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
+                        [asset_id],
+                    )?;
+                    tx.execute(
+                        &format!(
+                            "INSERT OR REPLACE INTO services (asset, charge_bar, set_ms, refusal) \
+                             VALUES ({ASSET}, ?2, ?3, ?4)"
+                        ),
+                        params![asset_id, s.charge_bar, s.set_ms, s.refusal],
+                    )?;
+                }
+                None => {
+                    tx.execute(
+                        &format!("DELETE FROM services WHERE asset = {ASSET}"),
+                        [asset_id],
+                    )?;
+                }
+            }
+            tx.commit()
+        })
+    }
+
+    fn services(&self) -> Result<Vec<(String, PendingService)>, StoreError> {
+        self.with_reader(|c| {
+            let mut stmt = c.prepare(
+                "SELECT a.asset_id, s.charge_bar, s.set_ms, s.refusal \
+                 FROM services s JOIN assets a ON a.id = s.asset ORDER BY a.asset_id",
+            )?;
+            let rows = stmt.query_map([], |r| {
+                Ok((
+                    r.get(0)?,
+                    PendingService {
+                        charge_bar: r.get(1)?,
+                        set_ms: r.get(2)?,
+                        refusal: r.get(3)?,
+                    },
+                ))
+            })?;
+            rows.collect()
+        })
+    }
+
+    fn complete_service(&self, asset_id: &str, b: &StoredBaseline) -> Result<(), StoreError> {
+        self.with_writer(|c| {
+            let tx = c.transaction()?;
+            tx.execute(
+                "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
+                [asset_id],
+            )?;
+            tx.execute(
+                &format!(
+                    "INSERT OR REPLACE INTO baselines \
+                     (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
+                     VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+                ),
+                params![
+                    asset_id,
+                    b.baseline.charge_bar,
+                    b.baseline.read_bar,
+                    b.baseline.read_sd_bar,
+                    b.set_ms
+                ],
+            )?;
+            tx.execute(
+                &format!("DELETE FROM services WHERE asset = {ASSET}"),
+                [asset_id],
+            )?;
+            tx.commit()
+        })
+    }
+
     fn prune(&self, before_ms: i64) -> Result<usize, StoreError> {
         self.with_writer(|c| {
             let tx = c.transaction()?;
@@ -643,6 +732,37 @@ mod tests {
             .query_row("PRAGMA user_version", [], |r| r.get(0))
             .unwrap();
         assert_eq!(version, SCHEMA_VERSION);
+    }
+
+    #[test]
+    fn a_pending_service_survives_a_reopen_and_completes_into_a_baseline() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fleet.sqlite");
+        let store = SqliteStore::open(&path).unwrap();
+        let svc = PendingService {
+            charge_bar: 12.0,
+            set_ms: 1_700_000_000_000,
+            refusal: Some("run `r1`: no excited tick".into()),
+        };
+        store.set_service("van-1", Some(&svc)).unwrap();
+        store.set_service("van-2", Some(&svc)).unwrap();
+        store.set_service("van-2", None).unwrap();
+        drop(store);
+        let store = SqliteStore::open(&path).unwrap();
+        assert_eq!(store.services().unwrap(), vec![("van-1".to_owned(), svc)]);
+        let b = StoredBaseline {
+            baseline: UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 10.6,
+                read_sd_bar: 0.4,
+            },
+            set_ms: 1_700_000_000_000,
+        };
+        store.complete_service("van-1", &b).unwrap();
+        drop(store);
+        let again = SqliteStore::open(&path).unwrap();
+        assert!(again.services().unwrap().is_empty());
+        assert_eq!(again.baselines().unwrap(), vec![("van-1".to_owned(), b)]);
     }
 
     #[test]
