@@ -10,9 +10,9 @@
    listening to the daemon's Server-Sent Events for health changes.
    The leaking unit is another unit of the same model than the calibration's (``--unit``:
    seal friction, valves and mount scattered by a few per cent). Before its run, the
-   maintainer baselines it as after a service: one drive at the known 12 bar charge
-   (simulated, full length, at 1 Hz), read by ``python -m train.observer baseline``'s
-   code and sent with ``PUT /v1/assets/{id}/baseline``.
+   maintainer reports a service at a known 12 bar charge (``PUT /v1/assets/{id}/service``)
+   and the unit's next drive (simulated, full length, at 1 Hz, through the inbox) is read
+   by the daemon itself into the unit's baseline.
 4. Prints the verdict the daemon reached and when (seconds since the run's first
    message), what ``GET /v1/assets/{id}`` says, and the interval the model alone gives
    at the end of the run (the bindings, without the baseline) beside the daemon's.
@@ -258,19 +258,35 @@ def screenshot(url: str, path: Path, select: str | None = None) -> bool:
 SERVICE_CHARGE_BAR = 12.0
 
 
-def service_baseline(binary: str, bundle: Path, unit: int, out: Path) -> dict[str, Any] | None:
-    """The unit's baseline from one simulated drive at the known ``SERVICE_CHARGE_BAR`` (as
-    after a service), or None when the bundle does not read the charge observer."""
+SERVICE_TIMEOUT_S = 600.0
+
+
+def service_baseline(binary: str, bundle: Path, unit: int, http: str, asset_id: str, out: Path,
+                     inbox: Path) -> dict[str, Any] | None:
+    """A service at the known ``SERVICE_CHARGE_BAR`` reported to the daemon, and the unit's
+    next drive (simulated) dropped into its inbox: the baseline the daemon read from it, or
+    None when the bundle does not read the charge observer."""
     physics = json.loads((bundle / "twin.json").read_text())["physics"]
     if not physics.get("observer"):
         return None
-    from train.observer import baseline_of
-
+    url = f"http://{http}/v1/assets/{asset_id}"
+    r = httpx.put(f"{url}/service", json={"charge_bar": SERVICE_CHARGE_BAR}, timeout=30)
+    r.raise_for_status()
+    print(f"service reported: PUT /v1/assets/{asset_id}/service {{\"charge_bar\": {SERVICE_CHARGE_BAR:g}}} -> "
+          f"{r.status_code} ({r.json()['state']}); the unit's next drive goes through the inbox ...")
     subprocess.run([binary, "simulate", "--pressures", f"{SERVICE_CHARGE_BAR:g}", "--frequencies", "1",
                     "--seed", "8", "--unit", str(unit), "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
-    b = baseline_of(physics, sorted(out.glob("*.mcap")), SERVICE_CHARGE_BAR, jobs=1)
-    (out / "baseline.json").write_text(json.dumps(b, indent=2) + "\n")
-    return b
+    drive = sorted(out.glob("*.mcap"))[0]
+    (inbox / drive.name).write_bytes(drive.read_bytes())
+    deadline = time.monotonic() + SERVICE_TIMEOUT_S
+    while (b := httpx.get(f"{url}/baseline", timeout=10)).status_code != 200:
+        pending = httpx.get(f"{url}/service", timeout=10)
+        if pending.status_code == 200 and pending.json()["last_refusal"]:
+            raise SystemExit(f"no baseline from {drive.name}: {pending.json()['last_refusal']}")
+        if time.monotonic() > deadline:
+            raise SystemExit(f"the daemon did not read {drive.name} within {SERVICE_TIMEOUT_S:.0f} s")
+        time.sleep(0.5)
+    return cast("dict[str, Any]", b.json())
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -304,14 +320,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"the fleet's past: {n_fleet} runs of {len(FLEET)} vans through the inbox into the store ...")
         wait_fleet(http, n_fleet)
         print_fleet(http)
-        baseline = service_baseline(args.bin, args.bundle, args.unit, args.out / "service") if args.unit else None
+        baseline = (service_baseline(args.bin, args.bundle, args.unit, http, asset_id, args.out / "service", inbox)
+                    if args.unit else None)
         if baseline is not None:
-            r = httpx.put(f"http://{http}/v1/assets/{asset_id}/baseline", json=baseline, timeout=30)
-            r.raise_for_status()
-            ob = baseline["observer_baseline"]
-            print(f"service baseline of {asset_id} (simulated drive at a known {ob['charge_bar']:g} bar): the "
-                  f"observer read {ob['read_bar']:.2f} ± {ob['read_sd_bar']:.2f} bar; PUT /v1/assets/{asset_id}/baseline "
-                  f"-> {r.status_code}")
+            print(f"service baseline of {asset_id}, read by the daemon from its drive at a known "
+                  f"{baseline['charge_bar']:g} bar (simulated): the observer read {baseline['read_bar']:.2f} ± "
+                  f"{baseline['read_sd_bar']:.2f} bar (GET /v1/assets/{asset_id}/baseline: source "
+                  f"{baseline['source']}, set at the service, {baseline['set_at']})")
         events: list[dict[str, Any]] = []
         ready = threading.Event()
         watcher = threading.Thread(target=watch_events, args=(http, asset_id, events, ready), daemon=True)
