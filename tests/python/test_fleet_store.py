@@ -343,6 +343,8 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     while (s := d2.get("/v1/assets/dyno-unit-A/service"))["last_refusal"] is None and time.monotonic() < deadline:
         time.sleep(0.2)
     assert s["state"] == "pending" and "no reversals" in s["last_refusal"], s
+    row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
+    assert row["service"] == s and row["baseline"] is None, row
     shutil.copy(run, inbox / run.name)
     d2.wait_runs("dyno-unit-A", 2)
     deadline = time.monotonic() + 20
@@ -356,6 +358,8 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
     assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
     assert httpx.get(f"{url}/service").status_code == 404
+    row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
+    assert row["service"] is None and row["baseline"] == got, row
     d2.stop()
 
 

@@ -131,10 +131,13 @@ function renderFleet() {
     const b = a.baseline;   // the unit's baseline narrows its interval (read at a known charge)
     const base = b ? ` <span class="pill" title="unit baseline (${esc(b.source)}${b.set_at ? `, ${esc(b.set_at)}` : ""}): ` +
       `read ${num(b.read_bar, 2)} ± ${num(b.read_sd_bar, 2)} bar at a known ${num(b.charge_bar, 1)} bar">baseline</span>` : "";
+    const sv = a.service;   // a service reported at a known charge: the next drive is read into a baseline
+    const svc = sv ? ` <span class="pill" title="service at ${num(sv.charge_bar, 1)} bar reported ${esc(sv.set_at)}: ` +
+      `the unit's next drive is read into its baseline${sv.last_refusal ? `; last run: ${esc(sv.last_refusal)}` : ""}">service pending</span>` : "";
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
     return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
-      <td class="id">${esc(a.asset_id)}${run}${base}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td class="id">${esc(a.asset_id)}${run}${base}${svc}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td>${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");
@@ -375,7 +378,7 @@ function trendText(t) {
     const hi = x.t_hi ? fmtDate(tsec(x.t_hi)) : "unbounded";
     return `${name} ≈ <b>${fmtDate(tsec(x.t))}</b> [${x.t_lo ? fmtDate(tsec(x.t_lo)) : DASH} – ${hi}]`;
   };
-  const since = t.since ? ` since the unit baseline of ${fmtDate(tsec(t.since))}` : "";
+  const since = t.since ? ` since the unit baseline or service of ${fmtDate(tsec(t.since))}` : "";
   return `leak rate <b>${num(t.leak_rate_bar_per_day, 3)}</b>${half === null ? "" : ` ± ${num(half, 3)}`} bar/day; ` +
     `${c("warn", t.warn)}; ${c("fault", t.fault)} <span class="small">(${t.runs_used} runs${since})</span>`;
 }

@@ -338,6 +338,8 @@ struct AssetRow<'a> {
     trend: Option<TrendSummary<'a>>,
     /// The unit baseline in effect, if any.
     baseline: Option<BaselineView>,
+    /// A service whose baseline is still to be read, if any.
+    service: Option<ServiceView>,
 }
 
 async fn assets(State(app): State<AppState>) -> Response {
@@ -357,6 +359,11 @@ async fn assets(State(app): State<AppState>) -> Response {
                 fault_bar: a.fault_bar,
                 trend: t.as_deref().map(TrendView::summary),
                 baseline: app.baselines.view(&app.config, &s.asset_id),
+                service: app
+                    .baselines
+                    .service(&s.asset_id)
+                    .as_ref()
+                    .map(ServiceView::from),
             }
         })
         .collect();

@@ -481,7 +481,7 @@ impl TrendView {
         if let Some(t) = since_ms {
             let at = rfc3339_ms(t);
             if let Some(reason) = &mut self.reason {
-                reason.push_str(" since the unit baseline of ");
+                reason.push_str(" since the unit baseline or service of ");
                 reason.push_str(&at);
             }
             self.since = Some(at);
