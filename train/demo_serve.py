@@ -270,13 +270,18 @@ def service_baseline(binary: str, bundle: Path, unit: int, http: str, asset_id: 
     if not physics.get("observer"):
         return None
     url = f"http://{http}/v1/assets/{asset_id}"
-    r = httpx.put(f"{url}/service", json={"charge_bar": SERVICE_CHARGE_BAR}, timeout=30)
-    r.raise_for_status()
-    print(f"service reported: PUT /v1/assets/{asset_id}/service {{\"charge_bar\": {SERVICE_CHARGE_BAR:g}}} -> "
-          f"{r.status_code} ({r.json()['state']}); the unit's next drive goes through the inbox ...")
     subprocess.run([binary, "simulate", "--pressures", f"{SERVICE_CHARGE_BAR:g}", "--frequencies", "1",
                     "--seed", "8", "--unit", str(unit), "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
     drive = sorted(out.glob("*.mcap"))[0]
+    with open(drive, "rb") as fh:
+        first_s = next(m for _, _, m in make_reader(fh).iter_messages(log_time_order=True)).log_time * 1e-9
+    # serviced ten minutes before the drive (the simulator's clock); runs recorded before are not read
+    body = {"charge_bar": SERVICE_CHARGE_BAR, "at": f"{first_s - 600.0:.3f}"}
+    r = httpx.put(f"{url}/service", json=body, timeout=30)
+    r.raise_for_status()
+    print(f"service reported: PUT /v1/assets/{asset_id}/service {{\"charge_bar\": {SERVICE_CHARGE_BAR:g}, \"at\": "
+          f"\"{r.json()['set_at']}\"}} -> {r.status_code} ({r.json()['state']}); the unit's next drive goes through "
+          "the inbox ...")
     (inbox / drive.name).write_bytes(drive.read_bytes())
     deadline = time.monotonic() + SERVICE_TIMEOUT_S
     while (b := httpx.get(f"{url}/baseline", timeout=10)).status_code != 200:

@@ -303,15 +303,17 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
         daemons: list[Daemon]) -> None:
     """A maintainer who knows only the charge the unit was filled to reports the service
     (`PUT /v1/assets/{id}/service`): bad bodies are refused by field; the service is pending
-    across a restart; the asset's next run is read into its baseline, which equals what
-    `python -m train.observer baseline` makes of that run (the reference, in Python), and
-    the service is done."""
+    across a restart; a run recorded before the service, or one the observer cannot read,
+    leaves it pending and says why; the next run is read into the unit's baseline, which
+    equals what `python -m train.observer baseline` makes of that run (the reference, in
+    Python), and the service is done."""
     from train import observer as observer_tool
     from train.campaign import load_campaign
 
-    run = sorted(world["runs"].glob("*.mcap"))[0]
-    charge = load_campaign(world["runs"]).runs[0].label_bar
-    assert load_campaign(world["runs"]).runs[0].path.name == run.name and charge is not None
+    days = load_campaign(world["runs"]).runs
+    run, older = days[0].path, days[1].path  # day 0 at the start charge; day 1 a day later
+    charge = days[0].label_bar
+    assert charge is not None
     physics = json.loads(calibrated_campaign[1].read_text())
     ref = observer_tool.baseline_of(physics, [run], charge, jobs=1)["observer_baseline"]
     inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
@@ -320,10 +322,11 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     daemons.append(d)
     url = f"http://{d.http}/v1/assets/dyno-unit-A"
     assert httpx.get(f"{url}/service").status_code == 404
-    for bad, field in (({}, "charge_bar"), ({"charge_bar": -1.0}, "charge_bar"), ({"charge_bar": 12, "x": 1}, "x")):
+    for bad, field in (({}, "charge_bar"), ({"charge_bar": -1.0}, "charge_bar"), ({"charge_bar": 12, "x": 1}, "x"),
+                       ({"charge_bar": 12, "at": "soon"}, "at"), ({"charge_bar": 12, "at": "2999-01-01T00:00:00Z"}, "at")):
         r = httpx.put(f"{url}/service", json=bad)
         assert r.status_code == 422 and field in r.json()["error"], r.text
-    r = httpx.put(f"{url}/service", json={"charge_bar": charge})
+    r = httpx.put(f"{url}/service", json={"charge_bar": charge})  # serviced now
     assert r.status_code == 202 and r.json()["state"] == "pending", r.text
     set_at = r.json()["set_at"]
     d.stop()
@@ -332,21 +335,36 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     url = f"http://{d2.http}/v1/assets/dyno-unit-A"
     pending = d2.get("/v1/assets/dyno-unit-A/service")
     assert pending == {"charge_bar": charge, "set_at": set_at, "state": "pending", "last_refusal": None}, pending
+
+    def refusal() -> str:
+        deadline = time.monotonic() + 20
+        while (s := d2.get("/v1/assets/dyno-unit-A/service"))["last_refusal"] is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert s["state"] == "pending", s
+        return str(s["last_refusal"])
+
+    # The simulated logs are dated 2023: recorded before a service reported now.
+    shutil.copy(older, inbox / older.name)
+    d2.wait_runs("dyno-unit-A", 1)
+    assert "before the service" in refusal()
+    # Reported again with the time it was done, before the drives were recorded.
+    r = httpx.put(f"{url}/service", json={"charge_bar": charge, "at": "2023-11-01T00:00:00Z"})
+    assert r.status_code == 202 and r.json()["last_refusal"] is None, r.text
+    set_at = r.json()["set_at"]
+    assert set_at.startswith("2023-11-01T00:00:00"), set_at
     assert "service is pending" in httpx.get(f"{url}/baseline").json()["error"]
     # A run at an excitation the observer was not calibrated at (the quick campaign has no
     # 4 Hz) reads nothing: the service stays pending and says why.
     simulate(tmp_path / "fast", "--pressures", str(charge), "--frequencies", "4")
     fast = next((tmp_path / "fast").glob("*.mcap"))
     shutil.copy(fast, inbox / fast.name)
-    d2.wait_runs("dyno-unit-A", 1)
-    deadline = time.monotonic() + 20
-    while (s := d2.get("/v1/assets/dyno-unit-A/service"))["last_refusal"] is None and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert s["state"] == "pending" and "no reversals" in s["last_refusal"], s
-    row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
-    assert row["service"] == s and row["baseline"] is None, row
-    shutil.copy(run, inbox / run.name)
     d2.wait_runs("dyno-unit-A", 2)
+    why = refusal()
+    assert "no reversals" in why and "p12.0-f4.0" in why, why
+    row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
+    assert row["service"]["last_refusal"] == why and row["baseline"] is None, row
+    shutil.copy(run, inbox / run.name)
+    d2.wait_runs("dyno-unit-A", 3)
     deadline = time.monotonic() + 20
     while (b := httpx.get(f"{url}/baseline")).status_code != 200 and time.monotonic() < deadline:
         time.sleep(0.2)

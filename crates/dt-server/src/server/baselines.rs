@@ -15,8 +15,9 @@
 //! (`PUT /v1/assets/{id}/service`, `{"charge_bar": …}`): the service is kept
 //! in the store as pending, the asset's trend restarts at it, and the asset's
 //! runs that start after it run without a baseline while the daemon reads the
-//! unit ([`dt_core::service::ServiceReading`]). The first such run that ends
-//! with a usable reading completes it: the reading becomes the asset's API
+//! unit ([`dt_core::service::ServiceReading`]). A run recorded before the
+//! service (`at` in the request, default now) is not read. The first run that
+//! ends with a usable reading completes it: the reading becomes the asset's API
 //! baseline (set at the service's time) and the service is forgotten, in one
 //! store transaction. A run that gives none (no excitation, an excitation the
 //! observer is not calibrated at, one with a model of its own) leaves it
@@ -91,7 +92,7 @@ impl BaselineView {
 pub struct ServiceView {
     /// The charge the unit was filled to, bar gauge at 20 °C.
     pub charge_bar: f64,
-    /// When the service was reported (RFC 3339).
+    /// When the unit was serviced (RFC 3339).
     pub set_at: String,
     /// `pending`: the baseline is read from the asset's next run.
     pub state: &'static str,

@@ -15,7 +15,7 @@
 //! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
 //! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
 //! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
-//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …}`, the charge the unit was filled to): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (see [`super::baselines`]); the trend restarts at it; the ingest role when tokens are on; `409` in a NATS group or with a model that does not read the observer |
+//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …, "at": …}`, the charge the unit was filled to and, optionally, when (RFC 3339 or Unix s; default now); runs recorded before it are not read): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (see [`super::baselines`]); the trend restarts at it; the ingest role when tokens are on; `409` in a NATS group or with a model that does not read the observer |
 //! | `GET /v1/assets/{id}/service` | the pending service (`charge_bar`, `set_at`, `state`, `last_refusal`: why the last run gave no baseline), 404 if none |
 //! | `DELETE /v1/assets/{id}/service` | withdraws the pending service (the API baseline before it applies again) |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
@@ -564,6 +564,8 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
 #[serde(deny_unknown_fields)]
 struct ServiceBody {
     charge_bar: f64,
+    /// When the unit was serviced (RFC 3339 or Unix s); default: now.
+    at: Option<String>,
 }
 
 async fn get_service(State(app): State<AppState>, Path(id): Path<String>) -> Response {
@@ -587,8 +589,8 @@ async fn put_service(
             format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
         );
     }
-    let charge_bar = match serde_json::from_slice::<ServiceBody>(&body) {
-        Ok(b) if b.charge_bar.is_finite() && b.charge_bar >= 0.0 => b.charge_bar,
+    let (charge_bar, at) = match serde_json::from_slice::<ServiceBody>(&body) {
+        Ok(b) if b.charge_bar.is_finite() && b.charge_bar >= 0.0 => (b.charge_bar, b.at),
         Ok(b) => {
             return error(
                 StatusCode::UNPROCESSABLE_ENTITY,
@@ -601,9 +603,24 @@ async fn put_service(
         Err(e) => {
             return error(
                 StatusCode::UNPROCESSABLE_ENTITY,
-                format!("body: need {{\"charge_bar\": <the charge filled, bar>}} ({e})"),
+                format!(
+                    "body: need {{\"charge_bar\": <the charge filled, bar>, \"at\": <when, \
+                     optional>}} ({e})"
+                ),
             )
         }
+    };
+    let now = now_ms();
+    let set_ms = match at.as_deref().map(parse_time_ms) {
+        None => now,
+        Some(Ok(t)) if t <= now + 60_000 => t,
+        Some(Ok(_)) => {
+            return error(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!("body: at {:?} is in the future", at.unwrap_or_default()),
+            )
+        }
+        Some(Err(e)) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: at: {e}")),
     };
     if app.group.is_some() {
         return error(
@@ -622,7 +639,7 @@ async fn put_service(
     }
     let service = PendingService {
         charge_bar,
-        set_ms: now_ms(),
+        set_ms,
         refusal: None,
     };
     let view = ServiceView::from(&service);

@@ -22,7 +22,7 @@ use super::baselines::{Baselines, ServiceOutcome};
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
-use super::store::FleetStore;
+use super::store::{rfc3339_ms, CalendarClock, FleetStore};
 use super::twin::{AssetTwin, TwinError, TwinFactory};
 
 /// Bytes read from a stream at a time.
@@ -210,6 +210,7 @@ impl Ingest {
             samples: 0,
             samples_reported: 0,
             ticks: 0,
+            first_t_ns: None,
             last_t_ns: None,
             arrived: None,
         })
@@ -426,6 +427,7 @@ pub struct RunHandle {
     samples: u64,
     samples_reported: u64,
     ticks: u64,
+    first_t_ns: Option<i64>,
     last_t_ns: Option<i64>,
     /// When the input pushed since the last flush arrived (earliest).
     arrived: Option<Instant>,
@@ -451,6 +453,7 @@ impl RunHandle {
     pub fn push(&mut self, sample: &Sample) -> Result<(), TwinError> {
         self.samples += 1;
         let t = sample.t_ns();
+        self.first_t_ns.get_or_insert(t);
         self.last_t_ns = Some(self.last_t_ns.map_or(t, |l| l.max(t)));
         self.twin.push(sample)
     }
@@ -558,7 +561,13 @@ impl RunHandle {
             result.is_ok() && matches!(outcome, RunOutcome::Completed),
             read,
         ) {
-            complete_service(&self.ingest, &self.info, read).await;
+            // The run's calendar start, as the store places it: a log
+            // recorded before the service (a backlog uploaded late) does not
+            // show the unit at the service's charge.
+            let start_ms = self
+                .first_t_ns
+                .map(|t| CalendarClock::new(t, self.info.started).ms(t));
+            complete_service(&self.ingest, &self.info, start_ms, read).await;
         }
         (outcome, self.samples, self.ticks, result)
     }
@@ -571,10 +580,21 @@ impl RunHandle {
 async fn complete_service(
     ingest: &Ingest,
     info: &RunInfo,
+    start_ms: Option<i64>,
     read: Result<dt_core::charge::UnitBaseline, String>,
 ) {
     let (Some(service), Some(store)) = (info.asset.read_service, ingest.inner.store.clone()) else {
         return;
+    };
+    let read = match start_ms {
+        Some(t) if t < service.set_ms => Err(format!(
+            "run `{}` was recorded at {}, before the service at {}: it does not show the unit \
+             at the service's charge",
+            info.meta.run_id,
+            rfc3339_ms(t),
+            rfc3339_ms(service.set_ms)
+        )),
+        _ => read.map_err(|why| format!("run `{}`: {why}", info.meta.run_id)),
     };
     let baselines = Arc::clone(&ingest.inner.baselines);
     let asset = info.meta.asset_id.clone();

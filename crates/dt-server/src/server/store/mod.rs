@@ -119,7 +119,9 @@ pub struct StoredBaseline {
 pub struct PendingService {
     /// The charge the unit was filled to, bar gauge at 20 °C.
     pub charge_bar: f64,
-    /// When the service was reported (wall clock), ms since the Unix epoch.
+    /// When the unit was serviced (the `at` reported, else when it was
+    /// reported), ms since the Unix epoch: runs recorded before it are not
+    /// read, and the asset's trend restarts at it.
     pub set_ms: i64,
     /// Why the last run after it gave no baseline, if one did not.
     pub refusal: Option<String>,
