@@ -317,3 +317,104 @@ impl Baselines {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use dt_core::charge::UnitBaseline;
+
+    use super::*;
+    use crate::server::store::SqliteStore;
+
+    #[test]
+    fn a_service_is_completed_once_by_its_own_run_and_a_refusal_is_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fleet.sqlite");
+        let store = SqliteStore::open(&path).unwrap();
+        let (baselines, trends, config) =
+            (Baselines::default(), Trends::default(), Config::default());
+        let old = StoredBaseline {
+            baseline: UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 10.0,
+                read_sd_bar: 0.5,
+            },
+            set_ms: 1_000,
+        };
+        baselines
+            .set(Some(&store), &trends, "van", Some(old))
+            .unwrap();
+        assert_eq!(
+            baselines.asset_config(&config, "van").observer_baseline,
+            Some(old.baseline)
+        );
+        let service = PendingService {
+            charge_bar: 11.0,
+            set_ms: 5_000,
+            refusal: None,
+        };
+        baselines
+            .set_service(&store, &trends, "van", Some(service.clone()))
+            .unwrap();
+        // While it is pending the asset's runs use no baseline and read this one.
+        let asset = baselines.asset_config(&config, "van");
+        assert_eq!(asset.observer_baseline, None);
+        let to_read = asset.read_service.unwrap();
+        assert_eq!(
+            to_read,
+            ServiceToRead {
+                charge_bar: 11.0,
+                set_ms: 5_000
+            }
+        );
+        assert_eq!(baselines.view(&config, "van"), None);
+        // A run that read for an earlier service changes nothing.
+        let stale = ServiceToRead {
+            set_ms: 4_000,
+            ..to_read
+        };
+        let read = UnitBaseline {
+            charge_bar: 11.0,
+            read_bar: 9.4,
+            read_sd_bar: 0.3,
+        };
+        assert_eq!(
+            baselines
+                .complete_service(&store, "van", stale, Ok(read))
+                .unwrap(),
+            ServiceOutcome::Superseded
+        );
+        assert_eq!(
+            baselines
+                .complete_service(&store, "van", to_read, Err("not excited".into()))
+                .unwrap(),
+            ServiceOutcome::StillPending
+        );
+        let kept = Baselines::load(&store).unwrap();
+        assert_eq!(
+            kept.service("van").unwrap().refusal.as_deref(),
+            Some("not excited")
+        );
+        assert_eq!(kept.get("van"), Some(old));
+        assert_eq!(
+            baselines
+                .complete_service(&store, "van", to_read, Ok(read))
+                .unwrap(),
+            ServiceOutcome::Completed
+        );
+        let done = StoredBaseline {
+            baseline: read,
+            set_ms: 5_000,
+        };
+        for b in [&baselines, &Baselines::load(&store).unwrap()] {
+            assert_eq!(b.service("van"), None);
+            assert_eq!(b.get("van"), Some(done));
+            assert_eq!(b.asset_config(&config, "van").observer_baseline, Some(read));
+        }
+        assert_eq!(
+            baselines
+                .complete_service(&store, "van", to_read, Ok(read))
+                .unwrap(),
+            ServiceOutcome::Superseded
+        );
+    }
+}
