@@ -489,3 +489,64 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
     finally:
         w.stop()
         view.stop()
+
+
+def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
+        shocktwin_bin: Path, nats_server: NatsServer, calibrated_campaign: tuple[Path, Path],
+        tmp_path: Path) -> None:
+    """`PUT /v1/assets/{id}/service` on a fleet view goes to the group's service bucket; the
+    worker (another daemon) reads the asset's next run into its baseline and writes it to the
+    baseline bucket, which the view then shows; the baseline equals what `python -m
+    train.observer baseline` makes of that run, and the service is gone everywhere."""
+    import httpx
+
+    sys.path.insert(0, str(ROOT))
+    from train import observer as observer_tool
+    from train import train as train_tool
+
+    campaign, physics = calibrated_campaign
+    bundle = tmp_path / "perm17"
+    assert train_tool.main(["--campaign", str(campaign), "--permutation", "17", "--physics", str(physics),
+                            "--out", str(bundle)]) == 0
+    run = sorted(campaign.glob("p12.0-f1.0-*.mcap"))[0]
+    ref = observer_tool.baseline_of(json.loads(physics.read_text()), [run], 12.0, jobs=1)["observer_baseline"]
+    (tmp_path / "view.toml").write_text("[nats]\nworker = false\n")
+    w = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--model", str(bundle),
+                      "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
+    view = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--model", str(bundle),
+                         "--config", str(tmp_path / "view.toml"), "--listen", "127.0.0.1:0",
+                         "--http", "127.0.0.1:0", "--no-db"])
+    try:
+        def status(d: ServeProcess, what: str) -> int:
+            return httpx.get(f"http://{d.http}/v1/assets/veh-s0/{what}", timeout=5).status_code
+
+        body = {"charge_bar": 12.0, "at": "2023-11-01T00:00:00Z"}  # before the simulated run's clock
+        deadline = time.monotonic() + 20
+        while True:  # until the fleet view has joined the group
+            r = httpx.put(f"http://{view.http}/v1/assets/veh-s0/service", json=body, timeout=10)
+            if r.status_code != 503 or time.monotonic() > deadline:
+                break
+            time.sleep(0.3)
+        assert r.status_code == 202 and r.json()["state"] == "pending", r.text
+        deadline = time.monotonic() + 20
+        while status(w, "service") != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert status(w, "service") == 200, w.text()[-3000:]
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "veh-s",
+                               str(run)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(nats_server.url, {"veh-s0"}, 120, [w, view])
+        assert done["veh-s0"]["meta"]["outcome"] == "completed", done
+        deadline = time.monotonic() + 20
+        while status(view, "baseline") != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        b = httpx.get(f"http://{view.http}/v1/assets/veh-s0/baseline", timeout=5)
+        assert b.status_code == 200, (b.text, w.text()[-3000:])
+        got = b.json()
+        assert got["charge_bar"] == 12.0 and got["set_at"].startswith("2023-11-01T00:00:00"), got
+        assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
+        assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
+        assert status(view, "service") == 404 and status(w, "service") == 404
+    finally:
+        w.stop()
+        view.stop()

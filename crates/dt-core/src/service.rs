@@ -35,6 +35,8 @@
 //! `train.observer.baseline_of` for one run; the Python tool takes its onset
 //! and end from the position instead of the excitation flag.
 
+use serde::{Deserialize, Serialize};
+
 use crate::charge::{ObserverParams, UnitBaseline};
 
 /// A reading must have taught the observer something: its own sd (without
@@ -49,7 +51,7 @@ pub const SETTLE_S: f64 = 60.0;
 const MIN_VAR_BAR2: f64 = 1e-4;
 
 /// Running sums of the settled readings.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 struct Sums {
     n: f64,
     sum: f64,
@@ -67,8 +69,9 @@ impl Sums {
     }
 }
 
-/// One run's reading of the unit for a baseline (see the module doc).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// One run's reading of the unit for a baseline (see the module doc);
+/// serialisable, so that a checkpointed run goes on reading.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct ServiceReading {
     onset_ns: Option<i64>,
     settled: Sums,

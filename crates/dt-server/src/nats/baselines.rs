@@ -8,6 +8,12 @@
 //! own copy (which its worker's runs use), its store and its trends. A run
 //! takes the baseline the daemon that starts it has at that moment: one set
 //! milliseconds before may not have reached it yet.
+//!
+//! Services reported at a known charge (`PUT /v1/assets/{id}/service`) go the
+//! same way through [`SERVICE_BUCKET`] ([`ServiceEntry`]). The worker whose run
+//! reads the unit writes the result back: the baseline to [`BASELINE_BUCKET`]
+//! and the service's key deleted, or the service again with the reason it
+//! gave none ([`BaselineBucket::complete_service`]).
 
 use std::sync::{Arc, OnceLock};
 
@@ -17,9 +23,13 @@ use futures_util::future::BoxFuture;
 use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
 
-use super::{baseline_bucket, connect, NatsConfig, NatsError, BASELINE_BUCKET};
+use super::{
+    baseline_bucket, connect, service_bucket, NatsConfig, NatsError, BASELINE_BUCKET,
+    SERVICE_BUCKET,
+};
+use crate::server::config::ServiceToRead;
 use crate::server::source::{Source, SourceContext};
-use crate::server::store::{FleetStore, StoredBaseline, Trends};
+use crate::server::store::{FleetStore, PendingService, StoredBaseline, Trends};
 use crate::server::ServeError;
 
 /// One value of the bucket.
@@ -63,15 +73,73 @@ impl BaselineEntry {
     }
 }
 
-/// The bucket, once the watcher has connected (for the API's writes).
+/// One value of the service bucket.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceEntry {
+    /// See [`PendingService`].
+    pub charge_bar: f64,
+    /// See [`PendingService`].
+    pub set_ms: i64,
+    /// See [`PendingService`].
+    pub refusal: Option<String>,
+}
+
+impl From<PendingService> for ServiceEntry {
+    fn from(s: PendingService) -> Self {
+        Self {
+            charge_bar: s.charge_bar,
+            set_ms: s.set_ms,
+            refusal: s.refusal,
+        }
+    }
+}
+
+impl ServiceEntry {
+    /// The service, checked.
+    fn pending(self) -> Result<PendingService, String> {
+        if !(self.charge_bar.is_finite() && self.charge_bar >= 0.0) {
+            return Err(format!("charge_bar {} is not a charge", self.charge_bar));
+        }
+        Ok(PendingService {
+            charge_bar: self.charge_bar,
+            set_ms: self.set_ms,
+            refusal: self.refusal,
+        })
+    }
+}
+
+/// The buckets, once the watcher has connected (for the API's writes).
 #[derive(Debug, Clone, Default)]
-pub struct BaselineBucket(Arc<OnceLock<kv::Store>>);
+pub struct BaselineBucket(Arc<OnceLock<kv::Store>>, Arc<OnceLock<kv::Store>>);
 
 impl BaselineBucket {
     /// The bucket, if connected.
     #[must_use]
     pub fn get(&self) -> Option<&kv::Store> {
         self.0.get()
+    }
+
+    /// Writes (`Some`) or deletes (`None`) the asset's pending service for
+    /// the whole group.
+    pub async fn write_service(
+        &self,
+        asset_id: &str,
+        service: Option<PendingService>,
+    ) -> Result<(), NatsError> {
+        let kv = self.1.get().ok_or_else(|| {
+            NatsError::new(
+                format!("bucket {SERVICE_BUCKET}"),
+                "not connected to the NATS group yet",
+            )
+        })?;
+        put_or_delete(
+            kv,
+            SERVICE_BUCKET,
+            asset_id,
+            service.map(ServiceEntry::from),
+        )
+        .await
     }
 
     /// Writes (`Some`) or deletes (`None`) the asset's baseline for the
@@ -105,6 +173,69 @@ impl BaselineBucket {
     }
 }
 
+async fn put_or_delete<T: Serialize>(
+    kv: &kv::Store,
+    bucket: &str,
+    key: &str,
+    value: Option<T>,
+) -> Result<(), NatsError> {
+    let what = format!("bucket {bucket}, key `{key}`");
+    match value {
+        Some(v) => {
+            let bytes = serde_json::to_vec(&v).map_err(|e| NatsError::new(&what, e))?;
+            kv.put(key, bytes.into())
+                .await
+                .map(drop)
+                .map_err(|e| NatsError::new(&what, e))
+        }
+        None => kv.delete(key).await.map_err(|e| NatsError::new(&what, e)),
+    }
+}
+
+/// What a worker's run read for a pending service, written back to the
+/// group: the baseline (and the service forgotten) or the reason it gave
+/// none (kept with the service). A service replaced or withdrawn since the
+/// run started is left alone. `baselines` and `services` are the group's
+/// buckets.
+pub async fn complete_service(
+    baselines: &kv::Store,
+    services: &kv::Store,
+    asset_id: &str,
+    service: ServiceToRead,
+    read: Result<UnitBaseline, String>,
+) -> Result<bool, NatsError> {
+    let what = format!("bucket {SERVICE_BUCKET}, key `{asset_id}`");
+    let current = services
+        .get(asset_id)
+        .await
+        .map_err(|e| NatsError::new(&what, e))?
+        .and_then(|v| serde_json::from_slice::<ServiceEntry>(&v).ok());
+    let Some(mut entry) = current.filter(|e| e.set_ms == service.set_ms) else {
+        return Ok(false);
+    };
+    match read {
+        Ok(b) => {
+            let stored = StoredBaseline {
+                baseline: b,
+                set_ms: service.set_ms,
+            };
+            put_or_delete(
+                baselines,
+                BASELINE_BUCKET,
+                asset_id,
+                Some(BaselineEntry::from(stored)),
+            )
+            .await?;
+            put_or_delete::<ServiceEntry>(services, SERVICE_BUCKET, asset_id, None).await?;
+        }
+        Err(why) => {
+            entry.refusal = Some(why);
+            put_or_delete(services, SERVICE_BUCKET, asset_id, Some(entry)).await?;
+        }
+    }
+    Ok(true)
+}
+
 /// The watcher, a [`Source`] of every daemon of a NATS group.
 pub struct NatsBaselines {
     cfg: NatsConfig,
@@ -135,86 +266,132 @@ impl NatsBaselines {
     async fn watch(self, ctx: SourceContext) -> Result<(), NatsError> {
         let client = connect(&self.cfg, "shocktwin baselines").await?;
         let js = jetstream::new(client);
-        let kv = baseline_bucket(&js).await?;
-        let mut entries = kv
-            .watch_with_history(">")
-            .await
-            .map_err(|e| NatsError::new(format!("watch bucket {BASELINE_BUCKET}"), e))?;
-        // A second connection of the same daemon cannot have set it first.
-        let _ = self.bucket.0.set(kv.clone());
+        let (kv, services) = (baseline_bucket(&js).await?, service_bucket(&js).await?);
         let config = Arc::new(ctx.ingest.config().clone());
-        loop {
-            let entry = tokio::select! {
-                () = ctx.cancel.cancelled() => break,
-                e = entries.next() => e,
-            };
-            let entry = match entry {
-                Some(Ok(entry)) => entry,
-                // The watch ended or failed (a server restart): watch again,
-                // from the bucket's current values (applying them twice is
-                // harmless).
-                other => {
-                    if let Some(Err(e)) = other {
-                        tracing::warn!("baselines: {e}; watching again");
-                    }
-                    tokio::select! {
-                        () = ctx.cancel.cancelled() => break,
-                        () = tokio::time::sleep(std::time::Duration::from_secs(1)) => {}
-                    }
-                    match kv.watch_with_history(">").await {
-                        Ok(w) => entries = w,
-                        Err(e) => tracing::warn!("baselines: watch bucket {BASELINE_BUCKET}: {e}"),
-                    }
-                    continue;
-                }
-            };
-            let baseline = match entry.operation {
-                kv::Operation::Put => {
-                    match serde_json::from_slice::<BaselineEntry>(&entry.value)
-                        .map_err(|e| e.to_string())
-                        .and_then(BaselineEntry::stored)
-                    {
-                        Ok(b) => Some(b),
-                        Err(e) => {
-                            // One bad value never stops the watcher.
-                            ctx.ingest.metrics().error("baseline");
-                            tracing::error!(
-                                "bucket {BASELINE_BUCKET}, key `{}`: not a unit baseline ({e}); ignored",
-                                entry.key
-                            );
-                            continue;
-                        }
-                    }
-                }
-                kv::Operation::Delete | kv::Operation::Purge => None,
+        let apply_baseline = |key: String, value: Option<&[u8]>| {
+            let baseline = match value.map(|v| {
+                serde_json::from_slice::<BaselineEntry>(v)
+                    .map_err(|e| e.to_string())
+                    .and_then(BaselineEntry::stored)
+            }) {
+                Some(Err(e)) => return Err(format!("not a unit baseline ({e})")),
+                Some(Ok(b)) => Some(b),
+                None => None,
             };
             let (baselines, store, trends) = (
                 Arc::clone(ctx.ingest.baselines()),
                 self.store.clone(),
                 Arc::clone(&self.trends),
             );
-            let (config, ingest, asset) =
-                (Arc::clone(&config), ctx.ingest.clone(), entry.key.clone());
-            let applied = tokio::task::spawn_blocking(move || {
-                baselines.set(store.as_deref(), &trends, &asset, baseline)?;
+            let (config, ingest) = (Arc::clone(&config), ctx.ingest.clone());
+            Ok(move || {
+                baselines.set(store.as_deref(), &trends, &key, baseline)?;
                 if let Some(store) = &store {
-                    trends.refresh(store.as_ref(), &config, ingest.metrics(), &asset);
+                    trends.refresh(store.as_ref(), &config, ingest.metrics(), &key);
                 }
-                Ok::<_, crate::server::store::StoreError>(())
+                Ok(format!(
+                    "unit baseline from the group (set: {}); used from the asset's next run",
+                    baseline.is_some()
+                ))
             })
-            .await;
-            match applied {
-                Ok(Ok(())) => tracing::info!(
-                    asset = %entry.key,
-                    set = baseline.is_some(),
-                    "unit baseline from the group; used from the asset's next run"
-                ),
-                Ok(Err(e)) => tracing::error!(asset = %entry.key, "baselines: {e}"),
-                Err(e) => tracing::error!(asset = %entry.key, "baselines: {e}"),
-            }
-        }
+        };
+        let apply_service = |key: String, value: Option<&[u8]>| {
+            let service = match value.map(|v| {
+                serde_json::from_slice::<ServiceEntry>(v)
+                    .map_err(|e| e.to_string())
+                    .and_then(ServiceEntry::pending)
+            }) {
+                Some(Err(e)) => return Err(format!("not a service ({e})")),
+                Some(Ok(s)) => Some(s),
+                None => None,
+            };
+            let (baselines, store, trends) = (
+                Arc::clone(ctx.ingest.baselines()),
+                self.store.clone(),
+                Arc::clone(&self.trends),
+            );
+            let (config, ingest) = (Arc::clone(&config), ctx.ingest.clone());
+            Ok(move || {
+                let pending = service.is_some();
+                baselines.set_service(store.as_deref(), &trends, &key, service)?;
+                if let Some(store) = &store {
+                    trends.refresh(store.as_ref(), &config, ingest.metrics(), &key);
+                }
+                Ok(format!("service from the group (pending: {pending})"))
+            })
+        };
+        // A second connection of the same daemon cannot have set them first.
+        let _ = self.bucket.0.set(kv.clone());
+        let _ = self.bucket.1.set(services.clone());
+        tokio::try_join!(
+            watch_bucket(&kv, BASELINE_BUCKET, &ctx, apply_baseline),
+            watch_bucket(&services, SERVICE_BUCKET, &ctx, apply_service),
+        )?;
         Ok(())
     }
+}
+
+/// Applies every value of `kv` (its current ones, then each change) with
+/// `apply` (key, value or `None` for a deletion → the work to run on a
+/// blocking thread, or why the value is bad) until `ctx` is cancelled. A bad
+/// value is counted and logged, never stops the watcher; a broken watch is
+/// started again from the bucket's current values (applying them twice is
+/// harmless).
+async fn watch_bucket<F, W>(
+    kv: &kv::Store,
+    name: &str,
+    ctx: &SourceContext,
+    apply: F,
+) -> Result<(), NatsError>
+where
+    F: Fn(String, Option<&[u8]>) -> Result<W, String>,
+    W: FnOnce() -> Result<String, crate::server::store::StoreError> + Send + 'static,
+{
+    let mut entries = kv
+        .watch_with_history(">")
+        .await
+        .map_err(|e| NatsError::new(format!("watch bucket {name}"), e))?;
+    loop {
+        let entry = tokio::select! {
+            () = ctx.cancel.cancelled() => break,
+            e = entries.next() => e,
+        };
+        let entry = match entry {
+            Some(Ok(entry)) => entry,
+            other => {
+                if let Some(Err(e)) = other {
+                    tracing::warn!("bucket {name}: {e}; watching again");
+                }
+                tokio::select! {
+                    () = ctx.cancel.cancelled() => break,
+                    () = tokio::time::sleep(std::time::Duration::from_secs(1)) => {}
+                }
+                match kv.watch_with_history(">").await {
+                    Ok(w) => entries = w,
+                    Err(e) => tracing::warn!("watch bucket {name}: {e}"),
+                }
+                continue;
+            }
+        };
+        let value = match entry.operation {
+            kv::Operation::Put => Some(&entry.value[..]),
+            kv::Operation::Delete | kv::Operation::Purge => None,
+        };
+        let work = match apply(entry.key.clone(), value) {
+            Ok(w) => w,
+            Err(e) => {
+                ctx.ingest.metrics().error("baseline");
+                tracing::error!("bucket {name}, key `{}`: {e}; ignored", entry.key);
+                continue;
+            }
+        };
+        match tokio::task::spawn_blocking(work).await {
+            Ok(Ok(what)) => tracing::info!(asset = %entry.key, "{what}"),
+            Ok(Err(e)) => tracing::error!(asset = %entry.key, "bucket {name}: {e}"),
+            Err(e) => tracing::error!(asset = %entry.key, "bucket {name}: {e}"),
+        }
+    }
+    Ok(())
 }
 
 impl Source for NatsBaselines {
@@ -224,10 +401,12 @@ impl Source for NatsBaselines {
 
     fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
         Box::pin(async move {
-            self.watch(ctx).await.map_err(|e| ServeError::Invalid {
-                key: "nats".into(),
-                reason: e.to_string(),
-            })
+            Box::pin(self.watch(ctx))
+                .await
+                .map_err(|e| ServeError::Invalid {
+                    key: "nats".into(),
+                    reason: e.to_string(),
+                })
         })
     }
 }

@@ -36,6 +36,9 @@ pub const CHECKPOINT_BUCKET: &str = "shocktwin_checkpoints";
 pub const LEASE_BUCKET: &str = "shocktwin_leases";
 /// Unit baselines set over any daemon's API, one key per asset.
 pub const BASELINE_BUCKET: &str = "shocktwin_baselines";
+/// Key-value bucket of the services whose baseline is still to be read
+/// (key: asset id).
+pub const SERVICE_BUCKET: &str = "shocktwin_services";
 
 /// Default number of partitions of the telemetry subject space.
 pub const DEFAULT_PARTITIONS: u32 = 16;
@@ -236,6 +239,17 @@ pub async fn checkpoint_bucket(js: &jetstream::Context) -> Result<kv::Store, Nat
 pub async fn baseline_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
     let config = kv::Config {
         bucket: BASELINE_BUCKET.into(),
+        history: 1,
+        storage: stream::StorageType::File,
+        ..Default::default()
+    };
+    bucket(js, config).await
+}
+
+/// The bucket of pending services (the latest value per asset).
+pub async fn service_bucket(js: &jetstream::Context) -> Result<kv::Store, NatsError> {
+    let config = kv::Config {
+        bucket: SERVICE_BUCKET.into(),
         history: 1,
         storage: stream::StorageType::File,
         ..Default::default()

@@ -42,8 +42,11 @@ use std::sync::Arc;
 
 use async_nats::jetstream::{self, consumer, kv, message::PublishMessage as Publish};
 use bytes::Bytes;
+use dt_core::charge::ChargeObserver;
 use dt_core::estimate::{Estimate, Health};
 use dt_core::estimator::Estimator;
+use dt_core::features::col;
+use dt_core::service::ServiceReading;
 use futures_util::future::BoxFuture;
 use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
@@ -54,9 +57,10 @@ use super::{
     checkpoint_bucket, connect, ensure_topology, lease_bucket, NatsConfig, NatsError, RENEW_EVERY,
     TELEMETRY_STREAM,
 };
-use crate::server::config::Config;
+use crate::server::config::{Config, ServiceToRead};
 use crate::server::metrics::Metrics;
 use crate::server::source::{Source, SourceContext};
+use crate::server::store::{rfc3339_ms, CalendarClock};
 use crate::server::{EstimatorFactory, ServeError};
 
 /// Version of the partition checkpoint encoding.
@@ -112,10 +116,12 @@ impl Source for NatsWorker {
     fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
         Box::pin(async move {
             let me = *self;
-            me.serve(ctx).await.map_err(|e| ServeError::Invalid {
-                key: "nats".into(),
-                reason: e.to_string(),
-            })
+            Box::pin(me.serve(ctx))
+                .await
+                .map_err(|e| ServeError::Invalid {
+                    key: "nats".into(),
+                    reason: e.to_string(),
+                })
         })
     }
 }
@@ -132,6 +138,10 @@ struct Held {
 struct PartCtx {
     js: jetstream::Context,
     checkpoints: kv::Store,
+    /// The group's baselines and pending services (a run that reads a
+    /// service writes its result there).
+    baseline_kv: kv::Store,
+    service_kv: kv::Store,
     factory: EstimatorFactory,
     config: Arc<Config>,
     baselines: Arc<crate::server::baselines::Baselines>,
@@ -166,6 +176,8 @@ impl NatsWorker {
         let leases = lease_bucket(&js).await?;
         let part = PartCtx {
             checkpoints: checkpoint_bucket(&js).await?,
+            baseline_kv: super::baseline_bucket(&js).await?,
+            service_kv: super::service_bucket(&js).await?,
             js,
             factory: self.factory.clone(),
             config: Arc::new(ctx.ingest.config().clone()),
@@ -334,6 +346,12 @@ struct SavedRun {
     last_batch: u64,
     health: Health,
     estimator: serde_bytes::ByteBuf,
+    /// The service this run reads, and what it read so far.
+    #[serde(default)]
+    service: Option<(ServiceToRead, ServiceReading)>,
+    /// The run's first sample time, ns.
+    #[serde(default)]
+    first_t_ns: Option<i64>,
 }
 
 #[derive(Debug, Default, Serialize, Deserialize)]
@@ -352,6 +370,33 @@ struct OpenRun {
     /// Boxed: the estimator (observer windows included) is large, and an
     /// `OpenRun` moves through the partition's futures.
     est: Box<Estimator>,
+    /// The pending service this run reads the unit for, and its reading.
+    service: Option<(ServiceToRead, ServiceReading)>,
+    /// The run's first sample time, ns.
+    first_t_ns: Option<i64>,
+}
+
+impl OpenRun {
+    /// Appends the estimates completed so far to `out`, feeding the
+    /// service's reading with their ticks.
+    fn drain_into(&mut self, out: &mut Vec<Estimate>) {
+        let Some((_, reading)) = self.service.as_mut() else {
+            out.extend(self.est.drain());
+            return;
+        };
+        let min_excitation = self.est.config().health.min_excitation_mps;
+        for tick in self.est.drain_ticks() {
+            let row = &tick.row;
+            reading.push(
+                row.t_ns,
+                row.twin.velocity_rms_1s_mps >= min_excitation,
+                row.values[col::OBSERVER_BAR],
+                row.values[col::OBSERVER_SD_BAR],
+            );
+            out.push(tick.estimate);
+        }
+        reading.note_own(self.est.observer().is_some_and(ChargeObserver::used_own));
+    }
 }
 
 /// A partition's work: assets, publishing, checkpoints.
@@ -463,6 +508,8 @@ async fn restore_partition(p: u32, ctx: PartCtx) -> Result<(Option<u64>, Partiti
                         last_batch: s.last_batch,
                         health: s.health,
                         est: Box::new(est),
+                        service: s.service,
+                        first_t_ns: s.first_t_ns,
                     },
                 );
             }
@@ -510,6 +557,8 @@ impl Partition {
                             last_batch: r.last_batch,
                             health: r.health,
                             estimator: serde_bytes::ByteBuf::from(r.est.checkpoint()),
+                            service: r.service,
+                            first_t_ns: r.first_t_ns,
                         },
                     )
                 })
@@ -617,13 +666,15 @@ impl Partition {
             let meta = b
                 .metadata()
                 .map_err(|e| Refused::Input(e.kind(), e.to_string()))?;
-            let cfg = self
-                .ctx
-                .factory
-                .config_for(&self.ctx.baselines.asset_config(&self.ctx.config, &asset));
+            let asset_cfg = self.ctx.baselines.asset_config(&self.ctx.config, &asset);
+            let cfg = self.ctx.factory.config_for(&asset_cfg);
             let est = Estimator::new(Arc::clone(self.ctx.factory.bundle()), cfg).map_err(|e| {
                 Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
             })?;
+            let service = asset_cfg
+                .read_service
+                .filter(|_| est.observer().is_some())
+                .map(|s| (s, ServiceReading::new()));
             let mut map = meta.to_map();
             map.remove("asset_id");
             map.remove("run_id");
@@ -638,6 +689,8 @@ impl Partition {
                     last_batch: 0,
                     health: Health::Unknown,
                     est: Box::new(est),
+                    service,
+                    first_t_ns: None,
                 },
             );
         } else {
@@ -670,13 +723,14 @@ impl Partition {
         open.last_batch = b.batch;
         let mut failed = None;
         for s in b.samples() {
+            open.first_t_ns.get_or_insert(s.t_ns());
             if let Err(e) = open.est.push(s) {
                 failed = Some(e.to_string());
                 break;
             }
         }
         self.buf.clear();
-        self.buf.extend(open.est.drain());
+        open.drain_into(&mut self.buf);
         self.publish_estimates(&asset, &mut open).await?;
         if let Some(reason) = failed {
             tracing::warn!(partition = self.p, asset, "the twin failed: {reason}");
@@ -697,9 +751,12 @@ impl Partition {
     ) -> Result<(), Refused> {
         let finished = open.est.finish();
         self.buf.clear();
-        self.buf.extend(open.est.drain());
+        open.drain_into(&mut self.buf);
         self.publish_estimates(asset, &mut open).await?;
         let outcome = if finished.is_err() { "failed" } else { outcome };
+        if outcome == "completed" {
+            self.complete_service(asset, &open).await;
+        }
         let mut map = open.meta.clone();
         map.insert("outcome".into(), outcome.into());
         self.run_event(
@@ -712,6 +769,58 @@ impl Partition {
         .await?;
         tracing::info!(partition = self.p, asset, run = %open.run_id, outcome, "run ended");
         Ok(())
+    }
+
+    /// After a run that read the unit for a pending service: its result
+    /// goes to the group's buckets (see [`super::baselines::complete_service`]).
+    /// A bucket error is logged: the service stays pending.
+    async fn complete_service(&self, asset: &str, open: &OpenRun) {
+        let Some((service, reading)) = open.service else {
+            return;
+        };
+        let Some(params) = open.est.bundle().physics().observer else {
+            return;
+        };
+        let start_ms = open
+            .first_t_ns
+            .map(|t| CalendarClock::new(t, std::time::SystemTime::now()).ms(t));
+        let read = match start_ms {
+            Some(t) if t < service.set_ms => Err(format!(
+                "run `{}` was recorded at {}, before the service at {}: it does not show the \
+                 unit at the service's charge",
+                open.run_id,
+                rfc3339_ms(t),
+                rfc3339_ms(service.set_ms)
+            )),
+            _ => reading
+                .finish(service.charge_bar, &params)
+                .map(|r| r.baseline)
+                .map_err(|why| format!("run `{}`: {why}", open.run_id)),
+        };
+        let done = super::baselines::complete_service(
+            &self.ctx.baseline_kv,
+            &self.ctx.service_kv,
+            asset,
+            service,
+            read.clone(),
+        )
+        .await;
+        match (done, read) {
+            (Ok(true), Ok(b)) => tracing::info!(
+                partition = self.p, asset, run = %open.run_id, read_bar = b.read_bar,
+                read_sd_bar = b.read_sd_bar, "unit baseline read after the service, for the group"
+            ),
+            (Ok(true), Err(why)) => tracing::warn!(
+                partition = self.p,
+                asset,
+                "no unit baseline from this run, the service stays pending: {why}"
+            ),
+            (Ok(false), _) => tracing::info!(
+                partition = self.p, asset, run = %open.run_id,
+                "the service this run read for was replaced or withdrawn meanwhile"
+            ),
+            (Err(e), _) => tracing::error!(partition = self.p, asset, "{e}"),
+        }
     }
 
     async fn publish_estimates(&mut self, asset: &str, open: &mut OpenRun) -> Result<(), Refused> {

@@ -245,7 +245,7 @@ impl Default for AssetConfig {
 
 /// A pending service (`PUT /v1/assets/{id}/service`) as a run sees it: the
 /// run reads the unit's baseline at this charge, without a baseline applied.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ServiceToRead {
     /// The charge the unit was filled to, bar gauge at 20 °C.
     pub charge_bar: f64,

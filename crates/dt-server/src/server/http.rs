@@ -15,7 +15,7 @@
 //! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
 //! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
 //! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
-//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …, "at": …}`, the charge the unit was filled to and, optionally, when (RFC 3339 or Unix s; default now); runs recorded before it are not read): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (see [`super::baselines`]); the trend restarts at it; the ingest role when tokens are on; `409` in a NATS group or with a model that does not read the observer |
+//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …, "at": …}`, the charge the unit was filled to and, optionally, when (RFC 3339 or Unix s; default now); runs recorded before it are not read): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (see [`super::baselines`]); the trend restarts at it; in a NATS group it goes to the group's bucket `shocktwin_services` and the worker that takes the asset's next run reads it; the ingest role when tokens are on; `409` with a model that does not read the observer |
 //! | `GET /v1/assets/{id}/service` | the pending service (`charge_bar`, `set_at`, `state`, `last_refusal`: why the last run gave no baseline), 404 if none |
 //! | `DELETE /v1/assets/{id}/service` | withdraws the pending service (the API baseline before it applies again) |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
@@ -518,6 +518,13 @@ async fn set_baseline(
     baseline: Option<StoredBaseline>,
 ) -> Result<(), Response> {
     if let Some(group) = &app.group {
+        // A baseline given outright supersedes a service still to be read.
+        if baseline.is_some() && app.baselines.service(id).is_some() {
+            group.write_service(id, None).await.map_err(|e| {
+                tracing::error!("{e}");
+                error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
+            })?;
+        }
         return group.write(id, baseline).await.map_err(|e| {
             tracing::error!("{e}");
             error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
@@ -532,7 +539,7 @@ async fn set_baseline(
     blocking(app, move |store| {
         // A baseline given outright supersedes a service still to be read.
         if baseline.is_some() && baselines.service(&asset).is_some() {
-            baselines.set_service(store, &trends, &asset, None)?;
+            baselines.set_service(Some(store), &trends, &asset, None)?;
         }
         baselines.set(Some(store), &trends, &asset, baseline)?;
         trends.refresh(store, &config, &metrics, &asset);
@@ -622,19 +629,17 @@ async fn put_service(
         }
         Some(Err(e)) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: at: {e}")),
     };
-    if app.group.is_some() {
-        return error(
-            StatusCode::CONFLICT,
-            "in a NATS group the daemon does not read a service's baseline (not yet): read it \
-             with `python -m train.observer baseline` and PUT it to …/baseline",
-        );
-    }
     let probe = dt_core::charge::UnitBaseline {
         charge_bar,
         read_bar: charge_bar,
         read_sd_bar: 1.0,
     };
-    if let Some(why) = refuse_baseline(app.model.as_ref(), &app.config, &id, probe) {
+    // A fleet view of a NATS group runs no model: the workers read the service.
+    let checkable = app.model.is_some() || app.group.is_none();
+    if let Some(why) = checkable
+        .then(|| refuse_baseline(app.model.as_ref(), &app.config, &id, probe))
+        .flatten()
+    {
         return error(StatusCode::CONFLICT, why);
     }
     let service = PendingService {
@@ -664,12 +669,20 @@ async fn delete_service(State(app): State<AppState>, Path(id): Path<String>) -> 
     Json(serde_json::json!({ "baseline": app.baselines.view(&app.config, &id) })).into_response()
 }
 
-/// Keeps or withdraws the asset's pending service, then recomputes its trend.
+/// Keeps or withdraws the asset's pending service, then recomputes its
+/// trend; in a NATS group, writes it to the group's service bucket instead
+/// (this daemon's watcher then applies it like every other daemon's).
 async fn set_service(
     app: &AppState,
     id: &str,
     service: Option<PendingService>,
 ) -> Result<(), Response> {
+    if let Some(group) = &app.group {
+        return group.write_service(id, service).await.map_err(|e| {
+            tracing::error!("{e}");
+            error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
+        });
+    }
     let (baselines, trends) = (Arc::clone(&app.baselines), Arc::clone(&app.trends));
     let (config, metrics, asset) = (
         Arc::clone(&app.config),
@@ -677,7 +690,7 @@ async fn set_service(
         id.to_owned(),
     );
     blocking(app, move |store| {
-        baselines.set_service(store, &trends, &asset, service)?;
+        baselines.set_service(Some(store), &trends, &asset, service)?;
         trends.refresh(store, &config, &metrics, &asset);
         Ok(())
     })
