@@ -37,7 +37,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::charge::{ObserverParams, UnitBaseline};
+use crate::charge::{ChargeObserver, ObserverParams, UnitBaseline};
+use crate::estimate::Estimate;
+use crate::estimator::Estimator;
+use crate::features::col;
 
 /// A reading must have taught the observer something: its own sd (without
 /// the systematic part) at most this share of the prior's.
@@ -155,6 +158,23 @@ impl ServiceReading {
     /// of its own ([`crate::charge::ChargeObserver::used_own`]).
     pub fn note_own(&mut self, used_own: bool) {
         self.own |= used_own;
+    }
+
+    /// Drains the estimator's completed ticks into `out`, reading each (the
+    /// estimator's excitation threshold decides `excited`).
+    pub fn drain_from(&mut self, est: &mut Estimator, out: &mut Vec<Estimate>) {
+        let min_excitation = est.config().health.min_excitation_mps;
+        for tick in est.drain_ticks() {
+            let row = &tick.row;
+            self.push(
+                row.t_ns,
+                row.twin.velocity_rms_1s_mps >= min_excitation,
+                row.values[col::OBSERVER_BAR],
+                row.values[col::OBSERVER_SD_BAR],
+            );
+            out.push(tick.estimate);
+        }
+        self.note_own(est.observer().is_some_and(ChargeObserver::used_own));
     }
 
     /// The unit's baseline at `charge_bar`, or why this run gives none.

@@ -42,10 +42,8 @@ use std::sync::Arc;
 
 use async_nats::jetstream::{self, consumer, kv, message::PublishMessage as Publish};
 use bytes::Bytes;
-use dt_core::charge::ChargeObserver;
 use dt_core::estimate::{Estimate, Health};
 use dt_core::estimator::Estimator;
-use dt_core::features::col;
 use dt_core::service::ServiceReading;
 use futures_util::future::BoxFuture;
 use futures_util::StreamExt;
@@ -57,10 +55,10 @@ use super::{
     checkpoint_bucket, connect, ensure_topology, lease_bucket, NatsConfig, NatsError, RENEW_EVERY,
     TELEMETRY_STREAM,
 };
+use crate::server::baselines::recorded_before;
 use crate::server::config::{Config, ServiceToRead};
 use crate::server::metrics::Metrics;
 use crate::server::source::{Source, SourceContext};
-use crate::server::store::{rfc3339_ms, CalendarClock};
 use crate::server::{EstimatorFactory, ServeError};
 
 /// Version of the partition checkpoint encoding.
@@ -380,22 +378,10 @@ impl OpenRun {
     /// Appends the estimates completed so far to `out`, feeding the
     /// service's reading with their ticks.
     fn drain_into(&mut self, out: &mut Vec<Estimate>) {
-        let Some((_, reading)) = self.service.as_mut() else {
-            out.extend(self.est.drain());
-            return;
-        };
-        let min_excitation = self.est.config().health.min_excitation_mps;
-        for tick in self.est.drain_ticks() {
-            let row = &tick.row;
-            reading.push(
-                row.t_ns,
-                row.twin.velocity_rms_1s_mps >= min_excitation,
-                row.values[col::OBSERVER_BAR],
-                row.values[col::OBSERVER_SD_BAR],
-            );
-            out.push(tick.estimate);
+        match self.service.as_mut() {
+            Some((_, reading)) => reading.drain_from(&mut self.est, out),
+            None => out.extend(self.est.drain()),
         }
-        reading.note_own(self.est.observer().is_some_and(ChargeObserver::used_own));
     }
 }
 
@@ -781,18 +767,13 @@ impl Partition {
         let Some(params) = open.est.bundle().physics().observer else {
             return;
         };
-        let start_ms = open
-            .first_t_ns
-            .map(|t| CalendarClock::new(t, std::time::SystemTime::now()).ms(t));
-        let read = match start_ms {
-            Some(t) if t < service.set_ms => Err(format!(
-                "run `{}` was recorded at {}, before the service at {}: it does not show the \
-                 unit at the service's charge",
-                open.run_id,
-                rfc3339_ms(t),
-                rfc3339_ms(service.set_ms)
-            )),
-            _ => reading
+        // The run's processing start is not kept across a failover: now
+        // stands for it (it matters only to a run whose clock is not
+        // calendar time).
+        let started = std::time::SystemTime::now();
+        let read = match recorded_before(&open.run_id, open.first_t_ns, started, service) {
+            Some(why) => Err(why),
+            None => reading
                 .finish(service.charge_bar, &params)
                 .map(|r| r.baseline)
                 .map_err(|why| format!("run `{}`: {why}", open.run_id)),

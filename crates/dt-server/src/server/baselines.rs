@@ -36,7 +36,9 @@ use dt_core::charge::UnitBaseline;
 use serde::Serialize;
 
 use super::config::{AssetConfig, Config, ServiceToRead};
-use super::store::{rfc3339_ms, FleetStore, PendingService, StoreError, StoredBaseline, Trends};
+use super::store::{
+    rfc3339_ms, CalendarClock, FleetStore, PendingService, StoreError, StoredBaseline, Trends,
+};
 
 /// Where an asset's baseline comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -120,6 +122,29 @@ pub enum ServiceOutcome {
     StillPending,
     /// The service the run read for was replaced or withdrawn meanwhile.
     Superseded,
+}
+
+/// Why a run whose first sample is at `first_t_ns` (started processing at
+/// `started`) cannot be read for `service`: it was recorded before the
+/// service (a backlog uploaded late), as the store places it in calendar
+/// time ([`CalendarClock`]); `None` when it can.
+#[must_use]
+pub fn recorded_before(
+    run_id: &str,
+    first_t_ns: Option<i64>,
+    started: std::time::SystemTime,
+    service: ServiceToRead,
+) -> Option<String> {
+    let t = first_t_ns?;
+    let start_ms = CalendarClock::new(t, started).ms(t);
+    (start_ms < service.set_ms).then(|| {
+        format!(
+            "run `{run_id}` was recorded at {}, before the service at {}: it does not show the \
+             unit at the service's charge",
+            rfc3339_ms(start_ms),
+            rfc3339_ms(service.set_ms)
+        )
+    })
 }
 
 /// The baselines set over the API and the pending services, by asset (a

@@ -10,10 +10,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use dt_core::bundle::Bundle;
-use dt_core::charge::{ChargeObserver, UnitBaseline};
+use dt_core::charge::UnitBaseline;
 use dt_core::estimate::Estimate;
 use dt_core::estimator::{Estimator, EstimatorConfig};
-use dt_core::features::col;
 use dt_core::log::{RunMetadata, Sample};
 use dt_core::service::ServiceReading;
 
@@ -94,22 +93,10 @@ pub struct EstimatorTwin {
 
 impl EstimatorTwin {
     fn drain_into(&mut self, out: &mut Vec<Estimate>) {
-        let Some((_, reading)) = self.service.as_mut() else {
-            out.extend(self.est.drain());
-            return;
-        };
-        let min_excitation = self.est.config().health.min_excitation_mps;
-        for tick in self.est.drain_ticks() {
-            let row = &tick.row;
-            reading.push(
-                row.t_ns,
-                row.twin.velocity_rms_1s_mps >= min_excitation,
-                row.values[col::OBSERVER_BAR],
-                row.values[col::OBSERVER_SD_BAR],
-            );
-            out.push(tick.estimate);
+        match self.service.as_mut() {
+            Some((_, reading)) => reading.drain_from(&mut self.est, out),
+            None => out.extend(self.est.drain()),
         }
-        reading.note_own(self.est.observer().is_some_and(ChargeObserver::used_own));
     }
 }
 

@@ -18,11 +18,11 @@ use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 
-use super::baselines::{Baselines, ServiceOutcome};
+use super::baselines::{recorded_before, Baselines, ServiceOutcome};
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
-use super::store::{rfc3339_ms, CalendarClock, FleetStore};
+use super::store::FleetStore;
 use super::twin::{AssetTwin, TwinError, TwinFactory};
 
 /// Bytes read from a stream at a time.
@@ -561,13 +561,7 @@ impl RunHandle {
             result.is_ok() && matches!(outcome, RunOutcome::Completed),
             read,
         ) {
-            // The run's calendar start, as the store places it: a log
-            // recorded before the service (a backlog uploaded late) does not
-            // show the unit at the service's charge.
-            let start_ms = self
-                .first_t_ns
-                .map(|t| CalendarClock::new(t, self.info.started).ms(t));
-            complete_service(&self.ingest, &self.info, start_ms, read).await;
+            complete_service(&self.ingest, &self.info, self.first_t_ns, read).await;
         }
         (outcome, self.samples, self.ticks, result)
     }
@@ -580,21 +574,16 @@ impl RunHandle {
 async fn complete_service(
     ingest: &Ingest,
     info: &RunInfo,
-    start_ms: Option<i64>,
+    first_t_ns: Option<i64>,
     read: Result<dt_core::charge::UnitBaseline, String>,
 ) {
     let (Some(service), Some(store)) = (info.asset.read_service, ingest.inner.store.clone()) else {
         return;
     };
-    let read = match start_ms {
-        Some(t) if t < service.set_ms => Err(format!(
-            "run `{}` was recorded at {}, before the service at {}: it does not show the unit \
-             at the service's charge",
-            info.meta.run_id,
-            rfc3339_ms(t),
-            rfc3339_ms(service.set_ms)
-        )),
-        _ => read.map_err(|why| format!("run `{}`: {why}", info.meta.run_id)),
+    let run_id = &info.meta.run_id;
+    let read = match recorded_before(run_id, first_t_ns, info.started, service) {
+        Some(why) => Err(why),
+        None => read.map_err(|why| format!("run `{run_id}`: {why}")),
     };
     let baselines = Arc::clone(&ingest.inner.baselines);
     let asset = info.meta.asset_id.clone();
