@@ -424,6 +424,18 @@ def wait_ended_tls(server: NatsServer, ca_pem: Path, assets: set[str], timeout_s
         time.sleep(1.0)
 
 
+def put_once_joined(url: str, body: dict[str, Any]) -> Any:
+    """`PUT url` once the daemon has joined the NATS group (it answers 503 until then)."""
+    import httpx
+
+    deadline = time.monotonic() + 20
+    while True:
+        r = httpx.put(url, json=body, timeout=10)
+        if r.status_code != 503 or time.monotonic() > deadline:
+            return r
+        time.sleep(0.3)
+
+
 def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
         shocktwin_bin: Path, nats_server: NatsServer, calibrated_campaign: tuple[Path, Path],
         tmp_path: Path) -> None:
@@ -463,12 +475,7 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
         def baseline_on(d: ServeProcess) -> int:
             return httpx.get(f"http://{d.http}/v1/assets/veh-b0/baseline", timeout=5).status_code
 
-        deadline = time.monotonic() + 20
-        while True:  # until the fleet view has joined the group
-            r = httpx.put(f"http://{view.http}/v1/assets/veh-b0/baseline", json=doc, timeout=10)
-            if r.status_code != 503 or time.monotonic() > deadline:
-                break
-            time.sleep(0.3)
+        r = put_once_joined(f"http://{view.http}/v1/assets/veh-b0/baseline", doc)
         assert r.status_code == 200 and r.json()["source"] == "api", r.text
         deadline = time.monotonic() + 20
         while baseline_on(w) != 200 and time.monotonic() < deadline:
@@ -521,12 +528,7 @@ def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
             return httpx.get(f"http://{d.http}/v1/assets/veh-s0/{what}", timeout=5).status_code
 
         body = {"charge_bar": 12.0, "at": "2023-11-01T00:00:00Z"}  # before the simulated run's clock
-        deadline = time.monotonic() + 20
-        while True:  # until the fleet view has joined the group
-            r = httpx.put(f"http://{view.http}/v1/assets/veh-s0/service", json=body, timeout=10)
-            if r.status_code != 503 or time.monotonic() > deadline:
-                break
-            time.sleep(0.3)
+        r = put_once_joined(f"http://{view.http}/v1/assets/veh-s0/service", body)
         assert r.status_code == 202 and r.json()["state"] == "pending", r.text
         deadline = time.monotonic() + 20
         while status(w, "service") != 200 and time.monotonic() < deadline:

@@ -236,6 +236,12 @@ pub async fn complete_service(
     Ok(true)
 }
 
+/// One value of either bucket, parsed.
+enum UnitChange {
+    Baseline(Option<StoredBaseline>),
+    Service(Option<PendingService>),
+}
+
 /// The watcher, a [`Source`] of every daemon of a NATS group.
 pub struct NatsBaselines {
     cfg: NatsConfig,
@@ -268,57 +274,57 @@ impl NatsBaselines {
         let js = jetstream::new(client);
         let (kv, services) = (baseline_bucket(&js).await?, service_bucket(&js).await?);
         let config = Arc::new(ctx.ingest.config().clone());
-        let apply_baseline = |key: String, value: Option<&[u8]>| {
-            let baseline = match value.map(|v| {
-                serde_json::from_slice::<BaselineEntry>(v)
-                    .map_err(|e| e.to_string())
-                    .and_then(BaselineEntry::stored)
-            }) {
-                Some(Err(e)) => return Err(format!("not a unit baseline ({e})")),
-                Some(Ok(b)) => Some(b),
-                None => None,
-            };
+        // The work that applies one value on a blocking thread: `change` on
+        // the daemon's copy and store, then the asset's trend.
+        let work = |key: String, change: UnitChange| {
             let (baselines, store, trends) = (
                 Arc::clone(ctx.ingest.baselines()),
                 self.store.clone(),
                 Arc::clone(&self.trends),
             );
             let (config, ingest) = (Arc::clone(&config), ctx.ingest.clone());
-            Ok(move || {
-                baselines.set(store.as_deref(), &trends, &key, baseline)?;
+            move || {
+                let what = match change {
+                    UnitChange::Baseline(b) => {
+                        baselines.set(store.as_deref(), &trends, &key, b)?;
+                        format!(
+                            "unit baseline from the group (set: {}); used from the asset's next run",
+                            b.is_some()
+                        )
+                    }
+                    UnitChange::Service(s) => {
+                        let pending = s.is_some();
+                        baselines.set_service(store.as_deref(), &trends, &key, s)?;
+                        format!("service from the group (pending: {pending})")
+                    }
+                };
                 if let Some(store) = &store {
                     trends.refresh(store.as_ref(), &config, ingest.metrics(), &key);
                 }
-                Ok(format!(
-                    "unit baseline from the group (set: {}); used from the asset's next run",
-                    baseline.is_some()
-                ))
-            })
+                Ok(what)
+            }
+        };
+        let apply_baseline = |key: String, value: Option<&[u8]>| {
+            let b = value
+                .map(|v| {
+                    serde_json::from_slice::<BaselineEntry>(v)
+                        .map_err(|e| e.to_string())
+                        .and_then(BaselineEntry::stored)
+                        .map_err(|e| format!("not a unit baseline ({e})"))
+                })
+                .transpose()?;
+            Ok(work(key, UnitChange::Baseline(b)))
         };
         let apply_service = |key: String, value: Option<&[u8]>| {
-            let service = match value.map(|v| {
-                serde_json::from_slice::<ServiceEntry>(v)
-                    .map_err(|e| e.to_string())
-                    .and_then(ServiceEntry::pending)
-            }) {
-                Some(Err(e)) => return Err(format!("not a service ({e})")),
-                Some(Ok(s)) => Some(s),
-                None => None,
-            };
-            let (baselines, store, trends) = (
-                Arc::clone(ctx.ingest.baselines()),
-                self.store.clone(),
-                Arc::clone(&self.trends),
-            );
-            let (config, ingest) = (Arc::clone(&config), ctx.ingest.clone());
-            Ok(move || {
-                let pending = service.is_some();
-                baselines.set_service(store.as_deref(), &trends, &key, service)?;
-                if let Some(store) = &store {
-                    trends.refresh(store.as_ref(), &config, ingest.metrics(), &key);
-                }
-                Ok(format!("service from the group (pending: {pending})"))
-            })
+            let s = value
+                .map(|v| {
+                    serde_json::from_slice::<ServiceEntry>(v)
+                        .map_err(|e| e.to_string())
+                        .and_then(ServiceEntry::pending)
+                        .map_err(|e| format!("not a service ({e})"))
+                })
+                .transpose()?;
+            Ok(work(key, UnitChange::Service(s)))
         };
         // A second connection of the same daemon cannot have set them first.
         let _ = self.bucket.0.set(kv.clone());

@@ -501,51 +501,12 @@ async fn put_baseline(
     }
     let set_ms = now_ms();
     let stored = StoredBaseline { baseline, set_ms };
-    if let Err(r) = set_baseline(&app, &id, Some(stored)).await {
+    if let Err(r) = change_unit(&app, &id, UnitChange::Baseline(Some(stored))).await {
         return r;
     }
     tracing::info!(asset = %id, charge_bar = baseline.charge_bar, read_bar = baseline.read_bar,
         read_sd_bar = baseline.read_sd_bar, "unit baseline set; used from the asset's next run");
     Json(BaselineView::api(baseline, set_ms)).into_response()
-}
-
-/// Keeps or forgets the asset's API baseline, then recomputes its trend; in
-/// a NATS group, writes it to the group's bucket instead (this daemon's
-/// watcher then applies it like every other daemon's).
-async fn set_baseline(
-    app: &AppState,
-    id: &str,
-    baseline: Option<StoredBaseline>,
-) -> Result<(), Response> {
-    if let Some(group) = &app.group {
-        // A baseline given outright supersedes a service still to be read.
-        if baseline.is_some() && app.baselines.service(id).is_some() {
-            group.write_service(id, None).await.map_err(|e| {
-                tracing::error!("{e}");
-                error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
-            })?;
-        }
-        return group.write(id, baseline).await.map_err(|e| {
-            tracing::error!("{e}");
-            error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
-        });
-    }
-    let (baselines, trends) = (Arc::clone(&app.baselines), Arc::clone(&app.trends));
-    let (config, metrics, asset) = (
-        Arc::clone(&app.config),
-        Arc::clone(&app.metrics),
-        id.to_owned(),
-    );
-    blocking(app, move |store| {
-        // A baseline given outright supersedes a service still to be read.
-        if baseline.is_some() && baselines.service(&asset).is_some() {
-            baselines.set_service(Some(store), &trends, &asset, None)?;
-        }
-        baselines.set(Some(store), &trends, &asset, baseline)?;
-        trends.refresh(store, &config, &metrics, &asset);
-        Ok(())
-    })
-    .await
 }
 
 async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) -> Response {
@@ -555,7 +516,7 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
             format!("asset `{id}` has no baseline set over the API"),
         );
     }
-    if let Err(r) = set_baseline(&app, &id, None).await {
+    if let Err(r) = change_unit(&app, &id, UnitChange::Baseline(None)).await {
         return r;
     }
     tracing::info!(asset = %id, "unit baseline removed; used from the asset's next run");
@@ -648,7 +609,7 @@ async fn put_service(
         refusal: None,
     };
     let view = ServiceView::from(&service);
-    if let Err(r) = set_service(&app, &id, Some(service)).await {
+    if let Err(r) = change_unit(&app, &id, UnitChange::Service(Some(service))).await {
         return r;
     }
     tracing::info!(asset = %id, charge_bar, "service reported; the unit's baseline is read from its next run");
@@ -662,26 +623,42 @@ async fn delete_service(State(app): State<AppState>, Path(id): Path<String>) -> 
             format!("asset `{id}` has no pending service"),
         );
     }
-    if let Err(r) = set_service(&app, &id, None).await {
+    if let Err(r) = change_unit(&app, &id, UnitChange::Service(None)).await {
         return r;
     }
     tracing::info!(asset = %id, "pending service withdrawn");
     Json(serde_json::json!({ "baseline": app.baselines.view(&app.config, &id) })).into_response()
 }
 
-/// Keeps or withdraws the asset's pending service, then recomputes its
-/// trend; in a NATS group, writes it to the group's service bucket instead
-/// (this daemon's watcher then applies it like every other daemon's).
-async fn set_service(
-    app: &AppState,
-    id: &str,
-    service: Option<PendingService>,
-) -> Result<(), Response> {
+/// A change to an asset's unit baseline or pending service over the API.
+enum UnitChange {
+    /// Keep (`Some`) or forget (`None`) the API baseline; one given outright
+    /// supersedes a service still to be read.
+    Baseline(Option<StoredBaseline>),
+    /// Report (`Some`) or withdraw (`None`) a service.
+    Service(Option<PendingService>),
+}
+
+/// Applies `change` to the store and this daemon's copy, then recomputes
+/// the asset's trend; in a NATS group, writes it to the group's buckets
+/// instead (this daemon's watcher then applies it like every other
+/// daemon's).
+async fn change_unit(app: &AppState, id: &str, change: UnitChange) -> Result<(), Response> {
+    let supersedes =
+        matches!(change, UnitChange::Baseline(Some(_))) && app.baselines.service(id).is_some();
     if let Some(group) = &app.group {
-        return group.write_service(id, service).await.map_err(|e| {
+        let unavailable = |e: crate::nats::NatsError| {
             tracing::error!("{e}");
             error(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
-        });
+        };
+        if supersedes {
+            group.write_service(id, None).await.map_err(unavailable)?;
+        }
+        return match change {
+            UnitChange::Baseline(b) => group.write(id, b).await,
+            UnitChange::Service(s) => group.write_service(id, s).await,
+        }
+        .map_err(unavailable);
     }
     let (baselines, trends) = (Arc::clone(&app.baselines), Arc::clone(&app.trends));
     let (config, metrics, asset) = (
@@ -690,7 +667,13 @@ async fn set_service(
         id.to_owned(),
     );
     blocking(app, move |store| {
-        baselines.set_service(Some(store), &trends, &asset, service)?;
+        if supersedes {
+            baselines.set_service(Some(store), &trends, &asset, None)?;
+        }
+        match change {
+            UnitChange::Baseline(b) => baselines.set(Some(store), &trends, &asset, b)?,
+            UnitChange::Service(s) => baselines.set_service(Some(store), &trends, &asset, s)?,
+        }
         trends.refresh(store, &config, &metrics, &asset);
         Ok(())
     })

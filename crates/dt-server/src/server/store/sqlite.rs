@@ -94,6 +94,33 @@ pub struct SqliteStore {
     reader: Mutex<Connection>,
 }
 
+/// Keeps `b` as `asset_id`'s baseline within `tx` (the asset made known).
+fn put_baseline(
+    tx: &rusqlite::Transaction<'_>,
+    asset_id: &str,
+    b: &StoredBaseline,
+) -> rusqlite::Result<()> {
+    tx.execute(
+        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
+        [asset_id],
+    )?;
+    tx.execute(
+        &format!(
+            "INSERT OR REPLACE INTO baselines \
+             (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
+             VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+        ),
+        params![
+            asset_id,
+            b.baseline.charge_bar,
+            b.baseline.read_bar,
+            b.baseline.read_sd_bar,
+            b.set_ms
+        ],
+    )?;
+    Ok(())
+}
+
 fn finite(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
 }
@@ -475,26 +502,7 @@ impl FleetStore for SqliteStore {
         self.with_writer(|c| {
             let tx = c.transaction()?;
             match baseline {
-                Some(b) => {
-                    tx.execute(
-                        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
-                        [asset_id],
-                    )?;
-                    tx.execute(
-                        &format!(
-                            "INSERT OR REPLACE INTO baselines \
-                             (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
-                             VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
-                        ),
-                        params![
-                            asset_id,
-                            b.baseline.charge_bar,
-                            b.baseline.read_bar,
-                            b.baseline.read_sd_bar,
-                            b.set_ms
-                        ],
-                    )?;
-                }
+                Some(b) => put_baseline(&tx, asset_id, b)?,
                 None => {
                     tx.execute(
                         &format!("DELETE FROM baselines WHERE asset = {ASSET}"),
@@ -584,24 +592,7 @@ impl FleetStore for SqliteStore {
     fn complete_service(&self, asset_id: &str, b: &StoredBaseline) -> Result<(), StoreError> {
         self.with_writer(|c| {
             let tx = c.transaction()?;
-            tx.execute(
-                "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
-                [asset_id],
-            )?;
-            tx.execute(
-                &format!(
-                    "INSERT OR REPLACE INTO baselines \
-                     (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
-                     VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
-                ),
-                params![
-                    asset_id,
-                    b.baseline.charge_bar,
-                    b.baseline.read_bar,
-                    b.baseline.read_sd_bar,
-                    b.set_ms
-                ],
-            )?;
+            put_baseline(&tx, asset_id, b)?;
             tx.execute(
                 &format!("DELETE FROM services WHERE asset = {ASSET}"),
                 [asset_id],
