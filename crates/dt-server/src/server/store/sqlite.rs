@@ -94,16 +94,31 @@ pub struct SqliteStore {
     reader: Mutex<Connection>,
 }
 
+/// Makes `asset_id` known to the store within `tx`.
+fn know_asset(tx: &rusqlite::Transaction<'_>, asset_id: &str) -> rusqlite::Result<()> {
+    tx.execute(
+        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
+        [asset_id],
+    )
+    .map(drop)
+}
+
+/// Deletes `asset_id`'s row of `table` (`baselines` or `services`) within `tx`.
+fn forget(tx: &rusqlite::Transaction<'_>, table: &str, asset_id: &str) -> rusqlite::Result<()> {
+    tx.execute(
+        &format!("DELETE FROM {table} WHERE asset = {ASSET}"),
+        [asset_id],
+    )
+    .map(drop)
+}
+
 /// Keeps `b` as `asset_id`'s baseline within `tx` (the asset made known).
 fn put_baseline(
     tx: &rusqlite::Transaction<'_>,
     asset_id: &str,
     b: &StoredBaseline,
 ) -> rusqlite::Result<()> {
-    tx.execute(
-        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
-        [asset_id],
-    )?;
+    know_asset(tx, asset_id)?;
     tx.execute(
         &format!(
             "INSERT OR REPLACE INTO baselines \
@@ -503,12 +518,7 @@ impl FleetStore for SqliteStore {
             let tx = c.transaction()?;
             match baseline {
                 Some(b) => put_baseline(&tx, asset_id, b)?,
-                None => {
-                    tx.execute(
-                        &format!("DELETE FROM baselines WHERE asset = {ASSET}"),
-                        [asset_id],
-                    )?;
-                }
+                None => forget(&tx, "baselines", asset_id)?,
             }
             tx.commit()
         })
@@ -546,10 +556,7 @@ impl FleetStore for SqliteStore {
             let tx = c.transaction()?;
             match service {
                 Some(s) => {
-                    tx.execute(
-                        "INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)",
-                        [asset_id],
-                    )?;
+                    know_asset(&tx, asset_id)?;
                     tx.execute(
                         &format!(
                             "INSERT OR REPLACE INTO services (asset, charge_bar, set_ms, refusal) \
@@ -558,12 +565,7 @@ impl FleetStore for SqliteStore {
                         params![asset_id, s.charge_bar, s.set_ms, s.refusal],
                     )?;
                 }
-                None => {
-                    tx.execute(
-                        &format!("DELETE FROM services WHERE asset = {ASSET}"),
-                        [asset_id],
-                    )?;
-                }
+                None => forget(&tx, "services", asset_id)?,
             }
             tx.commit()
         })
@@ -593,10 +595,7 @@ impl FleetStore for SqliteStore {
         self.with_writer(|c| {
             let tx = c.transaction()?;
             put_baseline(&tx, asset_id, b)?;
-            tx.execute(
-                &format!("DELETE FROM services WHERE asset = {ASSET}"),
-                [asset_id],
-            )?;
+            forget(&tx, "services", asset_id)?;
             tx.commit()
         })
     }
