@@ -441,6 +441,30 @@ async fn get_baseline(State(app): State<AppState>, Path(id): Path<String>) -> Re
     }
 }
 
+/// `400` for an asset id outside SPEC §2's charset.
+fn bad_asset_id(id: &str) -> Option<Response> {
+    (!dt_core::log::is_valid_id(id)).then(|| {
+        error(
+            StatusCode::BAD_REQUEST,
+            format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
+        )
+    })
+}
+
+/// `409` when this daemon's model cannot take `baseline` for `id`. A fleet
+/// view of a NATS group runs no model: the workers check it when they use it.
+fn refuse_here(
+    app: &AppState,
+    id: &str,
+    baseline: dt_core::charge::UnitBaseline,
+) -> Option<Response> {
+    let checkable = app.model.is_some() || app.group.is_none();
+    checkable
+        .then(|| refuse_baseline(app.model.as_ref(), &app.config, id, baseline))
+        .flatten()
+        .map(|why| error(StatusCode::CONFLICT, why))
+}
+
 /// Why `model` cannot take `baseline` for `id`, if it cannot.
 fn refuse_baseline(
     model: Option<&EstimatorFactory>,
@@ -477,11 +501,8 @@ async fn put_baseline(
     Path(id): Path<String>,
     body: axum::body::Bytes,
 ) -> Response {
-    if !dt_core::log::is_valid_id(&id) {
-        return error(
-            StatusCode::BAD_REQUEST,
-            format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
-        );
+    if let Some(r) = bad_asset_id(&id) {
+        return r;
     }
     let doc: serde_json::Value = match serde_json::from_slice(&body) {
         Ok(v) => v,
@@ -491,13 +512,8 @@ async fn put_baseline(
         Ok(b) => b,
         Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
     };
-    // A fleet view of a NATS group runs no model: the workers check it when they use it.
-    let checkable = app.model.is_some() || app.group.is_none();
-    if let Some(why) = checkable
-        .then(|| refuse_baseline(app.model.as_ref(), &app.config, &id, baseline))
-        .flatten()
-    {
-        return error(StatusCode::CONFLICT, why);
+    if let Some(r) = refuse_here(&app, &id, baseline) {
+        return r;
     }
     let set_ms = now_ms();
     let stored = StoredBaseline { baseline, set_ms };
@@ -551,11 +567,8 @@ async fn put_service(
     Path(id): Path<String>,
     body: axum::body::Bytes,
 ) -> Response {
-    if !dt_core::log::is_valid_id(&id) {
-        return error(
-            StatusCode::BAD_REQUEST,
-            format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
-        );
+    if let Some(r) = bad_asset_id(&id) {
+        return r;
     }
     let (charge_bar, at) = match serde_json::from_slice::<ServiceBody>(&body) {
         Ok(b) if b.charge_bar.is_finite() && b.charge_bar >= 0.0 => (b.charge_bar, b.at),
@@ -595,13 +608,8 @@ async fn put_service(
         read_bar: charge_bar,
         read_sd_bar: 1.0,
     };
-    // A fleet view of a NATS group runs no model: the workers read the service.
-    let checkable = app.model.is_some() || app.group.is_none();
-    if let Some(why) = checkable
-        .then(|| refuse_baseline(app.model.as_ref(), &app.config, &id, probe))
-        .flatten()
-    {
-        return error(StatusCode::CONFLICT, why);
+    if let Some(r) = refuse_here(&app, &id, probe) {
+        return r;
     }
     let service = PendingService {
         charge_bar,
