@@ -228,6 +228,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     if not physics.get("observer"):
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    if getattr(args, "fit_gain_floor", None) is not None:
+        physics["observer"]["fit_gain_floor"] = float(args.fit_gain_floor)
     sets = {}
     for spec in args.sets:
         name, _, d = spec.partition("=")

@@ -321,6 +321,29 @@ pub struct ObserverParams {
     pub prior_sd_bar: f64,
     /// Random-walk intensity of the charge, bar²/s.
     pub random_walk_bar2_per_s: f64,
+    /// `g`, the evidence a window fit must be able to bring: a reversal's
+    /// window is fitted only when one more reading could shrink the
+    /// reported variance of the charge by at least `g V_s`, where `V_s` is
+    /// its systematic part (`systematic_sd_bar² + (systematic_rel p̂)²`, or
+    /// what a [`UnitBaseline`] leaves of it) — by
+    /// `P K b` in the filter's own variance (`K = P b / (b² P + σ_α²)`,
+    /// `P` grown by the random walk to the reversal) and by `B² − ((1 − K b) B)²`
+    /// in the cold bias it carries (with [`stroke_ends`](Self::stroke_ends),
+    /// the end's share of both). Otherwise the reversal is spared
+    /// ([`ObserverCounters::spared`]): nothing is fitted and the state does
+    /// not move. The window fit is nearly all of the observer's cost, and
+    /// once the reversals have taught the filter what the systematic part
+    /// lets them teach, a further fit narrows the interval by almost
+    /// nothing; the random walk then grows `P` until a fit is worth it
+    /// again, so the estimate still follows a leak. Decided from the state
+    /// before the reversal only (causal, deterministic: streaming = batch
+    /// still holds). Reversals at an excitation with a model of its own
+    /// ([`ExcitationModel::own`]) are always fitted (their windows also
+    /// decide whether an end is silent). 0 (the default, and what a physics
+    /// file written before this field means): every reversal is fitted;
+    /// `python -m train.observer fit` writes `--fit-gain-floor`.
+    #[serde(default)]
+    pub fit_gain_floor: f64,
     /// Smallest `|ÿ|` at a reversal that counts, m/s².
     pub min_reversal_accel_mps2: f64,
     /// Reversal accelerations `|ÿ_r|` the measurement model was calibrated
@@ -1159,6 +1182,7 @@ impl Default for ObserverParams {
             prior_mean_bar: 6.0,
             prior_sd_bar: 6.0,
             random_walk_bar2_per_s: 1.0e-4,
+            fit_gain_floor: 0.0,
             min_reversal_accel_mps2: 0.5,
             reversal_band_mps: 0.01,
             accel_clusters_mps2: [0.0; 4],
@@ -1336,6 +1360,18 @@ impl ObserverParams {
         })
     }
 
+    /// `fit_gain_floor` below 1 (its sign is checked with the others).
+    fn check_fit_gain_floor(&self) -> Result<(), PhysicsError> {
+        if self.fit_gain_floor >= 1.0 {
+            return Err(PhysicsError::InvalidParameter {
+                name: "observer.fit_gain_floor",
+                value: self.fit_gain_floor,
+                reason: "must be below 1 (one reading cannot shrink the variance by all of it)",
+            });
+        }
+        Ok(())
+    }
+
     /// Checks every parameter; the error names the first bad one.
     pub fn validate(&self) -> Result<(), PhysicsError> {
         for (name, value) in [
@@ -1373,6 +1409,7 @@ impl ObserverParams {
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             ("observer.single_end_sd_bar", self.single_end_sd_bar),
             ("observer.scale_prior_sd", self.scale_prior_sd),
+            ("observer.fit_gain_floor", self.fit_gain_floor),
             (
                 "observer.random_walk_bar2_per_s",
                 self.random_walk_bar2_per_s,
@@ -1417,6 +1454,7 @@ impl ObserverParams {
                 });
             }
         }
+        self.check_fit_gain_floor()?;
         if let Some(x) = &self.excitations {
             x.validate(&self.accel_clusters_mps2)?;
         }
@@ -1521,6 +1559,19 @@ pub struct ObserverCounters {
     /// Times the variance was reset after [`REACQUIRE_AFTER`] consecutive
     /// rejections.
     pub reacquired: u64,
+    /// Reversals not fitted because one more reading could not narrow the
+    /// interval enough ([`ObserverParams::fit_gain_floor`]).
+    #[serde(default)]
+    pub spared: u64,
+}
+
+/// What became of a reversal's window.
+enum Window {
+    Fitted(Reversal),
+    /// Taken, but no fit passed: the reversal's `ÿ_r`.
+    Failed(f64),
+    Spared,
+    NoCandidate,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize)]
@@ -1745,15 +1796,64 @@ impl ChargeObserver {
 
     fn fit(&mut self, pending: Pending) {
         match self.fit_window(pending) {
-            Some(Ok(rev)) => {
+            Window::Fitted(rev) => {
                 self.note_window(rev.accel_mps2, true);
                 self.update(rev);
             }
-            Some(Err(accel)) => {
+            Window::Failed(accel) => {
                 self.note_window(accel, false);
                 self.counters.skipped += 1;
             }
-            None => self.counters.skipped += 1,
+            Window::Spared => self.counters.spared += 1,
+            Window::NoCandidate => self.counters.skipped += 1,
+        }
+    }
+
+    /// Whether a reversal at `t_ns`, extension `y_m` and velocity slope
+    /// `accel` is spared: one more reading could shrink the reported
+    /// variance by less than [`ObserverParams::fit_gain_floor`] of its
+    /// systematic part.
+    fn spare(&self, t_ns: i64, y_m: f64, accel: f64) -> bool {
+        let floor = self.p.fit_gain_floor;
+        if floor <= 0.0 || self.p.own_excitation(accel.abs()).is_some() {
+            return false;
+        }
+        let (_, b) = self.measurement(y_m, accel);
+        let sd = self.p.terms(accel).sd_n;
+        let grown = self.updated_ns.map_or(0.0, |u| {
+            self.p.random_walk_bar2_per_s * ((t_ns - u).max(0) as f64 * 1e-9)
+        });
+        // The filter this reversal would update, its share of the reported
+        // variance (an end: a quarter of its variance, half of its bias).
+        let (var, bias, other_bias, share) = if self.p.stroke_ends {
+            let end = usize::from(accel < 0.0);
+            let prior_var = self.p.prior_sd_bar * self.p.prior_sd_bar;
+            let var = self.ends.map_or(prior_var, |e| e[end].1);
+            let [b0, b1] = self.cold_bias_bar;
+            let (own, other) = if end == 0 { (b0, b1) } else { (b1, b0) };
+            (var + grown, own, other, 0.5)
+        } else {
+            (self.var_bar2 + grown, self.cold_bias_bar[0], 0.0, 1.0)
+        };
+        let kb = var * b * b / (b * b * var + sd * sd);
+        let bias_after = (1.0 - kb) * bias;
+        let shrink = share * share * var * kb
+            + ((share * (bias + other_bias)).powi(2) - (share * (bias_after + other_bias)).powi(2));
+        shrink < floor * self.systematic_var()
+    }
+
+    /// The systematic part of the reported variance at the current reading,
+    /// bar²: what no number of reversals takes away (conditioned on the
+    /// unit's baseline when there is one).
+    fn systematic_var(&self) -> f64 {
+        let read = match self.ends {
+            Some([(m1, _), (m2, _)]) if self.p.stroke_ends => 0.5 * (m1 + m2),
+            _ => self.mean_bar,
+        };
+        if self.p.baseline.is_some() && !self.used_own {
+            UnitCorrection::of(&self.p).apply(read).1
+        } else {
+            self.p.systematic_sd_bar.powi(2) + (self.p.systematic_rel * read).powi(2)
         }
     }
 
@@ -1791,9 +1891,14 @@ impl ChargeObserver {
             .min_by(|a, b| a.1.total_cmp(&b.1))
     }
 
-    /// A fitted reversal; `Err(ÿ_r)` when its window was taken but no fit
-    /// passed; `None` when it was no candidate (gate, gaps, too few samples).
-    fn fit_window(&self, pending: Pending) -> Option<Result<Reversal, f64>> {
+    /// The reversal's window: fitted, taken but no fit passed (`ÿ_r`), spared
+    /// ([`ObserverParams::fit_gain_floor`]) or no candidate (gate, gaps, too
+    /// few samples).
+    fn fit_window(&self, pending: Pending) -> Window {
+        self.try_fit_window(pending).unwrap_or(Window::NoCandidate)
+    }
+
+    fn try_fit_window(&self, pending: Pending) -> Option<Window> {
         let p = &self.p;
         let rel = |t_ns: i64| Self::rel_s(pending, t_ns);
         // Velocity slope across the reversal and the extension at it.
@@ -1834,6 +1939,14 @@ impl ChargeObserver {
         }
         let times: Vec<f64> = window.iter().map(|w| w.0).collect();
         let data: Vec<f64> = window.iter().map(|w| w.1).collect();
+        // Extension at the reversal: the window sample nearest to it.
+        let y_r = window
+            .iter()
+            .min_by(|a, b| a.0.abs().total_cmp(&b.0.abs()))
+            .map_or(0.0, |w| w.2);
+        if self.spare(pending.t_r_ns, y_r, accel) {
+            return Some(Window::Spared);
+        }
         let pre_n = times.iter().filter(|&&s| s < -0.002).count().max(1);
         let c0 = data[..pre_n].iter().sum::<f64>() / pre_n as f64;
         let Some((theta, residual, alpha_sd_n)) = self.solve_window(
@@ -1842,13 +1955,8 @@ impl ChargeObserver {
             &data,
             c0,
         ) else {
-            return Some(Err(accel));
+            return Some(Window::Failed(accel));
         };
-        // Extension at the reversal: the window sample nearest to it.
-        let y_r = window
-            .iter()
-            .min_by(|a, b| a.0.abs().total_cmp(&b.0.abs()))
-            .map_or(0.0, |w| w.2);
         let (a_n, b_n_per_bar) = self.measurement(y_r, accel);
         let rev = Reversal {
             t_ns: pending.t_r_ns,
@@ -1867,7 +1975,7 @@ impl ChargeObserver {
             b_n_per_bar,
             used: false,
         };
-        Some(Ok(rev))
+        Some(Window::Fitted(rev))
     }
 
     /// Least squares of one window from [`START_DAMPING_KNSPM`], then from
@@ -3366,6 +3474,53 @@ mod tests {
         assert!((est.mean_bar - 10.0).abs() < 0.4, "{est:?}");
         assert!(est.sd_bar < prior.sd_bar && est.sd_bar >= p.systematic_sd_bar);
         assert!(est.lo_bar() < est.mean_bar && est.mean_bar < est.hi_bar());
+    }
+
+    /// With a gain floor the observer fits a reversal only while one more
+    /// reading could narrow the reported variance by that share; it ends
+    /// where fitting every reversal ends, and a random walk that grows the
+    /// variance makes it fit again now and then.
+    #[test]
+    fn reversals_that_could_not_narrow_the_interval_are_spared() {
+        let run = |floor: f64, walk: f64, n: usize| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                fit_gain_floor: floor,
+                random_walk_bar2_per_s: walk,
+                ..params()
+            })
+            .unwrap();
+            obs.set_gas_temp_c(CHARGE_REF_TEMP_C);
+            feed(&mut obs, 40.0, n);
+            (obs.counters(), obs.estimate(n as i64 * 250_000_000))
+        };
+        let (all, every) = run(0.0, 0.0, 60);
+        let (some, spared) = run(0.01, 0.0, 60);
+        assert_eq!(all.spared, 0);
+        assert!(all.used >= 55, "{all:?}");
+        // Noise-free windows of 40 N: 10 bar either way.
+        assert!((every.mean_bar - 10.0).abs() < 0.4, "{every:?}");
+        assert!(
+            (spared.mean_bar - every.mean_bar).abs() < 0.05,
+            "{spared:?} {every:?}"
+        );
+        assert!(some.spared >= 10 && some.used < all.used, "{some:?}");
+        assert_eq!(some.used + some.spared, all.used, "{some:?} {all:?}");
+        // Each spared reading could have narrowed the variance by less than 1 %,
+        // so the interval is barely wider than with every reversal fitted.
+        assert!(spared.sd_bar > every.sd_bar && spared.sd_bar < 1.1 * every.sd_bar);
+        // Without a walk nothing more is fitted once the floor is reached; with
+        // one the variance grows back and reversals are fitted again.
+        let (still, _) = run(0.01, 0.0, 200);
+        let (walking, _) = run(0.01, 2e-3, 200);
+        assert_eq!(still.used, some.used, "{still:?}");
+        assert!(walking.used > still.used + 5, "{walking:?} {still:?}");
+        assert!(walking.spared > 0, "{walking:?}");
+        let bad = ObserverParams {
+            fit_gain_floor: 1.0,
+            ..params()
+        };
+        let err = ChargeObserver::new(bad).unwrap_err().to_string();
+        assert!(err.contains("observer.fit_gain_floor"), "{err}");
     }
 
     #[test]

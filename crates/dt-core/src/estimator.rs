@@ -141,6 +141,12 @@ pub struct EstimatorConfig {
     /// ([`crate::charge::UnitBaseline`]); `None`: the model's spread alone.
     #[serde(default)]
     pub observer_baseline: Option<crate::charge::UnitBaseline>,
+    /// Fit every reversal's window, whatever the observer's
+    /// [`fit_gain_floor`](crate::charge::ObserverParams::fit_gain_floor)
+    /// says: a run that reads the unit's baseline after a service, whose sd
+    /// is what the unit will be conditioned on.
+    #[serde(default)]
+    pub observer_fit_all: bool,
 }
 
 impl EstimatorConfig {
@@ -154,6 +160,7 @@ impl EstimatorConfig {
             reorder_window_ns: 100_000_000,
             max_gap_ns: 2_000_000_000,
             observer_baseline: None,
+            observer_fit_all: false,
         }
     }
 }
@@ -387,6 +394,9 @@ fn pipeline_params(bundle: &Bundle, cfg: &EstimatorConfig) -> PhysicsParams {
     }
     if let (Some(o), Some(b)) = (params.observer.as_mut(), cfg.observer_baseline) {
         o.baseline = Some(b);
+    }
+    if let (Some(o), true) = (params.observer.as_mut(), cfg.observer_fit_all) {
+        o.fit_gain_floor = 0.0;
     }
     params
 }

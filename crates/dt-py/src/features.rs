@@ -127,7 +127,8 @@ pub(crate) fn features<'py>(
 /// window fit's own sd of ``alpha_n``), ``samples``,
 /// ``a_n``, ``b_n_per_bar`` (the measurement model ``alpha = a + b p``) and
 /// ``used`` (1.0 when the update took it), plus the counts ``detected``,
-/// ``skipped``, ``rejected``. Raises ``MissingTopicsError`` when the log lacks
+/// ``skipped``, ``rejected``, ``spared`` (not fitted: the evidence was
+/// enough, ``observer.fit_gain_floor``). Raises ``MissingTopicsError`` when the log lacks
 /// a topic the observer needs.
 #[pyfunction]
 pub(crate) fn charge_reversals<'py>(
@@ -174,6 +175,7 @@ pub(crate) fn charge_reversals<'py>(
     out.set_item("detected", counters.detected)?;
     out.set_item("skipped", counters.skipped)?;
     out.set_item("rejected", counters.rejected)?;
+    out.set_item("spared", counters.spared)?;
     Ok(out)
 }
 
