@@ -1,7 +1,8 @@
 //! `shocktwin replay --model BUNDLE FILE.mcap... --out OUT.(mcap|jsonl|csv)`:
 //! runs logs through the streaming estimator as fast as the machine allows
-//! (one worker per core, one run per worker at a time) and writes the
-//! `/estimate` stream.
+//! (one worker per core, one run per worker at a time; with a core to spare
+//! per worker, each file is read and decoded on a second thread) and writes
+//! the `/estimate` stream.
 //!
 //! - `.jsonl` / `.csv`: one row per tick with `run_id`, `asset_id`, `t_s`
 //!   (seconds since the run's first message) and the `/estimate` fields.
@@ -110,10 +111,11 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
         }
     };
 
-    let workers = args
-        .jobs
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from))
-        .clamp(1, args.files.len());
+    let cores = std::thread::available_parallelism().map_or(1, usize::from);
+    let workers = args.jobs.unwrap_or(cores).clamp(1, args.files.len());
+    // A core to spare per worker: each streamed file is read and decoded on
+    // a thread of its own beside its estimator.
+    let pipelined = 2 * workers <= cores;
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<(usize, Result<Replayed>)>> = Mutex::new(Vec::new());
     let started = Instant::now();
@@ -123,7 +125,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(file) = args.files.get(i) else { break };
-                let res = replay_file(file, &bundle, cfg, format, &mcap_out);
+                let res = replay_file(file, &bundle, cfg, format, &mcap_out, pipelined);
                 bar.inc(1);
                 results
                     .lock()
@@ -171,13 +173,62 @@ fn replay_file(
     cfg: EstimatorConfig,
     format: Format,
     mcap_out: &dyn Fn(&str) -> PathBuf,
+    pipelined: bool,
 ) -> Result<Replayed> {
     let started = Instant::now();
-    if let Some(replayed) = replay_streaming(file, bundle, cfg, format, mcap_out, started)? {
+    if let Some(replayed) =
+        replay_streaming(file, bundle, cfg, format, mcap_out, started, pipelined)?
+    {
         return Ok(replayed);
     }
     replay_whole(file, bundle, cfg, format, mcap_out, started)
 }
+
+/// What the reader of a streamed file passes on: the events of the file in
+/// order, then whether it ended complete; or the first thing that makes the
+/// streaming path give way (a message that does not decode, an unknown
+/// topic), or a read error.
+enum Decoded {
+    Event(LogEvent),
+    /// A message that does not decode, or a topic this format does not know.
+    GiveWay,
+    Failed(anyhow::Error),
+    /// The end of the file; `true` when the decoder found it complete.
+    End(bool),
+}
+
+/// The events of `input` as [`LogDecoder`] reads them, 1 MiB at a time,
+/// ending with [`Decoded::End`] (or at the first [`Decoded::GiveWay`] or
+/// [`Decoded::Failed`]).
+fn decoded(mut input: File, name: String) -> impl Iterator<Item = Decoded> {
+    // `None` once the end, a give-way or a failure was passed on.
+    let mut decoder = Some(LogDecoder::new(&name));
+    let mut buf = vec![0u8; 1 << 20];
+    std::iter::from_fn(move || loop {
+        if let Some(event) = decoder.as_mut()?.next_event() {
+            return Some(match event {
+                Ok(LogEvent::Unknown { .. }) | Err(_) => {
+                    decoder = None;
+                    Decoded::GiveWay
+                }
+                Ok(e) => Decoded::Event(e),
+            });
+        }
+        match input.read(&mut buf) {
+            Ok(0) => return Some(Decoded::End(decoder.take()?.finish().is_ok())),
+            Ok(n) => decoder.as_mut()?.feed(&buf[..n]),
+            Err(e) => {
+                decoder = None;
+                return Some(Decoded::Failed(
+                    anyhow::Error::new(e).context(format!("reading {name}")),
+                ));
+            }
+        }
+    })
+}
+
+/// Events a reading thread hands over at a time.
+const DECODED_BATCH: usize = 4096;
 
 /// Replays `file` while reading it, with neither the file nor its samples
 /// held in memory. Valid when every message decodes, every topic is known,
@@ -186,6 +237,11 @@ fn replay_file(
 /// same samples in the same order and both paths give the same output.
 /// `Ok(None)` at the first thing that is not so; the caller then replays
 /// the file the whole-file way ([`replay_whole`]), which sorts and reports.
+///
+/// With `pipelined`, a second thread reads and decodes the file (zstd, the
+/// MCAP records, the JSON samples: about half of a replay's work) while this
+/// one runs the estimator; the events reach it in the same order, so the
+/// output is the same.
 fn replay_streaming(
     file: &Path,
     bundle: &Arc<Bundle>,
@@ -193,62 +249,98 @@ fn replay_streaming(
     format: Format,
     mcap_out: &dyn Fn(&str) -> PathBuf,
     started: Instant,
+    pipelined: bool,
 ) -> Result<Option<Replayed>> {
     let name = file.display().to_string();
-    let mut input = File::open(file).with_context(|| format!("opening {name}"))?;
-    let mut decoder = LogDecoder::new(&name);
-    let mut est =
+    let input = File::open(file).with_context(|| format!("opening {name}"))?;
+    let est =
         Estimator::new(Arc::clone(bundle), cfg).with_context(|| format!("{name}: estimator"))?;
+    let events = decoded(input, name);
+    if !pipelined {
+        return replay_events(file, est, events, format, mcap_out, started);
+    }
+    std::thread::scope(|scope| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Decoded>>(4);
+        scope.spawn(move || {
+            let mut batch = Vec::with_capacity(DECODED_BATCH);
+            for item in events {
+                batch.push(item);
+                if batch.len() == DECODED_BATCH {
+                    let full = std::mem::replace(&mut batch, Vec::with_capacity(DECODED_BATCH));
+                    if tx.send(full).is_err() {
+                        return; // the replay gave way: stop reading
+                    }
+                }
+            }
+            let _ = tx.send(batch);
+        });
+        // Dropping the receiver (on return) stops the reader at its next batch.
+        replay_events(
+            file,
+            est,
+            rx.into_iter().flatten(),
+            format,
+            mcap_out,
+            started,
+        )
+    })
+}
+
+/// The streaming replay of the events of `file` ([`replay_streaming`]).
+fn replay_events(
+    file: &Path,
+    mut est: Estimator,
+    events: impl Iterator<Item = Decoded>,
+    format: Format,
+    mcap_out: &dyn Fn(&str) -> PathBuf,
+    started: Instant,
+) -> Result<Option<Replayed>> {
     let mut metadata: Option<RunMetadata> = None;
     let mut writer = None;
     let mut estimates = Vec::new();
     let mut last: Option<(i64, u8)> = None;
     let (mut t0_ns, mut samples) = (0i64, 0usize);
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = input
-            .read(&mut buf)
-            .with_context(|| format!("reading {name}"))?;
-        if n == 0 {
-            break;
-        }
-        decoder.feed(&buf[..n]);
-        while let Some(event) = decoder.next_event() {
-            let s = match event {
-                Ok(LogEvent::Sample(s)) => s,
-                Ok(LogEvent::Metadata(m)) => {
-                    if format == Format::Mcap {
-                        writer = Some(LogWriter::create(
-                            mcap_out(&m.run_id),
-                            &m,
-                            WriteOptions::default(),
-                        )?);
-                    }
-                    metadata = Some(m);
-                    continue;
+    let mut complete = false;
+    for item in events {
+        let s = match item {
+            Decoded::Event(LogEvent::Sample(s)) => s,
+            Decoded::Event(LogEvent::Metadata(m)) => {
+                if format == Format::Mcap {
+                    writer = Some(LogWriter::create(
+                        mcap_out(&m.run_id),
+                        &m,
+                        WriteOptions::default(),
+                    )?);
                 }
-                Ok(LogEvent::End) => continue,
-                Ok(LogEvent::Unknown { .. }) | Err(_) => return Ok(None),
-            };
-            let key = (s.t_ns(), s.topic_rank());
-            if last.is_some_and(|l| key < l) {
-                return Ok(None);
+                metadata = Some(m);
+                continue;
             }
-            if last.is_none() {
-                t0_ns = key.0;
+            Decoded::Event(LogEvent::End | LogEvent::Unknown { .. }) => continue,
+            Decoded::GiveWay => return Ok(None),
+            Decoded::Failed(e) => return Err(e),
+            Decoded::End(ok) => {
+                complete = ok;
+                break;
             }
-            last = Some(key);
-            samples += 1;
-            if est.push(s).is_err() {
-                return Ok(None);
-            }
-            take_estimates(&mut est, writer.as_mut(), Some(&s), &mut estimates)?;
+        };
+        let key = (s.t_ns(), s.topic_rank());
+        if last.is_some_and(|l| key < l) {
+            return Ok(None);
         }
+        if last.is_none() {
+            t0_ns = key.0;
+        }
+        last = Some(key);
+        samples += 1;
+        if est.push(s).is_err() {
+            return Ok(None);
+        }
+        take_estimates(&mut est, writer.as_mut(), Some(&s), &mut estimates)?;
     }
     let Some(metadata) = metadata else {
         return Ok(None);
     };
-    if decoder.finish().is_err() || est.finish().is_err() {
+    if !complete || est.finish().is_err() {
         return Ok(None);
     }
     take_estimates(&mut est, writer.as_mut(), None, &mut estimates)?;
@@ -577,16 +669,25 @@ mod tests {
         let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
         let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
-        let streamed = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t)
+        let streamed = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t, false)
             .unwrap()
             .expect("a clean file in order streams");
-        assert!(
-            replay_streaming(&shuffled, &b, cfg, Format::Csv, &no_mcap, t)
-                .unwrap()
-                .is_none(),
-            "a file out of order must not stream"
-        );
-        let whole = replay_file(&shuffled, &b, cfg, Format::Csv, &no_mcap).unwrap();
+        for pipelined in [false, true] {
+            assert!(
+                replay_streaming(&shuffled, &b, cfg, Format::Csv, &no_mcap, t, pipelined)
+                    .unwrap()
+                    .is_none(),
+                "a file out of order must not stream"
+            );
+        }
+        // Read and decoded on a second thread: the same rows.
+        let pipelined = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t, true)
+            .unwrap()
+            .expect("a clean file in order streams, pipelined too");
+        assert_eq!(rows(&pipelined), rows(&streamed));
+        assert_eq!(pipelined.samples, streamed.samples);
+        assert_eq!(pipelined.counters, streamed.counters);
+        let whole = replay_file(&shuffled, &b, cfg, Format::Csv, &no_mcap, true).unwrap();
         let whole_in_order = replay_whole(&in_order, &b, cfg, Format::Csv, &no_mcap, t).unwrap();
 
         assert!(
@@ -617,12 +718,16 @@ mod tests {
         let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
         let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
-        assert!(replay_streaming(&cut, &b, cfg, Format::Csv, &no_mcap, t)
-            .unwrap()
-            .is_none());
-        let err = replay_file(&cut, &b, cfg, Format::Csv, &no_mcap)
-            .err()
-            .expect("a truncated file is an error, as before");
-        assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}");
+        for pipelined in [false, true] {
+            assert!(
+                replay_streaming(&cut, &b, cfg, Format::Csv, &no_mcap, t, pipelined)
+                    .unwrap()
+                    .is_none()
+            );
+            let err = replay_file(&cut, &b, cfg, Format::Csv, &no_mcap, pipelined)
+                .err()
+                .expect("a truncated file is an error, as before");
+            assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}");
+        }
     }
 }
