@@ -189,7 +189,9 @@ fn replay_file(
 /// streaming path give way (a message that does not decode, an unknown
 /// topic), or a read error.
 enum Decoded {
-    Event(LogEvent),
+    Sample(Sample),
+    /// Boxed: the metadata comes once, the samples millions of times.
+    Metadata(Box<RunMetadata>),
     /// A message that does not decode, or a topic this format does not know.
     GiveWay,
     Failed(anyhow::Error),
@@ -207,11 +209,13 @@ fn decoded(mut input: File, name: String) -> impl Iterator<Item = Decoded> {
     std::iter::from_fn(move || loop {
         if let Some(event) = decoder.as_mut()?.next_event() {
             return Some(match event {
+                Ok(LogEvent::Sample(s)) => Decoded::Sample(s),
+                Ok(LogEvent::Metadata(m)) => Decoded::Metadata(Box::new(m)),
+                Ok(LogEvent::End) => continue,
                 Ok(LogEvent::Unknown { .. }) | Err(_) => {
                     decoder = None;
                     Decoded::GiveWay
                 }
-                Ok(e) => Decoded::Event(e),
             });
         }
         match input.read(&mut buf) {
@@ -261,7 +265,8 @@ fn replay_streaming(
     }
     std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Decoded>>(4);
-        scope.spawn(move || {
+        let reader = std::thread::Builder::new().name("replay-decode".into());
+        let spawned = reader.spawn_scoped(scope, move || {
             let mut batch = Vec::with_capacity(DECODED_BATCH);
             for item in events {
                 batch.push(item);
@@ -274,6 +279,7 @@ fn replay_streaming(
             }
             let _ = tx.send(batch);
         });
+        spawned.with_context(|| format!("{}: starting its reader thread", file.display()))?;
         // Dropping the receiver (on return) stops the reader at its next batch.
         replay_events(
             file,
@@ -303,8 +309,8 @@ fn replay_events(
     let mut complete = false;
     for item in events {
         let s = match item {
-            Decoded::Event(LogEvent::Sample(s)) => s,
-            Decoded::Event(LogEvent::Metadata(m)) => {
+            Decoded::Sample(s) => s,
+            Decoded::Metadata(m) => {
                 if format == Format::Mcap {
                     writer = Some(LogWriter::create(
                         mcap_out(&m.run_id),
@@ -312,10 +318,9 @@ fn replay_events(
                         WriteOptions::default(),
                     )?);
                 }
-                metadata = Some(m);
+                metadata = Some(*m);
                 continue;
             }
-            Decoded::Event(LogEvent::End | LogEvent::Unknown { .. }) => continue,
             Decoded::GiveWay => return Ok(None),
             Decoded::Failed(e) => return Err(e),
             Decoded::End(ok) => {
