@@ -384,12 +384,14 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
 def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], tmp_path: Path,
                                                        daemons: list[Daemon]) -> None:
     inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
-    inbox.mkdir()
-    # Every day's run in the inbox: the daemon processes them back to back (≈ 1.5 s each on
-    # a quiet machine), so whenever it is frozen below, one of them is almost surely open.
-    files = sorted(world["runs"].glob("*.mcap"))
-    for f in files:
-        shutil.copy(f, inbox / f.name)
+    # Three days of full-length 2 Hz runs (435 s each, not the world's 60 s quick runs, which
+    # a fast machine processes in under half a second, between two polls): the daemon
+    # processes them back to back, seconds each, so whenever it is frozen below, one of them
+    # is almost surely open.
+    subprocess.run([str(BIN), "simulate", "--days", "3", "--leak-rate", str(LEAK_BAR_PER_DAY), "--frequencies", "2",
+                    "--out", str(inbox)], check=True, stdout=subprocess.DEVNULL)
+    files = sorted(inbox.glob("*.mcap"))
+    assert len(files) == 3, files
     d = Daemon(world["bundle"], db, inbox)
     daemons.append(d)
     deadline = time.monotonic() + 120
