@@ -5,7 +5,10 @@
 //! Nothing is lost across a restart: a file is moved only after its estimates
 //! are flushed by every sink, so a file still in the inbox at start (a crash,
 //! a shutdown mid-file) is simply processed again; the recorder's file names
-//! are deterministic, so that rewrites the same recordings.
+//! are deterministic, so that rewrites the same recordings. Nothing is done
+//! twice either: a file whose run the fleet store already holds as completed
+//! from this inbox name (the daemon stopped between the store's commit and
+//! the move) is moved to `done/` without being processed again.
 //!
 //! Only `*.mcap` files not starting with `.` are taken: write a file under
 //! another name (e.g. `run.mcap.part`) and rename it when complete. A file
@@ -190,6 +193,26 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
         return true;
     };
     let source = format!("inbox {name}");
+    if let Some((asset_id, run_id)) = run_of(path).await {
+        if ctx
+            .ingest
+            .completed_before(&asset_id, &run_id, &source)
+            .await
+        {
+            // Processed to completion, then the daemon stopped before the
+            // move (`kill -9` in between): its estimates are all stored.
+            tracing::info!(file = %path.display(), asset = %asset_id, run = %run_id,
+                "inbox file already processed to completion before a restart: moved, not redone");
+            return match move_to(path, &dir.join(DONE_DIR).join(&name)).await {
+                Ok(()) => true,
+                Err(e) => {
+                    ctx.ingest.metrics().error("inbox");
+                    tracing::error!(file = %path.display(), "{e}; not retried until restart");
+                    false
+                }
+            };
+        }
+    }
     let report = match tokio::fs::File::open(path).await {
         Ok(file) => {
             ctx.ingest
@@ -243,6 +266,32 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
             false
         }
     }
+}
+
+/// The `(asset_id, run_id)` of the log at `path`, from its `shocktwin.run`
+/// metadata at the start of the file (the first MiB at most); `None` if it
+/// cannot be read there.
+async fn run_of(path: &Path) -> Option<(String, String)> {
+    use tokio::io::AsyncReadExt;
+    let mut file = tokio::fs::File::open(path).await.ok()?;
+    let mut decoder = dt_core::log::LogDecoder::new(&path.display().to_string());
+    let mut buf = vec![0u8; 64 * 1024];
+    for _ in 0..16 {
+        let n = file.read(&mut buf).await.ok()?;
+        if n == 0 {
+            return None;
+        }
+        decoder.feed(&buf[..n]);
+        while let Some(event) = decoder.next_event() {
+            match event {
+                Ok(dt_core::log::LogEvent::Metadata(m)) => return Some((m.asset_id, m.run_id)),
+                Ok(_) => return None, // a message before the metadata
+                Err(e) if e.is_fatal() => return None,
+                Err(_) => {}
+            }
+        }
+    }
+    None
 }
 
 async fn move_to(from: &Path, to: &Path) -> Result<(), String> {

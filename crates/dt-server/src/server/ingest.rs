@@ -145,6 +145,26 @@ impl Ingest {
         &self.inner.config
     }
 
+    /// Whether the fleet store already holds asset `asset_id`'s run `run_id`
+    /// from `source` as completed (among the asset's last 64 runs): a file
+    /// processed to completion just before a crash, still in the inbox.
+    /// False without a store, or when the store cannot say.
+    pub async fn completed_before(&self, asset_id: &str, run_id: &str, source: &str) -> bool {
+        let Some(store) = self.inner.store.clone() else {
+            return false;
+        };
+        let (asset_id, run_id, source) =
+            (asset_id.to_owned(), run_id.to_owned(), source.to_owned());
+        tokio::task::spawn_blocking(move || {
+            store.runs(&asset_id, 64).is_ok_and(|runs| {
+                runs.iter()
+                    .any(|r| r.run_id == run_id && r.source == source && r.status == "completed")
+            })
+        })
+        .await
+        .unwrap_or(false)
+    }
+
     /// Starts a run: creates its twin and tells the sinks.
     pub async fn open_run(
         &self,
