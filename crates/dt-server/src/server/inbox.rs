@@ -193,7 +193,13 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
         return true;
     };
     let source = format!("inbox {name}");
-    if let Some((asset_id, run_id)) = run_of(path).await {
+    // Only a store can say a run was completed: without one, no need to read the head.
+    let known = if ctx.ingest.has_store() {
+        run_of(path).await
+    } else {
+        None
+    };
+    if let Some((asset_id, run_id)) = known {
         if ctx
             .ingest
             .completed_before(&asset_id, &run_id, &source)

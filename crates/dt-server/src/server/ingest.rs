@@ -145,6 +145,12 @@ impl Ingest {
         &self.inner.config
     }
 
+    /// Whether the daemon has a fleet store.
+    #[must_use]
+    pub fn has_store(&self) -> bool {
+        self.inner.store.is_some()
+    }
+
     /// Whether the fleet store already holds asset `asset_id`'s run `run_id`
     /// from `source` as completed (among the asset's last 64 runs): a file
     /// processed to completion just before a crash, still in the inbox.
