@@ -38,6 +38,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 from typing import IO, Any, Iterator, cast
 
@@ -242,6 +243,9 @@ def test_a_file_completed_in_the_store_but_not_yet_moved_is_not_processed_again(
     shutil.copyfile(other, inbox / "renamed.mcap")  # a run the store has not seen from this name
     p = serve(started, tmp_path, "--inbox", str(inbox))
     wait_inbox_empty(inbox)
+    with urllib.request.urlopen(f"http://{p.http}/metrics", timeout=10) as r:
+        metrics = r.read().decode()
+    assert 'shocktwin_inbox_files_total{kind="done"} 2' in metrics, metrics  # both counted as moved
     assert p.stop() == 0, p.text()
     assert {f.name for f in (inbox / "done").glob("*.mcap")} == {first.name, "renamed.mcap"}
     rows = store_runs(tmp_path / "fleet.sqlite")

@@ -193,75 +193,56 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
         return true;
     };
     let source = format!("inbox {name}");
-    // Only a store can say a run was completed: without one, no need to read the head.
-    let known = if ctx.ingest.has_store() {
-        run_of(path).await
-    } else {
+    let report = if completed_before_restart(ctx, path, &source).await {
         None
-    };
-    if let Some((asset_id, run_id)) = known {
-        if ctx
-            .ingest
-            .completed_before(&asset_id, &run_id, &source)
-            .await
-        {
-            // Processed to completion, then the daemon stopped before the
-            // move (`kill -9` in between): its estimates are all stored.
-            tracing::info!(file = %path.display(), asset = %asset_id, run = %run_id,
-                "inbox file already processed to completion before a restart: moved, not redone");
-            return match move_to(path, &dir.join(DONE_DIR).join(&name)).await {
-                Ok(()) => true,
-                Err(e) => {
-                    ctx.ingest.metrics().error("inbox");
-                    tracing::error!(file = %path.display(), "{e}; not retried until restart");
-                    false
-                }
-            };
-        }
-    }
-    let report = match tokio::fs::File::open(path).await {
-        Ok(file) => {
-            ctx.ingest
-                .ingest_stream(SourceKind::Inbox, source.clone(), file, &ctx.cancel, None)
-                .await
-        }
-        // Gone since the listing (someone else took it): nothing to do.
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return true,
-        Err(e) => RunReport {
-            status: "failed",
-            kind: Some("io"),
-            reason: Some(format!("{source}: cannot open: {e}")),
-            asset_id: None,
-            run_id: None,
-            samples: 0,
-            ticks: 0,
-            flushed: true,
-        },
-    };
-    if report.status == "interrupted" {
-        // Shutdown mid-file: leave it for the next start.
-        return true;
-    }
-    let m = ctx.ingest.metrics();
-    let moved = if report.ok() {
-        move_to(path, &dir.join(DONE_DIR).join(&name)).await
     } else {
-        let reason_path = dir.join(FAILED_DIR).join(format!("{name}.reason.txt"));
-        let text = format!(
-            "{}\nkind: {}\nsamples: {}\nestimates: {}\n",
-            report.reason.as_deref().unwrap_or("failed"),
-            report.kind.unwrap_or("unknown"),
-            report.samples,
-            report.ticks
-        );
-        match tokio::fs::write(&reason_path, text).await {
-            Ok(()) => move_to(path, &dir.join(FAILED_DIR).join(&name)).await,
-            Err(e) => Err(format!("cannot write {}: {e}", reason_path.display())),
+        let report = match tokio::fs::File::open(path).await {
+            Ok(file) => {
+                ctx.ingest
+                    .ingest_stream(SourceKind::Inbox, source.clone(), file, &ctx.cancel, None)
+                    .await
+            }
+            // Gone since the listing (someone else took it): nothing to do.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return true,
+            Err(e) => RunReport {
+                status: "failed",
+                kind: Some("io"),
+                reason: Some(format!("{source}: cannot open: {e}")),
+                asset_id: None,
+                run_id: None,
+                samples: 0,
+                ticks: 0,
+                flushed: true,
+            },
+        };
+        if report.status == "interrupted" {
+            // Shutdown mid-file: leave it for the next start.
+            return true;
         }
+        Some(report)
+    };
+    let m = ctx.ingest.metrics();
+    let done = report.as_ref().is_none_or(RunReport::ok);
+    let moved = match &report {
+        Some(report) if !report.ok() => {
+            let reason_path = dir.join(FAILED_DIR).join(format!("{name}.reason.txt"));
+            let text = format!(
+                "{}\nkind: {}\nsamples: {}\nestimates: {}\n",
+                report.reason.as_deref().unwrap_or("failed"),
+                report.kind.unwrap_or("unknown"),
+                report.samples,
+                report.ticks
+            );
+            match tokio::fs::write(&reason_path, text).await {
+                Ok(()) => move_to(path, &dir.join(FAILED_DIR).join(&name)).await,
+                Err(e) => Err(format!("cannot write {}: {e}", reason_path.display())),
+            }
+        }
+        _ => move_to(path, &dir.join(DONE_DIR).join(&name)).await,
     };
     match moved {
         Ok(()) => {
-            let to = if report.ok() { DONE_DIR } else { FAILED_DIR };
+            let to = if done { DONE_DIR } else { FAILED_DIR };
             super::metrics::Metrics::add(&m.files, to, 1);
             tracing::info!(file = %path.display(), to, "inbox file processed");
             true
@@ -272,6 +253,28 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
             false
         }
     }
+}
+
+/// Whether the fleet store holds the run in `path` as completed from this
+/// inbox name: processed to completion, then the daemon stopped before the
+/// move (`kill -9` in between), so its estimates are all stored. Only a store
+/// can say so: without one the file's head is not read.
+async fn completed_before_restart(ctx: &SourceContext, path: &Path, source: &str) -> bool {
+    if !ctx.ingest.has_store() {
+        return false;
+    }
+    let Some((asset_id, run_id)) = run_of(path).await else {
+        return false;
+    };
+    let completed = ctx
+        .ingest
+        .completed_before(&asset_id, &run_id, source)
+        .await;
+    if completed {
+        tracing::info!(file = %path.display(), asset = %asset_id, run = %run_id,
+            "inbox file already processed to completion before a restart: moved, not redone");
+    }
+    completed
 }
 
 /// The `(asset_id, run_id)` of the log at `path`, from its `shocktwin.run`
