@@ -31,7 +31,8 @@ use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
 use dt_core::estimator::{Estimator, EstimatorConfig, EstimatorCounters};
 use dt_core::features::Group;
 use dt_core::log::{
-    read_log, topic, LogDecoder, LogEvent, LogWriter, RunLog, RunMetadata, Sample, WriteOptions,
+    read_log, topic, LogDecoder, LogEvent, LogWriter, RunLog, RunMetadata, Sample, SampleMessage,
+    Undecoded, WriteOptions,
 };
 
 use crate::cli::ReplayArgs;
@@ -234,6 +235,100 @@ fn decoded(mut input: File, name: String) -> impl Iterator<Item = Decoded> {
 /// Events a reading thread hands over at a time.
 const DECODED_BATCH: usize = 4096;
 
+/// A batch's text is handed over once it passes this many bytes, whatever
+/// its count of events (a few large messages must not pile up).
+const BATCH_TEXT_BYTES: usize = 1 << 20;
+
+/// What the reading thread hands over: events in file order, the sensor
+/// messages among them with their JSON text not parsed yet.
+struct Batch {
+    items: Vec<Handed>,
+    /// The sensor messages' texts, one after the other.
+    text: Vec<u8>,
+}
+
+enum Handed {
+    Event(Decoded),
+    /// A sensor message whose text ends at this offset of the batch's
+    /// `text` (and starts where the previous one ended).
+    Sample(SampleMessage, usize),
+}
+
+impl Batch {
+    fn new() -> Self {
+        Batch {
+            items: Vec::with_capacity(DECODED_BATCH),
+            text: Vec::with_capacity(DECODED_BATCH * 64),
+        }
+    }
+
+    fn full(&self) -> bool {
+        self.items.len() >= DECODED_BATCH || self.text.len() >= BATCH_TEXT_BYTES
+    }
+
+    /// The batch's events, its sensor messages parsed here (a message that
+    /// does not parse gives way, as [`decoded`] does).
+    fn decoded(self, name: &str) -> impl Iterator<Item = Decoded> + '_ {
+        let Batch { items, text } = self;
+        let mut start = 0;
+        items.into_iter().map(move |item| match item {
+            Handed::Event(event) => event,
+            Handed::Sample(message, end) => {
+                let data = &text[start..end];
+                start = end;
+                message
+                    .decode(name, data)
+                    .map_or(Decoded::GiveWay, Decoded::Sample)
+            }
+        })
+    }
+}
+
+/// Reads and splits `input` into batches on `tx` until its end, a give-way,
+/// a failure, or the receiver is gone. The JSON of the sensor messages is
+/// left to the receiving thread, so that the two threads share the work.
+fn read_batches(mut input: File, name: &str, tx: &std::sync::mpsc::SyncSender<Batch>) {
+    let mut decoder = LogDecoder::new(name);
+    let mut buf = vec![0u8; 1 << 20];
+    let mut batch = Batch::new();
+    loop {
+        while let Some(event) = decoder.next_undecoded(&mut batch.text) {
+            let item = match event {
+                Ok(Undecoded::Sample(message)) => Handed::Sample(message, batch.text.len()),
+                Ok(Undecoded::Event(LogEvent::Metadata(m))) => {
+                    Handed::Event(Decoded::Metadata(Box::new(m)))
+                }
+                Ok(Undecoded::Event(LogEvent::Sample(s))) => Handed::Event(Decoded::Sample(s)),
+                Ok(Undecoded::Event(LogEvent::End)) => continue,
+                Ok(Undecoded::Event(LogEvent::Unknown { .. })) | Err(_) => {
+                    batch.items.push(Handed::Event(Decoded::GiveWay));
+                    let _ = tx.send(batch);
+                    return;
+                }
+            };
+            batch.items.push(item);
+            if batch.full()
+                && tx
+                    .send(std::mem::replace(&mut batch, Batch::new()))
+                    .is_err()
+            {
+                return; // the replay gave way: stop reading
+            }
+        }
+        let last = match input.read(&mut buf) {
+            Ok(0) => Decoded::End(decoder.finish().is_ok()),
+            Ok(n) => {
+                decoder.feed(&buf[..n]);
+                continue;
+            }
+            Err(e) => Decoded::Failed(anyhow::Error::new(e).context(format!("reading {name}"))),
+        };
+        batch.items.push(Handed::Event(last));
+        let _ = tx.send(batch);
+        return;
+    }
+}
+
 /// Replays `file` while reading it, with neither the file nor its samples
 /// held in memory. Valid when every message decodes, every topic is known,
 /// the file is complete and its samples come in the order the whole-file
@@ -242,10 +337,10 @@ const DECODED_BATCH: usize = 4096;
 /// `Ok(None)` at the first thing that is not so; the caller then replays
 /// the file the whole-file way ([`replay_whole`]), which sorts and reports.
 ///
-/// With `pipelined`, a second thread reads and decodes the file (zstd, the
-/// MCAP records, the JSON samples: about half of a replay's work) while this
-/// one runs the estimator; the events reach it in the same order, so the
-/// output is the same.
+/// With `pipelined`, a second thread reads the file (zstd, the MCAP records)
+/// while this one parses the sensor messages' JSON and runs the estimator,
+/// which shares a replay's work about evenly between the two; the events
+/// reach the estimator in the same order, so the output is the same.
 fn replay_streaming(
     file: &Path,
     bundle: &Arc<Bundle>,
@@ -259,36 +354,19 @@ fn replay_streaming(
     let input = File::open(file).with_context(|| format!("opening {name}"))?;
     let est =
         Estimator::new(Arc::clone(bundle), cfg).with_context(|| format!("{name}: estimator"))?;
-    let events = decoded(input, name);
     if !pipelined {
+        let events = decoded(input, name);
         return replay_events(file, est, events, format, mcap_out, started);
     }
     std::thread::scope(|scope| {
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Decoded>>(4);
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Batch>(4);
         let reader = std::thread::Builder::new().name("replay-decode".into());
-        let spawned = reader.spawn_scoped(scope, move || {
-            let mut batch = Vec::with_capacity(DECODED_BATCH);
-            for item in events {
-                batch.push(item);
-                if batch.len() == DECODED_BATCH {
-                    let full = std::mem::replace(&mut batch, Vec::with_capacity(DECODED_BATCH));
-                    if tx.send(full).is_err() {
-                        return; // the replay gave way: stop reading
-                    }
-                }
-            }
-            let _ = tx.send(batch);
-        });
+        let reader_name = name.clone();
+        let spawned = reader.spawn_scoped(scope, move || read_batches(input, &reader_name, &tx));
         spawned.with_context(|| format!("{}: starting its reader thread", file.display()))?;
         // Dropping the receiver (on return) stops the reader at its next batch.
-        replay_events(
-            file,
-            est,
-            rx.into_iter().flatten(),
-            format,
-            mcap_out,
-            started,
-        )
+        let events = rx.into_iter().flat_map(|batch| batch.decoded(&name));
+        replay_events(file, est, events, format, mcap_out, started)
     })
 }
 
@@ -710,6 +788,47 @@ mod tests {
             (streamed.run_id.as_str(), streamed.asset_id.as_str()),
             ("r1", "unit-a")
         );
+    }
+
+    #[test]
+    fn a_message_that_does_not_parse_gives_way_to_the_whole_file_path_either_way() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("one-bad.mcap");
+        let samples = samples();
+        let meta = RunMetadata {
+            asset_id: "unit-a".into(),
+            run_id: "r1".into(),
+            ..RunMetadata::default()
+        };
+        let mut w = LogWriter::create(&path, &meta, WriteOptions::default()).unwrap();
+        let middle = samples.len() / 2;
+        for (k, s) in samples.iter().enumerate() {
+            w.write_sample(s).unwrap();
+            if k == middle {
+                // in order, on the sensor topic, but its value is text
+                let bad = serde_json::json!({ "temperature_c": "warm" });
+                w.write_json(topic::TEMP_AMBIENT, "", s.t_ns(), &bad)
+                    .unwrap();
+            }
+        }
+        w.finish().unwrap();
+        let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
+        let no_mcap = |_: &str| PathBuf::new();
+        let t = Instant::now();
+        let mut replayed = Vec::new();
+        for pipelined in [false, true] {
+            assert!(
+                replay_streaming(&path, &b, cfg, Format::Csv, &no_mcap, t, pipelined)
+                    .unwrap()
+                    .is_none(),
+                "a message that does not parse must give way (pipelined: {pipelined})"
+            );
+            replayed.push(replay_file(&path, &b, cfg, Format::Csv, &no_mcap, pipelined).unwrap());
+        }
+        // The whole-file path skips the one message and keeps every other.
+        assert_eq!(replayed[0].samples, samples.len());
+        assert_eq!(rows(&replayed[0]), rows(&replayed[1]));
+        assert!(replayed[0].estimates.len() > 1000);
     }
 
     #[test]

@@ -40,6 +40,15 @@ impl SampleDecoder {
         Ok(())
     }
 
+    /// The topic rank of a channel's messages, `None` for a topic this
+    /// format does not know (or a channel that failed its check).
+    pub(crate) fn rank(&self, channel: &RawChannel) -> Option<u8> {
+        match self.kinds.get(&channel.id) {
+            Some(ChannelKind::Sample(rank)) => Some(*rank),
+            _ => None,
+        }
+    }
+
     /// Decodes one message: `Ok(None)` for a topic this format does not know.
     pub(crate) fn decode(
         &self,
@@ -48,45 +57,58 @@ impl SampleDecoder {
         log_time: u64,
         data: &[u8],
     ) -> Result<Option<Sample>, LogError> {
-        let Some(ChannelKind::Sample(rank)) = self.kinds.get(&channel.id).copied() else {
+        let Some(rank) = self.rank(channel) else {
             return Ok(None);
         };
-        let spec = &super::TOPICS[rank as usize];
-        let message_error = |t_ns: i64, field: &str, reason: String| LogError::Message {
-            file: file.to_owned(),
-            topic: spec.topic.to_owned(),
-            t_ns,
-            field: field.to_owned(),
-            reason,
-        };
-        let Ok(t_ns) = i64::try_from(log_time) else {
-            return Err(message_error(
-                i64::MAX,
-                "log_time",
-                format!("{log_time} does not fit in i64 nanoseconds"),
-            ));
-        };
-        if let Some([v0, v1]) = members_as_written(data, spec.fields) {
-            return Ok(Some(Sample::from_rank(rank, t_ns, v0, v1)));
-        }
-        let mut values = [f64::NAN; 2];
-        let mut found = [false; 2];
-        parse_flat_object(data, |key, value| {
-            if let Some(i) = spec.fields.iter().position(|f| f.as_bytes() == key) {
-                values[i] = value.map_err(|reason| (spec.fields[i].to_owned(), reason))?;
-                found[i] = true;
-            }
-            Ok(())
-        })
-        .map_err(|(field, reason)| message_error(t_ns, &field, reason))?;
-        for (i, field) in spec.fields.iter().enumerate() {
-            if !found[i] {
-                return Err(message_error(t_ns, field, "missing".into()));
-            }
-        }
-        let [v0, v1] = values;
-        Ok(Some(Sample::from_rank(rank, t_ns, v0, v1)))
+        decode_sample(file, rank, log_time, data).map(Some)
     }
+}
+
+/// Decodes the JSON message `data` of the sensor topic of rank `rank`
+/// (SPEC §2) logged at `log_time`; errors name `file`, the topic and the field.
+///
+/// `rank` comes from [`SampleDecoder::rank`], so it indexes `TOPICS`.
+pub(crate) fn decode_sample(
+    file: &str,
+    rank: u8,
+    log_time: u64,
+    data: &[u8],
+) -> Result<Sample, LogError> {
+    let spec = &super::TOPICS[rank as usize];
+    let message_error = |t_ns: i64, field: &str, reason: String| LogError::Message {
+        file: file.to_owned(),
+        topic: spec.topic.to_owned(),
+        t_ns,
+        field: field.to_owned(),
+        reason,
+    };
+    let Ok(t_ns) = i64::try_from(log_time) else {
+        return Err(message_error(
+            i64::MAX,
+            "log_time",
+            format!("{log_time} does not fit in i64 nanoseconds"),
+        ));
+    };
+    if let Some([v0, v1]) = members_as_written(data, spec.fields) {
+        return Ok(Sample::from_rank(rank, t_ns, v0, v1));
+    }
+    let mut values = [f64::NAN; 2];
+    let mut found = [false; 2];
+    parse_flat_object(data, |key, value| {
+        if let Some(i) = spec.fields.iter().position(|f| f.as_bytes() == key) {
+            values[i] = value.map_err(|reason| (spec.fields[i].to_owned(), reason))?;
+            found[i] = true;
+        }
+        Ok(())
+    })
+    .map_err(|(field, reason)| message_error(t_ns, &field, reason))?;
+    for (i, field) in spec.fields.iter().enumerate() {
+        if !found[i] {
+            return Err(message_error(t_ns, field, "missing".into()));
+        }
+    }
+    let [v0, v1] = values;
+    Ok(Sample::from_rank(rank, t_ns, v0, v1))
 }
 
 fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(), LogError> {

@@ -25,7 +25,9 @@ mod writer;
 pub use error::LogError;
 pub use inspect::{inspect, inspect_bytes, InspectReport};
 pub use raw::ReadLimits;
-pub use reader::{read_log, read_log_bytes, LogDecoder, LogEvent, SamplesInOrder};
+pub use reader::{
+    read_log, read_log_bytes, LogDecoder, LogEvent, SampleMessage, SamplesInOrder, Undecoded,
+};
 pub use writer::{Compression, LogWriter, WriteOptions};
 
 /// Topic names of SPEC §2.

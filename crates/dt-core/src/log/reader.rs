@@ -20,7 +20,7 @@
 use std::borrow::Cow;
 use std::path::Path;
 
-use super::decode::SampleDecoder;
+use super::decode::{decode_sample, SampleDecoder};
 use super::raw::{RawDecoder, RawEvent, ReadLimits};
 use super::{LogError, RunLog, RunMetadata, Sample, RUN_METADATA_NAME};
 
@@ -246,6 +246,36 @@ pub enum LogEvent {
     End,
 }
 
+/// What [`LogDecoder::next_undecoded`] yields.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Undecoded {
+    /// Anything but a sensor message, as [`LogDecoder::next_event`] gives it.
+    Event(LogEvent),
+    /// A sensor message, its text appended to the caller's buffer.
+    Sample(SampleMessage),
+}
+
+/// A sensor message whose JSON text is not parsed yet
+/// ([`LogDecoder::next_undecoded`]): its topic and its log time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SampleMessage {
+    rank: u8,
+    log_time: u64,
+}
+
+impl SampleMessage {
+    /// Parses the message's text `data` into a sample, exactly as
+    /// [`LogDecoder::next_event`] would have.
+    ///
+    /// # Errors
+    /// [`LogError::Message`], naming `file`, the topic and the field, when
+    /// the text lacks one of the topic's fields, one is not a number, or the
+    /// log time does not fit in `i64` nanoseconds.
+    pub fn decode(self, file: &str, data: &[u8]) -> Result<Sample, LogError> {
+        decode_sample(file, self.rank, self.log_time, data)
+    }
+}
+
 /// Incremental shocktwin log reader for bytes arriving in pieces (a socket).
 ///
 /// ```
@@ -317,10 +347,38 @@ impl LogDecoder {
     /// The next event, or `None` when more bytes are needed (or after the
     /// end of the file, or a fatal error).
     pub fn next_event(&mut self) -> Option<Result<LogEvent, LogError>> {
+        self.next_checked(
+            |event| event,
+            |file, rank, log_time, data| {
+                decode_sample(file, rank, log_time, data).map(LogEvent::Sample)
+            },
+        )
+    }
+
+    /// As [`LogDecoder::next_event`], but a sensor message is not parsed:
+    /// its JSON text is appended to `data` and [`Undecoded::Sample`] says
+    /// which topic it is and when it was logged; [`SampleMessage::decode`]
+    /// parses it later, on another thread if need be (`shocktwin replay`
+    /// does so to share the work between two cores). The channel and the
+    /// metadata are checked here, as in `next_event`.
+    pub fn next_undecoded(&mut self, data: &mut Vec<u8>) -> Option<Result<Undecoded, LogError>> {
+        self.next_checked(Undecoded::Event, |_, rank, log_time, text| {
+            data.extend_from_slice(text);
+            Ok(Undecoded::Sample(SampleMessage { rank, log_time }))
+        })
+    }
+
+    /// The next item: `wrap` wraps what is not a sensor message, `sample`
+    /// makes one of a sensor message (file name, topic rank, log time, text).
+    fn next_checked<T>(
+        &mut self,
+        wrap: impl Fn(LogEvent) -> T,
+        sample: impl FnOnce(&str, u8, u64, &[u8]) -> Result<T, LogError>,
+    ) -> Option<Result<T, LogError>> {
         if self.failed.is_some() {
             return None;
         }
-        let out = self.next_inner();
+        let out = self.next_inner(wrap, sample);
         if let Some(Err(err)) = &out {
             if err.is_fatal() {
                 self.failed = Some(err.to_string());
@@ -329,7 +387,11 @@ impl LogDecoder {
         out
     }
 
-    fn next_inner(&mut self) -> Option<Result<LogEvent, LogError>> {
+    fn next_inner<T>(
+        &mut self,
+        wrap: impl Fn(LogEvent) -> T,
+        sample: impl FnOnce(&str, u8, u64, &[u8]) -> Result<T, LogError>,
+    ) -> Option<Result<T, LogError>> {
         let file = self.name.as_str();
         loop {
             let mut input = &self.pending[self.pos..];
@@ -350,7 +412,9 @@ impl LogDecoder {
                     if name == RUN_METADATA_NAME && !self.metadata_seen =>
                 {
                     self.metadata_seen = true;
-                    return Some(RunMetadata::from_map(file, &metadata).map(LogEvent::Metadata));
+                    return Some(
+                        RunMetadata::from_map(file, &metadata).map(|m| wrap(LogEvent::Metadata(m))),
+                    );
                 }
                 RawEvent::Message {
                     channel,
@@ -367,18 +431,17 @@ impl LogDecoder {
                             ),
                         }));
                     }
-                    return Some(match self.samples.decode(file, &channel, log_time, data) {
-                        Ok(Some(sample)) => Ok(LogEvent::Sample(sample)),
-                        Ok(None) => Ok(LogEvent::Unknown {
+                    let Some(rank) = self.samples.rank(&channel) else {
+                        return Some(Ok(wrap(LogEvent::Unknown {
                             topic: channel.topic.clone(),
                             t_ns: i64::try_from(log_time).unwrap_or(i64::MAX),
-                        }),
-                        Err(err) => Err(err),
-                    });
+                        })));
+                    };
+                    return Some(sample(file, rank, log_time, data));
                 }
                 RawEvent::Other {
                     opcode: mcap::records::op::FOOTER,
-                } => return Some(Ok(LogEvent::End)),
+                } => return Some(Ok(wrap(LogEvent::End))),
                 _ => {}
             }
         }

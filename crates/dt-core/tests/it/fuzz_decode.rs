@@ -18,7 +18,8 @@
 //! Asserted for every input: no panic, no hang (the driver's time limit), no
 //! allocation beyond what the input and the [`ReadLimits`] allow (a counting
 //! allocator), every error names the source (and a message error its topic
-//! and field), the same events and result whatever the chunk split, no
+//! and field), the same events and result whatever the chunk split (and
+//! with the sensor messages taken undecoded and parsed after), no
 //! sample before the run's metadata, and the stream and whole-file readers
 //! agreeing on the samples of a file both accept.
 
@@ -29,7 +30,7 @@ use std::sync::OnceLock;
 use dt_core::log::raw::read_raw;
 use dt_core::log::{
     inspect_bytes, json_schema, read_log_bytes, Compression, LogDecoder, LogError, LogEvent,
-    ReadLimits, RunLog, Sample, WriteOptions, RUN_METADATA_NAME, TOPICS,
+    ReadLimits, RunLog, Sample, Undecoded, WriteOptions, RUN_METADATA_NAME, TOPICS,
 };
 use proptest::prelude::*;
 use proptest::sample::Index;
@@ -463,6 +464,25 @@ fn check_error(err: &LogError) {
 
 /// Feeds `bytes` in pieces of the given sizes (cycled; empty: all at once).
 fn stream(bytes: &[u8], pieces: &[usize]) -> Decoded {
+    stream_with(bytes, pieces, false)
+}
+
+/// The next event of `decoder`; with `deferred`, a sensor message is taken
+/// undecoded ([`LogDecoder::next_undecoded`]) and parsed afterwards, as
+/// `shocktwin replay` does on its second thread.
+fn next(decoder: &mut LogDecoder, deferred: bool) -> Option<Result<LogEvent, LogError>> {
+    if !deferred {
+        return decoder.next_event();
+    }
+    let mut text = Vec::new();
+    Some(match decoder.next_undecoded(&mut text)? {
+        Ok(Undecoded::Event(event)) => Ok(event),
+        Ok(Undecoded::Sample(message)) => message.decode(SOURCE, &text).map(LogEvent::Sample),
+        Err(err) => Err(err),
+    })
+}
+
+fn stream_with(bytes: &[u8], pieces: &[usize], deferred: bool) -> Decoded {
     let mut decoder = LogDecoder::with_limits(SOURCE, LIMITS);
     let mut out = Decoded {
         events: Vec::new(),
@@ -482,7 +502,7 @@ fn stream(bytes: &[u8], pieces: &[usize]) -> Decoded {
         decoder.feed(&rest[..n]);
         rest = &rest[n..];
         k += 1;
-        while let Some(event) = decoder.next_event() {
+        while let Some(event) = next(&mut decoder, deferred) {
             assert!(!out.fatal, "an event after a fatal error: {event:?}");
             match event {
                 Ok(event) => {
@@ -539,6 +559,12 @@ fn check_bytes(bytes: &[u8], pieces: &[usize]) -> Decoded {
         largest <= bound,
         "the stream decoder allocated {largest} bytes at once for a {}-byte input (bound {bound})",
         bytes.len()
+    );
+    let deferred = stream_with(bytes, pieces, true);
+    assert_eq!(
+        deferred.outcome(),
+        split.outcome(),
+        "messages parsed after the fact read otherwise (pieces {pieces:?})"
     );
     if whole.outcome() != split.outcome() {
         // Allowed only for a damaged compressed chunk, and only in where the
