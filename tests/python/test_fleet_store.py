@@ -467,3 +467,23 @@ def test_a_full_disk_degrades_readyz_and_the_daemon_carries_on(world: dict[str, 
         assert d.proc.returncode == 0
     finally:
         subprocess.run(["umount", "-l", str(small)], check=False)
+
+
+def test_replay_says_when_the_observer_is_not_calibrated_at_a_runs_excitation(
+        world: dict[str, Path], tmp_path: Path) -> None:
+    """The world's bundle reads an observer calibrated at 1 and 2 Hz. A 2 Hz run is read; a
+    4 Hz run is not (no model there), and `shocktwin replay` says why its estimate kept the
+    prior, instead of a silent `unknown`."""
+    simulate(tmp_path / "runs", "--pressures", "7", "--frequencies", "2,4")
+    lines = {}
+    for run in sorted((tmp_path / "runs").glob("*.mcap")):
+        proc = subprocess.run([str(BIN), "replay", "--model", str(world["bundle"]), str(run), "--out",
+                               str(tmp_path / f"{run.stem}.csv")], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        lines[run.name] = [ln for ln in proc.stdout.splitlines() if "charge observer:" in ln]
+    at2, at4 = lines["p7.0-f2.0-s1.mcap"], lines["p7.0-f4.0-s1.mcap"]
+    assert len(at2) == 1 and len(at4) == 1, lines
+    read = lambda line: int(re.search(r"(\d+) read", line).group(1))  # noqa: E731
+    uncalibrated = lambda line: int(re.search(r"(\d+) at an excitation", line).group(1))  # noqa: E731
+    assert read(at2[0]) > 20 and "kept its prior" not in at2[0], at2
+    assert read(at4[0]) == 0 and uncalibrated(at4[0]) > 20 and "kept its prior" in at4[0], at4

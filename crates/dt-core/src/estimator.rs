@@ -188,6 +188,10 @@ pub struct EstimatorCounters {
     pub ticks_stale: u64,
     /// Non-finite samples skipped by the pipeline (all segments).
     pub missing_samples: u64,
+    /// What the charge observer made of the velocity reversals, all
+    /// segments (zero when the bundle does not read it).
+    #[serde(default)]
+    pub observer: crate::charge::ObserverCounters,
     /// Ticks on which a fast channel had no sample (held value), summed over
     /// the loadcell, potentiometer and accelerometers, all segments.
     pub gaps: u64,
@@ -483,6 +487,9 @@ impl Estimator {
         let mut c = self.s.counters;
         c.missing_samples += self.s.seg_missing;
         c.gaps += self.s.seg_gaps;
+        if let Some(o) = self.s.pipe.observer() {
+            c.observer += o.counters();
+        }
         c
     }
 
@@ -624,6 +631,9 @@ impl Estimator {
         self.s.seg_missing = 0;
         self.s.seg_gaps = 0;
         self.s.prev_gaps = GapCounters::default();
+        if let Some(o) = self.s.pipe.observer() {
+            self.s.counters.observer += o.counters();
+        }
         self.s.pipe =
             FeaturePipeline::new(&pipeline_params(&self.bundle, &self.s.cfg), self.s.topics)?;
         self.s.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];

@@ -128,7 +128,8 @@ pub(crate) fn features<'py>(
 /// ``a_n``, ``b_n_per_bar`` (the measurement model ``alpha = a + b p``) and
 /// ``used`` (1.0 when the update took it), plus the counts ``detected``,
 /// ``skipped``, ``rejected``, ``spared`` (not fitted: the evidence was
-/// enough, ``observer.fit_gain_floor``). Raises ``MissingTopicsError`` when the log lacks
+/// enough, ``observer.fit_gain_floor``) and ``uncalibrated`` (at an excitation
+/// the calibration does not cover, so not read). Raises ``MissingTopicsError`` when the log lacks
 /// a topic the observer needs.
 #[pyfunction]
 pub(crate) fn charge_reversals<'py>(
@@ -176,6 +177,7 @@ pub(crate) fn charge_reversals<'py>(
     out.set_item("skipped", counters.skipped)?;
     out.set_item("rejected", counters.rejected)?;
     out.set_item("spared", counters.spared)?;
+    out.set_item("uncalibrated", counters.uncalibrated)?;
     Ok(out)
 }
 

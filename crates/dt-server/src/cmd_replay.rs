@@ -603,6 +603,27 @@ fn rmse(r: &Replayed) -> Option<(f64, f64, usize)> {
     (n > 0).then(|| ((s_inst / n as f64).sqrt(), (s_avg / n as f64).sqrt(), n))
 }
 
+/// What the charge observer made of a run's velocity reversals, when it
+/// saw any; says so when none was read because the calibration does not
+/// cover the run's excitation.
+fn observer_line(o: &dt_core::charge::ObserverCounters) -> Option<String> {
+    if o.detected == 0 {
+        return None;
+    }
+    let mut line = format!(
+        "charge observer: {} reversals, {} read, {} spared, {} failed their window, {} rejected, \
+         {} at an excitation the calibration does not cover",
+        o.detected, o.used, o.spared, o.skipped, o.rejected, o.uncalibrated
+    );
+    if o.used == 0 && o.uncalibrated > o.detected / 2 {
+        line.push_str(
+            " (the estimate kept its prior: calibrate the observer at this excitation, \
+             `python -m train.observer fit`)",
+        );
+    }
+    Some(line)
+}
+
 fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
     println!(
         "{:<28} {:>9} {:>8} {:>8} {:>11} {:>11} {:>8} {:>9}",
@@ -640,6 +661,9 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
                 c.missing_samples,
                 c.ticks_without_inputs
             );
+        }
+        if let Some(line) = observer_line(&c.observer) {
+            println!("  {}: {line}", r.file.display());
         }
     }
     println!(

@@ -139,6 +139,7 @@ impl AssetTwin for EstimatorTwin {
             timestamp_outliers: c.timestamp_outliers,
             ticks_without_inputs: c.ticks_without_inputs,
             ticks: c.ticks,
+            observer: c.observer,
         }
     }
 }

@@ -565,6 +565,11 @@ impl RunHandle {
                 "input anomalies"
             );
         }
+        log_observer(
+            &self.info.source,
+            &self.info.meta.asset_id,
+            &counters.observer,
+        );
         if result.is_ok() {
             let (ack_tx, ack_rx) = oneshot::channel();
             let sent = self
@@ -590,6 +595,39 @@ impl RunHandle {
             complete_service(&self.ingest, &self.info, self.first_t_ns, read).await;
         }
         (outcome, self.samples, self.ticks, result)
+    }
+}
+
+/// What the charge observer made of a run's reversals, when it saw any. A
+/// run whose reversals were all at excitations the calibration does not
+/// cover is a warning: the asset's estimate keeps its prior (`unknown`)
+/// until the observer is calibrated at that excitation.
+fn log_observer(source: &str, asset_id: &str, o: &dt_core::charge::ObserverCounters) {
+    if o.detected == 0 {
+        return;
+    }
+    if o.used == 0 && o.uncalibrated > o.detected / 2 {
+        tracing::warn!(
+            source = %source,
+            asset = %asset_id,
+            reversals = o.detected,
+            uncalibrated = o.uncalibrated,
+            "charge observer read no reversal: most were at an excitation its calibration does \
+             not cover, so the estimate keeps its prior; calibrate the observer there \
+             (`python -m train.observer fit` on runs at that excitation)"
+        );
+    } else {
+        tracing::info!(
+            source = %source,
+            asset = %asset_id,
+            reversals = o.detected,
+            used = o.used,
+            spared = o.spared,
+            skipped = o.skipped,
+            rejected = o.rejected,
+            uncalibrated = o.uncalibrated,
+            "charge observer"
+        );
     }
 }
 

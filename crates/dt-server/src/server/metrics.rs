@@ -70,6 +70,10 @@ pub struct Metrics {
     /// Input anomalies the twins counted (`nan_samples`, `out_of_order`,
     /// `dropped_late`, `clock_jumps`, `timestamp_outliers`, `ticks_without_inputs`).
     pub input: Family<KindLabel, Counter>,
+    /// The charge observer's velocity reversals, by what became of them
+    /// (`used`, `spared`, `skipped`, `rejected`, `uncalibrated`: at an
+    /// excitation the calibration does not cover), counted when a run ends.
+    pub observer_reversals: Family<KindLabel, Counter>,
     /// Per asset: now − time of the last sample processed, s.
     pub asset_lag_seconds: Family<AssetLabel, Gauge<f64, AtomicU64>>,
     /// Per asset, one observation per estimate: wall time from the arrival
@@ -114,6 +118,7 @@ impl Metrics {
             runs: Family::default(),
             files: Family::default(),
             input: Family::default(),
+            observer_reversals: Family::default(),
             asset_lag_seconds: Family::default(),
             estimate_delay_seconds: Family::new_with_constructor(delay_histogram),
             leak_rate_bar_per_day: Family::default(),
@@ -148,6 +153,11 @@ impl Metrics {
             "input_anomalies",
             "Input anomalies counted by the twins",
             m.input.clone(),
+        );
+        registry.register(
+            "observer_reversals",
+            "The charge observer's velocity reversals by what became of them, counted at the end of each run",
+            m.observer_reversals.clone(),
         );
         registry.register(
             "asset_lag_seconds",
@@ -221,6 +231,14 @@ impl Metrics {
         Self::add(&self.input, "clock_jumps", c.clock_jumps);
         Self::add(&self.input, "timestamp_outliers", c.timestamp_outliers);
         Self::add(&self.input, "ticks_without_inputs", c.ticks_without_inputs);
+        let o = c.observer;
+        if o.detected > 0 {
+            Self::add(&self.observer_reversals, "used", o.used);
+            Self::add(&self.observer_reversals, "spared", o.spared);
+            Self::add(&self.observer_reversals, "skipped", o.skipped);
+            Self::add(&self.observer_reversals, "rejected", o.rejected);
+            Self::add(&self.observer_reversals, "uncalibrated", o.uncalibrated);
+        }
     }
 
     /// Counts `n` estimates of `asset` that took `delay_s` from arrival to the sinks.
