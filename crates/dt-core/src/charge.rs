@@ -1571,6 +1571,16 @@ pub struct ObserverCounters {
     pub spared: u64,
 }
 
+impl ObserverCounters {
+    /// Whether the estimate kept its prior for want of calibration: no
+    /// reversal read, and most of them at an excitation the calibration does
+    /// not cover.
+    #[must_use]
+    pub fn not_calibrated_here(&self) -> bool {
+        self.used == 0 && self.uncalibrated > self.detected / 2
+    }
+}
+
 impl std::ops::AddAssign for ObserverCounters {
     fn add_assign(&mut self, o: Self) {
         self.detected += o.detected;

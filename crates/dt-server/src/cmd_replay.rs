@@ -615,7 +615,7 @@ fn observer_line(o: &dt_core::charge::ObserverCounters) -> Option<String> {
          {} at an excitation the calibration does not cover",
         o.detected, o.used, o.spared, o.skipped, o.rejected, o.uncalibrated
     );
-    if o.used == 0 && o.uncalibrated > o.detected / 2 {
+    if o.not_calibrated_here() {
         line.push_str(
             " (the estimate kept its prior: calibrate the observer at this excitation, \
              `python -m train.observer fit`)",

@@ -606,7 +606,7 @@ fn log_observer(source: &str, asset_id: &str, o: &dt_core::charge::ObserverCount
     if o.detected == 0 {
         return;
     }
-    if o.used == 0 && o.uncalibrated > o.detected / 2 {
+    if o.not_calibrated_here() {
         tracing::warn!(
             source = %source,
             asset = %asset_id,
