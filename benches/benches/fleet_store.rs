@@ -102,6 +102,7 @@ fn populate(path: &std::path::Path, assets: i64, days: i64, hours: i64) {
                     pressure_bar: p,
                     sd_bar: 0.3,
                 }),
+                observer: None,
             });
         }
         store.apply(&ops).expect("apply");

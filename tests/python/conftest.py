@@ -362,3 +362,35 @@ def calibrated_campaign(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFa
                                   "--physics", str(work / "physics.json")]) == 0
             (work / "done").touch()
     return work / "campaign", work / "physics.json"
+
+
+# --- a real browser: headless Chromium from Debian's packages, driven by selenium ---
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+CHROMIUM_INSTALL = "sudo apt-get install chromium chromium-driver"
+
+
+@pytest.fixture(scope="session")
+def browser_binaries() -> None:
+    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
+    if missing:
+        pytest.fail(f"{', '.join(missing)} missing: the dashboard tests need Debian's browser: {CHROMIUM_INSTALL}")
+
+
+@pytest.fixture()
+def driver(browser_binaries: None) -> Iterator[Any]:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--window-size=1400,1300"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
+    try:
+        yield drv
+    finally:
+        drv.quit()

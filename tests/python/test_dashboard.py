@@ -38,9 +38,6 @@ ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
 BUNDLE = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
 ASSETS = ROOT / "crates" / "dt-server" / "assets"
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
-INSTALL = "sudo apt-get install chromium chromium-driver"
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 UNITS = (1, 2, 3)
 TICKS_PER_QUICK_RUN = 3500
@@ -69,13 +66,6 @@ def wait_for(what: str, cond: Callable[[], Any], timeout: float = 20.0, every: f
             return value
         time.sleep(every)
     pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}{explain()}")
-
-
-@pytest.fixture(scope="module")
-def browser_binaries() -> None:
-    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
-    if missing:
-        pytest.fail(f"{', '.join(missing)} missing: the dashboard test needs Debian's browser: {INSTALL}")
 
 
 @pytest.fixture(scope="module")
@@ -127,24 +117,6 @@ def daemon(tmp_path: Path) -> Iterator[tuple[str, str]]:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(10)
-
-
-@pytest.fixture()
-def driver(browser_binaries: None) -> Iterator[Any]:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
-                "--window-size=1400,1300"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
-    try:
-        yield drv
-    finally:
-        drv.quit()
 
 
 def stream_run(addr: str, path: Path) -> dict[str, Any]:

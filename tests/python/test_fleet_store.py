@@ -9,7 +9,9 @@ history equals `shocktwin replay`'s estimates binned by numpy; `kill -9` and a
 restart keep the fleet, its runs and its trend, and the file passes SQLite's
 integrity check; a daemon killed in the middle of a run leaves that run
 `interrupted` and processes it again; a store that is not one is refused with
-its name. Simulated data throughout.
+its name; a run at an excitation the observer is not calibrated at is said so by
+`shocktwin replay`, the API (kept across a restart) and the dashboard in headless
+Chromium. Simulated data throughout.
 """
 
 from __future__ import annotations
@@ -469,14 +471,21 @@ def test_a_full_disk_degrades_readyz_and_the_daemon_carries_on(world: dict[str, 
         subprocess.run(["umount", "-l", str(small)], check=False)
 
 
+@pytest.fixture(scope="module")
+def at_2_and_4_hz(tmp_path_factory: pytest.TempPathFactory) -> dict[int, Path]:
+    """A 7 bar run at 2 Hz (where the world's observer is calibrated) and one at 4 Hz (not)."""
+    out = tmp_path_factory.mktemp("at_2_and_4_hz")
+    simulate(out, "--pressures", "7", "--frequencies", "2,4")
+    return {2: out / "p7.0-f2.0-s1.mcap", 4: out / "p7.0-f4.0-s1.mcap"}
+
+
 def test_replay_says_when_the_observer_is_not_calibrated_at_a_runs_excitation(
-        world: dict[str, Path], tmp_path: Path) -> None:
+        world: dict[str, Path], at_2_and_4_hz: dict[int, Path], tmp_path: Path) -> None:
     """The world's bundle reads an observer calibrated at 1 and 2 Hz. A 2 Hz run is read; a
     4 Hz run is not (no model there), and `shocktwin replay` says why its estimate kept the
     prior, instead of a silent `unknown`."""
-    simulate(tmp_path / "runs", "--pressures", "7", "--frequencies", "2,4")
     lines = {}
-    for run in sorted((tmp_path / "runs").glob("*.mcap")):
+    for run in at_2_and_4_hz.values():
         proc = subprocess.run([str(BIN), "replay", "--model", str(world["bundle"]), str(run), "--out",
                                str(tmp_path / f"{run.stem}.csv")], capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr
@@ -487,3 +496,64 @@ def test_replay_says_when_the_observer_is_not_calibrated_at_a_runs_excitation(
     uncalibrated = lambda line: int(re.search(r"(\d+) at an excitation", line).group(1))  # noqa: E731
     assert read(at2[0]) > 20 and "kept its prior" not in at2[0], at2
     assert read(at4[0]) == 0 and uncalibrated(at4[0]) > 20 and "kept its prior" in at4[0], at4
+
+
+def test_the_api_and_the_dashboard_say_when_the_observer_is_not_calibrated_at_a_runs_excitation(
+        world: dict[str, Path], at_2_and_4_hz: dict[int, Path], tmp_path: Path, daemons: list[Daemon],
+        driver: Any) -> None:
+    """The same two runs through the daemon's inbox, one after the other: the asset summary
+    carries what the observer made of its last run, every run in `/runs` its own counts, a
+    restart keeps them, and the dashboard (headless Chromium) marks the asset and the run
+    the observer could not read."""
+    inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
+    inbox.mkdir()
+    d = Daemon(world["bundle"], db, inbox)
+    daemons.append(d)
+    shutil.copy(at_2_and_4_hz[2], inbox / "at2.mcap")
+    d.wait_runs("dyno-unit-A", 1)
+    first = d.get("/v1/assets/dyno-unit-A")["last_run_observer"]
+    assert first["used"] > 20 and not first["not_calibrated_here"], first
+    shutil.copy(at_2_and_4_hz[4], inbox / "at4.mcap")
+    runs = {r["run_id"]: r for r in d.wait_runs("dyno-unit-A", 2)}
+    last = d.get("/v1/assets/dyno-unit-A")["last_run_observer"]
+    assert last["not_calibrated_here"] and last["used"] == 0 and last["uncalibrated"] > 20, last
+    assert runs["p7.0-f2.0-s1"]["observer"] == first
+    assert runs["p7.0-f4.0-s1"]["observer"] == last
+    counts = {"detected", "used", "spared", "skipped", "rejected", "uncalibrated", "reacquired"}
+    assert counts <= set(last), last
+
+    d.kill9()
+    d2 = Daemon(world["bundle"], db, inbox)
+    daemons.append(d2)
+    assert d2.get("/v1/assets")["assets"][0]["last_run_observer"] == last
+    assert {r["run_id"]: r["observer"] for r in d2.get("/v1/assets/dyno-unit-A/runs")["runs"]} == {
+        k: r["observer"] for k, r in runs.items()}
+
+    from selenium.webdriver.common.by import By
+
+    driver.get(f"http://{d2.http}/#dyno-unit-A")
+    row = 'tr[data-asset-id="dyno-unit-A"]'
+    pill = wait_for_element(driver, By.CSS_SELECTOR, f"{row} .obs-uncal")
+    assert pill.text == "observer not calibrated here"
+    assert f"{last['uncalibrated']} at an excitation the calibration does not cover" in pill.get_attribute("title")
+    cells = {r: wait_for_element(driver, By.CSS_SELECTOR, f'tr[data-run-id="{r}"] td.obs').text
+             for r in runs}
+    assert cells == {"p7.0-f2.0-s1": f"{first['used']} of {first['detected']} read",
+                     "p7.0-f4.0-s1": "not calibrated here"}, cells
+    shot = tmp_path / "observer-not-calibrated.png"
+    driver.save_screenshot(str(shot))
+    print(f"screenshot: {shot}")
+    errors = [e for e in driver.get_log("browser") if e["level"] in ("SEVERE", "WARNING")]
+    assert not errors, errors
+    d2.stop()
+    assert d2.proc.returncode == 0
+
+
+def wait_for_element(driver: Any, by: str, selector: str, timeout_s: float = 20) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = driver.find_elements(by, selector)
+        if found:
+            return found[0]
+        time.sleep(0.2)
+    raise AssertionError(f"no `{selector}` on the dashboard within {timeout_s} s")

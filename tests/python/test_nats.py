@@ -487,6 +487,16 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
         done = wait_ended(nats_server.url, {"veh-b0"}, 120, [w, view])
         assert done["veh-b0"]["meta"]["outcome"] == "completed", done
         assert_equal_to_replay(estimates_by_asset(nats_server.url)["veh-b0"], want, "veh-b0")
+        # What the worker's observer made of the run travels with its end to every fleet view.
+        observer = done["veh-b0"]["observer"]
+        assert observer["used"] > 0 and observer["detected"] >= observer["used"], observer
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            seen = httpx.get(f"http://{view.http}/v1/assets/veh-b0", timeout=5).json().get("last_run_observer")
+            if seen:
+                break
+            time.sleep(0.2)
+        assert seen == {**observer, "not_calibrated_here": False}, seen
         gone = httpx.delete(f"http://{w.http}/v1/assets/veh-b0/baseline", timeout=10)
         assert gone.status_code == 200, gone.text
         deadline = time.monotonic() + 20

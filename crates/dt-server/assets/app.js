@@ -134,10 +134,12 @@ function renderFleet() {
     const sv = a.service;   // a service reported at a known charge: the next drive is read into a baseline
     const svc = sv ? ` <span class="pill" title="service at ${num(sv.charge_bar, 1)} bar reported ${esc(sv.set_at)}: ` +
       `the unit's next drive is read into its baseline${sv.last_refusal ? `; last run: ${esc(sv.last_refusal)}` : ""}">service pending</span>` : "";
+    const obs = a.last_run_observer?.not_calibrated_here ? ` <span class="pill bad obs-uncal" title="${esc(observerText(a.last_run_observer))}` +
+      `: the estimate kept its prior; calibrate the observer at this excitation (python -m train.observer fit)">observer not calibrated here</span>` : "";
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
     return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
-      <td class="id">${esc(a.asset_id)}${run}${base}${svc}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td class="id">${esc(a.asset_id)}${run}${base}${svc}${obs}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td>${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");
@@ -222,14 +224,34 @@ function scheduleDetail() {   // coalesces bursts of run/health events
   S.detailTimer = setTimeout(() => S.selected && loadDetail(), 500);
 }
 
+// What the charge observer made of a run's velocity reversals (`observer` of /runs, `last_run_observer`).
+function observerText(o) {
+  if (!o) return "";
+  if (!o.detected) return "no reversal: the run did not excite the damper";
+  const parts = [`${o.detected} reversals`, `${o.used} read`];
+  if (o.spared) parts.push(`${o.spared} spared`);
+  if (o.skipped) parts.push(`${o.skipped} failed their window`);
+  if (o.rejected) parts.push(`${o.rejected} rejected`);
+  if (o.uncalibrated) parts.push(`${o.uncalibrated} at an excitation the calibration does not cover`);
+  return parts.join(", ");
+}
+function observerCell(o) {
+  if (!o) return `<td class="small">${DASH}</td>`;
+  const text = observerText(o);
+  if (o.not_calibrated_here) return `<td class="small bad obs" title="${esc(text)}">not calibrated here</td>`;
+  return `<td class="small obs" title="${esc(text)}">${o.detected ? `${o.used} of ${o.detected} read` : "no reversal"}</td>`;
+}
+
 function renderRuns(runs) {
   const tb = $("runs").tBodies[0];
-  if (!runs.length) { tb.innerHTML = `<tr><td colspan="6" class="muted">no runs recorded</td></tr>`; return; }
+  if (!runs.length) { tb.innerHTML = `<tr><td colspan="7" class="muted">no runs recorded</td></tr>`; return; }
   tb.innerHTML = runs.slice(0, 20).map((r) => `<tr data-run-id="${esc(r.run_id)}">
     <td>${esc(r.run_id)}</td><td class="small src">${esc(r.source || DASH)}</td>
     <td>${fmtTime(tsec(r.start))}</td><td>${duration(tsec(r.start), tsec(r.end))}</td><td>${r.ticks ?? DASH}</td>
-    <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td></tr>` +
-    (r.reason ? `<tr><td></td><td colspan="5" class="reason">${esc(r.reason)}</td></tr>` : "")).join("");
+    <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td>${observerCell(r.observer)}</tr>` +
+    (r.reason ? `<tr><td></td><td colspan="6" class="reason">${esc(r.reason)}</td></tr>` : "") +
+    (r.observer?.not_calibrated_here ? `<tr><td></td><td colspan="6" class="reason">charge observer: ${esc(observerText(r.observer))}; ` +
+      `the estimate kept its prior — calibrate the observer at this excitation (<code>python -m train.observer fit</code>)</td></tr>` : "")).join("");
 }
 
 function renderChanges(changes) {

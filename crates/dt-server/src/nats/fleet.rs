@@ -69,6 +69,9 @@ struct RunEventIn {
     run_id: String,
     #[serde(default)]
     meta: std::collections::BTreeMap<String, String>,
+    /// What the worker's charge observer made of the run (when ended).
+    #[serde(default)]
+    observer: Option<dt_core::charge::ObserverCounters>,
 }
 
 async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
@@ -131,7 +134,8 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
                             }
                             Ok(ev) => {
                                 if runs.get(&asset).is_some_and(|r| r.info().meta.run_id == ev.run_id) {
-                                    if let Some(r) = runs.remove(&asset) {
+                                    if let Some(mut r) = runs.remove(&asset) {
+                                        r.relay_observer(ev.observer);
                                         let outcome = match ev.meta.get("outcome").map(String::as_str) {
                                             Some("failed") => RunOutcome::Failed { kind: "twin", reason: format!("{source}: the worker's twin failed") },
                                             Some("interrupted") => RunOutcome::Interrupted,

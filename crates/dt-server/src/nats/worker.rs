@@ -745,12 +745,14 @@ impl Partition {
         }
         let mut map = open.meta.clone();
         map.insert("outcome".into(), outcome.into());
+        let counters = open.est.counters();
+        let observer = open.est.observer().is_some().then_some(counters.observer);
         self.run_event(
             asset,
             &open.run_id,
             "ended",
             &map,
-            Some(open.est.counters().ticks),
+            Some((counters.ticks, observer)),
         )
         .await?;
         tracing::info!(partition = self.p, asset, run = %open.run_id, outcome, "run ended");
@@ -850,7 +852,7 @@ impl Partition {
         run_id: &str,
         event: &str,
         meta: &BTreeMap<String, String>,
-        ticks: Option<u64>,
+        ended: Option<(u64, Option<dt_core::charge::ObserverCounters>)>,
     ) -> Result<(), Refused> {
         let token = super::payload::subject_token(asset);
         let payload = serde_json::to_vec(&RunEvent {
@@ -858,7 +860,8 @@ impl Partition {
             asset_id: asset,
             run_id,
             meta,
-            ticks,
+            ticks: ended.map(|(ticks, _)| ticks),
+            observer: ended.and_then(|(_, observer)| observer),
         })
         .map_err(|e| Refused::Publish(NatsError::new("run event encoding", e)))?;
         let id = format!("r/{asset}/{run_id}/{event}");
@@ -917,6 +920,10 @@ pub struct RunEvent<'a> {
     /// Estimates emitted (when ended).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ticks: Option<u64>,
+    /// What the charge observer made of the run's reversals since this
+    /// worker took it (when ended, with a model that reads the observer).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub observer: Option<dt_core::charge::ObserverCounters>,
 }
 
 impl From<PayloadError> for Refused {

@@ -139,7 +139,7 @@ impl AssetTwin for EstimatorTwin {
             timestamp_outliers: c.timestamp_outliers,
             ticks_without_inputs: c.ticks_without_inputs,
             ticks: c.ticks,
-            observer: c.observer,
+            observer: self.est.observer().is_some().then_some(c.observer),
         }
     }
 }

@@ -10,7 +10,7 @@
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
 //! | `GET /v1/assets/{id}/history?since=&until=&step_s=` | 1 s history from the fleet store (SPEC §9); times RFC 3339 or Unix s; default the last day of the asset's data |
 //! | `GET /v1/assets/{id}/trend` | leak rate, predicted warn/fault crossings with intervals, or why not (SPEC §9) |
-//! | `GET /v1/assets/{id}/runs` | runs seen, newest first |
+//! | `GET /v1/assets/{id}/runs` | runs seen, newest first, each with what the charge observer made of it (`observer`) |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
 //! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
 //! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
@@ -842,6 +842,7 @@ async fn runs(State(app): State<AppState>, Path(id): Path<String>) -> Response {
                         "reason": r.reason,
                         "summary_bar": r.summary.map(|s| s.pressure_bar),
                         "summary_sd_bar": r.summary.map(|s| s.sd_bar),
+                        "observer": r.observer,
                     })
                 })
                 .collect();

@@ -21,7 +21,7 @@ use tokio_util::sync::CancellationToken;
 use super::baselines::{recorded_before, Baselines, ServiceOutcome};
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
-use super::sink::{RunInfo, RunOutcome, SinkMsg, SourceKind};
+use super::sink::{ObserverRead, RunEnd, RunInfo, RunOutcome, SinkMsg, SourceKind};
 use super::store::FleetStore;
 use super::twin::{AssetTwin, TwinError, TwinFactory};
 
@@ -239,6 +239,7 @@ impl Ingest {
             first_t_ns: None,
             last_t_ns: None,
             arrived: None,
+            relayed_observer: None,
         })
     }
 
@@ -457,6 +458,8 @@ pub struct RunHandle {
     last_t_ns: Option<i64>,
     /// When the input pushed since the last flush arrived (earliest).
     arrived: Option<Instant>,
+    /// A relayed run's observer counts (its twin is elsewhere).
+    relayed_observer: Option<dt_core::charge::ObserverCounters>,
 }
 
 impl std::fmt::Debug for RunHandle {
@@ -491,6 +494,12 @@ impl RunHandle {
             self.last_t_ns = Some(self.last_t_ns.map_or(e.t_ns, |l| l.max(e.t_ns)));
             self.out.push(e);
         }
+    }
+
+    /// Hands in what the charge observer made of a relayed run, for its
+    /// end (its twin is elsewhere).
+    pub fn relay_observer(&mut self, observer: Option<dt_core::charge::ObserverCounters>) {
+        self.relayed_observer = observer;
     }
 
     /// Says when the samples pushed since the last flush arrived (the read
@@ -565,11 +574,9 @@ impl RunHandle {
                 "input anomalies"
             );
         }
-        log_observer(
-            &self.info.source,
-            &self.info.meta.asset_id,
-            &counters.observer,
-        );
+        if let Some(o) = &counters.observer {
+            log_observer(&self.info.source, &self.info.meta.asset_id, o);
+        }
         if result.is_ok() {
             let (ack_tx, ack_rx) = oneshot::channel();
             let sent = self
@@ -578,7 +585,13 @@ impl RunHandle {
                 .sink_tx
                 .send(SinkMsg::Ended(
                     Arc::clone(&self.info),
-                    outcome.clone(),
+                    RunEnd {
+                        outcome: outcome.clone(),
+                        observer: counters
+                            .observer
+                            .or(self.relayed_observer)
+                            .map(ObserverRead::from),
+                    },
                     ack_tx,
                 ))
                 .await;

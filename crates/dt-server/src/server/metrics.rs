@@ -231,8 +231,7 @@ impl Metrics {
         Self::add(&self.input, "clock_jumps", c.clock_jumps);
         Self::add(&self.input, "timestamp_outliers", c.timestamp_outliers);
         Self::add(&self.input, "ticks_without_inputs", c.ticks_without_inputs);
-        let o = c.observer;
-        if o.detected > 0 {
+        if let Some(o) = c.observer.filter(|o| o.detected > 0) {
             Self::add(&self.observer_reversals, "used", o.used);
             Self::add(&self.observer_reversals, "spared", o.spared);
             Self::add(&self.observer_reversals, "skipped", o.skipped);

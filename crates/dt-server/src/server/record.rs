@@ -19,7 +19,7 @@ use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
 use dt_core::log::{topic, Compression, LogWriter, WriteOptions};
 
 use super::config::RecordConfig;
-use super::sink::{RunInfo, RunOutcome, Sink, SinkError};
+use super::sink::{RunEnd, RunInfo, Sink, SinkError};
 
 /// A writer that knows how far it has written (for rotation by size).
 #[derive(Debug)]
@@ -215,7 +215,7 @@ impl Sink for McapRecorder {
         Ok(())
     }
 
-    fn run_ended(&mut self, run: &RunInfo, _outcome: &RunOutcome) -> Result<(), SinkError> {
+    fn run_ended(&mut self, run: &RunInfo, _end: &RunEnd) -> Result<(), SinkError> {
         match self.open.remove(&run.seq) {
             Some(rec) => Self::finish(rec).map(|_| ()),
             None => Ok(()),

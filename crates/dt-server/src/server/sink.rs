@@ -8,8 +8,10 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Instant, SystemTime};
 
+use dt_core::charge::ObserverCounters;
 use dt_core::estimate::Estimate;
 use dt_core::log::RunMetadata;
+use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, oneshot};
 
 use super::config::AssetConfig;
@@ -96,6 +98,39 @@ impl RunOutcome {
     }
 }
 
+/// How a run ended, and what the charge observer made of its reversals.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunEnd {
+    /// How it ended.
+    pub outcome: RunOutcome,
+    /// What the observer read, `None` when the model does not read it.
+    pub observer: Option<ObserverRead>,
+}
+
+/// What the charge observer made of one run's velocity reversals, as the
+/// API and the fleet store tell it: the counts, and whether the estimate
+/// kept its prior for want of calibration at the run's excitation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ObserverRead {
+    /// The counts (`detected`, `used`, `spared`, `skipped`, `rejected`,
+    /// `uncalibrated`, `reacquired`).
+    #[serde(flatten)]
+    pub counts: ObserverCounters,
+    /// No reversal read, most at an excitation the calibration does not
+    /// cover ([`ObserverCounters::not_calibrated_here`]): the estimate kept
+    /// its prior; calibrate the observer there.
+    pub not_calibrated_here: bool,
+}
+
+impl From<ObserverCounters> for ObserverRead {
+    fn from(counts: ObserverCounters) -> Self {
+        Self {
+            counts,
+            not_calibrated_here: counts.not_calibrated_here(),
+        }
+    }
+}
+
 /// A sink failed to take or keep a run's estimates.
 #[derive(Debug, thiserror::Error)]
 #[error("sink `{sink}`: {reason}")]
@@ -116,7 +151,7 @@ pub trait Sink: Send {
     /// The next estimates of a run, in time order.
     fn estimates(&mut self, run: &RunInfo, batch: &[Estimate]) -> Result<(), SinkError>;
     /// The run ended: everything of it must be durable when this returns.
-    fn run_ended(&mut self, run: &RunInfo, outcome: &RunOutcome) -> Result<(), SinkError>;
+    fn run_ended(&mut self, run: &RunInfo, end: &RunEnd) -> Result<(), SinkError>;
     /// The daemon stops: flush and close everything.
     fn close(&mut self) -> Result<(), SinkError>;
 }
@@ -128,11 +163,7 @@ pub(crate) enum SinkMsg {
     /// A batch and when the input that completed it arrived.
     Estimates(Arc<RunInfo>, Vec<Estimate>, Instant),
     /// The sender gets `Err(reason)` if a sink failed for this run.
-    Ended(
-        Arc<RunInfo>,
-        RunOutcome,
-        oneshot::Sender<Result<(), String>>,
-    ),
+    Ended(Arc<RunInfo>, RunEnd, oneshot::Sender<Result<(), String>>),
 }
 
 /// Drains `rx` into `sinks` until every sender is gone, then closes them.
@@ -171,9 +202,9 @@ pub(crate) fn dispatch(
                 };
                 metrics.observe_delay(&label, arrived.elapsed().as_secs_f64(), batch.len());
             }
-            SinkMsg::Ended(run, outcome, ack) => {
+            SinkMsg::Ended(run, end, ack) => {
                 for sink in &mut sinks {
-                    if let Err(e) = sink.run_ended(&run, &outcome) {
+                    if let Err(e) = sink.run_ended(&run, &end) {
                         note(&mut failed, run.seq, e);
                     }
                 }

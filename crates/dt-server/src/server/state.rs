@@ -11,7 +11,7 @@ use serde::Serialize;
 use tokio::sync::broadcast;
 
 use super::config::Config;
-use super::sink::{RunInfo, RunOutcome, Sink, SinkError};
+use super::sink::{ObserverRead, RunEnd, RunInfo, Sink, SinkError};
 use super::store::{AssetState, HistoryPoint};
 
 /// One event of the live stream; the SSE event name is [`LiveEvent::name`].
@@ -100,6 +100,11 @@ pub struct AssetSummary {
     pub last_run_status: Option<&'static str>,
     /// Why its last run failed, if it did.
     pub last_run_reason: Option<String>,
+    /// What the charge observer made of its last run's reversals (absent
+    /// when the model does not read the observer): with
+    /// `not_calibrated_here`, why an excited asset stays `unknown`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_run_observer: Option<ObserverRead>,
 }
 
 /// [`AssetSummary`] with the recent estimates, oldest first.
@@ -206,6 +211,7 @@ impl LiveState {
                     _ => Some("interrupted"),
                 },
                 last_run_reason: st.last_run_reason.clone(),
+                last_run_observer: st.last_run_observer,
             };
             assets.insert(
                 st.asset_id.clone(),
@@ -242,6 +248,7 @@ impl LiveState {
                     active_runs: 0,
                     last_run_status: None,
                     last_run_reason: None,
+                    last_run_observer: None,
                 },
                 history: VecDeque::with_capacity(self.history_len.min(4096)),
             });
@@ -333,11 +340,13 @@ impl Sink for LiveSink {
         Ok(())
     }
 
-    fn run_ended(&mut self, run: &RunInfo, outcome: &RunOutcome) -> Result<(), SinkError> {
+    fn run_ended(&mut self, run: &RunInfo, end: &RunEnd) -> Result<(), SinkError> {
+        let outcome = &end.outcome;
         self.0.with_asset(run, |v| {
             v.summary.active_runs = v.summary.active_runs.saturating_sub(1);
             v.summary.last_run_status = Some(outcome.status());
             v.summary.last_run_reason = outcome.reason().map(str::to_owned);
+            v.summary.last_run_observer = end.observer;
         });
         self.0.publish(LiveState::run_event(
             run,

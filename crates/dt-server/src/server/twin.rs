@@ -30,9 +30,9 @@ pub struct TwinCounters {
     pub ticks_without_inputs: u64,
     /// Estimates emitted.
     pub ticks: u64,
-    /// What the charge observer made of the velocity reversals (zero when
-    /// the bundle does not read it).
-    pub observer: dt_core::charge::ObserverCounters,
+    /// What the charge observer made of the velocity reversals (`None`
+    /// when the bundle does not read it).
+    pub observer: Option<dt_core::charge::ObserverCounters>,
 }
 
 /// One asset's estimator for one run: fed samples in any interleaving, it

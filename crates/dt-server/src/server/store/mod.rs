@@ -33,6 +33,7 @@ use std::fmt::Debug;
 use std::path::PathBuf;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use dt_core::charge::ObserverCounters;
 use dt_core::estimate::Health;
 use dt_core::trend::{Crossing, RunPoint, Trend, DAY_S};
 use serde::Serialize;
@@ -101,6 +102,8 @@ pub struct RunRecord {
     pub reason: Option<String>,
     /// The run's summary (see the module doc), if it had one.
     pub summary: Option<RunPoint>,
+    /// What the charge observer made of its reversals, if the model read it.
+    pub observer: Option<crate::server::sink::ObserverRead>,
 }
 
 /// A unit baseline set over the API (`PUT /v1/assets/{id}/baseline`).
@@ -172,6 +175,8 @@ pub struct AssetState {
     pub last_run_status: String,
     /// See `last_run_status`.
     pub last_run_reason: Option<String>,
+    /// What the observer made of the latest run, if the model read it.
+    pub last_run_observer: Option<crate::server::sink::ObserverRead>,
 }
 
 /// One write of the daemon, applied in order by the writer thread.
@@ -220,6 +225,8 @@ pub enum StoreOp {
         reason: Option<String>,
         /// Its summary.
         summary: Option<RunPoint>,
+        /// What the charge observer made of its reversals.
+        observer: Option<ObserverCounters>,
     },
 }
 

@@ -22,7 +22,7 @@ use super::{
 };
 use crate::server::config::Config;
 use crate::server::metrics::Metrics;
-use crate::server::sink::{RunInfo, RunOutcome, Sink, SinkError};
+use crate::server::sink::{RunEnd, RunInfo, Sink, SinkError};
 
 /// Ops queued for the writer at most (a full queue makes the sink thread
 /// wait: backpressure, nothing dropped).
@@ -418,7 +418,8 @@ impl Sink for StoreSink {
         Ok(())
     }
 
-    fn run_ended(&mut self, run: &RunInfo, outcome: &RunOutcome) -> Result<(), SinkError> {
+    fn run_ended(&mut self, run: &RunInfo, end: &RunEnd) -> Result<(), SinkError> {
+        let outcome = &end.outcome;
         let Some(mut acc) = self.runs.remove(&run.seq) else {
             return Ok(());
         };
@@ -441,6 +442,7 @@ impl Sink for StoreSink {
             status: outcome.status().to_owned(),
             reason: outcome.reason().map(str::to_owned),
             summary: summarise(&acc.excited),
+            observer: end.observer.map(|o| o.counts),
         });
         // Durable before the source takes the run as done (SPEC of `Sink`).
         let ops = self.sent.load(Ordering::Relaxed);

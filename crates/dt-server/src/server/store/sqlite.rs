@@ -12,9 +12,11 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
-use dt_core::charge::UnitBaseline;
+use dt_core::charge::{ObserverCounters, UnitBaseline};
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
+
+use crate::server::sink::ObserverRead;
 
 use super::{
     health_code, health_from_code, health_from_str, AssetState, FleetStore, HealthChange,
@@ -22,10 +24,10 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 3;
+pub const SCHEMA_VERSION: i64 = 4;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 3] = [
+const MIGRATIONS: [&str; 4] = [
     r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
@@ -81,6 +83,11 @@ CREATE TABLE services (
     set_ms     INTEGER NOT NULL,
     refusal    TEXT
 );
+",
+    // What the charge observer made of a run's reversals: its counters as
+    // JSON (`dt_core::charge::ObserverCounters`), NULL without an observer.
+    r"
+ALTER TABLE runs ADD COLUMN observer TEXT;
 ",
 ];
 
@@ -311,11 +318,13 @@ impl SqliteStore {
                 status,
                 reason,
                 summary,
+                observer,
                 ..
             } => {
                 tx.prepare_cached(
                     "UPDATE runs SET end_ms = ?2, ticks = ?3, status = ?4, reason = ?5, \
-                     summary_t_ms = ?6, summary_bar = ?7, summary_sd_bar = ?8 WHERE key = ?1",
+                     summary_t_ms = ?6, summary_bar = ?7, summary_sd_bar = ?8, observer = ?9 \
+                     WHERE key = ?1",
                 )?
                 .execute(params![
                     key,
@@ -326,11 +335,19 @@ impl SqliteStore {
                     summary.map(|s| (s.t_unix_s * 1e3).round() as i64),
                     summary.map(|s| s.pressure_bar),
                     summary.map(|s| s.sd_bar),
+                    observer.map(|o| serde_json::to_string(&o).unwrap_or_default()),
                 ])?;
             }
         }
         Ok(())
     }
+}
+
+/// A run's observer counters as kept (`None`: no observer, or a value this
+/// build cannot read, which the API then leaves out rather than fail).
+fn observer_from(json: Option<String>) -> Option<ObserverRead> {
+    json.and_then(|j| serde_json::from_str::<ObserverCounters>(&j).ok())
+        .map(ObserverRead::from)
 }
 
 fn point_from_row(r: &rusqlite::Row<'_>, at: usize) -> rusqlite::Result<HistoryPoint> {
@@ -367,7 +384,8 @@ impl FleetStore for SqliteStore {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, r.run_id, r.status, r.reason, \
                    (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
-                   s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited \
+                   s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited, \
+                   r.observer \
                  FROM assets a \
                  LEFT JOIN runs r ON r.key = \
                    (SELECT key FROM runs WHERE asset = a.id ORDER BY start_ms DESC LIMIT 1) \
@@ -384,6 +402,7 @@ impl FleetStore for SqliteStore {
                         .get::<_, Option<String>>(2)?
                         .unwrap_or_else(|| "unknown".into()),
                     last_run_reason: r.get(3)?,
+                    last_run_observer: observer_from(r.get(11)?),
                     ticks: r.get::<_, i64>(4)?.max(0) as u64,
                     last: if t_ms.is_some() {
                         Some(point_from_row(r, 5)?)
@@ -454,7 +473,7 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare_cached(&format!(
                 "SELECT run_id, source, start_ms, end_ms, ticks, status, reason, \
-                   summary_t_ms, summary_bar, summary_sd_bar \
+                   summary_t_ms, summary_bar, summary_sd_bar, observer \
                  FROM runs WHERE asset = {ASSET} ORDER BY start_ms DESC LIMIT ?2"
             ))?;
             let limit = i64::try_from(limit).unwrap_or(i64::MAX);
@@ -480,6 +499,7 @@ impl FleetStore for SqliteStore {
                     status: r.get(5)?,
                     reason: r.get(6)?,
                     summary,
+                    observer: observer_from(r.get(10)?),
                 })
             })?;
             rows.collect()
@@ -656,6 +676,12 @@ mod tests {
                 pressure_bar: 7.5,
                 sd_bar: 0.5,
             }),
+            observer: Some(ObserverCounters {
+                detected: 40,
+                uncalibrated: 38,
+                skipped: 2,
+                ..ObserverCounters::default()
+            }),
         });
         store.apply(&ops).unwrap();
         let h = store.history("a1", (0, 9000), 1000, 100).unwrap().unwrap();
@@ -675,6 +701,11 @@ mod tests {
         assert_eq!(runs.len(), 1);
         assert_eq!(runs[0].ticks, 500);
         assert!((runs[0].summary.unwrap().pressure_bar - 7.5).abs() < 1e-12);
+        // The observer's counts come back, with the verdict they imply.
+        let o = runs[0].observer.unwrap();
+        assert_eq!((o.counts.detected, o.counts.uncalibrated), (40, 38));
+        assert!(o.not_calibrated_here);
+        assert_eq!(store.asset_states().unwrap()[0].last_run_observer, Some(o));
         assert_eq!(store.newest_ms("a1").unwrap(), Some(9000));
         assert_eq!(store.prune(5000).unwrap(), 5);
         drop(store);
