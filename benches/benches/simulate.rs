@@ -17,6 +17,7 @@ fn plant_seconds(p: &PlantParams, seconds: f64) -> f64 {
         frequency_hz: 2.0,
         stroke_pp_m: 0.08,
         excitation_start_s: 0.0,
+        road: None,
     };
     let mut plant = Plant::with_seed(p, &config, 1).expect("plant");
     let steps = (seconds / plant.dt_s()).round() as u64;

@@ -109,6 +109,28 @@ pub struct SimulateArgs {
     /// With `--format dyno-csv`: the export's sample rate, Hz.
     #[arg(long, default_value_t = 300.0)]
     pub csv_rate_hz: f64,
+    /// Play a road drive file instead of the sines: the suspension stroke of
+    /// a car at this speed (km/h) over an ISO 8608 road (--road-class),
+    /// through a linear quarter-car, 0.5-20 Hz; one run per pressure, every
+    /// run the same drive file (from --seed); --frequencies is not used.
+    #[arg(long, conflicts_with = "days")]
+    pub road: Option<f64>,
+    /// With --road: the ISO 8608 road class, A (very good) to E (very poor).
+    #[arg(long, default_value = "C", requires = "road", value_parser = parse_road_class)]
+    pub road_class: dt_sim::RoadClass,
+}
+
+fn parse_road_class(s: &str) -> Result<dt_sim::RoadClass, String> {
+    let mut chars = s.chars();
+    match (
+        chars.next().and_then(dt_sim::RoadClass::from_letter),
+        chars.next(),
+    ) {
+        (Some(c), None) => Ok(c),
+        _ => Err(format!(
+            "`{s}` is not an ISO 8608 road class (A, B, C, D or E)"
+        )),
+    }
 }
 
 /// Output of `shocktwin simulate`.

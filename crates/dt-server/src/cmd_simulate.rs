@@ -51,6 +51,11 @@ fn campaign(args: &SimulateArgs) -> anyhow::Result<Vec<dt_sim::RunSummary>> {
         quick: args.quick,
         unit: args.unit,
         repeat: args.repeat,
+        road: args.road.map(|speed_kmh| dt_sim::RoadDrive {
+            speed_kmh,
+            class: args.road_class,
+            seed: args.seed,
+        }),
         ..CampaignSpec::paper(args.seed)
     };
     let bar = crate::progress::bar(spec.runs().len() as u64, "simulate");

@@ -9,7 +9,9 @@
 //! `τ = t − t_start`, `A` = half the peak-to-peak stroke, `h₃` the servo's
 //! third-harmonic distortion and `e(τ)` a raised-cosine amplitude ramp over
 //! `actuator_ramp_s`; velocity and acceleration are its exact derivatives.
-//! Before `t_start` the rod rests at mid-stroke.
+//! Before `t_start` the rod rests at mid-stroke. A road drive file
+//! ([`crate::road`]) replaces the sine by its sum of sines, under the same
+//! ramp.
 //!
 //! **Mount** (body end): `m ẍ_b = F − k x_b − c ẋ_b`, `F` the damper force
 //! (tension pulls the body toward the rod). Integrated by semi-implicit
@@ -18,9 +20,12 @@
 //! `k x_b + c ẋ_b = F − m ẍ_b`.
 
 use std::f64::consts::PI;
+use std::sync::Arc;
+
+use crate::road::Component;
 
 /// Imposed rod-end motion.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Actuator {
     /// Half stroke, m.
     pub amp_m: f64,
@@ -32,6 +37,8 @@ pub struct Actuator {
     pub ramp_s: f64,
     /// Start of the excitation, s.
     pub start_s: f64,
+    /// A road drive file's sines, played instead of the sine.
+    pub road: Option<Arc<[Component]>>,
 }
 
 impl Actuator {
@@ -39,7 +46,7 @@ impl Actuator {
     #[must_use]
     pub fn kinematics(&self, t_s: f64) -> (f64, f64, f64) {
         let tau = t_s - self.start_s;
-        if tau <= 0.0 || self.amp_m == 0.0 || self.omega == 0.0 {
+        if tau <= 0.0 || (self.road.is_none() && (self.amp_m == 0.0 || self.omega == 0.0)) {
             return (0.0, 0.0, 0.0);
         }
         let (e, de, dde) = if tau < self.ramp_s {
@@ -52,12 +59,25 @@ impl Actuator {
         } else {
             (1.0, 0.0, 0.0)
         };
-        let w = self.omega;
-        let th = w * tau;
-        let s = th.sin() + self.h3 * (3.0 * th).sin();
-        let ds = w * (th.cos() + 3.0 * self.h3 * (3.0 * th).cos());
-        let dds = -w * w * (th.sin() + 9.0 * self.h3 * (3.0 * th).sin());
-        let a = self.amp_m;
+        let (a, s, ds, dds) = if let Some(road) = &self.road {
+            let (mut s, mut ds, mut dds) = (0.0, 0.0, 0.0);
+            for c in road.iter() {
+                let (sin, cos) = (c.omega * tau + c.phase).sin_cos();
+                s += c.amp_m * sin;
+                ds += c.amp_m * c.omega * cos;
+                dds -= c.amp_m * c.omega * c.omega * sin;
+            }
+            (1.0, s, ds, dds)
+        } else {
+            let w = self.omega;
+            let th = w * tau;
+            (
+                self.amp_m,
+                th.sin() + self.h3 * (3.0 * th).sin(),
+                w * (th.cos() + 3.0 * self.h3 * (3.0 * th).cos()),
+                -w * w * (th.sin() + 9.0 * self.h3 * (3.0 * th).sin()),
+            )
+        };
         (
             a * e * s,
             a * (de * s + e * ds),

@@ -13,7 +13,7 @@
 //! | cavitation | none | refill-limited void at low charge and high speed, force dead band after reversal (`hydraulics`) |
 //! | friction | none | Coulomb (gas-pressure dependent) + viscous, tanh-smoothed (`hydraulics`) |
 //! | heat | 2 nodes | oil, inner tube, outer tube (+ gas lag), convection, radiation, frame conduction, drifting room (`thermal`) |
-//! | dyno | rigid | compliant body-end mount, actuator ramp and distortion (`dyno`) |
+//! | dyno | rigid | compliant body-end mount, actuator ramp and distortion (`dyno`); sine or a road drive file (ISO 8608 road through a quarter-car, `road`) |
 //! | sensors | ideal | filters, noise, offsets, drift, quantisation, clipping, thermocouple lag (`sensors`) |
 //!
 //! All parameters live in one table: [`params`] / [`parameter_table`] /
@@ -38,6 +38,7 @@ pub mod hydraulics;
 pub mod oil;
 pub mod params;
 pub mod plant;
+pub mod road;
 pub mod run;
 pub mod sensors;
 pub mod thermal;
@@ -46,6 +47,7 @@ pub mod valve;
 pub use export::{simulate_dyno_csv, simulate_dyno_csv_campaign};
 pub use params::{parameter_table, ParamInfo, PlantParams};
 pub use plant::{Plant, PlantConfig, Truth};
+pub use road::{RoadClass, RoadDrive};
 pub use run::{
     simulate_campaign, simulate_campaign_with, simulate_leak_history, simulate_run,
     simulate_run_with, CampaignSpec, LeakHistorySpec, RunSpec, RunSummary, StopReason,

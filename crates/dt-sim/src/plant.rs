@@ -34,6 +34,9 @@ pub struct PlantConfig {
     pub stroke_pp_m: f64,
     /// Start of the excitation, s.
     pub excitation_start_s: f64,
+    /// A road drive file instead of the sine (`frequency_hz` and
+    /// `stroke_pp_m` then unused but for the gas: see [`Plant::new`]).
+    pub road: Option<crate::road::RoadDrive>,
 }
 
 /// The physical truth at one instant (and the powers over the step from it).
@@ -155,7 +158,13 @@ impl Plant {
             inner_c: start_c,
             outer_c: start_c,
         };
-        let gas = GasSpring::new(params, config.charge_bar, config.frequency_hz);
+        let road: Option<std::sync::Arc<[crate::road::Component]>> =
+            config.road.map(|r| r.components().into());
+        // The gas's heat exchange sees the displacement's mean frequency.
+        let gas_hz = road
+            .as_deref()
+            .map_or(config.frequency_hz, crate::road::mean_frequency_hz);
+        let gas = GasSpring::new(params, config.charge_bar, gas_hz);
         let mut hyd = TwinTube::new(params);
         let nu_ratio = hyd.oil.ratio_to_40(start_c);
         let p_g = gas.pressure_pa(start_c, start_c, 0.0, 0.0)?;
@@ -172,8 +181,19 @@ impl Plant {
             h3: params.actuator_h3,
             ramp_s: params.actuator_ramp_s,
             start_s: config.excitation_start_s,
+            road,
         };
-        if actuator.amp_m * (1.0 + actuator.h3) >= params.pos_range_m {
+        if let Some(r) = actuator.road.as_deref() {
+            // A Gaussian stroke passes 5 sd about once in 3.5 million samples.
+            let rms = crate::road::rms_m(r);
+            if 5.0 * rms >= params.pos_range_m {
+                return Err(SimError::InvalidSpec {
+                    field: "road",
+                    value: rms,
+                    reason: "stroke rms too large for the damper's travel (5 sd past 75 mm)",
+                });
+            }
+        } else if actuator.amp_m * (1.0 + actuator.h3) >= params.pos_range_m {
             return Err(SimError::InvalidSpec {
                 field: "stroke_pp_m",
                 value: config.stroke_pp_m,

@@ -30,6 +30,7 @@ use rayon::prelude::*;
 
 use crate::params::PlantParams;
 use crate::plant::{Plant, PlantConfig};
+use crate::road::RoadDrive;
 use crate::sensors::{RigErrors, Sensors};
 use crate::{mix_seed, SimError};
 
@@ -62,6 +63,9 @@ pub struct RunSpec {
     /// Repeat take of the run: 0 is the first; take `k > 0` is the same
     /// condition on the same rig and unit with independent noise and room.
     pub repeat: u32,
+    /// A road drive file instead of the sine ([`crate::road`]);
+    /// `frequency_hz` and `stroke_pp_m` are then not used.
+    pub road: Option<RoadDrive>,
 }
 
 /// Why a run ended.
@@ -139,6 +143,7 @@ impl RunSpec {
             unit: None,
             quick: false,
             repeat: 0,
+            road: None,
         }
     }
 
@@ -151,16 +156,15 @@ impl RunSpec {
         }
     }
 
-    /// E.g. `p12.0-f2.0-s1` (`-u<n>` appended for a varied unit, `-r<k>` for
+    /// E.g. `p12.0-f2.0-s1`, `p12.0-roadC60-s1` (`-u<n>` appended for a varied unit, `-r<k>` for
     /// repeat take `k > 0`).
     #[must_use]
     pub fn run_id(&self) -> String {
-        let mut id = format!(
-            "p{}-f{}-s{}",
-            fmt_num(self.charge_bar),
-            fmt_num(self.frequency_hz),
-            self.seed
-        );
+        let excitation = match self.road {
+            Some(r) => r.tag(),
+            None => format!("f{}", fmt_num(self.frequency_hz)),
+        };
+        let mut id = format!("p{}-{excitation}-s{}", fmt_num(self.charge_bar), self.seed);
         if let Some(n) = self.unit {
             id = format!("{id}-u{n}");
         }
@@ -186,6 +190,22 @@ impl RunSpec {
             stroke_pp_m: Some(self.stroke_pp_m),
             ..RunMetadata::default()
         };
+        if let Some(r) = self.road {
+            let rms_mm = crate::road::rms_m(&r.components()) * 1e3;
+            meta.excitation = Some(format!(
+                "road: ISO 8608 class {} at {} km/h, quarter-car suspension stroke {rms_mm:.1} mm rms, {}-{} Hz",
+                r.class.letter(),
+                r.speed_kmh,
+                crate::road::BAND_HZ.0,
+                crate::road::BAND_HZ.1
+            ));
+            meta.frequency_hz = None;
+            meta.stroke_pp_m = None;
+            meta.extra
+                .insert("road_class".into(), r.class.letter().to_string());
+            meta.extra
+                .insert("road_speed_kmh".into(), r.speed_kmh.to_string());
+        }
         meta.extra.insert("simulated".into(), "true".into());
         meta.extra.insert("simulator".into(), SIM_VERSION.into());
         meta.extra.insert("seed".into(), self.seed.to_string());
@@ -200,10 +220,18 @@ impl RunSpec {
     }
 
     fn run_seed(&self) -> u64 {
+        let excitation = match self.road {
+            None => self.frequency_hz.to_bits(),
+            Some(r) => mix_seed(&[
+                r.speed_kmh.to_bits(),
+                u64::from(r.class.letter()),
+                0x726f_6164,
+            ]),
+        };
         let base = [
             self.seed,
             self.charge_bar.to_bits(),
-            self.frequency_hz.to_bits(),
+            excitation,
             self.unit.map_or(u64::MAX, |n| n),
         ];
         if self.repeat == 0 {
@@ -279,6 +307,7 @@ where
         frequency_hz: spec.frequency_hz,
         stroke_pp_m: spec.stroke_pp_m,
         excitation_start_s: rest_s,
+        road: spec.road,
     };
     let run_seed = spec.run_seed();
     let room_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 1]));
@@ -588,6 +617,9 @@ pub struct CampaignSpec {
     pub unit: Option<u64>,
     /// Repeat take of every run (see [`RunSpec::repeat`]).
     pub repeat: u32,
+    /// A road drive file instead of the sines: one run per pressure (the
+    /// frequencies are not used), every run the same drive file.
+    pub road: Option<RoadDrive>,
 }
 
 impl CampaignSpec {
@@ -602,6 +634,7 @@ impl CampaignSpec {
             quick: false,
             unit: None,
             repeat: 0,
+            road: None,
         }
     }
 
@@ -609,8 +642,13 @@ impl CampaignSpec {
     #[must_use]
     pub fn runs(&self) -> Vec<RunSpec> {
         let mut out = Vec::new();
+        let frequencies: &[f64] = if self.road.is_some() {
+            &[0.0]
+        } else {
+            &self.frequencies_hz
+        };
         for &charge_bar in &self.pressures_bar {
-            for &frequency_hz in &self.frequencies_hz {
+            for &frequency_hz in frequencies {
                 out.push(RunSpec {
                     charge_bar,
                     frequency_hz,
@@ -619,6 +657,7 @@ impl CampaignSpec {
                     unit: self.unit,
                     quick: self.quick,
                     repeat: self.repeat,
+                    road: self.road,
                 });
             }
         }

@@ -22,6 +22,7 @@ pub(crate) fn plant(params: &PlantParams, charge_bar: f64, frequency_hz: f64) ->
         frequency_hz,
         stroke_pp_m: 0.08,
         excitation_start_s: 0.0,
+        road: None,
     };
     Plant::new(params, &config, ChaCha8Rng::seed_from_u64(7)).expect("plant")
 }

@@ -46,6 +46,7 @@ fn at_rest_rates_and_noise_match_the_table() {
         unit: None,
         quick: false,
         repeat: 0,
+        road: None,
     };
     let mut samples = Vec::new();
     let summary = simulate_run_with(&spec, &p, |s| {
