@@ -3670,24 +3670,21 @@ mod tests {
 
         // Through the observer: the same windows read with their sine's
         // extension, and none with a stroke a quarter of it.
-        let mut sine_fed = ChargeObserver::new(ObserverParams {
-            accel_clusters_mps2: [6.0, 0.0, 0.0, 0.0],
-            reversal_spacings_s: [0.25, 0.0, 0.0, 0.0],
-            ..params()
-        })
-        .unwrap();
-        feed_stroke(&mut sine_fed, [40.0, 40.0], 8, Some(1.0));
-        assert!(sine_fed.counters().used >= 6, "{:?}", sine_fed.counters());
-        let mut short = ChargeObserver::new(ObserverParams {
-            accel_clusters_mps2: [6.0, 0.0, 0.0, 0.0],
-            reversal_spacings_s: [0.25, 0.0, 0.0, 0.0],
-            ..params()
-        })
-        .unwrap();
-        feed_stroke(&mut short, [40.0, 40.0], 8, Some(0.25));
-        let c = short.counters();
-        assert_eq!(c.used, 0, "{c:?}");
-        assert!(c.uncalibrated >= 6, "{c:?}");
+        let fed = |stroke_scale: f64| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                accel_clusters_mps2: [6.0, 0.0, 0.0, 0.0],
+                reversal_spacings_s: [0.25, 0.0, 0.0, 0.0],
+                ..params()
+            })
+            .unwrap();
+            feed_stroke(&mut obs, [40.0, 40.0], 8, Some(stroke_scale));
+            obs.counters()
+        };
+        let sine_fed = fed(1.0);
+        assert!(sine_fed.used >= 6, "{sine_fed:?}");
+        let short = fed(0.25);
+        assert_eq!(short.used, 0, "{short:?}");
+        assert!(short.uncalibrated >= 6, "{short:?}");
     }
 
     #[test]
