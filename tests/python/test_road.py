@@ -89,3 +89,46 @@ def test_a_road_class_that_does_not_exist_is_refused_by_name(tmp_path: Path) -> 
     assert "`F` is not an ISO 8608 road class" in proc.stderr, proc.stderr
     proc = simulate(tmp_path, "--road-class", "C")
     assert proc.returncode != 0 and "--road" in proc.stderr, proc.stderr
+
+
+# The observer's calibrated mount and friction, typical of the simulated dyno (physics.json).
+OBS = {"friction_v_smooth_mps": 0.005, "mount_mass_kg": 12.0, "mount_freq_hz": 102.7, "mount_zeta": 0.08,
+       "accel_bw_hz": 400.0, "step_per_bar_n": 1.33}
+
+
+def test_the_road_bounds_regressor_is_the_mount_driven_by_the_friction_flip() -> None:
+    """`train.road_bound`'s friction column (a discretised transfer function) against the mount's
+    ODE integrated by scipy's solve_ivp: body acceleration under `tanh(ẏ/v_s)` through the
+    accelerometer's first-order filter, on a 2 Hz sine."""
+    from scipy.integrate import solve_ivp
+
+    from train import road_bound
+
+    y, yd = road_bound.sine_drive(np.arange(0.0, 2.0, 1 / road_bound.FINE_HZ), 2.0)
+    col = road_bound.regressors(y, yd, OBS)[:, 0]
+    t = np.arange(len(col)) / road_bound.FS_HZ
+    m, wn, wc = OBS["mount_mass_kg"], 2 * np.pi * OBS["mount_freq_hz"], 2 * np.pi * OBS["accel_bw_hz"]
+    k, c = m * wn**2, 2 * OBS["mount_zeta"] * m * wn
+
+    def rhs(s: float, x: np.ndarray) -> list[float]:
+        f = np.tanh(0.04 * 4 * np.pi * np.cos(4 * np.pi * s) / OBS["friction_v_smooth_mps"])
+        a = (f - k * x[0] - c * x[1]) / m
+        return [x[1], a, wc * (a - x[2])]
+
+    ref = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0, 0.0], t_eval=t, rtol=1e-9, atol=1e-12, max_step=5e-5).y[2]
+    settled = t > 0.3
+    err = np.abs(col[settled] - ref[settled]).max() / np.abs(ref[settled]).max()
+    assert err < 0.01, err
+
+
+def test_the_road_bound_shrinks_as_one_over_root_time_and_a_road_carries_more_than_a_sine() -> None:
+    from train import road_bound
+
+    def sd(drive: str, seconds: float) -> float:
+        t = np.arange(0.0, seconds + 1.0, 1 / road_bound.FINE_HZ)
+        y, yd = road_bound.road_drive(t, 60.0, "C", 1) if drive == "road" else road_bound.sine_drive(t, 2.0)
+        return road_bound.sd_bar(y, yd, OBS)
+
+    short, long = sd("road", 20.0), sd("road", 80.0)
+    assert abs(long / short - 0.5) < 0.1, (short, long)
+    assert short < sd("sine", 20.0)
