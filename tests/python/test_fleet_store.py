@@ -562,7 +562,7 @@ def test_the_api_and_the_dashboard_say_when_the_observer_is_not_calibrated_at_a_
     assert f"{last['uncalibrated']} at an excitation the calibration does not cover" in pill.get_attribute("title")
     cells = {r: wait_for_element(driver, By.CSS_SELECTOR, f'tr[data-run-id="{r}"] td.obs').text
              for r in runs}
-    assert cells == {"p7.0-f2.0-s1": f"{first['used']} of {first['detected']} read",
+    assert cells == {"p7.0-f2.0-s1": f"{first['used']}/{first['detected']}",
                      "p7.0-f4.0-s1": "not calibrated here"}, cells
     shot = tmp_path / "observer-not-calibrated.png"
     driver.save_screenshot(str(shot))

@@ -239,7 +239,7 @@ function observerCell(o) {
   if (!o) return `<td class="small">${DASH}</td>`;
   const text = observerText(o);
   if (o.not_calibrated_here) return `<td class="small bad obs" title="${esc(text)}">not calibrated here</td>`;
-  return `<td class="small obs" title="${esc(text)}">${o.detected ? `${o.used} of ${o.detected} read` : "no reversal"}</td>`;
+  return `<td class="small obs" title="${esc(text)}">${o.detected ? `${o.used}/${o.detected}` : "none"}</td>`;
 }
 
 function renderRuns(runs) {
