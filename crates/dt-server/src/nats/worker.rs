@@ -920,8 +920,9 @@ pub struct RunEvent<'a> {
     /// Estimates emitted (when ended).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ticks: Option<u64>,
-    /// What the charge observer made of the run's reversals since this
-    /// worker took it (when ended, with a model that reads the observer).
+    /// What the charge observer made of the run's reversals (when ended,
+    /// with a model that reads the observer; kept in the estimator's
+    /// checkpoint across a failover).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub observer: Option<dt_core::charge::ObserverCounters>,
 }
