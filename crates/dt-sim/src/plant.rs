@@ -34,8 +34,9 @@ pub struct PlantConfig {
     pub stroke_pp_m: f64,
     /// Start of the excitation, s.
     pub excitation_start_s: f64,
-    /// A road drive file instead of the sine (`frequency_hz` and
-    /// `stroke_pp_m` then unused but for the gas: see [`Plant::new`]).
+    /// A road drive file instead of the sine: `frequency_hz` and
+    /// `stroke_pp_m` are then not used, and the gas's heat exchange takes
+    /// the drive's mean frequency ([`crate::road::mean_frequency_hz`]).
     pub road: Option<crate::road::RoadDrive>,
 }
 
