@@ -11,7 +11,7 @@ use std::time::{Instant, SystemTime};
 use dt_core::charge::ObserverCounters;
 use dt_core::estimate::Estimate;
 use dt_core::log::RunMetadata;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use tokio::sync::{mpsc, oneshot};
 
 use super::config::AssetConfig;
@@ -110,7 +110,7 @@ pub struct RunEnd {
 /// What the charge observer made of one run's velocity reversals, as the
 /// API and the fleet store tell it: the counts, and whether the estimate
 /// kept its prior for want of calibration at the run's excitation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct ObserverRead {
     /// The counts (`detected`, `used`, `spared`, `skipped`, `rejected`,
     /// `uncalibrated`, `reacquired`).
