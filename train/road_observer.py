@@ -1,0 +1,441 @@
+"""Read the gas charge on a road from the cheap suite: the seal friction's flip in the body
+accelerometer, regressed over ten-second blocks of drive (a research tool; simulated data).
+
+    python -m train.road_observer fit --campaign DIR --physics physics.json --out road.json
+    python -m train.road_observer evaluate --physics physics.json --road road.json --out DIR NAME=DIR ...
+
+The dyno observer (dt-core ``charge``) fits one window per velocity reversal of a sine and
+refuses a road (README, "Fifteenth session"); ``train.road_bound`` says the information is
+there. This reads it. Over each block of ``--block-s`` seconds the body accelerometer is
+modelled as the damper force through the calibrated body-end mount and the accelerometer's
+first-order filter (the ``observer`` section of physics.json), the force linear in its
+parameters::
+
+    F(t) = α tanh(ẏ/v_s) + Σ_j (c_j + d_j τ) b_j(ẏ) + k y + f_0,     τ = time in the block
+    a2   = H_acc * F + c_0 + ε
+
+``b_j`` a damping law flexible enough for a valve's knee (slopes each side and hinges every
+1 cm/s up to 0.3 m/s, coarser beyond), its drift ``d_j`` across the block (the oil heats),
+all unknown per block; ``α`` the friction amplitude, which grows with the gas pressure (a
+pressure-energised seal). Least squares per block gives ``α``.
+
+The regression is only as good as the stroke velocity it is given: at the friction's
+5 mm/s scale, a 0.25 ms lag or 1 mm/s of noise halves ``α``. The velocity comes from a
+Kalman filter of its own (not dt-core's three-state filter, which is unchanged): state
+``[y, ẏ, b_a, y_f]`` with ``y_f`` the potentiometer's reading behind its first-order RC
+(``--pot-rc-hz``), driven at 1 kHz by ``a1 − a2`` with the accelerometers' own first-order
+filter inverted, updated at the potentiometer's 100 Hz; then a Rauch–Tung–Striebel pass
+back from ``--lag-s`` after the block's end. Every block's reading therefore uses data up
+to ``--lag-s`` after that block and none later: the estimate at a block's end is available
+``lag-s`` later (no look-ahead beyond it).
+
+``fit`` calibrates ``α = a + b p_g`` on road runs at known charges, ``p_g = (p + p_atm) θ −
+p_atm`` the gas pressure at the shock thermocouple's temperature (``θ`` as in
+``train.observer``: temperature, the oil's expansion into the gas; the datasheet geometry of
+physics.json), by robust least squares (soft-L1); the per-block spread is the residuals'
+robust (MAD) spread; the systematic part is measured leave one run out. ``evaluate`` reads
+held-out road sets block by block into a recursive estimate of the charge (a random-walk
+state updated by each block's reading and its spread) with a 95 % interval widened by the
+systematic part, and reports error, coverage and the SPEC §6a verdict over time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from scipy import signal
+from scipy.linalg import expm, solve_discrete_are
+from scipy.optimize import least_squares
+
+import shocktwin
+
+from train.campaign import load_campaign, main_wrapper, require_topics
+from train.observer import P_ATM_BAR, Z95, theta
+from train.observer_report import expected_health, health_series
+from train.progress import progress
+
+log = logging.getLogger("shocktwin.road_observer")
+
+ACC_DT_S = 1e-3          # the accelerometers' period (SPEC §2)
+POT_PER_ACC = 10         # accelerometer samples per potentiometer sample
+FINE = 4                 # the force is built at 4 kHz (the flip is sub-millisecond), then sampled
+HINGES_MPS = tuple(np.round(np.arange(0.02, 0.3005, 0.01), 3)) + (0.35, 0.4, 0.5, 0.6, 0.8, 1.0)
+TOPICS = ("/acceleration", "/position", "/temperature/shock")
+MIN_STROKE_RMS_MPS = 0.02  # a block moving less than this is not read (a rest)
+
+
+# ---------------------------------------------------------------------------------------
+# the stroke velocity: potentiometer behind its RC, accelerometers behind theirs
+# ---------------------------------------------------------------------------------------
+
+
+class StrokeFilter:
+    """Steady-state Kalman filter and smoother of ``x = [y, ẏ, b_a, y_f]`` over one
+    potentiometer period, with the accelerometer input integrated exactly per millisecond."""
+
+    def __init__(self, pot_rc_hz: float, sigma_accel: float, sigma_bias: float, sigma_pos: float):
+        tau = 1.0 / (2 * np.pi * pot_rc_hz)
+        a = np.array([[0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 0], [1 / tau, 0, 0, -1 / tau]], float)
+        m = np.zeros((5, 5))
+        m[:4, :4], m[1, 4] = a, 1.0
+        e = expm(m * ACC_DT_S)
+        self.phi1, self.g1 = e[:4, :4], e[:4, 4]
+        q1 = sigma_accel**2 * np.outer(self.g1, self.g1) + np.diag([0, 0, sigma_bias**2 * ACC_DT_S, 0])
+        self.phi, q, self.gs = np.eye(4), np.zeros((4, 4)), np.zeros((4, POT_PER_ACC))
+        for j in range(POT_PER_ACC):
+            self.phi, q = self.phi1 @ self.phi, self.phi1 @ q @ self.phi1.T + q1
+            self.gs = self.phi1 @ self.gs
+            self.gs[:, j] = self.g1
+        h = np.array([[0, 0, 0, 1.0]])
+        p_prior = solve_discrete_are(self.phi.T, h.T, q, np.array([[sigma_pos**2]]))
+        self.k = (p_prior @ h.T / (p_prior[3, 3] + sigma_pos**2))[:, 0]
+        p_post = (np.eye(4) - np.outer(self.k, h)) @ p_prior
+        self.c = p_post @ self.phi.T @ np.linalg.inv(p_prior)
+
+    def forward(self, u: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filtered and predicted states at each potentiometer sample; ``u`` (m, 10) the inputs
+        after sample k, ``z`` (m + 1) the samples (NaN: no update)."""
+        m = len(u)
+        xf, xp = np.empty((m + 1, 4)), np.empty((m + 1, 4))
+        x = np.array([z[0], 0.0, 0.0, z[0]])
+        xf[0] = xp[0] = x
+        for k in range(m):
+            p = self.phi @ x + self.gs @ u[k]
+            xp[k + 1] = p
+            x = p + self.k * (z[k + 1] - p[3]) if np.isfinite(z[k + 1]) else p
+            xf[k + 1] = x
+        return xf, xp
+
+    def smooth(self, xf: np.ndarray, xp: np.ndarray, start: int, end: int) -> np.ndarray:
+        """RTS states at samples ``start..end`` from a backward pass begun at ``end``."""
+        xs = xf[start:end + 1].copy()
+        for k in range(end - start - 1, -1, -1):
+            xs[k] = xf[start + k] + self.c @ (xs[k + 1] - xp[start + k + 1])
+        return xs
+
+    def fill(self, xs: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """States at every millisecond between consecutive smoothed samples: integrated forward
+        from each, the mismatch at the next spread linearly (shape (len(xs) − 1) · 10 × 4)."""
+        n = len(xs) - 1
+        out = np.empty((n, POT_PER_ACC, 4))
+        cur = xs[:-1].copy()
+        for j in range(POT_PER_ACC):
+            out[:, j] = cur
+            cur = cur @ self.phi1.T + np.outer(u[:n, j], self.g1)
+        out += (np.arange(POT_PER_ACC) / POT_PER_ACC)[None, :, None] * (xs[1:] - cur)[:, None, :]
+        return out.reshape(-1, 4)
+
+
+# ---------------------------------------------------------------------------------------
+# one run: a reading of the friction amplitude per block
+# ---------------------------------------------------------------------------------------
+
+
+def mount_filter(obs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Body acceleration per newton of damper force through the mount and the accelerometer's
+    filter, discretised at 4 kHz (first-order hold; as in ``train.road_bound``)."""
+    import warnings
+
+    m, wn, wc = obs["mount_mass_kg"], 2 * np.pi * obs["mount_freq_hz"], 2 * np.pi * obs["accel_bw_hz"]
+    num = np.polymul([1.0, 0.0, 0.0], [wc])
+    den = np.polymul([m, 2 * obs["mount_zeta"] * m * wn, m * wn**2], [1.0, wc])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", signal.BadCoefficients)
+        b, a, _ = signal.cont2discrete((num, den), ACC_DT_S / FINE, method="foh")
+    return np.ravel(b), np.ravel(a)
+
+
+def law_forces(v: np.ndarray, y: np.ndarray, tau: np.ndarray, v_s: float) -> list[np.ndarray]:
+    """The force basis: friction first, then the damping law, its drift, the gas spring."""
+    law = [np.maximum(v, 0.0), np.minimum(v, 0.0)]
+    law += [np.maximum(v - h, 0.0) for h in HINGES_MPS] + [np.minimum(v + h, 0.0) for h in HINGES_MPS]
+    return [np.tanh(v / v_s)] + law + [f * tau for f in law] + [y]
+
+
+def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -> dict[str, np.ndarray]:
+    """Per block of a run: ``t_s`` (block end), ``alpha_n``, ``alpha_sd_n`` (the regression's own),
+    ``residual_mps2``, ``temp_c`` (shock thermocouple), ``stroke_rms_mps``."""
+    lg = shocktwin.read_log(path)
+    missing = [t for t in TOPICS if t not in lg.topics]
+    if missing:
+        raise ValueError(f"{path}: the road observer needs {', '.join(missing)}, which this log lacks")
+    obs = physics.get("observer") or shocktwin.default_observer_params()
+    kal = physics.get("kalman") or shocktwin.default_params()["kalman"]
+    acc, pos, tc = lg.topic("/acceleration"), lg.topic("/position"), lg.topic("/temperature/shock")
+    t_acc = acc["t_s"]
+    ra = acc["a1_mps2"] - acc["a2_mps2"]
+    ra = ra + np.r_[0.0, np.diff(ra)] / (2 * np.pi * obs["accel_bw_hz"] * ACC_DT_S)  # the sensors' lag, inverted
+    ra = np.nan_to_num(ra)
+    ra = np.r_[0.5 * (ra[1:] + ra[:-1]), ra[-1]]  # each millisecond's mean (trapezoid), not its first sample held
+    i0 = int(np.searchsorted(t_acc, pos["t_s"][0] - 1e-6))
+    m = min((len(t_acc) - i0) // POT_PER_ACC, len(pos["t_s"]) - 1)
+    u = ra[i0:i0 + m * POT_PER_ACC].reshape(m, POT_PER_ACC)
+    kf = StrokeFilter(opts["pot_rc_hz"], opts["sigma_accel"], kal["sigma_bias"], kal["sigma_position"])
+    xf, xp = kf.forward(u, pos["position_m"][:m + 1])
+    b, a = mount_filter(obs)
+    per_block = int(round(opts["block_s"] / (ACC_DT_S * POT_PER_ACC)))
+    lag = int(round(opts["lag_s"] / (ACC_DT_S * POT_PER_ACC)))
+    zi: list[np.ndarray] | None = None
+    out: dict[str, list[float]] = {k: [] for k in ("t_s", "alpha_n", "alpha_sd_n", "residual_mps2", "temp_c", "stroke_rms_mps")}
+    for k0 in range(0, m - per_block - lag, per_block):
+        xs = kf.smooth(xf, xp, k0, k0 + per_block + lag)[:per_block + 1]
+        x = kf.fill(xs, u[k0:k0 + per_block])
+        t = t_acc[i0 + k0 * POT_PER_ACC:i0 + (k0 + per_block) * POT_PER_ACC]
+        tf = t[0] + np.arange(len(t) * FINE) * ACC_DT_S / FINE
+        vf = np.interp(tf, t, x[:, 1])
+        forces = law_forces(vf, np.interp(tf, t, x[:, 0]), tf / 100.0, obs["friction_v_smooth_mps"])
+        if zi is None:
+            zi = [np.zeros(max(len(a), len(b)) - 1) for _ in forces]
+        cols = []
+        for j, f in enumerate(forces):
+            col, zi[j] = signal.lfilter(b, a, f, zi=zi[j])
+            cols.append(col[::FINE])
+        stroke = float(np.sqrt(np.mean(x[:, 1] ** 2)))
+        if t[0] < opts["settle_s"] or stroke < MIN_STROKE_RMS_MPS:
+            continue
+        a2 = acc["a2_mps2"][i0 + k0 * POT_PER_ACC:i0 + (k0 + per_block) * POT_PER_ACC]
+        good = np.isfinite(a2)
+        xm = np.column_stack(cols + [np.ones(len(t))])[good]
+        active = np.abs(xm).max(axis=0) > 1e-12
+        active[0] = True
+        xm = xm[:, active]
+        coef, *_ = np.linalg.lstsq(xm, a2[good], rcond=None)
+        r = a2[good] - xm @ coef
+        s2 = float(r @ r) / max(1, len(r) - xm.shape[1])
+        cov00 = s2 * np.linalg.pinv(xm.T @ xm)[0, 0]
+        out["t_s"].append(float(t[-1]))
+        out["alpha_n"].append(float(coef[0]))
+        out["alpha_sd_n"].append(float(np.sqrt(cov00)))
+        out["residual_mps2"].append(float(np.sqrt(s2)))
+        out["temp_c"].append(float(np.nanmean(np.interp(t, tc["t_s"], tc["temperature_c"]))))
+        out["stroke_rms_mps"].append(stroke)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _readings(args: tuple[str, dict[str, Any], dict[str, float]]) -> dict[str, np.ndarray]:
+    return block_readings(*args)
+
+
+def readings(paths: Sequence[Path], physics: dict[str, Any], opts: dict[str, float], jobs: int) -> list[dict[str, np.ndarray]]:
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        return list(progress(pool.map(_readings, [(str(p), physics, opts) for p in paths]), total=len(paths),
+                             desc="road blocks", unit="run"))
+
+
+# ---------------------------------------------------------------------------------------
+# the measurement model: alpha = a + b p_g
+# ---------------------------------------------------------------------------------------
+
+
+def gas_ratio(temp_c: np.ndarray, physics: dict[str, Any]) -> np.ndarray:
+    obs = physics.get("observer") or shocktwin.default_observer_params()
+    return theta({"gas_temp_c": temp_c, "extension_m": np.zeros_like(temp_c)}, obs)
+
+
+def fit_model(blocks: Sequence[dict[str, np.ndarray]], labels: Sequence[float], physics: dict[str, Any]) -> tuple[np.ndarray, float]:
+    """(a, b) and the robust spread of the residuals, N."""
+    alpha = np.concatenate([r["alpha_n"] for r in blocks])
+    p_g = np.concatenate([(p + P_ATM_BAR) * gas_ratio(r["temp_c"], physics) - P_ATM_BAR for r, p in zip(blocks, labels)])
+    x = np.column_stack([np.ones_like(p_g), p_g])
+    c0 = np.linalg.lstsq(x, alpha, rcond=None)[0]
+    scale = 1.4826 * np.median(np.abs(alpha - x @ c0)) + 1e-9
+    coef = least_squares(lambda c: (alpha - x @ c) / scale, c0, loss="soft_l1").x
+    r = alpha - x @ coef
+    return coef, float(1.4826 * np.median(np.abs(r - np.median(r))))
+
+
+def charge_of(r: dict[str, np.ndarray], model: dict[str, Any], physics: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Each block's charge reading (bar gauge at 20 °C) and its spread, bar."""
+    th = gas_ratio(r["temp_c"], physics)
+    a, b = model["a_n"], model["b_n_per_bar"]
+    p = ((r["alpha_n"] - a) / b + P_ATM_BAR) / th - P_ATM_BAR
+    return p, np.full_like(p, model["block_sd_n"]) / (b * th)
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    physics = json.loads(args.physics.read_text())
+    campaign = load_campaign(args.campaign)
+    campaign.require_labels()
+    require_topics(campaign.runs, TOPICS, "the road observer")
+    opts = options(args)
+    blocks = readings([r.path for r in campaign.runs], physics, opts, args.jobs)
+    labels = [float(r.label_bar) for r in campaign.runs]  # type: ignore[arg-type]
+    use = [i for i, b in enumerate(blocks) if len(b["alpha_n"]) > 0]
+    if len({labels[i] for i in use}) < 2:
+        raise SystemExit(f"{args.campaign}: road runs at two charges at least are needed (read: "
+                         f"{', '.join(campaign.runs[i].name for i in use) or 'none'})")
+    coef, sd = fit_model([blocks[i] for i in use], [labels[i] for i in use], physics)
+    model = {"a_n": float(coef[0]), "b_n_per_bar": float(coef[1]), "block_sd_n": sd, **opts}
+    loro = []
+    for i in use:
+        rest = [j for j in use if j != i]
+        if len({labels[j] for j in rest}) < 2:
+            continue
+        ci, sdi = fit_model([blocks[j] for j in rest], [labels[j] for j in rest], physics)
+        p, s = charge_of(blocks[i], {**model, "a_n": ci[0], "b_n_per_bar": ci[1], "block_sd_n": sdi}, physics)
+        w = 1 / s**2
+        mean, stat = float(np.sum(w * p) / np.sum(w)), float(1 / np.sqrt(np.sum(w)))
+        loro.append((campaign.runs[i].name, labels[i], mean, stat))
+    excess = [max(0.0, (m - lab) ** 2 - s**2) for _, lab, m, s in loro]
+    model["systematic_sd_bar"] = float(np.sqrt(np.mean(excess))) if excess else float("nan")
+    model["leave_one_run_out"] = [{"run": n, "label_bar": lab, "read_bar": m, "sd_bar": s} for n, lab, m, s in loro]
+    model["campaign"] = str(args.campaign)
+    model["blocks"] = int(sum(len(blocks[i]["alpha_n"]) for i in use))
+    model["simulated"] = campaign.simulated
+    args.out.write_text(json.dumps(model, indent=2) + "\n")
+    print(f"road observer: alpha = {coef[0]:.2f} N + {coef[1]:.3f} N/bar · p_g over {model['blocks']} blocks of "
+          f"{opts['block_s']:g} s; block spread {sd:.2f} N ({sd / coef[1]:.2f} bar); systematic "
+          f"{model['systematic_sd_bar']:.2f} bar (leave one run out)")
+    for n, lab, m, s in loro:
+        print(f"  {n}: {lab:g} bar read as {m:.2f} ± {s:.2f} bar without it")
+    print(f"wrote {args.out}" + (" (simulated data)" if campaign.simulated else ""))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------
+# held-out roads: a recursive estimate with its interval
+# ---------------------------------------------------------------------------------------
+
+
+def track(p: np.ndarray, sd: np.ndarray, t: np.ndarray, model: dict[str, Any], prior: tuple[float, float],
+          walk_bar2_per_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random-walk estimate after each block: (mean, lo, hi), the 95 % interval widened by the
+    systematic part."""
+    mean, var = prior[0], prior[1] ** 2
+    out = np.empty((len(p), 3))
+    last = t[0] if len(t) else 0.0
+    sys2 = model["systematic_sd_bar"] ** 2
+    for i, (pi, si, ti) in enumerate(zip(p, sd, t)):
+        var += walk_bar2_per_s * max(0.0, ti - last)
+        last = ti
+        k = var / (var + si**2)
+        mean, var = mean + k * (pi - mean), (1 - k) * var
+        half = Z95 * np.sqrt(var + sys2)
+        out[i] = (mean, mean - half, mean + half)
+    return out[:, 0], out[:, 1], out[:, 2]
+
+
+def options(args: argparse.Namespace) -> dict[str, float]:
+    return {"block_s": args.block_s, "lag_s": args.lag_s, "pot_rc_hz": args.pot_rc_hz,
+            "sigma_accel": args.sigma_accel, "settle_s": args.settle_s}
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    physics = json.loads(args.physics.read_text())
+    model = json.loads(args.road.read_text())
+    opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows, traces = [], {}
+    for spec in args.sets:
+        name, _, d = spec.partition("=")
+        campaign = load_campaign(Path(d))
+        campaign.require_labels()
+        blocks = readings([r.path for r in campaign.runs], physics, opts, args.jobs)
+        for run, r in zip(campaign.runs, blocks):
+            lab = float(run.label_bar)  # type: ignore[arg-type]
+            if len(r["alpha_n"]) == 0:
+                rows.append({"set": name, "run": run.name, "label_bar": lab, "blocks": 0})
+                continue
+            p, sd = charge_of(r, model, physics)
+            t = r["t_s"]
+            est, lo, hi = track(p, sd, t, model, (args.prior_mean_bar, args.prior_sd_bar), args.walk_bar2_per_s)
+            since = t - t[0] + opts["block_s"]
+            late = since >= args.score_from_s
+            health = health_series(t, est, lo, hi, np.ones(len(t), bool))
+            want = expected_health(lab)
+            right = np.array([h == want for h in health])
+            settled = next((float(since[i]) for i in range(len(t)) if right[i:].all()), None)
+            rows.append({
+                "set": name, "run": run.name, "label_bar": lab, "blocks": int(len(t)),
+                "block_rmse_bar": float(np.sqrt(np.mean((p - lab) ** 2))),
+                "rmse_bar": float(np.sqrt(np.mean((est[late] - lab) ** 2))) if late.any() else None,
+                "final_bar": float(est[-1]), "final_lo_bar": float(lo[-1]), "final_hi_bar": float(hi[-1]),
+                "coverage": float(np.mean((lo[late] <= lab) & (lab <= hi[late]))) if late.any() else None,
+                "verdict": health[-1], "expected": want, "right_from_s": settled,
+                "false_alarm": bool(lab >= 7.5 and any(h in ("leak", "low") for h in health)),
+                "residual_mps2": float(np.median(r["residual_mps2"])),
+            })
+            traces[f"{name}/{run.name}"] = (since, p, est, lo, hi, lab)
+    report(args.out, rows, traces, model, args)
+    return 0
+
+
+def report(out: Path, rows: list[dict[str, Any]], traces: dict[str, Any], model: dict[str, Any], args: argparse.Namespace) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    (out / "road_observer.json").write_text(json.dumps({"model": model, "runs": rows}, indent=2) + "\n")
+    lines = ["# Reading the charge on a road (SIMULATED DATA: dt-sim road drive files)", "",
+             f"Calibration: `{model['campaign']}`, alpha = {model['a_n']:.2f} N + {model['b_n_per_bar']:.3f} N/bar p_g, "
+             f"block spread {model['block_sd_n']:.2f} N, systematic {model['systematic_sd_bar']:.2f} bar (leave one run out). "
+             f"Blocks of {model['block_s']:g} s, each read {model['lag_s']:g} s after its end; scored from "
+             f"{args.score_from_s:g} s of drive on.", "",
+             "| set | run | charge, bar | blocks | one block, RMSE bar | estimate RMSE, bar | final | 95 % interval | coverage | verdict | right from |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        if not r["blocks"]:
+            lines.append(f"| {r['set']} | {r['run']} | {r['label_bar']:g} | 0 | | | | | | | |")
+            continue
+        fmt = lambda v, f="{:.2f}": "—" if v is None else f.format(v)  # noqa: E731
+        lines.append(f"| {r['set']} | {r['run']} | {r['label_bar']:g} | {r['blocks']} | {r['block_rmse_bar']:.2f} | "
+                     f"{fmt(r['rmse_bar'])} | {r['final_bar']:.2f} | [{r['final_lo_bar']:.2f}, {r['final_hi_bar']:.2f}] | "
+                     f"{fmt(r['coverage'], '{:.0%}')} | {r['verdict']} (want {r['expected']}) | {fmt(r['right_from_s'], '{:.0f} s')} |")
+    (out / "road_observer.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    if traces:
+        n = len(traces)
+        fig, axes = plt.subplots(n, 1, figsize=(9, 2.2 * n), sharex=True, squeeze=False)
+        for ax, (name, (since, p, est, lo, hi, lab)) in zip(axes[:, 0], traces.items()):
+            ax.plot(since, p, ".", ms=2, color="0.6", label="one block")
+            ax.fill_between(since, lo, hi, alpha=0.3, label="95 % interval")
+            ax.plot(since, est, label="estimate")
+            ax.axhline(lab, color="k", lw=0.8, ls="--", label="true charge")
+            ax.set_ylim(-4, 18)
+            ax.set_ylabel("bar")
+            ax.set_title(name, fontsize=8)
+        axes[0, 0].legend(fontsize=7, ncol=4)
+        axes[-1, 0].set_xlabel("drive, s (simulated)")
+        fig.tight_layout()
+        fig.savefig(out / "road_observer.png", dpi=90)
+        plt.close(fig)
+    print(f"wrote {out / 'road_observer.md'}, road_observer.json, road_observer.png (simulated data)")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m train.road_observer", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("fit", "evaluate"):
+        s = sub.add_parser(name)
+        s.add_argument("--physics", required=True, type=Path, help="physics.json (mount, filter, geometry)")
+        s.add_argument("--out", required=True, type=Path)
+        s.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
+        if name == "fit":
+            s.add_argument("--campaign", required=True, type=Path, help="labelled road runs (simulate --road)")
+            s.add_argument("--block-s", type=float, default=10.0, help="block length, s")
+            s.add_argument("--lag-s", type=float, default=0.5, help="smoother lag after a block's end, s")
+            s.add_argument("--pot-rc-hz", type=float, default=50.0,
+                           help="the potentiometer's first-order anti-alias cutoff, Hz (the rig's: dt-sim sensor table)")
+            s.add_argument("--sigma-accel", type=float, default=0.3, help="relative acceleration noise, m/s²")
+            s.add_argument("--settle-s", type=float, default=10.0, help="blocks before this time are not read, s")
+        else:
+            s.add_argument("--road", required=True, type=Path, help="the fit's output")
+            s.add_argument("--prior-mean-bar", type=float, default=6.0)
+            s.add_argument("--prior-sd-bar", type=float, default=6.0)
+            s.add_argument("--walk-bar2-per-s", type=float, default=1e-4, help="the charge's random walk")
+            s.add_argument("--score-from-s", type=float, default=60.0, help="score the estimate from this much drive on")
+            s.add_argument("sets", nargs="+", help="NAME=DIR of held-out road runs")
+    args = ap.parse_args(argv)
+    return cmd_fit(args) if args.cmd == "fit" else cmd_evaluate(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main_wrapper(main)())
