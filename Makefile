@@ -50,18 +50,22 @@ wheel: $(VENV)/.deps ## build the abi3 wheel of the bindings into dist/ (maturin
 
 build: $(BIN) ## build the shocktwin CLI (release)
 
-demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer), study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
+demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer), read the charge on a road, study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
 	@$(MAKE) --no-print-directory browser || echo "(without Chromium the demo skips the dashboard screenshot)"
 	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
 	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
 	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures --datasheet $(DATASHEET) --nominal-bar 12
 	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --datasheet $(DATASHEET)
+	$(BIN) simulate --quick --road 60 --out $(OUT)/road-cal
+	$(BIN) simulate --quick --road 60 --seed 2 --pressures 2,12 --out $(OUT)/road-held
+	$(PY) -m train.road_observer fit --campaign $(OUT)/road-cal --physics $(OUT)/physics.json --out $(OUT)/road.json
+	$(PY) -m train.road_observer evaluate --physics $(OUT)/physics.json --road $(OUT)/road.json --score-from-s 30 --out $(OUT)/road held=$(OUT)/road-held
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
 	@shot=$(OUT)/serve-demo/dashboard.png; [ -f $$shot ] || shot="not taken (no chromium)"; \
-	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
+	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), the charge read on a road $(OUT)/road/road_observer.md, figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
 
 study: setup ## the full study on the default campaign: physics, charge observer, Tables 2-3, suites (docs/study; simulated data)
 	rm -rf $(OUT)/full-campaign

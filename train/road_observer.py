@@ -58,6 +58,7 @@ from scipy.optimize import least_squares
 import shocktwin
 
 from train.campaign import load_campaign, main_wrapper, require_topics
+from train.fit_physics import rest_end_s
 from train.observer import P_ATM_BAR, Z95, theta
 from train.observer_report import expected_health, health_series
 from train.progress import progress
@@ -349,7 +350,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             p, sd = charge_of(r, model, physics)
             t = r["t_s"]
             est, lo, hi = track(p, sd, t, model, (args.prior_mean_bar, args.prior_sd_bar), args.walk_bar2_per_s)
-            since = t - t[0] + opts["block_s"]
+            since = t - rest_end_s(run)  # drive since the excitation's onset, at each block's end
             late = since >= args.score_from_s
             health = health_series(t, est, lo, hi, np.ones(len(t), bool))
             want = expected_health(lab)
@@ -365,7 +366,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 "false_alarm": bool(lab >= 7.5 and any(h in ("leak", "low") for h in health)),
                 "residual_mps2": float(np.median(r["residual_mps2"])),
             })
-            traces[f"{name}/{run.name}"] = (since, p, est, lo, hi, lab)
+            half0 = Z95 * np.hypot(args.prior_sd_bar, model["systematic_sd_bar"])
+            traces[f"{name}/{run.name}"] = (since, p, np.r_[args.prior_mean_bar, est], np.r_[args.prior_mean_bar - half0, lo],
+                                            np.r_[args.prior_mean_bar + half0, hi], lab)
     report(args.out, rows, traces, model, args)
     return 0
 
@@ -398,15 +401,17 @@ def report(out: Path, rows: list[dict[str, Any]], traces: dict[str, Any], model:
         n = len(traces)
         fig, axes = plt.subplots(n, 1, figsize=(9, 2.2 * n), sharex=True, squeeze=False)
         for ax, (name, (since, p, est, lo, hi, lab)) in zip(axes[:, 0], traces.items()):
-            ax.plot(since, p, ".", ms=2, color="0.6", label="one block")
-            ax.fill_between(since, lo, hi, alpha=0.3, label="95 % interval")
-            ax.plot(since, est, label="estimate")
+            steps = np.r_[0.0, since]  # the prior at the drive's start, then each block's end
+            ax.plot(since, p, ".", ms=4, color="0.5", label="one block's reading")
+            ax.fill_between(steps, lo, hi, step="post", alpha=0.3, label="95 % interval")
+            ax.step(steps, est, where="post", label="estimate")
             ax.axhline(lab, color="k", lw=0.8, ls="--", label="true charge")
             ax.set_ylim(-4, 18)
             ax.set_ylabel("bar")
             ax.set_title(name, fontsize=8)
         axes[0, 0].legend(fontsize=7, ncol=4)
-        axes[-1, 0].set_xlabel("drive, s (simulated)")
+        axes[-1, 0].set_xlabel("drive, s")
+        fig.suptitle("The charge read on a road from the cheap suite (SIMULATED DATA)", fontsize=9)
         fig.tight_layout()
         fig.savefig(out / "road_observer.png", dpi=90)
         plt.close(fig)
