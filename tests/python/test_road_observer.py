@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -66,20 +67,22 @@ def test_the_stroke_filter_reads_the_velocity_behind_both_sensor_filters() -> No
 
 
 @pytest.fixture(scope="module")
-def road_sets(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """Quick simulated road runs: a calibration at 0.5-12 bar (seed 1) and a held-out drive
-    file (seed 2) at 2 and 12 bar."""
+def road_sets(shocktwin_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """Quick simulated road runs: a calibration at 0.5-12 bar (seed 1), a held-out drive file
+    (seed 2) at 2 and 12 bar, and a third (seed 3) at 12 bar for the unit's baseline."""
     root = tmp_path_factory.mktemp("road-observer")
-    for out, extra in ((root / "cal", ["--pressures", "0.5,4,7,10,12"]), (root / "held", ["--pressures", "2,12", "--seed", "2"])):
+    for out, extra in ((root / "cal", ["--pressures", "0.5,4,7,10,12"]), (root / "held", ["--pressures", "2,12", "--seed", "2"]),
+                       (root / "base", ["--pressures", "12", "--seed", "3"])):
         proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "60", *extra, "--out", str(out)],
                               capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr
-    return root / "cal", root / "held"
+    return root / "cal", root / "held", root / "base"
 
 
-def test_fit_then_evaluate_reads_a_held_out_drive(road_sets: tuple[Path, Path], tmp_path: Path,
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
-    cal, held = road_sets
+def test_fit_then_evaluate_reads_a_held_out_drive(road_sets: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """Without a baseline the interval carries another unit's seal (10 %) and stays honest; with
+    the unit's baseline drive at 12 bar it is narrow, and the verdicts are right."""
+    cal, held, base = road_sets
     physics = tmp_path / "physics.json"
     physics.write_text(json.dumps(PHYSICS))
     model_path = tmp_path / "road.json"
@@ -89,24 +92,36 @@ def test_fit_then_evaluate_reads_a_held_out_drive(road_sets: tuple[Path, Path], 
     assert 0.5 < model["b_n_per_bar"] < 3.0  # the seal's friction grows with the gas pressure
     for row in model["leave_one_run_out"]:
         assert abs(row["read_bar"] - row["label_bar"]) < 1.0, row
-    out = tmp_path / "eval"
-    assert ro.main(["evaluate", "--physics", str(physics), "--road", str(model_path), "--out", str(out),
-                    "--score-from-s", "30", "--jobs", "2", f"held={held}"]) == 0
-    rows = {r["run"]: r for r in json.loads((out / "road_observer.json").read_text())["runs"]}
-    low, nominal = rows["p2.0-roadC60-s2.mcap"], rows["p12.0-roadC60-s2.mcap"]
+    assert model["systematic_sd_bar"] > 1.0  # 10 % of the seal's friction, in bar
+
+    def evaluate(out: Path, *extra: str) -> tuple[dict[str, Any], dict[str, Any]]:
+        assert ro.main(["evaluate", "--physics", str(physics), "--road", str(model_path), "--out", str(out),
+                        "--score-from-s", "30", "--jobs", "2", *extra, f"held={held}"]) == 0
+        rows = {r["run"]: r for r in json.loads((out / "road_observer.json").read_text())["runs"]}
+        return rows["p2.0-roadC60-s2.mcap"], rows["p12.0-roadC60-s2.mcap"]
+
+    low, nominal = evaluate(tmp_path / "eval")
+    for r in (low, nominal):
+        assert r["final_lo_bar"] <= r["label_bar"] <= r["final_hi_bar"], r
+        assert abs(r["final_bar"] - r["label_bar"]) < 1.0, r
+    assert not nominal["false_alarm"] and nominal["verdict"] in ("ok", "unknown")
+    wide = nominal["final_hi_bar"] - nominal["final_lo_bar"]
+
+    out = tmp_path / "eval-baseline"
+    low, nominal = evaluate(out, "--baseline", f"held={base / 'p12.0-roadC60-s3.mcap'}@12")
     assert low["verdict"] == "leak" and nominal["verdict"] == "ok"
     assert not nominal["false_alarm"]
     for r in (low, nominal):
         assert r["final_lo_bar"] <= r["label_bar"] <= r["final_hi_bar"], r
-        assert r["final_hi_bar"] - r["final_lo_bar"] < 4.0, r
+    assert nominal["final_hi_bar"] - nominal["final_lo_bar"] < wide / 3
     assert "SIMULATED DATA" in (out / "road_observer.md").read_text()
     assert (out / "road_observer.png").stat().st_size > 10_000
 
 
-def test_a_block_reads_nothing_after_its_lag(road_sets: tuple[Path, Path], tmp_path: Path) -> None:
+def test_a_block_reads_nothing_after_its_lag(road_sets: tuple[Path, Path, Path], tmp_path: Path) -> None:
     """The same run cut 45 s in: every block that ended with its lag before the cut reads the
     same to 1e-9; later data changes nothing before it."""
-    _, held = road_sets
+    _, held, _ = road_sets
     path = held / "p12.0-roadC60-s2.mcap"
     lg = shocktwin.read_log(str(path))
     cut_s = 45.0
