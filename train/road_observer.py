@@ -297,7 +297,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     campaign.require_labels()
     require_topics(campaign.runs, TOPICS, "the road observer")
     opts = options(args)
-    blocks = readings([r.path for r in campaign.runs], physics, opts, args.jobs)
+    blocks = readings([r.path for r in campaign.runs], physics, opts, args.jobs, args.cache)
     labels = [float(r.label_bar) for r in campaign.runs]  # type: ignore[arg-type]
     use = [i for i, b in enumerate(blocks) if len(b["alpha_n"]) > 0]
     if len({labels[i] for i in use}) < 2:
@@ -498,6 +498,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                            help="the potentiometer's first-order anti-alias cutoff, Hz (the rig's: dt-sim sensor table)")
             s.add_argument("--sigma-accel", type=float, default=0.3, help="relative acceleration noise, m/s²")
             s.add_argument("--settle-s", type=float, default=10.0, help="blocks before this time are not read, s")
+            s.add_argument("--cache", type=Path, help="keep each run's blocks here and read them back")
             s.add_argument("--unit-tolerance-pct", type=float, default=10.0,
                            help="the seal friction's unit-to-unit tolerance, %% (a datasheet figure, as in train.observer)")
         else:
