@@ -58,6 +58,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures --datasheet $(DATASHEET) --nominal-bar 12
 	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --datasheet $(DATASHEET)
 	$(BIN) simulate --quick --road 60 --out $(OUT)/road-cal
+	$(BIN) simulate --quick --road 45 --seed 4 --out $(OUT)/road-cal45 && mv $(OUT)/road-cal45/*.mcap $(OUT)/road-cal/ && rmdir $(OUT)/road-cal45
 	$(BIN) simulate --quick --road 60 --seed 2 --pressures 2,12 --out $(OUT)/road-held
 	$(BIN) simulate --quick --road 60 --seed 3 --pressures 12 --out $(OUT)/road-baseline
 	$(PY) -m train.road_observer fit --campaign $(OUT)/road-cal --physics $(OUT)/physics.json --out $(OUT)/road.json

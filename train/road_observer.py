@@ -33,7 +33,8 @@ to ``--lag-s`` after that block and none later: the estimate at a block's end is
 p_atm`` the gas pressure at the shock thermocouple's temperature (``θ`` as in
 ``train.observer``: temperature, the oil's expansion into the gas; the datasheet geometry of
 physics.json), by robust least squares (soft-L1); the per-block spread is the residuals'
-robust (MAD) spread; the systematic part is measured leave one run out, and another unit's
+robust (MAD) spread; the systematic part is measured leaving one drive file out (every run
+of it; one run when the campaign has a single drive file), and another unit's
 seal adds ``--unit-tolerance-pct`` of the friction (offset and slope: a datasheet figure, as
 ``train.observer`` does). ``evaluate`` reads held-out road sets block by block into a
 recursive estimate of the charge (a random-walk state updated by each block's reading and its
@@ -305,34 +306,41 @@ def cmd_fit(args: argparse.Namespace) -> int:
                          f"{', '.join(campaign.runs[i].name for i in use) or 'none'})")
     coef, sd = fit_model([blocks[i] for i in use], [labels[i] for i in use], physics)
     model = {"a_n": float(coef[0]), "b_n_per_bar": float(coef[1]), "block_sd_n": sd, **opts}
-    loro = []
+    # What one drive file reads beside another is measured by leaving each drive out (every run
+    # of it, at every charge); a campaign of one drive file can only leave one run out.
+    drive = [drive_of(campaign.runs[i]) for i in range(len(campaign.runs))]
+    by_drive = len({drive[i] for i in use}) >= 2
+    held = []
     for i in use:
-        rest = [j for j in use if j != i]
+        rest = [j for j in use if (drive[j] != drive[i] if by_drive else j != i)]
         if len({labels[j] for j in rest}) < 2:
             continue
         ci, sdi = fit_model([blocks[j] for j in rest], [labels[j] for j in rest], physics)
         p, s = charge_of(blocks[i], {**model, "a_n": ci[0], "b_n_per_bar": ci[1], "block_sd_n": sdi}, physics)
         w = 1 / s**2
         mean, stat = float(np.sum(w * p) / np.sum(w)), float(1 / np.sqrt(np.sum(w)))
-        loro.append((campaign.runs[i].name, labels[i], mean, stat))
-    excess = [max(0.0, (m - lab) ** 2 - s**2) for _, lab, m, s in loro]
-    loro_sd = float(np.sqrt(np.mean(excess))) if excess else 0.0
+        held.append((campaign.runs[i].name, labels[i], mean, stat))
+    excess = [max(0.0, (m - lab) ** 2 - s**2) for _, lab, m, s in held]
+    held_sd = float(np.sqrt(np.mean(excess))) if excess else 0.0
     tol = args.unit_tolerance_pct / 100.0
     # another unit's seal: its friction off by the datasheet tolerance, offset and slope alike
-    model["systematic_sd_bar"] = float(np.hypot(loro_sd, tol * coef[0] / coef[1]))
+    model["systematic_sd_bar"] = float(np.hypot(held_sd, tol * coef[0] / coef[1]))
     model["systematic_rel"] = tol
-    model["leave_one_run_out_sd_bar"] = loro_sd
-    model["leave_one_run_out"] = [{"run": n, "label_bar": lab, "read_bar": m, "sd_bar": s} for n, lab, m, s in loro]
+    model["held_out"] = "drive" if by_drive else "run"
+    model["held_out_sd_bar"] = held_sd
+    model["held_out_reads"] = [{"run": n, "label_bar": lab, "read_bar": m, "sd_bar": s} for n, lab, m, s in held]
+    model["drives"] = sorted({drive[i] for i in use})
     model["campaign"] = str(args.campaign)
     model["blocks"] = int(sum(len(blocks[i]["alpha_n"]) for i in use))
     model["simulated"] = campaign.simulated
     args.out.write_text(json.dumps(model, indent=2) + "\n")
     print(f"road observer: alpha = {coef[0]:.2f} N + {coef[1]:.3f} N/bar · p_g over {model['blocks']} blocks of "
           f"{opts['block_s']:g} s; block spread {sd:.2f} N ({sd / coef[1]:.2f} bar); systematic "
-          f"{loro_sd:.2f} bar leave one run out, {model['systematic_sd_bar']:.2f} bar + {100 * tol:g} % of the "
-          f"charge with another unit's seal (--unit-tolerance-pct)")
-    for n, lab, m, s in loro:
-        print(f"  {n}: {lab:g} bar read as {m:.2f} ± {s:.2f} bar without it")
+          f"{held_sd:.2f} bar leaving one {model['held_out']} out ({len(model['drives'])} drive files), "
+          f"{model['systematic_sd_bar']:.2f} bar + {100 * tol:g} % of the charge with another unit's seal "
+          f"(--unit-tolerance-pct)")
+    for n, lab, m, s in held:
+        print(f"  {n}: {lab:g} bar read as {m:.2f} ± {s:.2f} bar without its {model['held_out']}")
     print(f"wrote {args.out}" + (" (simulated data)" if campaign.simulated else ""))
     return 0
 
@@ -372,7 +380,14 @@ def with_baseline(model: dict[str, Any], physics: dict[str, Any], path: Path, ba
     offset = r["alpha_n"] - (model["a_n"] + model["b_n_per_bar"] * p_g)
     stat = model["block_sd_n"] / np.sqrt(len(offset)) / model["b_n_per_bar"]
     return {**model, "a_n": model["a_n"] + float(np.mean(offset)), "baseline_bar": bar,
-            "systematic_sd_bar": float(np.hypot(model.get("leave_one_run_out_sd_bar", 0.0), stat))}
+            "systematic_sd_bar": float(np.hypot(model["held_out_sd_bar"], stat))}
+
+
+def drive_of(run: Any) -> str:
+    """The drive file a run played: its excitation and seed (every charge of a simulated road
+    campaign plays the same file)."""
+    meta = run.log.metadata
+    return f"{meta.get('excitation', run.run_id)} (seed {meta.get('seed', '?')})"
 
 
 def options(args: argparse.Namespace) -> dict[str, float]:
@@ -446,7 +461,9 @@ def report(out: Path, rows: list[dict[str, Any]], traces: dict[str, Any], model:
     (out / "road_observer.json").write_text(json.dumps({"model": model, "runs": rows}, indent=2) + "\n")
     lines = ["# Reading the charge on a road (SIMULATED DATA: dt-sim road drive files)", "",
              f"Calibration: `{model['campaign']}`, alpha = {model['a_n']:.2f} N + {model['b_n_per_bar']:.3f} N/bar p_g, "
-             f"block spread {model['block_sd_n']:.2f} N, systematic {model['systematic_sd_bar']:.2f} bar (leave one run out). "
+             f"block spread {model['block_sd_n']:.2f} N, systematic {model['held_out_sd_bar']:.2f} bar (leaving one "
+             f"{model['held_out']} out, {len(model['drives'])} drive files), {model['systematic_sd_bar']:.2f} bar + "
+             f"{100 * model['systematic_rel']:g} % of the charge with another unit's seal. "
              f"Blocks of {model['block_s']:g} s, each read {model['lag_s']:g} s after its end; scored from "
              f"{args.score_from_s:g} s of drive on.", "",
              "| set | run | charge, bar | blocks | one block, RMSE bar | estimate RMSE, bar | final | 95 % interval | coverage | verdict | right from |",
