@@ -493,7 +493,7 @@ def report(out: Path, rows: list[dict[str, Any]], traces: dict[str, Any], model:
         axes[0, 0].legend(fontsize=7, ncol=4)
         axes[-1, 0].set_xlabel("drive, s")
         fig.suptitle("The charge read on a road from the cheap suite (SIMULATED DATA)", fontsize=9)
-        fig.tight_layout()
+        fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.3 / (2.2 * n)))
         fig.savefig(out / "road_observer.png", dpi=90)
         plt.close(fig)
     print(f"wrote {out / 'road_observer.md'}, road_observer.json, road_observer.png (simulated data)")
