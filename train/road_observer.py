@@ -102,14 +102,16 @@ class StrokeFilter:
             self.gs = self.phi1 @ self.gs
             self.gs[:, j] = self.g1
         h = np.array([[0, 0, 0, 1.0]])
+        self.q, self.r = q, sigma_pos**2  # per potentiometer period
         p_prior = solve_discrete_are(self.phi.T, h.T, q, np.array([[sigma_pos**2]]))
         self.k = (p_prior @ h.T / (p_prior[3, 3] + sigma_pos**2))[:, 0]
-        p_post = (np.eye(4) - np.outer(self.k, h)) @ p_prior
-        self.c = p_post @ self.phi.T @ np.linalg.inv(p_prior)
+        self.p_post = (np.eye(4) - np.outer(self.k, h)) @ p_prior
+        self.c = self.p_post @ self.phi.T @ np.linalg.inv(p_prior)
 
     def forward(self, u: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered and predicted states at each potentiometer sample; ``u`` (m, 10) the inputs
-        after sample k, ``z`` (m + 1) the samples (NaN: no update)."""
+        after sample k, ``z`` (m + 1) the samples (NaN: no update; the gain stays the steady one,
+        a little below the optimum for the few samples after a gap)."""
         m = len(u)
         xf, xp = np.empty((m + 1, 4)), np.empty((m + 1, 4))
         x = np.array([z[0], 0.0, 0.0, z[0]])
