@@ -181,9 +181,16 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -
     acc, pos, tc = lg.topic("/acceleration"), lg.topic("/position"), lg.topic("/temperature/shock")
     t_acc = acc["t_s"]
     ra = acc["a1_mps2"] - acc["a2_mps2"]
+    ok = np.isfinite(ra)
+    if ok.sum() < 2 or not np.isfinite(pos["position_m"]).any() or not np.isfinite(tc["temperature_c"]).any():
+        raise ValueError(f"{path}: no usable /acceleration, /position or /temperature/shock samples")
+    ra = np.interp(t_acc, t_acc[ok], ra[ok])  # a missing sample: its neighbours' line
     ra = ra + np.r_[0.0, np.diff(ra)] / (2 * np.pi * obs["accel_bw_hz"] * ACC_DT_S)  # the sensors' lag, inverted
-    ra = np.nan_to_num(ra)
     ra = np.r_[0.5 * (ra[1:] + ra[:-1]), ra[-1]]  # each millisecond's mean (trapezoid), not its first sample held
+    first = int(np.argmax(np.isfinite(pos["position_m"])))  # the filter starts at the first position read
+    pos = {k: v[first:] for k, v in pos.items()}
+    tc_ok = np.isfinite(tc["temperature_c"])
+    tc = {k: v[tc_ok] for k, v in tc.items()}
     i0 = int(np.searchsorted(t_acc, pos["t_s"][0] - 1e-6))
     m = min((len(t_acc) - i0) // POT_PER_ACC, len(pos["t_s"]) - 1)
     u = ra[i0:i0 + m * POT_PER_ACC].reshape(m, POT_PER_ACC)
@@ -226,7 +233,7 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -
         out["alpha_n"].append(float(coef[0]))
         out["alpha_sd_n"].append(float(np.sqrt(cov00)))
         out["residual_mps2"].append(float(np.sqrt(s2)))
-        out["temp_c"].append(float(np.nanmean(np.interp(t, tc["t_s"], tc["temperature_c"]))))
+        out["temp_c"].append(float(np.mean(np.interp(t, tc["t_s"], tc["temperature_c"]))))
         out["stroke_rms_mps"].append(stroke)
     return {k: np.asarray(v) for k, v in out.items()}
 
