@@ -72,6 +72,19 @@ def sine_drive(t: np.ndarray, freq_hz: float, amp_m: float = 0.04) -> tuple[np.n
     return amp_m * np.sin(w * t), amp_m * w * np.cos(w * t)
 
 
+def mount_filter(obs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Body acceleration per newton of damper force, ``s² / (m s² + c s + k)``, through the
+    accelerometer's first-order filter: the calibrated ``observer`` section's mount, discretised
+    at ``FINE_HZ`` with a first-order hold (``lfilter`` coefficients)."""
+    m, wn, wc = obs["mount_mass_kg"], 2 * np.pi * obs["mount_freq_hz"], 2 * np.pi * obs["accel_bw_hz"]
+    num = np.polymul([1.0, 0.0, 0.0], [wc])
+    den = np.polymul([m, 2 * obs["mount_zeta"] * m * wn, m * wn**2], [1.0, wc])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", signal.BadCoefficients)
+        b, a, _ = signal.cont2discrete((num, den), 1 / FINE_HZ, method="foh")
+    return np.ravel(b), np.ravel(a)
+
+
 def regressors(y: np.ndarray, yd: np.ndarray, obs: dict[str, Any]) -> np.ndarray:
     """Columns of `a2` per unit of each parameter, at the accelerometer's 1 kHz, from the drive
     at ``FINE_HZ`` (the friction flips within a millisecond: the mount is integrated at 4 kHz,
@@ -81,17 +94,9 @@ def regressors(y: np.ndarray, yd: np.ndarray, obs: dict[str, Any]) -> np.ndarray
     for h in HINGES_MPS:
         forces += [np.maximum(yd - h, 0.0), np.minimum(yd + h, 0.0)]
     forces += [y, np.ones_like(y)]
-    m = obs["mount_mass_kg"]
-    wn = 2 * np.pi * obs["mount_freq_hz"]
-    wc = 2 * np.pi * obs["accel_bw_hz"]
-    # body acceleration per force (s² / (m s² + c s + k)) through the accelerometer's filter
-    num = np.polymul([1.0, 0.0, 0.0], [wc])
-    den = np.polymul([m, 2 * obs["mount_zeta"] * m * wn, m * wn**2], [1.0, wc])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", signal.BadCoefficients)
-        sys = signal.dlti(*signal.cont2discrete((num, den), 1 / FINE_HZ, method="foh")[:2])
-        step = round(FINE_HZ / FS_HZ)
-        cols = [signal.dlsim(sys, f)[1][::step, 0] for f in forces]
+    b, a = mount_filter(obs)
+    step = round(FINE_HZ / FS_HZ)
+    cols = [signal.lfilter(b, a, f)[::step] for f in forces]
     cols.append(np.ones_like(cols[0]))  # the accelerometer's offset c0
     return np.column_stack(cols)
 

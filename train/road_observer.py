@@ -49,7 +49,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import logging
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -68,12 +67,11 @@ from train.fit_physics import rest_end_s
 from train.observer import P_ATM_BAR, Z95, theta
 from train.observer_report import expected_health, health_series
 from train.progress import progress
-
-log = logging.getLogger("shocktwin.road_observer")
+from train.road_bound import FINE_HZ, mount_filter
 
 ACC_DT_S = 1e-3          # the accelerometers' period (SPEC §2)
 POT_PER_ACC = 10         # accelerometer samples per potentiometer sample
-FINE = 4                 # the force is built at 4 kHz (the flip is sub-millisecond), then sampled
+FINE = round(FINE_HZ * ACC_DT_S)  # the force is built at 4 kHz (the flip is sub-millisecond), then sampled
 HINGES_MPS = tuple(np.round(np.arange(0.02, 0.3005, 0.01), 3)) + (0.35, 0.4, 0.5, 0.6, 0.8, 1.0)
 TOPICS = ("/acceleration", "/position", "/temperature/shock")
 MIN_STROKE_RMS_MPS = 0.02  # a block moving less than this is not read (a rest)
@@ -146,20 +144,6 @@ class StrokeFilter:
 # ---------------------------------------------------------------------------------------
 # one run: a reading of the friction amplitude per block
 # ---------------------------------------------------------------------------------------
-
-
-def mount_filter(obs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Body acceleration per newton of damper force through the mount and the accelerometer's
-    filter, discretised at 4 kHz (first-order hold; as in ``train.road_bound``)."""
-    import warnings
-
-    m, wn, wc = obs["mount_mass_kg"], 2 * np.pi * obs["mount_freq_hz"], 2 * np.pi * obs["accel_bw_hz"]
-    num = np.polymul([1.0, 0.0, 0.0], [wc])
-    den = np.polymul([m, 2 * obs["mount_zeta"] * m * wn, m * wn**2], [1.0, wc])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", signal.BadCoefficients)
-        b, a, _ = signal.cont2discrete((num, den), ACC_DT_S / FINE, method="foh")
-    return np.ravel(b), np.ravel(a)
 
 
 def law_forces(v: np.ndarray, y: np.ndarray, tau: np.ndarray, v_s: float) -> list[np.ndarray]:
@@ -255,9 +239,11 @@ def readings(paths: Sequence[Path], physics: dict[str, Any], opts: dict[str, flo
 
     keys = [key(Path(p)) for p in paths]
     todo = [p for p, k in zip(paths, keys) if k is None or not k.exists()]
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        done = dict(zip(todo, progress(pool.map(_readings, [(str(p), physics, opts) for p in todo]), total=len(todo),
-                                       desc="road blocks", unit="run")))
+    done = {}
+    if todo:  # all cached: no worker pool
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            done = dict(zip(todo, progress(pool.map(_readings, [(str(p), physics, opts) for p in todo]), total=len(todo),
+                                           desc="road blocks", unit="run")))
     out = []
     for p, k in zip(paths, keys):
         if p in done:
@@ -311,7 +297,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     labels = [float(r.label_bar) for r in campaign.runs]  # type: ignore[arg-type]
     use = [i for i, b in enumerate(blocks) if len(b["alpha_n"]) > 0]
     if len({labels[i] for i in use}) < 2:
-        raise SystemExit(f"{args.campaign}: road runs at two charges at least are needed (read: "
+        raise ValueError(f"{args.campaign}: road runs at two charges at least are needed (read: "
                          f"{', '.join(campaign.runs[i].name for i in use) or 'none'})")
     coef, sd = fit_model([blocks[i] for i in use], [labels[i] for i in use], physics)
     model = {"a_n": float(coef[0]), "b_n_per_bar": float(coef[1]), "block_sd_n": sd, **opts}
