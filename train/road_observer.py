@@ -287,6 +287,21 @@ def charge_of(r: dict[str, np.ndarray], model: dict[str, Any], physics: dict[str
     return p, np.full_like(p, model["block_sd_n"]) / (b * th)
 
 
+def streaming_constants(physics: dict[str, Any], opts: dict[str, float]) -> dict[str, Any]:
+    """What dt-core's streaming ``road`` observer needs beside the fit, so that it applies the
+    same filters as :func:`block_readings` without rebuilding them: the observer parameters (gas
+    ratio, mount, accelerometer filter), the stroke filter's matrices and steady gains, the mount
+    filter's coefficients at ``FINE_HZ``, the hinges."""
+    obs = physics.get("observer") or shocktwin.default_observer_params()
+    kal = physics.get("kalman") or shocktwin.default_params()["kalman"]
+    kf = StrokeFilter(opts["pot_rc_hz"], opts["sigma_accel"], kal["sigma_bias"], kal["sigma_position"])
+    b, a = mount_filter(obs)
+    return {"observer": obs, "filters": {
+        "phi1": kf.phi1.tolist(), "g1": kf.g1.tolist(), "phi": kf.phi.tolist(), "gs": kf.gs.tolist(),
+        "gain": kf.k.tolist(), "smoother": kf.c.tolist(), "mount_b": b.tolist(), "mount_a": a.tolist(),
+        "fine": FINE, "hinges_mps": [float(h) for h in HINGES_MPS], "min_stroke_rms_mps": MIN_STROKE_RMS_MPS}}
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     campaign = load_campaign(args.campaign)
@@ -300,7 +315,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.campaign}: road runs at two charges at least are needed (read: "
                          f"{', '.join(campaign.runs[i].name for i in use) or 'none'})")
     coef, sd = fit_model([blocks[i] for i in use], [labels[i] for i in use], physics)
-    model = {"a_n": float(coef[0]), "b_n_per_bar": float(coef[1]), "block_sd_n": sd, **opts}
+    model = {"a_n": float(coef[0]), "b_n_per_bar": float(coef[1]), "block_sd_n": sd, **opts,
+             **streaming_constants(physics, opts)}
     # What one drive file reads beside another is measured by leaving each drive out (every run
     # of it, at every charge); a campaign of one drive file can only leave one run out.
     drive = [drive_of(campaign.runs[i]) for i in range(len(campaign.runs))]

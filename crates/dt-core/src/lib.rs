@@ -16,6 +16,7 @@ pub mod force;
 pub mod kalman;
 pub mod log;
 pub mod params;
+pub mod road;
 pub mod service;
 pub mod thermal;
 pub mod trend;

@@ -376,3 +376,61 @@ pub(crate) fn add_constants(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("SENSOR_COSTS_AUD", costs)?;
     Ok(())
 }
+
+/// The road observer (dt-core ``road``) over a recorded run, as the daemon
+/// would stream it: ``log`` a ``shocktwin.Log`` or a path, ``calibration``
+/// the JSON text of ``python -m train.road_observer fit``'s output. Returns a
+/// dict of float64 arrays, one entry per block read: ``t_s`` (block end, s
+/// since the run's first message), ``alpha_n``, ``alpha_sd_n``,
+/// ``residual_mps2``, ``temp_c``, ``stroke_rms_mps``, ``reading_bar``,
+/// ``reading_sd_bar``, ``estimate_bar``, ``lo_bar``, ``hi_bar``; and
+/// ``health`` (a list of str). ``baseline`` (a path or Log, and its charge
+/// ``baseline_bar``): the unit's drive at a known charge, read first.
+/// Raises ``MissingTopicsError`` when the log lacks a topic it needs and
+/// ``ValueError`` for a calibration it cannot use.
+#[pyfunction]
+#[pyo3(signature = (log, calibration, baseline=None, baseline_bar=None))]
+pub(crate) fn road_blocks<'py>(
+    py: Python<'py>,
+    log: &Bound<'py, PyAny>,
+    calibration: &str,
+    baseline: Option<&Bound<'py, PyAny>>,
+    baseline_bar: Option<f64>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use dt_core::road::{read_run, RoadCalibration};
+    let mut cal = RoadCalibration::from_json("calibration", calibration)
+        .map_err(pyo3::exceptions::PyValueError::new_err)?;
+    let health = dt_core::bundle::HealthConfig::default();
+    if let Some(base) = baseline {
+        let bar = baseline_bar.ok_or_else(|| {
+            pyo3::exceptions::PyValueError::new_err("baseline given without baseline_bar")
+        })?;
+        let run = run_from(py, base)?;
+        let c = cal.clone();
+        let blocks =
+            without_gil(py, move || read_run(&run, &c, health)).map_err(CoreError::from)?;
+        cal = cal
+            .with_baseline(&blocks, bar)
+            .map_err(pyo3::exceptions::PyValueError::new_err)?;
+    }
+    let run = run_from(py, log)?;
+    let blocks = without_gil(py, move || read_run(&run, &cal, health)).map_err(CoreError::from)?;
+    let out = PyDict::new(py);
+    let col = |f: &dyn Fn(&dt_core::road::RoadBlock) -> f64| -> Vec<f64> {
+        blocks.iter().map(f).collect()
+    };
+    out.set_item("t_s", to_numpy(py, col(&|b| b.t_s)))?;
+    out.set_item("alpha_n", to_numpy(py, col(&|b| b.alpha_n)))?;
+    out.set_item("alpha_sd_n", to_numpy(py, col(&|b| b.alpha_sd_n)))?;
+    out.set_item("residual_mps2", to_numpy(py, col(&|b| b.residual_mps2)))?;
+    out.set_item("temp_c", to_numpy(py, col(&|b| b.temp_c)))?;
+    out.set_item("stroke_rms_mps", to_numpy(py, col(&|b| b.stroke_rms_mps)))?;
+    out.set_item("reading_bar", to_numpy(py, col(&|b| b.reading_bar)))?;
+    out.set_item("reading_sd_bar", to_numpy(py, col(&|b| b.reading_sd_bar)))?;
+    out.set_item("estimate_bar", to_numpy(py, col(&|b| b.estimate_bar)))?;
+    out.set_item("lo_bar", to_numpy(py, col(&|b| b.lo_bar)))?;
+    out.set_item("hi_bar", to_numpy(py, col(&|b| b.hi_bar)))?;
+    let health: Vec<&str> = blocks.iter().map(|b| b.health.as_str()).collect();
+    out.set_item("health", health)?;
+    Ok(out)
+}

@@ -23,6 +23,10 @@ pub enum Command {
     /// Run logs through the streaming estimator and write the `/estimate`
     /// stream (MCAP, JSON lines or CSV); prints per-run RMSE for labelled logs.
     Replay(ReplayArgs),
+    /// Read the gas charge of runs driven on a road with the road observer
+    /// (calibrated by `python -m train.road_observer fit`); prints each run's
+    /// estimate, 95 % interval and health, optionally every block (CSV/JSONL).
+    Road(RoadArgs),
     /// Turn tabular dyno exports (CSV) into run logs (SPEC §2), one MCAP per
     /// file: columns mapped by flags or a TOML file, units and sign
     /// conventions converted, resampled (anti-aliased) to the nominal rates.
@@ -33,6 +37,27 @@ pub enum Command {
     /// Send runs to a NATS `JetStream` worker group as vehicles would
     /// (SPEC §10; see docs/nats.md).
     Publish(PublishArgs),
+}
+
+/// `shocktwin road`.
+#[derive(Debug, Args)]
+pub struct RoadArgs {
+    /// The road calibration (`python -m train.road_observer fit --out`).
+    #[arg(long, value_name = "ROAD.json")]
+    pub calibration: PathBuf,
+    /// Run logs driven on a road.
+    #[arg(required = true)]
+    pub files: Vec<PathBuf>,
+    /// A drive of the same unit at a known charge (after a service), read
+    /// first: `RUN.mcap@BAR`.
+    #[arg(long, value_name = "RUN.mcap@BAR")]
+    pub baseline: Option<String>,
+    /// Every block read: `.csv` or `.jsonl`.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Worker threads (default: one per core).
+    #[arg(long)]
+    pub jobs: Option<usize>,
 }
 
 /// `shocktwin publish`.

@@ -7,6 +7,7 @@ pub mod cli;
 pub mod cmd_import;
 pub mod cmd_inspect;
 pub mod cmd_replay;
+pub mod cmd_road;
 pub mod cmd_serve;
 pub mod cmd_simulate;
 pub mod nats;

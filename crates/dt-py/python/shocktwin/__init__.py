@@ -11,6 +11,9 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   (SPEC §4) that training and the streaming estimator share.
 - ``charge_reversals(log, bundle_or_params)``: the gas-charge observer's
   per-reversal fits over a run (calibration and analysis).
+- ``road_blocks(log, calibration, baseline=None, baseline_bar=None)``: the road
+  observer (dt-core ``road``) over a run: each block's reading and the estimate,
+  interval and health after it.
 - ``reversal_window(bundle_or_params, accel_mps2, oil_c, theta, times)``: the
   observer's window model of one reversal (calibrating its damping law).
 - ``twin_trace(log, bundle_or_params)``: the twin's state per 50 Hz tick from
@@ -55,6 +58,7 @@ from shocktwin._native import (
     ThermalModel,
     __version__,
     charge_reversals,
+    road_blocks,
     reversal_window,
     twin_trace,
     default_params,
@@ -100,6 +104,7 @@ __all__ = [
     # features and suites
     "features",
     "charge_reversals",
+    "road_blocks",
     "reversal_window",
     "twin_trace",
     "GROUPS",

@@ -21,6 +21,7 @@ __all__ = [
     "permutations",
     "extra_permutations",
     "charge_reversals",
+    "road_blocks",
     "reversal_window",
     "twin_trace",
     "default_observer_params",
@@ -145,6 +146,12 @@ def features(
 def charge_reversals(
     log: Log | _Path,
     bundle_or_params: dict[str, Any] | Bundle | _Path,
+) -> dict[str, Any]: ...
+def road_blocks(
+    log: Log | _Path,
+    calibration: str,
+    baseline: Log | _Path | None = None,
+    baseline_bar: float | None = None,
 ) -> dict[str, Any]: ...
 def reversal_window(
     bundle_or_params: dict[str, Any] | Bundle | _Path,

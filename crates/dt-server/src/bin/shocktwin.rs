@@ -34,6 +34,7 @@ fn main() -> ExitCode {
         Command::Inspect(args) => dt_server::cmd_inspect::run(args),
         Command::Import(args) => dt_server::cmd_import::run(args),
         Command::Replay(args) => dt_server::cmd_replay::run(args),
+        Command::Road(args) => dt_server::cmd_road::run(args),
         Command::Serve(args) => dt_server::cmd_serve::run(args).map(|()| ExitCode::SUCCESS),
         Command::Publish(args) => dt_server::nats::publish::run(args),
     };
