@@ -6,10 +6,14 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 from scipy import signal
@@ -351,3 +355,65 @@ def test_shocktwin_road_reads_a_held_out_drive_with_a_baseline(shocktwin_bin: Pa
     proc = subprocess.run([str(shocktwin_bin), "road", "--calibration", str(bad), str(sorted(held.glob("*.mcap"))[0])],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and "old.json" in proc.stderr and "fit again" in proc.stderr
+
+
+FIXTURE_BUNDLE = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+
+
+def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Path, road_sets: tuple[Path, Path, Path],
+                                                               road_model: tuple[Path, Path], tmp_path: Path) -> None:
+    """`shocktwin serve` with `[model] road` and `road = true` for the asset: a leaking run dropped
+    into its inbox ends flagged (`low` or `leak`) with the road observer's estimate and interval, which are
+    `shocktwin replay --road`'s for the same file (and the interval covers the charge); an asset
+    opted in without a calibration is refused at start, naming the key."""
+    _, held, _ = road_sets
+    run = held / "p2.0-roadC60-s2.mcap"
+    replayed = tmp_path / "replay.csv"
+    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(FIXTURE_BUNDLE), "--road", str(road_model[1]),
+                           "--out", str(replayed), str(run)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    last = list(csv.DictReader(replayed.open()))[-1]
+    # a minute of drive, no baseline: another unit's seal keeps the interval wide, but below `ok`
+    assert last["health"] in ("leak", "low") and float(last["pressure_lo_bar"]) <= 2.0 <= float(last["pressure_hi_bar"]), last
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[defaults]\nroad = true\n")
+    proc = subprocess.run([str(shocktwin_bin), "serve", "--config", str(bad), "--model", str(FIXTURE_BUNDLE), "--no-db",
+                           "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "defaults.road" in proc.stderr and "[model] road" in proc.stderr
+
+    config = tmp_path / "serve.toml"
+    config.write_text(f'[model]\nroad = "{road_model[1]}"\n\n[assets.dyno-unit-A]\nroad = true\n')
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    daemon = subprocess.Popen([str(shocktwin_bin), "serve", "--config", str(config), "--model", str(FIXTURE_BUNDLE),
+                               "--no-db", "--inbox", str(inbox), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"],
+                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert daemon.stderr is not None
+        http = ""
+        for _ in range(200):
+            line = re.sub(r"\x1b\[[0-9;]*m", "", daemon.stderr.readline())
+            m = re.search(r"http=(\S+)", line)
+            if m and "listening" in line:
+                http = m.group(1)
+                break
+        assert http, f"the daemon did not start (exit {daemon.poll()})"
+        threading.Thread(target=lambda: [None for _ in daemon.stderr], daemon=True).start()  # type: ignore[union-attr]
+        (inbox / run.name).write_bytes(run.read_bytes())
+        deadline = time.monotonic() + 120
+        asset: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            r = httpx.get(f"http://{http}/v1/assets/dyno-unit-A", timeout=10)
+            if r.status_code == 200:
+                asset = r.json()
+                if asset.get("last_run_status") == "completed":
+                    break
+            time.sleep(0.5)
+        assert asset.get("last_run_status") == "completed", asset
+        assert asset["health"] == last["health"], asset
+        for key in ("pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar"):
+            assert asset[key] == pytest.approx(float(last[key]), abs=1e-9), key
+    finally:
+        daemon.terminate()
+        daemon.wait(timeout=30)

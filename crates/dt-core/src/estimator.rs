@@ -59,6 +59,7 @@ use crate::features::{
 };
 use crate::log::Sample;
 use crate::params::PhysicsParams;
+use crate::road::{RoadBlock, RoadCalibration, RoadEstimate, RoadObserver};
 
 /// Errors of the estimator (a bad bundle or a numerical failure).
 #[derive(Debug, thiserror::Error)]
@@ -377,6 +378,20 @@ struct EstimatorState {
     counters: EstimatorCounters,
     seg_missing: u64,
     seg_gaps: u64,
+    /// The road observer, when the asset is read on a road
+    /// ([`Estimator::with_road`]).
+    #[serde(default)]
+    road: Option<RoadLane>,
+}
+
+/// The road observer beside the pipeline: fed the released samples, its
+/// blocks held until the tick at or after the sample that completed them.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct RoadLane {
+    obs: RoadObserver,
+    /// Blocks read, with the time of the sample that completed each.
+    pending: VecDeque<(i64, RoadBlock)>,
+    current: Option<RoadBlock>,
 }
 
 impl std::fmt::Debug for Estimator {
@@ -433,8 +448,33 @@ impl Estimator {
                 counters: EstimatorCounters::default(),
                 seg_missing: 0,
                 seg_gaps: 0,
+                road: None,
             },
         })
+    }
+
+    /// This estimator with the road observer ([`crate::road`]) beside the
+    /// network: from then on every estimate's pressure, 1 s average, interval
+    /// and health are the road observer's (its estimate after the last block
+    /// completed by the tick's time; before any block its prior, `unknown`).
+    /// The network's columns are still computed (the bundle's features).
+    ///
+    /// # Errors
+    /// The calibration is out of its domain.
+    pub fn with_road(mut self, cal: RoadCalibration) -> Result<Self, String> {
+        self.s.road = Some(RoadLane {
+            obs: RoadObserver::new(cal, self.s.cfg.health)?,
+            pending: VecDeque::new(),
+            current: None,
+        });
+        Ok(self)
+    }
+
+    /// The road observer's estimate now (all blocks read so far), when the
+    /// asset is read on a road.
+    #[must_use]
+    pub fn road(&self) -> Option<RoadEstimate> {
+        self.s.road.as_ref().map(|l| l.obs.estimate())
     }
 
     /// The whole state of this estimator (Kalman filter, thermal model,
@@ -586,6 +626,11 @@ impl Estimator {
         while let Some(q) = self.s.queue.pop_front() {
             self.release(q)?;
         }
+        if let (Some(lane), Some((t, _))) = (self.s.road.as_mut(), self.s.released) {
+            lane.obs.finish();
+            lane.pending
+                .extend(lane.obs.drain().into_iter().map(|b| (t, b)));
+        }
         self.s.pipe.finish();
         self.take_rows()?;
         self.s.finished = true;
@@ -620,6 +665,11 @@ impl Estimator {
             }
         }
         self.s.released = Some(q.key);
+        if let Some(lane) = self.s.road.as_mut() {
+            lane.obs.push(&q.sample);
+            lane.pending
+                .extend(lane.obs.drain().into_iter().map(|b| (q.key.0, b)));
+        }
         self.s.pipe.push(&q.sample)?;
         self.take_rows()
     }
@@ -704,6 +754,30 @@ impl Estimator {
             self.s
                 .health
                 .update_interval(row.t_ns, pressure_avg_bar, avg_lo, avg_hi, excited);
+        if let Some(lane) = self.s.road.as_mut() {
+            while lane.pending.front().is_some_and(|(t, _)| *t <= row.t_ns) {
+                lane.current = lane.pending.pop_front().map(|(_, b)| b);
+            }
+            let (p, lo, hi, health) = if let Some(b) = lane.current {
+                (b.estimate_bar, b.lo_bar, b.hi_bar, b.health)
+            } else {
+                let (lo, hi) = lane.obs.calibration().prior_interval();
+                let p = lane.obs.calibration().prior_mean_bar;
+                (p, lo, hi, Health::Unknown)
+            };
+            return Ok(Estimate {
+                t_ns: row.t_ns,
+                pressure_bar: p,
+                pressure_avg_bar: p,
+                pressure_lo_bar: lo,
+                pressure_hi_bar: hi,
+                expected_bar: self.s.cfg.nominal_bar,
+                health,
+                velocity_mps: twin.velocity_mps,
+                force_model_n: twin.force_model_n,
+                oil_temp_c: twin.oil_temp_c,
+            });
+        }
         Ok(Estimate {
             t_ns: row.t_ns,
             pressure_bar,

@@ -262,6 +262,15 @@ impl RoadCalibration {
         })
     }
 
+    /// The prior's 95 % interval (before any block), bar.
+    #[must_use]
+    pub fn prior_interval(&self) -> (f64, f64) {
+        let rel = self.systematic_rel * (self.prior_mean_bar - self.baseline_bar.unwrap_or(0.0));
+        let half =
+            Z95 * (self.prior_sd_bar.powi(2) + self.systematic_sd_bar.powi(2) + rel * rel).sqrt();
+        (self.prior_mean_bar - half, self.prior_mean_bar + half)
+    }
+
     /// One block's charge reading (bar gauge at 20 °C) and its spread, bar.
     #[must_use]
     pub fn charge_of(&self, alpha_n: f64, temp_c: f64) -> (f64, f64) {
@@ -317,7 +326,7 @@ pub struct RoadEstimate {
     pub blocks: u64,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 struct AccRow {
     t_s: f64,
     a2: f64,
@@ -325,7 +334,7 @@ struct AccRow {
 }
 
 /// The per-stretch pipeline: restarted by a gap or a clock going backwards.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 struct Stretch {
     acc0_ns: i64,
     next_j: i64,
@@ -346,8 +355,9 @@ struct Stretch {
     zi: Vec<Vec<f64>>,
 }
 
-/// The streaming road observer (see the module's documentation).
-#[derive(Debug, Clone)]
+/// The streaming road observer (see the module's documentation);
+/// serialisable, so that a checkpointed estimator goes on reading.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RoadObserver {
     cal: RoadCalibration,
     phi1: Matrix4<f64>,

@@ -279,6 +279,11 @@ pub struct ServeArgs {
     /// Model bundle directory (twin.json + mlp.onnx).
     #[arg(long)]
     pub model: Option<PathBuf>,
+    /// Road calibration (`python -m train.road_observer fit`): assets with
+    /// `road = true` ([defaults] or [assets.<id>]) are read by the road
+    /// observer.
+    #[arg(long, value_name = "ROAD.json")]
+    pub road: Option<PathBuf>,
     /// Watched inbox directory of MCAP files.
     #[arg(long)]
     pub inbox: Option<PathBuf>,
@@ -337,4 +342,9 @@ pub struct ReplayArgs {
     /// be that unit.
     #[arg(long, value_name = "FILE.json")]
     pub observer_baseline: Option<PathBuf>,
+    /// Read every file with the road observer (its calibration, `python -m
+    /// train.road_observer fit`): the estimates' pressure, interval and
+    /// health are then the road observer's.
+    #[arg(long, value_name = "ROAD.json")]
+    pub road: Option<PathBuf>,
 }

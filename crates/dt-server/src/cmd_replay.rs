@@ -34,6 +34,7 @@ use dt_core::log::{
     read_log, topic, LogDecoder, LogEvent, LogWriter, RunLog, RunMetadata, Sample, SampleMessage,
     Undecoded, WriteOptions,
 };
+use dt_core::road::RoadCalibration;
 
 use crate::cli::ReplayArgs;
 
@@ -102,6 +103,21 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
         }
         cfg.observer_baseline = Some(read_baseline(path)?);
     }
+    let road = match &args.road {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("--road {}", path.display()))?;
+            Some(
+                RoadCalibration::from_json(&path.display().to_string(), &text)
+                    .map_err(|e| anyhow::anyhow!("--road {e}"))?,
+            )
+        }
+        None => None,
+    };
+    let model = Model {
+        bundle: Arc::clone(&bundle),
+        road,
+    };
     let several = args.files.len() > 1;
     let mcap_out = |run_id: &str| -> PathBuf {
         if several {
@@ -126,7 +142,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(file) = args.files.get(i) else { break };
-                let res = replay_file(file, &bundle, cfg, format, &mcap_out, pipelined);
+                let res = replay_file(file, &model, cfg, format, &mcap_out, pipelined);
                 bar.inc(1);
                 results
                     .lock()
@@ -165,12 +181,31 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     })
 }
 
+/// The bundle, and the road calibration every file is read with (`--road`).
+struct Model {
+    bundle: Arc<Bundle>,
+    road: Option<RoadCalibration>,
+}
+
+impl Model {
+    fn estimator(&self, cfg: EstimatorConfig, name: &str) -> Result<Estimator> {
+        let est = Estimator::new(Arc::clone(&self.bundle), cfg)
+            .with_context(|| format!("{name}: estimator"))?;
+        match &self.road {
+            Some(cal) => est
+                .with_road(cal.clone())
+                .map_err(|e| anyhow::anyhow!("{name}: road observer: {e}")),
+            None => Ok(est),
+        }
+    }
+}
+
 /// Replays one file: as it is read when it is clean and in order
 /// ([`replay_streaming`]), else the whole-file way, which sorts the samples
 /// and reports what it skipped.
 fn replay_file(
     file: &Path,
-    bundle: &Arc<Bundle>,
+    model: &Model,
     cfg: EstimatorConfig,
     format: Format,
     mcap_out: &dyn Fn(&str) -> PathBuf,
@@ -178,11 +213,11 @@ fn replay_file(
 ) -> Result<Replayed> {
     let started = Instant::now();
     if let Some(replayed) =
-        replay_streaming(file, bundle, cfg, format, mcap_out, started, pipelined)?
+        replay_streaming(file, model, cfg, format, mcap_out, started, pipelined)?
     {
         return Ok(replayed);
     }
-    replay_whole(file, bundle, cfg, format, mcap_out, started)
+    replay_whole(file, model, cfg, format, mcap_out, started)
 }
 
 /// What the reader of a streamed file passes on: the events of the file in
@@ -343,7 +378,7 @@ fn read_batches(mut input: File, name: &str, tx: &std::sync::mpsc::SyncSender<Ba
 /// reach the estimator in the same order, so the output is the same.
 fn replay_streaming(
     file: &Path,
-    bundle: &Arc<Bundle>,
+    model: &Model,
     cfg: EstimatorConfig,
     format: Format,
     mcap_out: &dyn Fn(&str) -> PathBuf,
@@ -352,8 +387,7 @@ fn replay_streaming(
 ) -> Result<Option<Replayed>> {
     let name = file.display().to_string();
     let input = File::open(file).with_context(|| format!("opening {name}"))?;
-    let est =
-        Estimator::new(Arc::clone(bundle), cfg).with_context(|| format!("{name}: estimator"))?;
+    let est = model.estimator(cfg, &name)?;
     if !pipelined {
         let events = decoded(input, name);
         return replay_events(file, est, events, format, mcap_out, started);
@@ -447,7 +481,7 @@ fn replay_events(
 /// skipped messages and ignored topics reported.
 fn replay_whole(
     file: &Path,
-    bundle: &Arc<Bundle>,
+    model: &Model,
     cfg: EstimatorConfig,
     format: Format,
     mcap_out: &dyn Fn(&str) -> PathBuf,
@@ -457,8 +491,7 @@ fn replay_whole(
     for problem in &log.problems {
         tracing::warn!(file = %file.display(), "{problem}");
     }
-    let mut est = Estimator::new(Arc::clone(bundle), cfg)
-        .with_context(|| format!("{}: estimator", file.display()))?;
+    let mut est = model.estimator(cfg, &file.display().to_string())?;
     let mut estimates = Vec::new();
     let mut writer = match format {
         Format::Mcap => {
@@ -773,7 +806,13 @@ mod tests {
             .any(|w| (w[1].t_ns(), w[1].topic_rank()) < (w[0].t_ns(), w[0].topic_rank())));
         write(&shuffled, &moved);
 
-        let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
+        let (b, cfg) = (
+            Model {
+                bundle: bundle(),
+                road: None,
+            },
+            EstimatorConfig::from_bundle(&bundle()),
+        );
         let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
         let streamed = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t, false)
@@ -836,7 +875,13 @@ mod tests {
             }
         }
         w.finish().unwrap();
-        let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
+        let (b, cfg) = (
+            Model {
+                bundle: bundle(),
+                road: None,
+            },
+            EstimatorConfig::from_bundle(&bundle()),
+        );
         let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
         let mut replayed = Vec::new();
@@ -863,7 +908,13 @@ mod tests {
         let bytes = std::fs::read(&full).unwrap();
         let cut = dir.path().join("cut.mcap");
         std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-        let (b, cfg) = (bundle(), EstimatorConfig::from_bundle(&bundle()));
+        let (b, cfg) = (
+            Model {
+                bundle: bundle(),
+                road: None,
+            },
+            EstimatorConfig::from_bundle(&bundle()),
+        );
         let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
         for pipelined in [false, true] {

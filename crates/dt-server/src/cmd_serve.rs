@@ -17,6 +17,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         listen: args.listen,
         http: args.http,
         model: args.model.clone(),
+        road: args.road.clone(),
         inbox: args.inbox.clone(),
         record_dir: args.record_dir.clone(),
         db: args.db.clone(),
@@ -77,7 +78,10 @@ fn default_db() -> Option<std::path::PathBuf> {
 /// placeholder (50 Hz clock only), said loudly.
 fn twin_factory(config: &Config) -> anyhow::Result<Arc<dyn TwinFactory>> {
     if let Some(bundle) = &config.model.bundle {
-        return Ok(Arc::new(EstimatorFactory::load(bundle)?));
+        return Ok(Arc::new(EstimatorFactory::load(
+            bundle,
+            config.model.road.as_deref(),
+        )?));
     }
     tracing::warn!(
         "no model bundle (--model, [model] bundle, SHOCKTWIN_MODEL): serving with the \

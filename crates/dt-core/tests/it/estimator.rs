@@ -614,3 +614,68 @@ fn checkpoint_of_another_model_or_garbage_is_refused() {
     }
     assert!(Estimator::restore(Arc::clone(&a), &bytes).is_ok());
 }
+
+/// An estimator with the road calibration fixture, its blocks shortened to
+/// 2 s (settling 1 s) so that a 12 s synthetic run reads several.
+fn road_estimator(b: &Arc<Bundle>) -> Estimator {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/road.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir).unwrap()).unwrap();
+    v["block_s"] = 2.0.into();
+    v["settle_s"] = 1.0.into();
+    let cal = dt_core::road::RoadCalibration::from_json("road.json", &v.to_string()).unwrap();
+    estimator(b).with_road(cal).unwrap()
+}
+
+/// With the road observer the estimates carry its estimate and interval
+/// (the prior's until its first block, then narrower); shuffled within the
+/// re-order window, and checkpointed and restored anywhere, every tick is
+/// the same bit for bit (the NATS workers' failover).
+#[test]
+fn the_road_observer_streams_and_checkpoints_bit_for_bit() {
+    let b = bundle("bundle-mlp13");
+    let samples = sorted_samples(&synth_log(T0, 12, 0.04, 11));
+    let whole = stream(&mut road_estimator(&b), &samples);
+    let first = whole[0].estimate;
+    let last = whole.last().unwrap().estimate;
+    assert!(first.pressure_hi_bar - first.pressure_lo_bar > 20.0, "{first:?}");
+    assert!(
+        last.pressure_hi_bar - last.pressure_lo_bar < first.pressure_hi_bar - first.pressure_lo_bar,
+        "{last:?}"
+    );
+    assert!(whole
+        .iter()
+        .all(|t| t.estimate.pressure_bar.to_bits() == t.estimate.pressure_avg_bar.to_bits()));
+    let same = |a: &[Tick], w: &[Tick], what: &str| {
+        assert_eq!(a.len(), w.len(), "{what}");
+        for (i, (a, w)) in a.iter().zip(w).enumerate() {
+            let (x, y) = (a.estimate, w.estimate);
+            assert!(
+                x.t_ns == y.t_ns
+                    && x.health == y.health
+                    && x.pressure_bar.to_bits() == y.pressure_bar.to_bits()
+                    && x.pressure_lo_bar.to_bits() == y.pressure_lo_bar.to_bits()
+                    && x.pressure_hi_bar.to_bits() == y.pressure_hi_bar.to_bits(),
+                "{what} tick {i}: {x:?} vs {y:?}"
+            );
+        }
+    };
+    same(
+        &stream(&mut road_estimator(&b), &shuffled(&samples, 60 * MS, 5)),
+        &whole,
+        "shuffled",
+    );
+    for cut in [1, 4_321, samples.len() / 2, samples.len() - 3] {
+        let mut est = road_estimator(&b);
+        let mut ticks = Vec::new();
+        for s in &samples[..cut] {
+            est.push(*s).unwrap();
+            ticks.extend(est.drain_ticks());
+        }
+        let bytes = est.checkpoint();
+        drop(est);
+        let mut est = Estimator::restore(Arc::clone(&b), &bytes).unwrap();
+        ticks.extend(stream(&mut est, &samples[cut..]));
+        same(&ticks, &whole, &format!("cut {cut}"));
+    }
+}

@@ -653,8 +653,7 @@ impl Partition {
                 .metadata()
                 .map_err(|e| Refused::Input(e.kind(), e.to_string()))?;
             let asset_cfg = self.ctx.baselines.asset_config(&self.ctx.config, &asset);
-            let cfg = self.ctx.factory.config_for(&asset_cfg);
-            let est = Estimator::new(Arc::clone(self.ctx.factory.bundle()), cfg).map_err(|e| {
+            let est = self.ctx.factory.estimator_for(&asset_cfg).map_err(|e| {
                 Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
             })?;
             let service = asset_cfg

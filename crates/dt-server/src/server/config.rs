@@ -105,6 +105,9 @@ impl Default for ServerConfig {
 pub struct ModelConfig {
     /// Model bundle directory (`twin.json` + `mlp.onnx`, SPEC §5).
     pub bundle: Option<PathBuf>,
+    /// Road calibration (`python -m train.road_observer fit`): the assets
+    /// with `road = true` are read by the road observer (`dt_core::road`).
+    pub road: Option<PathBuf>,
 }
 
 /// `[limits]`: every queue and resource the daemon holds is bounded.
@@ -229,6 +232,8 @@ pub struct AssetConfig {
     /// is read for (never from the configuration: the daemon sets it).
     #[serde(skip)]
     pub read_service: Option<ServiceToRead>,
+    /// Driven on roads: the charge is the road observer's (`[model] road`).
+    pub road: bool,
 }
 
 impl Default for AssetConfig {
@@ -239,6 +244,7 @@ impl Default for AssetConfig {
             fault_bar: 5.0,
             observer_baseline: None,
             read_service: None,
+            road: false,
         }
     }
 }
@@ -267,6 +273,8 @@ pub struct AssetOverrides {
     /// The unit's charge-observer baseline (`{ charge_bar, read_bar,
     /// read_sd_bar }`).
     pub observer_baseline: Option<UnitBaseline>,
+    /// Driven on roads (the road observer).
+    pub road: Option<bool>,
 }
 
 /// Command-line flags of `shocktwin serve` that override the file and the
@@ -279,6 +287,8 @@ pub struct ConfigOverrides {
     pub http: Option<SocketAddr>,
     /// `--model`.
     pub model: Option<PathBuf>,
+    /// `--road`.
+    pub road: Option<PathBuf>,
     /// `--inbox`.
     pub inbox: Option<PathBuf>,
     /// `--record-dir`.
@@ -389,6 +399,9 @@ impl Config {
         }
         if let Some(p) = &cli.model {
             self.model.bundle = Some(p.clone());
+        }
+        if let Some(p) = &cli.road {
+            self.model.road = Some(p.clone());
         }
         if let Some(p) = &cli.inbox {
             self.server.inbox = Some(p.clone());
@@ -502,6 +515,24 @@ impl Config {
             }
             check_asset(&format!("assets.{id}"), &self.asset(id))?;
         }
+        self.check_road()
+    }
+
+    /// An asset driven on roads needs the road calibration.
+    fn check_road(&self) -> Result<(), ServeError> {
+        let road_assets = std::iter::once(("defaults".to_owned(), self.defaults.road)).chain(
+            self.assets
+                .keys()
+                .map(|id| (format!("assets.{id}"), self.asset(id).road)),
+        );
+        for (key, road) in road_assets {
+            if road && self.model.road.is_none() {
+                return Err(ServeError::Invalid {
+                    key: format!("{key}.road"),
+                    reason: "the road observer needs its calibration: `[model] road = \"road.json\"` or --road".into(),
+                });
+            }
+        }
         Ok(())
     }
 
@@ -517,6 +548,7 @@ impl Config {
                 fault_bar: o.fault_bar.unwrap_or(d.fault_bar),
                 observer_baseline: o.observer_baseline,
                 read_service: None,
+                road: o.road.unwrap_or(d.road),
             },
         }
     }

@@ -14,6 +14,7 @@ use dt_core::charge::UnitBaseline;
 use dt_core::estimate::Estimate;
 use dt_core::estimator::{Estimator, EstimatorConfig};
 use dt_core::log::{RunMetadata, Sample};
+use dt_core::road::RoadCalibration;
 use dt_core::service::ServiceReading;
 
 use super::config::AssetConfig;
@@ -24,22 +25,52 @@ use super::ServeError;
 #[derive(Debug, Clone)]
 pub struct EstimatorFactory {
     bundle: Arc<Bundle>,
+    road: Option<Arc<RoadCalibration>>,
 }
 
 impl EstimatorFactory {
-    /// Loads (and checks) the bundle at `dir`.
-    pub fn load(dir: &Path) -> Result<Self, ServeError> {
+    /// Loads (and checks) the bundle at `dir` and the road calibration at
+    /// `road` (assets with `road = true` are read by the road observer).
+    pub fn load(dir: &Path, road: Option<&Path>) -> Result<Self, ServeError> {
         let bundle = Bundle::load(dir).map_err(|e| ServeError::Model {
             path: dir.to_owned(),
             reason: e.to_string(),
         })?;
-        Ok(Self::new(Arc::new(bundle)))
+        let mut factory = Self::new(Arc::new(bundle));
+        if let Some(path) = road {
+            let bad = |reason: String| ServeError::Model {
+                path: path.to_owned(),
+                reason,
+            };
+            let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+            let cal =
+                RoadCalibration::from_json(&path.display().to_string(), &text).map_err(bad)?;
+            factory.road = Some(Arc::new(cal));
+        }
+        Ok(factory)
     }
 
-    /// Uses an already loaded bundle.
+    /// Uses an already loaded bundle (no road calibration).
     #[must_use]
     pub fn new(bundle: Arc<Bundle>) -> Self {
-        Self { bundle }
+        Self { bundle, road: None }
+    }
+
+    /// The road calibration, when one was loaded.
+    #[must_use]
+    pub fn road(&self) -> Option<&RoadCalibration> {
+        self.road.as_deref()
+    }
+
+    /// A fresh estimator for `asset` (with the road observer when the asset
+    /// is driven on roads).
+    pub fn estimator_for(&self, asset: &AssetConfig) -> Result<Estimator, TwinError> {
+        let est = Estimator::new(Arc::clone(&self.bundle), self.config_for(asset))?;
+        match (&self.road, asset.road) {
+            (Some(cal), true) => Ok(est.with_road((**cal).clone())?),
+            (None, true) => Err("the asset is driven on roads (`road = true`) but no road calibration was loaded ([model] road, --road)".into()),
+            (_, false) => Ok(est),
+        }
     }
 
     /// The bundle.
@@ -68,7 +99,7 @@ impl TwinFactory for EstimatorFactory {
         _meta: &RunMetadata,
         asset: &AssetConfig,
     ) -> Result<Box<dyn AssetTwin>, TwinError> {
-        let est = Estimator::new(Arc::clone(&self.bundle), self.config_for(asset))?;
+        let est = self.estimator_for(asset)?;
         let service = asset
             .read_service
             .filter(|_| est.observer().is_some())
@@ -77,7 +108,13 @@ impl TwinFactory for EstimatorFactory {
     }
 
     fn describe(&self) -> String {
-        format!("estimator, bundle {}", self.bundle.dir.display())
+        match &self.road {
+            Some(_) => format!(
+                "estimator, bundle {}, road observer for assets with `road = true`",
+                self.bundle.dir.display()
+            ),
+            None => format!("estimator, bundle {}", self.bundle.dir.display()),
+        }
     }
 
     fn as_estimator(&self) -> Option<&EstimatorFactory> {

@@ -40,7 +40,7 @@ fn assert_same(got: &[Estimate], want: &[Estimate]) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn daemon_output_equals_the_estimator_run_directly() {
-    let factory = EstimatorFactory::load(&bundle_dir()).unwrap();
+    let factory = EstimatorFactory::load(&bundle_dir(), None).unwrap();
     let record = tempfile::tempdir().unwrap();
     let mut config = test_config();
     config.server.record_dir = Some(record.path().to_owned());
