@@ -638,7 +638,10 @@ fn the_road_observer_streams_and_checkpoints_bit_for_bit() {
     let whole = stream(&mut road_estimator(&b), &samples);
     let first = whole[0].estimate;
     let last = whole.last().unwrap().estimate;
-    assert!(first.pressure_hi_bar - first.pressure_lo_bar > 20.0, "{first:?}");
+    assert!(
+        first.pressure_hi_bar - first.pressure_lo_bar > 20.0,
+        "{first:?}"
+    );
     assert!(
         last.pressure_hi_bar - last.pressure_lo_bar < first.pressure_hi_bar - first.pressure_lo_bar,
         "{last:?}"
