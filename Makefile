@@ -63,6 +63,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(BIN) simulate --quick --road 60 --seed 3 --pressures 12 --out $(OUT)/road-baseline
 	$(PY) -m train.road_observer fit --campaign $(OUT)/road-cal --physics $(OUT)/physics.json --out $(OUT)/road.json
 	$(PY) -m train.road_observer evaluate --physics $(OUT)/physics.json --road $(OUT)/road.json --score-from-s 30 --out $(OUT)/road --baseline held=$(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12 held=$(OUT)/road-held
+	$(BIN) road --calibration $(OUT)/road.json --baseline $(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12 --out $(OUT)/road/blocks.csv $(OUT)/road-held/*.mcap
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md

@@ -362,19 +362,33 @@ FIXTURE_BUNDLE = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "t
 
 def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Path, road_sets: tuple[Path, Path, Path],
                                                                road_model: tuple[Path, Path], tmp_path: Path) -> None:
-    """`shocktwin serve` with `[model] road` and `road = true` for the asset: a leaking run dropped
-    into its inbox ends flagged (`low` or `leak`) with the road observer's estimate and interval, which are
-    `shocktwin replay --road`'s for the same file (and the interval covers the charge); an asset
-    opted in without a calibration is refused at start, naming the key."""
-    _, held, _ = road_sets
-    run = held / "p2.0-roadC60-s2.mcap"
-    replayed = tmp_path / "replay.csv"
-    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(FIXTURE_BUNDLE), "--road", str(road_model[1]),
-                           "--out", str(replayed), str(run)], capture_output=True, text=True, timeout=300)
+    """`shocktwin serve` with `[model] road`, and `road = true` and the unit's `road_baseline` (as
+    `shocktwin road --baseline` prints it) for the asset: a leaking run dropped into its inbox ends
+    `leak`, with the estimate and interval of `shocktwin replay --road --road-baseline` for the same
+    file, covering the charge. Without the baseline a minute of drive leaves the interval wide
+    (another unit's seal), yet below `ok`. An asset opted in without a calibration is refused at
+    start, naming the key."""
+    _, held, base = road_sets
+    run, drive = held / "p2.0-roadC60-s2.mcap", f"{base / 'p12.0-roadC60-s3.mcap'}@12"
+
+    def replay(*extra: str) -> dict[str, str]:
+        out = tmp_path / f"replay{len(extra)}.csv"
+        proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(FIXTURE_BUNDLE), "--road", str(road_model[1]),
+                               *extra, "--out", str(out), str(run)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        return list(csv.DictReader(out.open()))[-1]
+
+    plain = replay()
+    assert plain["health"] in ("leak", "low") and float(plain["pressure_lo_bar"]) <= 2.0 <= float(plain["pressure_hi_bar"])
+    last = replay("--road-baseline", drive)
+    assert last["health"] == "leak" and float(last["pressure_lo_bar"]) <= 2.0 <= float(last["pressure_hi_bar"]), last
+    assert float(last["pressure_hi_bar"]) - float(last["pressure_lo_bar"]) < float(plain["pressure_hi_bar"]) - float(plain["pressure_lo_bar"])
+
+    proc = subprocess.run([str(shocktwin_bin), "road", "--calibration", str(road_model[1]), "--baseline", drive, str(run)],
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    last = list(csv.DictReader(replayed.open()))[-1]
-    # a minute of drive, no baseline: another unit's seal keeps the interval wide, but below `ok`
-    assert last["health"] in ("leak", "low") and float(last["pressure_lo_bar"]) <= 2.0 <= float(last["pressure_hi_bar"]), last
+    line = re.search(r"road_baseline = \{.*\}", proc.stderr)
+    assert line, proc.stderr
 
     bad = tmp_path / "bad.toml"
     bad.write_text("[defaults]\nroad = true\n")
@@ -383,7 +397,7 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
     assert proc.returncode != 0 and "defaults.road" in proc.stderr and "[model] road" in proc.stderr
 
     config = tmp_path / "serve.toml"
-    config.write_text(f'[model]\nroad = "{road_model[1]}"\n\n[assets.dyno-unit-A]\nroad = true\n')
+    config.write_text(f'[model]\nroad = "{road_model[1]}"\n\n[assets.dyno-unit-A]\nroad = true\n{line.group(0)}\n')
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     daemon = subprocess.Popen([str(shocktwin_bin), "serve", "--config", str(config), "--model", str(FIXTURE_BUNDLE),
@@ -393,9 +407,9 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
         assert daemon.stderr is not None
         http = ""
         for _ in range(200):
-            line = re.sub(r"\x1b\[[0-9;]*m", "", daemon.stderr.readline())
-            m = re.search(r"http=(\S+)", line)
-            if m and "listening" in line:
+            text = re.sub(r"\x1b\[[0-9;]*m", "", daemon.stderr.readline())
+            m = re.search(r"http=(\S+)", text)
+            if m and "listening" in text:
                 http = m.group(1)
                 break
         assert http, f"the daemon did not start (exit {daemon.poll()})"
@@ -411,7 +425,7 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
                     break
             time.sleep(0.5)
         assert asset.get("last_run_status") == "completed", asset
-        assert asset["health"] == last["health"], asset
+        assert asset["health"] == "leak", asset
         for key in ("pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar"):
             assert asset[key] == pytest.approx(float(last[key]), abs=1e-9), key
     finally:

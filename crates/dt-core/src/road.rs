@@ -241,6 +241,19 @@ impl RoadCalibration {
     /// # Errors
     /// No block was read (no stroke).
     pub fn with_baseline(&self, blocks: &[RoadBlock], charge_bar: f64) -> Result<Self, String> {
+        Ok(self.apply(&self.read_baseline(blocks, charge_bar)?))
+    }
+
+    /// A unit's baseline from its drive at a known charge `charge_bar` read
+    /// into `blocks` (by this calibration, without a baseline).
+    ///
+    /// # Errors
+    /// No block was read (no stroke).
+    pub fn read_baseline(
+        &self,
+        blocks: &[RoadBlock],
+        charge_bar: f64,
+    ) -> Result<RoadBaseline, String> {
         if blocks.is_empty() {
             return Err("the baseline drive has no block to read (no stroke?)".into());
         }
@@ -253,13 +266,24 @@ impl RoadCalibration {
             })
             .sum::<f64>()
             / blocks.len() as f64;
-        let stat = self.block_sd_n / (blocks.len() as f64).sqrt() / self.b_n_per_bar;
-        Ok(Self {
-            a_n: self.a_n + offset,
-            baseline_bar: Some(charge_bar),
+        Ok(RoadBaseline {
+            charge_bar,
+            offset_n: offset,
+            blocks: blocks.len() as u64,
+        })
+    }
+
+    /// This calibration for the unit of `baseline`: its seal's offset, and
+    /// only the slope's tolerance systematic.
+    #[must_use]
+    pub fn apply(&self, baseline: &RoadBaseline) -> Self {
+        let stat = self.block_sd_n / (baseline.blocks.max(1) as f64).sqrt() / self.b_n_per_bar;
+        Self {
+            a_n: self.a_n + baseline.offset_n,
+            baseline_bar: Some(baseline.charge_bar),
             systematic_sd_bar: self.held_out_sd_bar.hypot(stat),
             ..self.clone()
-        })
+        }
     }
 
     /// The prior's 95 % interval (before any block), bar.
@@ -277,6 +301,45 @@ impl RoadCalibration {
         let th = gas_ratio(&self.observer, temp_c, 0.0);
         let p = ((alpha_n - self.a_n) / self.b_n_per_bar + P_ATM_BAR) / th - P_ATM_BAR;
         (p, self.block_sd_n / (self.b_n_per_bar * th))
+    }
+}
+
+/// One unit's road baseline: what a drive at a known charge (after a
+/// service) read of its seal ([`RoadCalibration::read_baseline`]); kept in
+/// the daemon's configuration (`[assets.<id>] road_baseline`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RoadBaseline {
+    /// The charge of the drive, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// The unit's friction offset from the calibration's, N.
+    pub offset_n: f64,
+    /// Blocks the drive read (the offset's precision).
+    pub blocks: u64,
+}
+
+impl RoadBaseline {
+    /// Checks the domain.
+    ///
+    /// # Errors
+    /// A non-finite value or no block, named.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.charge_bar.is_finite() && self.charge_bar >= 0.0) {
+            return Err(format!(
+                "road_baseline.charge_bar = {}: a charge in bar, at least 0",
+                self.charge_bar
+            ));
+        }
+        if !self.offset_n.is_finite() {
+            return Err(format!(
+                "road_baseline.offset_n = {}: must be finite",
+                self.offset_n
+            ));
+        }
+        if self.blocks == 0 {
+            return Err("road_baseline.blocks = 0: a baseline reads at least one block".into());
+        }
+        Ok(())
     }
 }
 

@@ -347,4 +347,8 @@ pub struct ReplayArgs {
     /// health are then the road observer's.
     #[arg(long, value_name = "ROAD.json")]
     pub road: Option<PathBuf>,
+    /// With `--road`: a drive of the same unit at a known charge (after a
+    /// service), read first: `RUN.mcap@BAR`.
+    #[arg(long, value_name = "RUN.mcap@BAR")]
+    pub road_baseline: Option<String>,
 }

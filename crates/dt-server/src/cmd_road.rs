@@ -29,14 +29,14 @@ use dt_core::road::{read_run, RoadBlock, RoadCalibration};
 use crate::cli::RoadArgs;
 
 /// One run read.
-struct Read {
+pub(crate) struct Read {
     run_id: String,
     asset_id: String,
     label_bar: Option<f64>,
-    blocks: Vec<RoadBlock>,
+    pub(crate) blocks: Vec<RoadBlock>,
 }
 
-fn read_one(path: &Path, cal: &RoadCalibration, health: HealthConfig) -> Result<Read> {
+pub(crate) fn read_one(path: &Path, cal: &RoadCalibration, health: HealthConfig) -> Result<Read> {
     let log = read_log(path).with_context(|| format!("reading {}", path.display()))?;
     let blocks = read_run(&log, cal, health)
         .with_context(|| format!("{}: road observer", path.display()))?;
@@ -59,7 +59,7 @@ fn expected(cfg: &HealthConfig, bar: f64) -> Health {
 }
 
 /// `--baseline RUN.mcap@BAR`.
-fn parse_baseline(spec: &str) -> Result<(PathBuf, f64)> {
+pub(crate) fn parse_baseline(spec: &str) -> Result<(PathBuf, f64)> {
     let Some((path, bar)) = spec.rsplit_once('@') else {
         bail!("--baseline {spec:?}: expected RUN.mcap@BAR");
     };
@@ -185,14 +185,20 @@ pub fn run(args: &RoadArgs) -> Result<std::process::ExitCode> {
     if let Some(spec) = &args.baseline {
         let (path, bar) = parse_baseline(spec)?;
         let base = read_one(&path, &cal, health).with_context(|| format!("--baseline {spec}"))?;
-        cal = cal
-            .with_baseline(&base.blocks, bar)
+        let b = cal
+            .read_baseline(&base.blocks, bar)
             .map_err(|e| anyhow::anyhow!("--baseline {spec}: {e}"))?;
+        cal = cal.apply(&b);
         eprintln!(
-            "baseline {}: {} blocks at {bar} bar; the seal's offset read (friction {:.2} N at 0 bar)",
+            "baseline {}: {} blocks at {bar} bar, the seal {:+.3} N from the calibration's; for the daemon:\n  \
+             [assets.{}]\n  road = true\n  road_baseline = {{ charge_bar = {}, offset_n = {}, blocks = {} }}",
             path.display(),
-            base.blocks.len(),
-            cal.a_n
+            b.blocks,
+            b.offset_n,
+            base.asset_id,
+            b.charge_bar,
+            b.offset_n,
+            b.blocks
         );
     }
     let jobs = args

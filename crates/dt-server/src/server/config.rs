@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use dt_core::charge::UnitBaseline;
+use dt_core::road::RoadBaseline;
 
 use super::ServeError;
 
@@ -234,6 +235,9 @@ pub struct AssetConfig {
     pub read_service: Option<ServiceToRead>,
     /// Driven on roads: the charge is the road observer's (`[model] road`).
     pub road: bool,
+    /// The unit's road baseline (one unit's: only under `[assets.<id>]`),
+    /// as `shocktwin road --baseline` prints it.
+    pub road_baseline: Option<RoadBaseline>,
 }
 
 impl Default for AssetConfig {
@@ -245,6 +249,7 @@ impl Default for AssetConfig {
             observer_baseline: None,
             read_service: None,
             road: false,
+            road_baseline: None,
         }
     }
 }
@@ -275,6 +280,8 @@ pub struct AssetOverrides {
     pub observer_baseline: Option<UnitBaseline>,
     /// Driven on roads (the road observer).
     pub road: Option<bool>,
+    /// The unit's road baseline (`{ charge_bar, offset_n, blocks }`).
+    pub road_baseline: Option<RoadBaseline>,
 }
 
 /// Command-line flags of `shocktwin serve` that override the file and the
@@ -525,6 +532,26 @@ impl Config {
                 .keys()
                 .map(|id| (format!("assets.{id}"), self.asset(id).road)),
         );
+        if self.defaults.road_baseline.is_some() {
+            return Err(ServeError::Invalid {
+                key: "defaults.road_baseline".into(),
+                reason: "a road baseline is one unit's reading: set it under [assets.<id>]".into(),
+            });
+        }
+        for (id, o) in &self.assets {
+            if let Some(b) = &o.road_baseline {
+                b.validate().map_err(|reason| ServeError::Invalid {
+                    key: format!("assets.{id}.road_baseline"),
+                    reason,
+                })?;
+                if !self.asset(id).road {
+                    return Err(ServeError::Invalid {
+                        key: format!("assets.{id}.road_baseline"),
+                        reason: "the asset is not read on roads: add `road = true`".into(),
+                    });
+                }
+            }
+        }
         for (key, road) in road_assets {
             if road && self.model.road.is_none() {
                 return Err(ServeError::Invalid {
@@ -549,6 +576,7 @@ impl Config {
                 observer_baseline: o.observer_baseline,
                 read_service: None,
                 road: o.road.unwrap_or(d.road),
+                road_baseline: o.road_baseline,
             },
         }
     }
@@ -605,6 +633,40 @@ mod tests {
 
     fn no_env(_: &str) -> Option<String> {
         None
+    }
+
+    /// A road asset needs the calibration; a road baseline is one road
+    /// asset's, with a finite offset; given both, the asset has them.
+    #[test]
+    fn road_assets_and_their_baselines_are_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("c.toml");
+        let load = |text: &str| {
+            std::fs::write(&file, text).unwrap();
+            Config::load(Some(&file), &no_env, &ConfigOverrides::default())
+        };
+        let base = "road_baseline = { charge_bar = 12.0, offset_n = 0.26, blocks = 238 }";
+        for (text, key) in [
+            ("[assets.v1]\nroad = true\n".to_owned(), "assets.v1.road"),
+            ("[defaults]\nroad = true\n".to_owned(), "defaults.road"),
+            (format!("[model]\nroad = \"r.json\"\n[assets.v1]\n{base}\n"), "assets.v1.road_baseline"),
+            (format!("[model]\nroad = \"r.json\"\n[defaults]\nroad = true\n{base}\n"), "defaults.road_baseline"),
+            (
+                "[model]\nroad = \"r.json\"\n[assets.v1]\nroad = true\nroad_baseline = { charge_bar = 12.0, offset_n = nan, blocks = 3 }\n"
+                    .to_owned(),
+                "assets.v1.road_baseline",
+            ),
+        ] {
+            let err = load(&text).unwrap_err().to_string();
+            assert!(err.contains(key), "{text}: {err}");
+        }
+        let c = load(&format!(
+            "[model]\nroad = \"r.json\"\n[defaults]\nroad = true\n[assets.v1]\n{base}\n"
+        ))
+        .unwrap();
+        let a = c.asset("v1");
+        assert!(a.road && c.asset("other").road && c.asset("other").road_baseline.is_none());
+        assert_eq!(a.road_baseline.map(|b| b.blocks), Some(238));
     }
 
     #[test]

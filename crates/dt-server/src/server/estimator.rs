@@ -67,7 +67,10 @@ impl EstimatorFactory {
     pub fn estimator_for(&self, asset: &AssetConfig) -> Result<Estimator, TwinError> {
         let est = Estimator::new(Arc::clone(&self.bundle), self.config_for(asset))?;
         match (&self.road, asset.road) {
-            (Some(cal), true) => Ok(est.with_road((**cal).clone())?),
+            (Some(cal), true) => Ok(est.with_road(match &asset.road_baseline {
+                Some(b) => cal.apply(b),
+                None => (**cal).clone(),
+            })?),
             (None, true) => Err("the asset is driven on roads (`road = true`) but no road calibration was loaded ([model] road, --road)".into()),
             (_, false) => Ok(est),
         }
