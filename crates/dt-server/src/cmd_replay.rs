@@ -103,29 +103,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
         }
         cfg.observer_baseline = Some(read_baseline(path)?);
     }
-    let road = match &args.road {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("--road {}", path.display()))?;
-            let cal = RoadCalibration::from_json(&path.display().to_string(), &text)
-                .map_err(|e| anyhow::anyhow!("--road {e}"))?;
-            match &args.road_baseline {
-                Some(spec) => {
-                    let (drive, bar) = crate::cmd_road::parse_baseline(spec)?;
-                    let health = dt_core::bundle::HealthConfig::default();
-                    let base = crate::cmd_road::read_one(&drive, &cal, health)
-                        .with_context(|| format!("--road-baseline {spec}"))?;
-                    Some(
-                        cal.with_baseline(&base.blocks, bar)
-                            .map_err(|e| anyhow::anyhow!("--road-baseline {spec}: {e}"))?,
-                    )
-                }
-                None => Some(cal),
-            }
-        }
-        None if args.road_baseline.is_some() => bail!("--road-baseline needs --road"),
-        None => None,
-    };
+    let road = road_calibration(args)?;
     let model = Model {
         bundle: Arc::clone(&bundle),
         road,
@@ -190,6 +168,34 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
         std::process::ExitCode::FAILURE
     } else {
         std::process::ExitCode::SUCCESS
+    })
+}
+
+/// `--road` (with `--road-baseline`): the road calibration every file is
+/// read with.
+fn road_calibration(args: &ReplayArgs) -> Result<Option<RoadCalibration>> {
+    Ok(match &args.road {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("--road {}", path.display()))?;
+            let cal = RoadCalibration::from_json(&path.display().to_string(), &text)
+                .map_err(|e| anyhow::anyhow!("--road {e}"))?;
+            match &args.road_baseline {
+                Some(spec) => {
+                    let (drive, bar) = crate::cmd_road::parse_baseline(spec)?;
+                    let health = dt_core::bundle::HealthConfig::default();
+                    let base = crate::cmd_road::read_one(&drive, &cal, health)
+                        .with_context(|| format!("--road-baseline {spec}"))?;
+                    Some(
+                        cal.with_baseline(&base.blocks, bar)
+                            .map_err(|e| anyhow::anyhow!("--road-baseline {spec}: {e}"))?,
+                    )
+                }
+                None => Some(cal),
+            }
+        }
+        None if args.road_baseline.is_some() => bail!("--road-baseline needs --road"),
+        None => None,
     })
 }
 
