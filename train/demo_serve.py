@@ -21,6 +21,11 @@
    leaking) goes through the daemon's inbox into its store (``--db``); the trend
    of each van and its predicted crossing dates are printed, and the dashboard
    (``GET /``) is saved as ``dashboard.png`` by headless Chromium (when installed).
+6. With ``--road``: a vehicle on roads. The daemon is started with the road calibration
+   (``[model] road``) and that vehicle marked ``road = true`` with its ``road_baseline``
+   (read by ``shocktwin road --baseline`` from its drive at a known charge); its held-out
+   leaking road run goes through the inbox and the daemon's verdict, estimate and
+   interval are printed (the road observer's, dt-core ``road``).
 The data are simulated.
 """
 
@@ -29,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shutil
 import socket
 import subprocess
 import sys
@@ -69,11 +75,13 @@ FLEET_DAYS = 10
 
 
 def start_daemon(binary: str, bundle: Path, record_dir: Path,
-                 inbox: Path | None = None) -> tuple[subprocess.Popen[str], str, str]:
+                 inbox: Path | None = None, config: Path | None = None) -> tuple[subprocess.Popen[str], str, str]:
     cmd = [binary, "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(bundle),
            "--record-dir", str(record_dir), "--db", str(record_dir.parent / "fleet.sqlite")]
     if inbox is not None:
         cmd += ["--inbox", str(inbox)]
+    if config is not None:
+        cmd += ["--config", str(config)]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None
     deadline = time.monotonic() + 30
@@ -185,6 +193,44 @@ def simulate_fleet(binary: str, inbox: Path) -> int:
             f.rename(inbox / f"{asset}-{f.name}")
         (inbox / asset).rmdir()
     return len(FLEET) * FLEET_DAYS
+
+
+ROAD_VEHICLE = "car-21"
+
+
+def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) -> tuple[Path, Path]:
+    """The daemon's configuration for a vehicle on roads (``ROAD_VEHICLE``): the calibration, and
+    the vehicle's ``road_baseline`` as ``shocktwin road --baseline`` reads it from its drive at a
+    known charge; and its road run written again under that vehicle's name."""
+    proc = subprocess.run([binary, "road", "--calibration", str(road), "--baseline", baseline, str(run)],
+                          capture_output=True, text=True, check=True)
+    line = re.search(r"road_baseline = \{.*\}", proc.stderr)
+    if line is None:
+        raise RuntimeError(f"shocktwin road --baseline printed no road_baseline line: {proc.stderr}")
+    out.mkdir(parents=True, exist_ok=True)
+    config = out / "serve.toml"
+    config.write_text(f'[model]\nroad = "{road.resolve()}"\n\n[assets.{ROAD_VEHICLE}]\nroad = true\n{line.group(0)}\n')
+    renamed = out / f"{ROAD_VEHICLE}-{run.name}"
+    with open(run, "rb") as src, open(renamed, "wb") as dst:
+        writer = Writer(dst, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="shocktwin demo")
+        copy_log(make_reader(src), writer, {"asset_id": ROAD_VEHICLE})
+        writer.finish()
+    print(f"vehicle on roads: {ROAD_VEHICLE}, `road = true`, its seal read from {baseline.rsplit('/', 1)[-1]} "
+          f"({line.group(0)})")
+    return config, renamed
+
+
+def wait_road(http: str, asset: str, run: Path, inbox: Path, timeout_s: float = 300.0) -> dict[str, Any]:
+    """Drops the road run into the inbox; the daemon's view of the vehicle once it is read."""
+    shutil.copy(run, inbox / run.name)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        r = httpx.get(f"http://{http}/v1/assets/{asset}", timeout=10)
+        if r.status_code == 200 and r.json().get("last_run_status") == "completed":
+            return cast(dict[str, Any], r.json())
+        time.sleep(0.5)
+    raise RuntimeError(f"the daemon did not read the road run {run.name} in {timeout_s:.0f} s")
 
 
 def wait_fleet(http: str, n_runs: int, timeout_s: float = 600.0) -> None:
@@ -302,9 +348,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--pressure", type=float, default=2.0, help="charge pressure of the leaking unit (bar)")
     p.add_argument("--frequency", type=float, default=2.0)
     p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--road", type=Path, help="road calibration (python -m train.road_observer fit)")
+    p.add_argument("--road-run", type=Path, help="with --road: a vehicle's leaking road run")
+    p.add_argument("--road-baseline", help="with --road: that vehicle's drive at a known charge, DRIVE.mcap@BAR")
     p.add_argument("--unit", type=int, default=11,
                    help="unit seed of the leaking unit (another unit of the same model; 0: the calibration's)")
     args = p.parse_args(argv)
+    if args.road and not (args.road_run and args.road_baseline):
+        p.error("--road needs --road-run and --road-baseline")
 
     run_dir = args.out / "run"
     unit = ["--unit", str(args.unit)] if args.unit else []
@@ -320,11 +371,20 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     inbox = args.out / "inbox"
     n_fleet = simulate_fleet(args.bin, inbox)
-    proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records", inbox)
+    config, road_run = (road_config(args.bin, args.road, args.road_run, args.road_baseline, args.out / "road")
+                        if args.road else (None, None))
+    proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records", inbox, config)
     try:
         print(f"the fleet's past: {n_fleet} runs of {len(FLEET)} vans through the inbox into the store ...")
         wait_fleet(http, n_fleet)
         print_fleet(http)
+        if road_run is not None:
+            with open(road_run, "rb") as fh:
+                road_meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["shocktwin.run"]
+            v = wait_road(http, ROAD_VEHICLE, road_run, inbox)
+            print(f"{ROAD_VEHICLE} on the road ({road_meta['excitation']}, true charge {road_meta['charge_pressure_bar']} bar, "
+                  f"simulated): the daemon's road observer reads {v['pressure_bar']:.2f} bar "
+                  f"[{v['pressure_lo_bar']:.2f}, {v['pressure_hi_bar']:.2f}], health {v['health']}")
         baseline = (service_baseline(args.bin, args.bundle, args.unit, http, asset_id, args.out / "service", inbox)
                     if args.unit else None)
         if baseline is not None:
