@@ -25,11 +25,15 @@ use dt_core::road::{RoadCalibration, RoadObserver};
 const MS: i64 = 1_000_000;
 
 fn fixture(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../crates/dt-core/tests/fixtures").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../crates/dt-core/tests/fixtures")
+        .join(name)
 }
 
 fn noise(i: i64) -> f64 {
-    let x = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(17);
+    let x = (i as u64)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .rotate_left(17);
     (x >> 11) as f64 / (1u64 << 52) as f64 - 1.0
 }
 
@@ -81,7 +85,8 @@ fn bench_road(c: &mut Criterion) {
     g.sample_size(10).measurement_time(Duration::from_secs(20));
     g.bench_function("observer_60s", |b| {
         b.iter(|| {
-            let mut obs = RoadObserver::new(cal.clone(), HealthConfig::default()).expect("observer");
+            let mut obs =
+                RoadObserver::new(cal.clone(), HealthConfig::default()).expect("observer");
             let mut n = 0;
             for s in &minute {
                 obs.push(s);
