@@ -322,6 +322,27 @@ def test_a_gap_restarts_the_filters_and_keeps_the_estimate(road_sets: tuple[Path
     np.testing.assert_array_less(np.abs(holes["alpha_n"] - whole["alpha_n"]), whole["alpha_sd_n"] * 3 + 0.3)
 
 
+def test_a_dead_potentiometer_stops_the_reading(road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path],
+                                                tmp_path: Path) -> None:
+    """The potentiometer silent from 22 s on (its samples gone): the block read before reads as
+    in the whole log; no block after it is read (the accelerometers alone would integrate a
+    drifting stroke), and the estimate stays where it was."""
+    _, held, _ = road_sets
+    path = held / "p2.0-roadC60-s2.mcap"
+    lg = shocktwin.read_log(str(path))
+    topics = {}
+    for topic in ro.TOPICS:
+        d = lg.topic(topic)
+        keep = d["t_s"] < 22.0 if topic == "/position" else np.ones(len(d["t_s"]), bool)
+        topics[topic] = (lg.t0_ns + np.round(d["t_s"][keep] * 1e9).astype(np.int64),
+                         {k: v[keep] for k, v in d.items() if k != "t_s"})
+    dead = write_mcap_log(tmp_path / "dead.mcap", {k: str(v) for k, v in lg.metadata.items()}, topics)
+    cal = road_model[1].read_text()
+    whole, got = shocktwin.road_blocks(str(path), cal), shocktwin.road_blocks(str(dead), cal)
+    assert len(whole["t_s"]) >= 4 and len(got["t_s"]) == int(np.sum(whole["t_s"] < 21.0)) >= 1
+    np.testing.assert_allclose(got["alpha_n"], whole["alpha_n"][:len(got["t_s"])], rtol=1e-12)
+
+
 def test_the_streaming_observer_refuses_a_log_without_accelerometers_by_name(make_log, road_model: tuple[Path, Path]) -> None:
     path = make_log(topics=("/position", "/force", "/temperature/shock"))
     with pytest.raises(shocktwin.MissingTopicsError, match="/acceleration"):

@@ -55,7 +55,8 @@
 //! yields them; the accelerometers at 1 kHz and the potentiometer at 100 Hz
 //! (SPEC §2) are placed on their nominal grids by time. A missing or
 //! non-finite accelerometer sample is bridged linearly (its `a2` is not
-//! regressed); a missing position is a step without update; a gap longer than
+//! regressed); a missing position is a step without update (a block with
+//! positions at fewer than half its steps is not read); a gap longer than
 //! `MAX_GAP_NS` or time going backwards restarts the filters (the estimate and
 //! health carry on).
 
@@ -413,6 +414,8 @@ struct Stretch {
     last_pos_k: i64,
     pos: BTreeMap<usize, f64>,
     xf: VecDeque<Vector4<f64>>,
+    /// Whether the step to each state of `xf` had a position.
+    updated: VecDeque<bool>,
     xp: VecDeque<Vector4<f64>>,
     x_base: usize,
     next_block: usize,
@@ -614,6 +617,13 @@ impl RoadObserver {
         } else {
             s.pending_nan.push((j, t_s, a2));
         }
+        if s.pos0.is_none() {
+            // no position yet: keep two seconds of rows, not the whole drive
+            while s.rows.len() > 2_000 {
+                s.rows.pop_front();
+                s.rows_base += 1;
+            }
+        }
         self.advance(false);
     }
 
@@ -658,12 +668,15 @@ impl RoadObserver {
             }
             // the first accelerometer slot at or after the position (numpy's searchsorted)
             let j0 = (t_ns - 1_000 - s.acc0_ns + ACC_DT_NS - 1).div_euclid(ACC_DT_NS);
+            if j0 < s.rows_base {
+                return; // older than the rows kept: start at a later position
+            }
             s.pos0 = Some((t_ns, j0));
             t_ns
         };
         let k = (t_ns - p0_ns + pot_ns / 2).div_euclid(pot_ns);
-        if k <= s.last_pos_k {
-            return;
+        if k <= s.last_pos_k || (k as usize) < s.x_base + s.xf.len() {
+            return; // a repeat, or too late: its step was taken without it
         }
         s.last_pos_k = k;
         s.pos.insert(k as usize, y);
@@ -698,6 +711,7 @@ impl RoadObserver {
             let x = Vector4::new(z0, 0.0, 0.0, z0);
             s.xf.push_back(x);
             s.xp.push_back(x);
+            s.updated.push_back(true);
             s.x_base = 0;
         }
         let k = s.x_base + s.xf.len() - 1; // the last filtered step
@@ -725,6 +739,7 @@ impl RoadObserver {
         };
         s.xp.push_back(p);
         s.xf.push_back(xn);
+        s.updated.push_back(z.is_finite());
         s.pos.remove(&k);
         true
     }
@@ -777,11 +792,18 @@ impl RoadObserver {
                 x.push(c + miss * (j as f64 / POT_PER_ACC as f64));
             }
         }
+        // a block with positions at fewer than half its steps is not read (a dead potentiometer)
+        let positions = s
+            .updated
+            .range(i0 + 1..=i0 + per_block)
+            .filter(|&&u| u)
+            .count();
         // drop what no later block needs
         let keep_from = k0 + per_block;
         while s.x_base < keep_from {
             s.xf.pop_front();
             s.xp.pop_front();
+            s.updated.pop_front();
             s.x_base += 1;
         }
         let keep_rows = j0 + (keep_from * POT_PER_ACC) as i64;
@@ -798,7 +820,10 @@ impl RoadObserver {
         while self.temps.len() > 1 && self.temps[1].0 <= t_end {
             self.temps.pop_front();
         }
-        if t[0] - started < self.cal.settle_s || stroke < self.cal.filters.min_stroke_rms_mps {
+        if t[0] - started < self.cal.settle_s
+            || stroke < self.cal.filters.min_stroke_rms_mps
+            || 2 * positions < per_block
+        {
             return;
         }
         let a2: Vec<f64> = rows.iter().map(|r| r.a2).collect();
