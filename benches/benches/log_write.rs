@@ -11,41 +11,9 @@ use dt_core::log::{
     read_log_bytes, Compression, LogDecoder, LogEvent, LogWriter, RunMetadata, Sample, WriteOptions,
 };
 
-/// Samples of `ms` milliseconds of a run.
+/// Samples of `ms` milliseconds of a run (the dyno run the estimator bench reads).
 fn samples(ms: i64) -> Vec<Sample> {
-    let mut out = Vec::new();
-    for i in 0..ms {
-        let t_ns = 1_000_000 * i;
-        let x = i as f64 * 1e-3;
-        out.push(Sample::Acceleration {
-            t_ns,
-            a1_mps2: 9.81 * (12.566 * x).sin() + 0.013 * (i % 7) as f64,
-            a2_mps2: 0.021 * (i % 5) as f64 - 0.04,
-        });
-        if i % 10 == 0 {
-            out.push(Sample::Position {
-                t_ns,
-                position_m: 0.04 * (12.566 * x).sin(),
-            });
-        }
-        if i % 20 == 0 {
-            out.push(Sample::Force {
-                t_ns,
-                force_n: 850.0 * (12.566 * x).cos() + 3.7,
-            });
-        }
-        if i % 1000 == 0 {
-            out.push(Sample::TempShock {
-                t_ns,
-                temperature_c: 25.0 + x * 0.01,
-            });
-            out.push(Sample::TempAmbient {
-                t_ns,
-                temperature_c: 21.3,
-            });
-        }
-    }
-    out
+    dt_bench::dyno_samples(0, ms, 0.0)
 }
 
 fn write(samples: &[Sample], compression: Compression) -> Vec<u8> {

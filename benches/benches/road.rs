@@ -19,10 +19,7 @@ use std::time::Duration;
 use criterion::{criterion_group, criterion_main, Criterion};
 use dt_core::bundle::{Bundle, HealthConfig};
 use dt_core::estimator::{Estimator, EstimatorConfig};
-use dt_core::log::Sample;
 use dt_core::road::{RoadCalibration, RoadObserver};
-
-const MS: i64 = 1_000_000;
 
 fn fixture(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -30,57 +27,10 @@ fn fixture(name: &str) -> PathBuf {
         .join(name)
 }
 
-fn noise(i: i64) -> f64 {
-    let x = (i as u64)
-        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
-        .rotate_left(17);
-    (x >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-}
-
-/// `ms` milliseconds of a 2 Hz, 80 mm p-p stroke with a friction flip in `a2`.
-fn samples(ms: i64) -> Vec<Sample> {
-    let w = 2.0 * std::f64::consts::PI * 2.0;
-    let amp = 0.04;
-    let mut out = Vec::new();
-    for i in 0..ms {
-        let t_ns = i * MS;
-        let x = i as f64 * 1e-3;
-        let v = amp * w * (w * x).cos();
-        out.push(Sample::Acceleration {
-            t_ns,
-            a1_mps2: -amp * w * w * (w * x).sin() + 0.3 + 0.05 * noise(i),
-            a2_mps2: 1.2 * (v / 0.005).tanh() / 30.0 + 0.05 * noise(i + 7),
-        });
-        if i % 10 == 0 {
-            out.push(Sample::Position {
-                t_ns,
-                position_m: amp * (w * x).sin() + 5e-4 * noise(3 * i),
-            });
-        }
-        if i % 20 == 3 {
-            out.push(Sample::Force {
-                t_ns,
-                force_n: 6000.0 * v - 380.0 + 20.0 * noise(5 * i),
-            });
-        }
-        if i % 1000 == 250 {
-            out.push(Sample::TempShock {
-                t_ns,
-                temperature_c: 25.0 + x * 0.01,
-            });
-            out.push(Sample::TempAmbient {
-                t_ns,
-                temperature_c: 21.5,
-            });
-        }
-    }
-    out
-}
-
 fn bench_road(c: &mut Criterion) {
     let text = std::fs::read_to_string(fixture("road.json")).expect("road fixture");
     let cal = RoadCalibration::from_json("road.json", &text).expect("road calibration");
-    let minute = samples(60_000);
+    let minute = dt_bench::dyno_samples(0, 60_000, 1.2);
     let mut g = c.benchmark_group("road");
     g.sample_size(10).measurement_time(Duration::from_secs(20));
     g.bench_function("observer_60s", |b| {

@@ -754,30 +754,29 @@ impl Estimator {
             self.s
                 .health
                 .update_interval(row.t_ns, pressure_avg_bar, avg_lo, avg_hi, excited);
-        if let Some(lane) = self.s.road.as_mut() {
-            while lane.pending.front().is_some_and(|(t, _)| *t <= row.t_ns) {
-                lane.current = lane.pending.pop_front().map(|(_, b)| b);
+        // On a road asset: the road observer's estimate after the last block
+        // completed by this tick (before any, its prior), for all four.
+        let (pressure_bar, pressure_avg_bar, lo, hi, health) = match self.s.road.as_mut() {
+            Some(lane) => {
+                while lane.pending.front().is_some_and(|(t, _)| *t <= row.t_ns) {
+                    lane.current = lane.pending.pop_front().map(|(_, b)| b);
+                }
+                if let Some(b) = lane.current {
+                    (b.estimate_bar, b.estimate_bar, b.lo_bar, b.hi_bar, b.health)
+                } else {
+                    let cal = lane.obs.calibration();
+                    let (lo, hi) = cal.prior_interval();
+                    (
+                        cal.prior_mean_bar,
+                        cal.prior_mean_bar,
+                        lo,
+                        hi,
+                        Health::Unknown,
+                    )
+                }
             }
-            let (p, lo, hi, health) = if let Some(b) = lane.current {
-                (b.estimate_bar, b.lo_bar, b.hi_bar, b.health)
-            } else {
-                let (lo, hi) = lane.obs.calibration().prior_interval();
-                let p = lane.obs.calibration().prior_mean_bar;
-                (p, lo, hi, Health::Unknown)
-            };
-            return Ok(Estimate {
-                t_ns: row.t_ns,
-                pressure_bar: p,
-                pressure_avg_bar: p,
-                pressure_lo_bar: lo,
-                pressure_hi_bar: hi,
-                expected_bar: self.s.cfg.nominal_bar,
-                health,
-                velocity_mps: twin.velocity_mps,
-                force_model_n: twin.force_model_n,
-                oil_temp_c: twin.oil_temp_c,
-            });
-        }
+            None => (pressure_bar, pressure_avg_bar, lo, hi, health),
+        };
         Ok(Estimate {
             t_ns: row.t_ns,
             pressure_bar,
