@@ -745,7 +745,9 @@ impl Partition {
         let mut map = open.meta.clone();
         map.insert("outcome".into(), outcome.into());
         let counters = open.est.counters();
-        let observer = open.est.observer().is_some().then_some(counters.observer);
+        // on a road asset the road observer reads the charge (see EstimatorTwin::counters)
+        let observer = (open.est.observer().is_some() && open.est.road().is_none())
+            .then_some(counters.observer);
         self.run_event(
             asset,
             &open.run_id,

@@ -179,7 +179,10 @@ impl AssetTwin for EstimatorTwin {
             timestamp_outliers: c.timestamp_outliers,
             ticks_without_inputs: c.ticks_without_inputs,
             ticks: c.ticks,
-            observer: self.est.observer().is_some().then_some(c.observer),
+            // on a road asset the road observer reads the charge: the dyno
+            // observer's counters (not calibrated at a road) would mislead
+            observer: (self.est.observer().is_some() && self.est.road().is_none())
+                .then_some(c.observer),
         }
     }
 }
