@@ -4,7 +4,8 @@
 //! - `road/observer_60s`: 60 s of a 2 Hz, 80 mm p-p stroke at SPEC rates
 //!   through a fresh [`RoadObserver`]: the stroke filter on every sample and
 //!   five blocks read (each: the smoother, the force basis through the mount
-//!   at 4 kHz, a 10 000 × ~150 least squares by Householder QR). Real-time
+//!   at 4 kHz, a 10 000 × ~150 least squares by scaled normal equations
+//!   refined once). Real-time
 //!   factor = 60 s / median; one block ≈ median / 5.
 //! - `estimator_60s/{plain,road}`: the same minute through the estimator
 //!   with the fixture bundle, without and with the road observer beside it
