@@ -22,8 +22,10 @@
    of each van and its predicted crossing dates are printed, and the dashboard
    (``GET /``) is saved as ``dashboard.png`` by headless Chromium (when installed).
 6. With ``--road``: a vehicle on roads. The daemon is started with the road calibration
-   (``[model] road``) and that vehicle marked ``road = true`` with its ``road_baseline``
-   (read by ``shocktwin road --baseline`` from its drive at a known charge); its held-out
+   (``[model] road``) and that vehicle marked ``road = true``; the maintainer reports a
+   service at a known charge (``PUT …/service``), the vehicle's drive at that charge goes
+   through the inbox and the daemon reads it into the vehicle's road baseline (printed
+   beside what ``shocktwin road --baseline`` reads from the same drive); then its held-out
    leaking road run goes through the inbox and the daemon's verdict, estimate and
    interval are printed (the road observer's, dt-core ``road``).
 The data are simulated.
@@ -198,10 +200,11 @@ def simulate_fleet(binary: str, inbox: Path) -> int:
 ROAD_VEHICLE = "car-21"
 
 
-def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) -> tuple[Path, Path]:
-    """The daemon's configuration for a vehicle on roads (``ROAD_VEHICLE``): the calibration, and
-    the vehicle's ``road_baseline`` as ``shocktwin road --baseline`` reads it from its drive at a
-    known charge; and its road run written again under that vehicle's name."""
+def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) -> tuple[Path, Path, Path, str]:
+    """The daemon's configuration for a vehicle on roads (``ROAD_VEHICLE``, ``road = true``, no
+    baseline yet), its road run and its drive at a known charge written again under that
+    vehicle's name, and the ``road_baseline`` line ``shocktwin road --baseline`` reads from that
+    drive (what the daemon should read itself after the service)."""
     proc = subprocess.run([binary, "road", "--calibration", str(road), "--baseline", baseline, str(run)],
                           capture_output=True, text=True, check=True)
     line = re.search(r"road_baseline = \{.*\}", proc.stderr)
@@ -209,26 +212,55 @@ def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) ->
         raise RuntimeError(f"shocktwin road --baseline printed no road_baseline line: {proc.stderr}")
     out.mkdir(parents=True, exist_ok=True)
     config = out / "serve.toml"
-    config.write_text(f'[model]\nroad = "{road.resolve()}"\n\n[assets.{ROAD_VEHICLE}]\nroad = true\n{line.group(0)}\n')
-    renamed = out / f"{ROAD_VEHICLE}-{run.name}"
-    with open(run, "rb") as src, open(renamed, "wb") as dst:
-        writer = Writer(dst, compression=CompressionType.ZSTD)
-        writer.start(profile="", library="shocktwin demo")
-        copy_log(make_reader(src), writer, {"asset_id": ROAD_VEHICLE})
-        writer.finish()
-    print(f"vehicle on roads: {ROAD_VEHICLE}, `road = true`, its seal read from {baseline.rsplit('/', 1)[-1]} "
-          f"({line.group(0)})")
-    return config, renamed
+    config.write_text(f'[model]\nroad = "{road.resolve()}"\n\n[assets.{ROAD_VEHICLE}]\nroad = true\n')
+    renamed = []
+    for src_path in (run, Path(baseline.rsplit("@", 1)[0])):
+        dst_path = out / f"{ROAD_VEHICLE}-{src_path.name}"
+        with open(src_path, "rb") as src, open(dst_path, "wb") as dst:
+            writer = Writer(dst, compression=CompressionType.ZSTD)
+            writer.start(profile="", library="shocktwin demo")
+            copy_log(make_reader(src), writer, {"asset_id": ROAD_VEHICLE})
+            writer.finish()
+        renamed.append(dst_path)
+    print(f"vehicle on roads: {ROAD_VEHICLE}, `road = true`, no baseline yet")
+    return config, renamed[0], renamed[1], line.group(0)
+
+
+def road_service(http: str, drive: Path, charge_bar: float, inbox: Path, expected: str) -> dict[str, Any]:
+    """A service of the road vehicle at ``charge_bar`` reported to the daemon, then its drive at
+    that charge dropped into the inbox: the road baseline the daemon read from it."""
+    url = f"http://{http}/v1/assets/{ROAD_VEHICLE}"
+    with open(drive, "rb") as fh:
+        first_s = next(m for _, _, m in make_reader(fh).iter_messages(log_time_order=True)).log_time * 1e-9
+    r = httpx.put(f"{url}/service", json={"charge_bar": charge_bar, "at": f"{first_s - 600.0:.3f}"}, timeout=30)
+    r.raise_for_status()
+    print(f"service of {ROAD_VEHICLE} reported at {charge_bar:g} bar; its next drive ({drive.name}) goes through the inbox ...")
+    shutil.copy(drive, inbox / drive.name)
+    deadline = time.monotonic() + SERVICE_TIMEOUT_S
+    while (b := httpx.get(f"{url}/baseline", timeout=10)).status_code != 200:
+        pending = httpx.get(f"{url}/service", timeout=10)
+        if pending.status_code == 200 and pending.json()["last_refusal"]:
+            raise SystemExit(f"no road baseline from {drive.name}: {pending.json()['last_refusal']}")
+        if time.monotonic() > deadline:
+            raise SystemExit(f"the daemon did not read {drive.name} within {SERVICE_TIMEOUT_S:.0f} s")
+        time.sleep(0.5)
+    base = cast("dict[str, Any]", b.json())
+    print(f"road baseline of {ROAD_VEHICLE}, read by the daemon from that drive (simulated): the seal "
+          f"{base['offset_n']:+.3f} N from the calibration's over {base['blocks']} blocks (GET …/baseline: "
+          f"kind {base['kind']}, source {base['source']}); `shocktwin road --baseline` read {expected}")
+    return base
 
 
 def wait_road(http: str, asset: str, run: Path, inbox: Path, timeout_s: float = 300.0) -> dict[str, Any]:
-    """Drops the road run into the inbox; the daemon's view of the vehicle once it is read."""
+    """Drops the road run into the inbox; the daemon's view of the vehicle once that run is read."""
+    with open(run, "rb") as fh:
+        run_id = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["shocktwin.run"]["run_id"]
     shutil.copy(run, inbox / run.name)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        r = httpx.get(f"http://{http}/v1/assets/{asset}", timeout=10)
-        if r.status_code == 200 and r.json().get("last_run_status") == "completed":
-            return cast(dict[str, Any], r.json())
+        r = httpx.get(f"http://{http}/v1/assets/{asset}/runs", timeout=10)
+        if r.status_code == 200 and any(x["run_id"] == run_id and x["status"] == "completed" for x in r.json()["runs"]):
+            return cast(dict[str, Any], httpx.get(f"http://{http}/v1/assets/{asset}", timeout=10).json())
         time.sleep(0.5)
     raise RuntimeError(f"the daemon did not read the road run {run.name} in {timeout_s:.0f} s")
 
@@ -371,14 +403,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     inbox = args.out / "inbox"
     n_fleet = simulate_fleet(args.bin, inbox)
-    config, road_run = (road_config(args.bin, args.road, args.road_run, args.road_baseline, args.out / "road")
-                        if args.road else (None, None))
+    config = road_run = road_drive = None
+    if args.road:
+        config, road_run, road_drive, road_line = road_config(args.bin, args.road, args.road_run, args.road_baseline,
+                                                              args.out / "road")
     proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records", inbox, config)
     try:
         print(f"the fleet's past: {n_fleet} runs of {len(FLEET)} vans through the inbox into the store ...")
         wait_fleet(http, n_fleet)
         print_fleet(http)
-        if road_run is not None:
+        if road_run is not None and road_drive is not None:
+            road_service(http, road_drive, float(args.road_baseline.rsplit("@", 1)[1]), inbox, road_line)
             with open(road_run, "rb") as fh:
                 road_meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["shocktwin.run"]
             v = wait_road(http, ROAD_VEHICLE, road_run, inbox)

@@ -19,7 +19,7 @@ import pytest
 from scipy import signal
 
 import shocktwin
-from conftest import write_mcap_log
+from conftest import ServeProcess, write_mcap_log
 from train import road_observer as ro
 from train.observer_report import health_series
 
@@ -452,3 +452,73 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
     finally:
         daemon.terminate()
         daemon.wait(timeout=30)
+
+
+def test_a_service_on_a_road_asset_reads_its_next_drive_into_the_unit_s_road_baseline(
+        shocktwin_bin: Path, road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path], tmp_path: Path) -> None:
+    """The fleet flow on a road asset: the maintainer reports a service at 12 bar
+    (`PUT …/service`); the unit's next drive, dropped into the inbox, is read by the road
+    observer into the asset's road baseline — the offset `shocktwin road --baseline` reads from
+    the same file, kept in the fleet store across a restart — and the drive after it (2 bar) ends
+    `leak` with the estimate and interval of `replay --road --road-baseline`. An observer
+    baseline is refused for the road asset, naming the kind it takes; `/v1/assets` marks it."""
+    _, held, base = road_sets
+    drive, run = base / "p12.0-roadC60-s3.mcap", held / "p2.0-roadC60-s2.mcap"
+    proc = subprocess.run([str(shocktwin_bin), "road", "--calibration", str(road_model[1]), "--baseline",
+                           f"{drive}@12", str(run)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    m = re.search(r"road_baseline = \{ charge_bar = (\S+), offset_n = (\S+), blocks = (\d+) \}", proc.stderr)
+    assert m, proc.stderr
+    want = {"charge_bar": float(m.group(1)), "offset_n": float(m.group(2)), "blocks": int(m.group(3))}
+    out = tmp_path / "replay.csv"
+    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(FIXTURE_BUNDLE), "--road", str(road_model[1]),
+                           "--road-baseline", f"{drive}@12", "--out", str(out), str(run)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    last = list(csv.DictReader(out.open()))[-1]
+
+    config = tmp_path / "serve.toml"
+    config.write_text(f'[model]\nroad = "{road_model[1]}"\n\n[assets.dyno-unit-A]\nroad = true\n')
+    inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
+    inbox.mkdir()
+    argv = [str(shocktwin_bin), "serve", "--config", str(config), "--model", str(FIXTURE_BUNDLE), "--db", str(db),
+            "--inbox", str(inbox), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"]
+
+    def settled(http: str, runs: int) -> dict[str, Any]:
+        """The asset once `runs` runs of it have completed."""
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            r = httpx.get(f"http://{http}/v1/assets/dyno-unit-A/runs", timeout=10)
+            if r.status_code == 200 and sum(x["status"] == "completed" for x in r.json()["runs"]) >= runs:
+                return httpx.get(f"http://{http}/v1/assets", timeout=10).json()["assets"][0]
+            time.sleep(0.5)
+        raise AssertionError(f"{runs} runs did not complete")
+
+    daemon = ServeProcess(argv)
+    try:
+        api = f"http://{daemon.http}/v1/assets/dyno-unit-A"
+        # the simulated drives carry 2023 clocks: the service is dated before them
+        r = httpx.put(f"{api}/service", json={"charge_bar": 12.0, "at": "2023-01-01T00:00:00Z"}, timeout=10)
+        assert r.status_code == 202, r.text
+        (inbox / drive.name).write_bytes(drive.read_bytes())
+        asset = settled(daemon.http, 1)
+        assert asset["road"] is True and asset["service"] is None, asset
+        b = asset["baseline"]
+        assert (b["kind"], b["source"], b["blocks"]) == ("road", "api", want["blocks"]), (b, daemon.text())
+        assert b["charge_bar"] == want["charge_bar"] and b["offset_n"] == pytest.approx(want["offset_n"], abs=1e-9)
+        assert "read_bar" not in b
+        r = httpx.put(f"{api}/baseline", json={"charge_bar": 12.0, "read_bar": 10.8, "read_sd_bar": 0.3}, timeout=10)
+        assert r.status_code == 409 and "offset_n" in r.json()["error"], r.text
+    finally:
+        daemon.stop()
+    daemon = ServeProcess(argv)   # the road baseline comes back from the store
+    try:
+        (inbox / run.name).write_bytes(run.read_bytes())
+        asset = settled(daemon.http, 2)
+        assert asset["baseline"]["kind"] == "road" and asset["baseline"]["source"] == "api", asset
+        assert asset["health"] == "leak", asset
+        for key in ("pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar"):
+            assert asset[key] == pytest.approx(float(last[key]), abs=1e-9), key
+        assert float(last["pressure_lo_bar"]) <= 2.0 <= float(last["pressure_hi_bar"]), last
+    finally:
+        daemon.stop()

@@ -59,7 +59,9 @@ use crate::features::{
 };
 use crate::log::Sample;
 use crate::params::PhysicsParams;
-use crate::road::{RoadBlock, RoadCalibration, RoadEstimate, RoadObserver};
+use crate::road::{
+    RoadBaseline, RoadBaselineReading, RoadBlock, RoadCalibration, RoadEstimate, RoadObserver,
+};
 
 /// Errors of the estimator (a bad bundle or a numerical failure).
 #[derive(Debug, thiserror::Error)]
@@ -392,6 +394,22 @@ struct RoadLane {
     /// Blocks read, with the time of the sample that completed each.
     pending: VecDeque<(i64, RoadBlock)>,
     current: Option<RoadBlock>,
+    /// The unit's baseline read from this run, after a service
+    /// ([`Estimator::read_road_baseline`]).
+    #[serde(default)]
+    reading: Option<RoadBaselineReading>,
+}
+
+impl RoadLane {
+    /// Queues the blocks the observer has read, completed at `t_ns`.
+    fn take_blocks(&mut self, t_ns: i64) {
+        for b in self.obs.drain() {
+            if let Some(r) = self.reading.as_mut() {
+                r.add(self.obs.calibration(), &b);
+            }
+            self.pending.push_back((t_ns, b));
+        }
+    }
 }
 
 impl std::fmt::Debug for Estimator {
@@ -466,8 +484,30 @@ impl Estimator {
             obs: RoadObserver::new(cal, self.s.cfg.health)?,
             pending: VecDeque::new(),
             current: None,
+            reading: None,
         });
         Ok(self)
+    }
+
+    /// This road estimator also reads the unit's road baseline at
+    /// `charge_bar` (a service's known charge) from every block it reads
+    /// ([`RoadBaselineReading`]); a no-op without the road observer. Its
+    /// calibration must carry no baseline.
+    #[must_use]
+    pub fn read_road_baseline(mut self, charge_bar: f64) -> Self {
+        if let Some(lane) = self.s.road.as_mut() {
+            lane.reading = Some(RoadBaselineReading::new(charge_bar));
+        }
+        self
+    }
+
+    /// The road baseline read so far (after
+    /// [`read_road_baseline`](Self::read_road_baseline)), or why there is
+    /// none; `None` when no baseline is being read.
+    #[must_use]
+    pub fn road_baseline(&self) -> Option<Result<RoadBaseline, String>> {
+        let reading = self.s.road.as_ref()?.reading?;
+        Some(reading.baseline())
     }
 
     /// The road observer's estimate now (all blocks read so far), when the
@@ -628,8 +668,7 @@ impl Estimator {
         }
         if let (Some(lane), Some((t, _))) = (self.s.road.as_mut(), self.s.released) {
             lane.obs.finish();
-            lane.pending
-                .extend(lane.obs.drain().into_iter().map(|b| (t, b)));
+            lane.take_blocks(t);
         }
         self.s.pipe.finish();
         self.take_rows()?;
@@ -667,8 +706,7 @@ impl Estimator {
         self.s.released = Some(q.key);
         if let Some(lane) = self.s.road.as_mut() {
             lane.obs.push(&q.sample);
-            lane.pending
-                .extend(lane.obs.drain().into_iter().map(|b| (q.key.0, b)));
+            lane.take_blocks(q.key.0);
         }
         self.s.pipe.push(&q.sample)?;
         self.take_rows()

@@ -256,23 +256,11 @@ impl RoadCalibration {
         blocks: &[RoadBlock],
         charge_bar: f64,
     ) -> Result<RoadBaseline, String> {
-        if blocks.is_empty() {
-            return Err("the baseline drive has no block to read (no stroke?)".into());
+        let mut reading = RoadBaselineReading::new(charge_bar);
+        for b in blocks {
+            reading.add(self, b);
         }
-        let offset = blocks
-            .iter()
-            .map(|r| {
-                let p_g =
-                    (charge_bar + P_ATM_BAR) * gas_ratio(&self.observer, r.temp_c, 0.0) - P_ATM_BAR;
-                r.alpha_n - (self.a_n + self.b_n_per_bar * p_g)
-            })
-            .sum::<f64>()
-            / blocks.len() as f64;
-        Ok(RoadBaseline {
-            charge_bar,
-            offset_n: offset,
-            blocks: blocks.len() as u64,
-        })
+        reading.baseline()
     }
 
     /// This calibration for the unit of `baseline`: its seal's offset, and
@@ -342,6 +330,54 @@ impl RoadBaseline {
             return Err("road_baseline.blocks = 0: a baseline reads at least one block".into());
         }
         Ok(())
+    }
+}
+
+/// A unit's road baseline read as its drive goes (after a service at a known
+/// charge), block by block in O(1): the mean over the blocks of
+/// `α_i − (a + b p_g(T_i))`, the seal's offset at `charge_bar`
+/// ([`RoadCalibration::read_baseline`] for a whole drive). The blocks must be
+/// read by the calibration without a baseline.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RoadBaselineReading {
+    charge_bar: f64,
+    sum_offset_n: f64,
+    blocks: u64,
+}
+
+impl RoadBaselineReading {
+    /// Nothing read yet, for a unit filled to `charge_bar` (bar gauge at
+    /// 20 °C).
+    #[must_use]
+    pub fn new(charge_bar: f64) -> Self {
+        Self {
+            charge_bar,
+            sum_offset_n: 0.0,
+            blocks: 0,
+        }
+    }
+
+    /// Adds one block read by `cal`.
+    pub fn add(&mut self, cal: &RoadCalibration, block: &RoadBlock) {
+        let p_g =
+            (self.charge_bar + P_ATM_BAR) * gas_ratio(&cal.observer, block.temp_c, 0.0) - P_ATM_BAR;
+        self.sum_offset_n += block.alpha_n - (cal.a_n + cal.b_n_per_bar * p_g);
+        self.blocks += 1;
+    }
+
+    /// The baseline read so far.
+    ///
+    /// # Errors
+    /// No block was read (no stroke).
+    pub fn baseline(&self) -> Result<RoadBaseline, String> {
+        if self.blocks == 0 {
+            return Err("the baseline drive has no block to read (no stroke?)".into());
+        }
+        Ok(RoadBaseline {
+            charge_bar: self.charge_bar,
+            offset_n: self.sum_offset_n / self.blocks as f64,
+            blocks: self.blocks,
+        })
     }
 }
 

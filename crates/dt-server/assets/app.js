@@ -129,8 +129,13 @@ function renderFleet() {
   $("fleet").tBodies[0].innerHTML = rows.map((a) => {
     const run = a.active_runs > 0 ? `<span class="pill">● streaming</span>` : "";
     const b = a.baseline;   // the unit's baseline narrows its interval (read at a known charge)
+    const read = b?.kind === "road"
+      ? `seal read over ${b.blocks} blocks of drive (offset ${num(b.offset_n, 2)} N) at a known ${num(b.charge_bar, 1)} bar`
+      : `read ${num(b?.read_bar, 2)} ± ${num(b?.read_sd_bar, 2)} bar at a known ${num(b?.charge_bar, 1)} bar`;
     const base = b ? ` <span class="pill" title="unit baseline (${esc(b.source)}${b.set_at ? `, ${esc(b.set_at)}` : ""}): ` +
-      `read ${num(b.read_bar, 2)} ± ${num(b.read_sd_bar, 2)} bar at a known ${num(b.charge_bar, 1)} bar">baseline</span>` : "";
+      `${read}">baseline</span>` : "";
+    const road = a.road ? ` <span class="pill road" title="driven on roads: the road observer reads the charge ` +
+      `from 10 s blocks of drive (its estimate changes once a block)">road</span>` : "";
     const sv = a.service;   // a service reported at a known charge: the next drive is read into a baseline
     const svc = sv ? ` <span class="pill" title="service at ${num(sv.charge_bar, 1)} bar reported ${esc(sv.set_at)}: ` +
       `the unit's next drive is read into its baseline${sv.last_refusal ? `; last run: ${esc(sv.last_refusal)}` : ""}">service pending</span>` : "";
@@ -139,8 +144,8 @@ function renderFleet() {
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
     return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
-      <td class="id">${esc(a.asset_id)}${run}${base}${svc}${obs}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
-      <td>${leakCell(a.trend)}</td><td>${faultCell(a.trend)}</td>
+      <td class="id">${esc(a.asset_id)}${run}${road}${base}${svc}${obs}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td>${leakCell(a.trend)}</td><td class="fault">${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");
 }

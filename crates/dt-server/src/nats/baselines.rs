@@ -19,6 +19,7 @@ use std::sync::{Arc, OnceLock};
 
 use async_nats::jetstream::{self, kv};
 use dt_core::charge::UnitBaseline;
+use dt_core::road::RoadBaseline;
 use futures_util::future::BoxFuture;
 use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
@@ -29,29 +30,44 @@ use super::{
 };
 use crate::server::config::ServiceToRead;
 use crate::server::source::{Source, SourceContext};
-use crate::server::store::{FleetStore, PendingService, StoredBaseline, Trends};
+use crate::server::store::{AssetBaseline, FleetStore, PendingService, StoredBaseline, Trends};
 use crate::server::ServeError;
 
-/// One value of the bucket.
+/// One value of the bucket: an observer baseline (`read_bar`, `read_sd_bar`)
+/// or a road asset's (`offset_n`, `blocks`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BaselineEntry {
-    /// See [`UnitBaseline`].
+    /// The charge the unit held, bar gauge at 20 °C.
     pub charge_bar: f64,
     /// See [`UnitBaseline`].
-    pub read_bar: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub read_bar: Option<f64>,
     /// See [`UnitBaseline`].
-    pub read_sd_bar: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub read_sd_bar: Option<f64>,
+    /// See [`RoadBaseline`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_n: Option<f64>,
+    /// See [`RoadBaseline`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blocks: Option<u64>,
     /// When it was set, ms since the Unix epoch.
     pub set_ms: i64,
 }
 
 impl From<StoredBaseline> for BaselineEntry {
     fn from(b: StoredBaseline) -> Self {
+        let (read, road) = match b.baseline {
+            AssetBaseline::Observer(u) => (Some(u), None),
+            AssetBaseline::Road(r) => (None, Some(r)),
+        };
         Self {
-            charge_bar: b.baseline.charge_bar,
-            read_bar: b.baseline.read_bar,
-            read_sd_bar: b.baseline.read_sd_bar,
+            charge_bar: b.baseline.charge_bar(),
+            read_bar: read.map(|u| u.read_bar),
+            read_sd_bar: read.map(|u| u.read_sd_bar),
+            offset_n: road.map(|r| r.offset_n),
+            blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
         }
     }
@@ -60,12 +76,33 @@ impl From<StoredBaseline> for BaselineEntry {
 impl BaselineEntry {
     /// The baseline, checked.
     fn stored(self) -> Result<StoredBaseline, String> {
-        let baseline = UnitBaseline {
-            charge_bar: self.charge_bar,
-            read_bar: self.read_bar,
-            read_sd_bar: self.read_sd_bar,
+        let baseline = match (self.read_bar, self.read_sd_bar, self.offset_n, self.blocks) {
+            (Some(read_bar), Some(read_sd_bar), None, None) => {
+                let b = UnitBaseline {
+                    charge_bar: self.charge_bar,
+                    read_bar,
+                    read_sd_bar,
+                };
+                b.validate().map_err(|e| e.to_string())?;
+                AssetBaseline::Observer(b)
+            }
+            (None, None, Some(offset_n), Some(blocks)) => {
+                let b = RoadBaseline {
+                    charge_bar: self.charge_bar,
+                    offset_n,
+                    blocks,
+                };
+                b.validate()?;
+                AssetBaseline::Road(b)
+            }
+            _ => {
+                return Err(
+                    "neither an observer baseline (read_bar, read_sd_bar) nor a road baseline \
+                     (offset_n, blocks)"
+                        .into(),
+                )
+            }
         };
-        baseline.validate().map_err(|e| e.to_string())?;
         Ok(StoredBaseline {
             baseline,
             set_ms: self.set_ms,
@@ -202,7 +239,7 @@ pub async fn complete_service(
     services: &kv::Store,
     asset_id: &str,
     service: ServiceToRead,
-    read: Result<UnitBaseline, String>,
+    read: Result<AssetBaseline, String>,
 ) -> Result<bool, NatsError> {
     let what = format!("bucket {SERVICE_BUCKET}, key `{asset_id}`");
     let current = services
@@ -414,5 +451,46 @@ impl Source for NatsBaselines {
                     reason: e.to_string(),
                 })
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bucket_value_carries_either_kind_and_refuses_a_mix() {
+        let observer = StoredBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 10.84,
+                read_sd_bar: 0.65,
+            }),
+            set_ms: 1_700_000_000_000,
+        };
+        let road = StoredBaseline {
+            baseline: AssetBaseline::Road(RoadBaseline {
+                charge_bar: 12.0,
+                offset_n: -0.26,
+                blocks: 238,
+            }),
+            set_ms: 1_700_000_000_001,
+        };
+        for b in [observer, road] {
+            let json = serde_json::to_string(&BaselineEntry::from(b)).unwrap();
+            let back: BaselineEntry = serde_json::from_str(&json).unwrap();
+            assert_eq!(back.stored().unwrap(), b, "{json}");
+        }
+        // what a daemon before road baselines wrote is read as it was
+        let old =
+            r#"{"charge_bar":12.0,"read_bar":10.84,"read_sd_bar":0.65,"set_ms":1700000000000}"#;
+        let entry: BaselineEntry = serde_json::from_str(old).unwrap();
+        assert_eq!(entry.stored().unwrap(), observer);
+        let mixed = r#"{"charge_bar":12.0,"read_bar":10.84,"read_sd_bar":0.65,"offset_n":1.0,"blocks":3,"set_ms":1}"#;
+        let entry: BaselineEntry = serde_json::from_str(mixed).unwrap();
+        assert!(entry.stored().unwrap_err().contains("neither"));
+        let empty = r#"{"charge_bar":12.0,"offset_n":1.0,"blocks":0,"set_ms":1}"#;
+        let entry: BaselineEntry = serde_json::from_str(empty).unwrap();
+        assert!(entry.stored().unwrap_err().contains("blocks"));
     }
 }

@@ -59,6 +59,7 @@ use crate::server::baselines::recorded_before;
 use crate::server::config::{Config, ServiceToRead};
 use crate::server::metrics::Metrics;
 use crate::server::source::{Source, SourceContext};
+use crate::server::store::AssetBaseline;
 use crate::server::{EstimatorFactory, ServeError};
 
 /// Version of the partition checkpoint encoding.
@@ -379,8 +380,11 @@ impl OpenRun {
     /// service's reading with their ticks.
     fn drain_into(&mut self, out: &mut Vec<Estimate>) {
         match self.service.as_mut() {
-            Some((_, reading)) => reading.drain_from(&mut self.est, out),
-            None => out.extend(self.est.drain()),
+            // a road asset's unit is read by the road observer's blocks
+            Some((_, reading)) if self.est.road().is_none() => {
+                reading.drain_from(&mut self.est, out);
+            }
+            _ => out.extend(self.est.drain()),
         }
     }
 }
@@ -653,13 +657,18 @@ impl Partition {
                 .metadata()
                 .map_err(|e| Refused::Input(e.kind(), e.to_string()))?;
             let asset_cfg = self.ctx.baselines.asset_config(&self.ctx.config, &asset);
-            let est = self.ctx.factory.estimator_for(&asset_cfg).map_err(|e| {
+            let mut est = self.ctx.factory.estimator_for(&asset_cfg).map_err(|e| {
                 Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
             })?;
-            let service = asset_cfg
-                .read_service
-                .filter(|_| est.observer().is_some())
-                .map(|s| (s, ServiceReading::new()));
+            let mut service = None;
+            if let Some(s) = asset_cfg.read_service {
+                if est.road().is_some() {
+                    est = est.read_road_baseline(s.charge_bar);
+                    service = Some((s, ServiceReading::new()));
+                } else if est.observer().is_some() {
+                    service = Some((s, ServiceReading::new()));
+                }
+            }
             let mut map = meta.to_map();
             map.remove("asset_id");
             map.remove("run_id");
@@ -767,8 +776,15 @@ impl Partition {
         let Some((service, reading)) = open.service else {
             return;
         };
-        let Some(params) = open.est.bundle().physics().observer else {
-            return;
+        let read_here = match open.est.road_baseline() {
+            Some(road) => road.map(AssetBaseline::Road),
+            None => match open.est.bundle().physics().observer {
+                Some(params) => reading
+                    .finish(service.charge_bar, &params)
+                    .map(|r| AssetBaseline::Observer(r.baseline))
+                    .map_err(|e| e.to_string()),
+                None => return,
+            },
         };
         // The run's processing start is not kept across a failover: now
         // stands for it (it matters only to a run whose clock is not
@@ -776,10 +792,7 @@ impl Partition {
         let started = std::time::SystemTime::now();
         let read = match recorded_before(&open.run_id, open.first_t_ns, started, service) {
             Some(why) => Err(why),
-            None => reading
-                .finish(service.charge_bar, &params)
-                .map(|r| r.baseline)
-                .map_err(|why| format!("run `{}`: {why}", open.run_id)),
+            None => read_here.map_err(|why| format!("run `{}`: {why}", open.run_id)),
         };
         let done = super::baselines::complete_service(
             &self.ctx.baseline_kv,
@@ -791,8 +804,8 @@ impl Partition {
         .await;
         match (done, read) {
             (Ok(true), Ok(b)) => tracing::info!(
-                partition = self.p, asset, run = %open.run_id, read_bar = b.read_bar,
-                read_sd_bar = b.read_sd_bar, "unit baseline read after the service, for the group"
+                partition = self.p, asset, run = %open.run_id, baseline = %b,
+                "unit baseline read after the service, for the group"
             ),
             (Ok(true), Err(why)) => tracing::warn!(
                 partition = self.p,

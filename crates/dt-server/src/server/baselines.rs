@@ -32,12 +32,12 @@
 use std::collections::HashMap;
 use std::sync::{PoisonError, RwLock};
 
-use dt_core::charge::UnitBaseline;
 use serde::Serialize;
 
 use super::config::{AssetConfig, Config, ServiceToRead};
 use super::store::{
-    rfc3339_ms, CalendarClock, FleetStore, PendingService, StoreError, StoredBaseline, Trends,
+    rfc3339_ms, AssetBaseline, CalendarClock, FleetStore, PendingService, StoreError,
+    StoredBaseline, Trends,
 };
 
 /// Where an asset's baseline comes from.
@@ -50,15 +50,27 @@ pub enum BaselineSource {
     Config,
 }
 
-/// An asset's baseline in effect, as the API shows it.
+/// An asset's baseline in effect, as the API shows it: `kind` `observer`
+/// carries `read_bar` and `read_sd_bar` ([`UnitBaseline`]), `road` carries
+/// `offset_n` and `blocks` ([`dt_core::road::RoadBaseline`]).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct BaselineView {
     /// The charge the unit held, bar gauge at 20 °C.
     pub charge_bar: f64,
+    /// `observer` (the dyno observer's) or `road` (the road observer's).
+    pub kind: &'static str,
     /// What the observer read meanwhile, bar.
-    pub read_bar: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub read_bar: Option<f64>,
     /// That reading's standard deviation, bar.
-    pub read_sd_bar: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub read_sd_bar: Option<f64>,
+    /// The unit's seal friction offset from the road calibration's, N.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub offset_n: Option<f64>,
+    /// Blocks of drive the road baseline read.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub blocks: Option<u64>,
     /// `api` or `config`.
     pub source: BaselineSource,
     /// When it was set over the API (RFC 3339), `null` for `config`.
@@ -66,23 +78,30 @@ pub struct BaselineView {
 }
 
 impl BaselineView {
-    /// A baseline set over the API at `set_ms`.
+    /// A baseline set over the API (or read after a service) at `set_ms`.
     #[must_use]
-    pub fn api(b: UnitBaseline, set_ms: i64) -> Self {
+    pub fn api(b: AssetBaseline, set_ms: i64) -> Self {
         Self::of(b, BaselineSource::Api, Some(rfc3339_ms(set_ms)))
     }
 
     /// A baseline from the configuration.
     #[must_use]
-    pub fn config(b: UnitBaseline) -> Self {
+    pub fn config(b: AssetBaseline) -> Self {
         Self::of(b, BaselineSource::Config, None)
     }
 
-    fn of(b: UnitBaseline, source: BaselineSource, set_at: Option<String>) -> Self {
+    fn of(b: AssetBaseline, source: BaselineSource, set_at: Option<String>) -> Self {
+        let (read, road) = match b {
+            AssetBaseline::Observer(u) => (Some(u), None),
+            AssetBaseline::Road(r) => (None, Some(r)),
+        };
         Self {
-            charge_bar: b.charge_bar,
-            read_bar: b.read_bar,
-            read_sd_bar: b.read_sd_bar,
+            charge_bar: b.charge_bar(),
+            kind: b.kind(),
+            read_bar: read.map(|u| u.read_bar),
+            read_sd_bar: read.map(|u| u.read_sd_bar),
+            offset_n: road.map(|r| r.offset_n),
+            blocks: road.map(|r| r.blocks),
             source,
             set_at,
         }
@@ -238,7 +257,7 @@ impl Baselines {
         store: &dyn FleetStore,
         asset_id: &str,
         service: ServiceToRead,
-        read: Result<dt_core::charge::UnitBaseline, String>,
+        read: Result<AssetBaseline, String>,
     ) -> Result<ServiceOutcome, StoreError> {
         let mut services = self
             .services
@@ -312,18 +331,25 @@ impl Baselines {
 
     /// The asset's configuration with the baseline in effect (see the
     /// module doc): while a service is pending, none, and the service to
-    /// read.
+    /// read. A stored baseline of the other kind than the asset's (a road
+    /// baseline on an asset no longer driven on roads, or the reverse) is
+    /// not applied.
     #[must_use]
     pub fn asset_config(&self, config: &Config, asset_id: &str) -> AssetConfig {
         let mut asset = config.asset(asset_id);
         if let Some(s) = self.service(asset_id) {
             asset.observer_baseline = None;
+            asset.road_baseline = None;
             asset.read_service = Some(ServiceToRead {
                 charge_bar: s.charge_bar,
                 set_ms: s.set_ms,
             });
         } else if let Some(b) = self.get(asset_id) {
-            asset.observer_baseline = Some(b.baseline);
+            match b.baseline {
+                AssetBaseline::Observer(u) if !asset.road => asset.observer_baseline = Some(u),
+                AssetBaseline::Road(r) if asset.road => asset.road_baseline = Some(r),
+                _ => {}
+            }
         }
         asset
     }
@@ -332,16 +358,19 @@ impl Baselines {
     /// pending).
     #[must_use]
     pub fn view(&self, config: &Config, asset_id: &str) -> Option<BaselineView> {
-        if self.service(asset_id).is_some() {
+        let asset = self.asset_config(config, asset_id);
+        if asset.read_service.is_some() {
             return None;
         }
-        match self.get(asset_id) {
-            Some(b) => Some(BaselineView::api(b.baseline, b.set_ms)),
-            None => config
-                .asset(asset_id)
-                .observer_baseline
-                .map(BaselineView::config),
-        }
+        let in_effect = match (asset.road_baseline, asset.observer_baseline) {
+            (Some(r), _) if asset.road => AssetBaseline::Road(r),
+            (_, Some(u)) if !asset.road => AssetBaseline::Observer(u),
+            _ => return None,
+        };
+        Some(match self.get(asset_id) {
+            Some(b) if b.baseline == in_effect => BaselineView::api(b.baseline, b.set_ms),
+            _ => BaselineView::config(in_effect),
+        })
     }
 }
 
@@ -360,11 +389,11 @@ mod tests {
         let (baselines, trends, config) =
             (Baselines::default(), Trends::default(), Config::default());
         let old = StoredBaseline {
-            baseline: UnitBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
                 charge_bar: 12.0,
                 read_bar: 10.0,
                 read_sd_bar: 0.5,
-            },
+            }),
             set_ms: 1_000,
         };
         baselines
@@ -372,7 +401,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             baselines.asset_config(&config, "van").observer_baseline,
-            Some(old.baseline)
+            Some(read_of(old))
         );
         let service = PendingService {
             charge_bar: 11.0,
@@ -406,7 +435,7 @@ mod tests {
         };
         assert_eq!(
             baselines
-                .complete_service(&store, "van", stale, Ok(read))
+                .complete_service(&store, "van", stale, Ok(AssetBaseline::Observer(read)))
                 .unwrap(),
             ServiceOutcome::Superseded
         );
@@ -424,12 +453,12 @@ mod tests {
         assert_eq!(kept.get("van"), Some(old));
         assert_eq!(
             baselines
-                .complete_service(&store, "van", to_read, Ok(read))
+                .complete_service(&store, "van", to_read, Ok(AssetBaseline::Observer(read)))
                 .unwrap(),
             ServiceOutcome::Completed
         );
         let done = StoredBaseline {
-            baseline: read,
+            baseline: AssetBaseline::Observer(read),
             set_ms: 5_000,
         };
         for b in [&baselines, &Baselines::load(&store).unwrap()] {
@@ -439,9 +468,16 @@ mod tests {
         }
         assert_eq!(
             baselines
-                .complete_service(&store, "van", to_read, Ok(read))
+                .complete_service(&store, "van", to_read, Ok(AssetBaseline::Observer(read)))
                 .unwrap(),
             ServiceOutcome::Superseded
         );
+    }
+
+    fn read_of(b: StoredBaseline) -> UnitBaseline {
+        match b.baseline {
+            AssetBaseline::Observer(u) => u,
+            AssetBaseline::Road(_) => panic!("not an observer baseline"),
+        }
     }
 }

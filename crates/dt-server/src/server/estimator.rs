@@ -10,7 +10,6 @@ use std::path::Path;
 use std::sync::Arc;
 
 use dt_core::bundle::Bundle;
-use dt_core::charge::UnitBaseline;
 use dt_core::estimate::Estimate;
 use dt_core::estimator::{Estimator, EstimatorConfig};
 use dt_core::log::{RunMetadata, Sample};
@@ -18,6 +17,7 @@ use dt_core::road::RoadCalibration;
 use dt_core::service::ServiceReading;
 
 use super::config::AssetConfig;
+use super::store::AssetBaseline;
 use super::twin::{AssetTwin, TwinCounters, TwinError, TwinFactory};
 use super::ServeError;
 
@@ -102,11 +102,17 @@ impl TwinFactory for EstimatorFactory {
         _meta: &RunMetadata,
         asset: &AssetConfig,
     ) -> Result<Box<dyn AssetTwin>, TwinError> {
-        let est = self.estimator_for(asset)?;
-        let service = asset
-            .read_service
-            .filter(|_| est.observer().is_some())
-            .map(|s| (s.charge_bar, ServiceReading::new()));
+        let mut est = self.estimator_for(asset)?;
+        let mut service = None;
+        if let Some(s) = asset.read_service {
+            // a road asset's unit is read by the road observer (its blocks),
+            // any other by the dyno observer, when the bundle has one
+            if est.road().is_some() {
+                est = est.read_road_baseline(s.charge_bar);
+            } else if est.observer().is_some() {
+                service = Some((s.charge_bar, ServiceReading::new()));
+            }
+        }
         Ok(Box::new(EstimatorTwin { est, service }))
     }
 
@@ -157,13 +163,16 @@ impl AssetTwin for EstimatorTwin {
         Ok(())
     }
 
-    fn service_baseline(&self) -> Option<Result<UnitBaseline, String>> {
+    fn service_baseline(&self) -> Option<Result<AssetBaseline, String>> {
+        if let Some(road) = self.est.road_baseline() {
+            return Some(road.map(AssetBaseline::Road));
+        }
         let (charge_bar, reading) = self.service.as_ref()?;
         let params = self.est.bundle().physics().observer?;
         Some(
             reading
                 .finish(*charge_bar, &params)
-                .map(|r| r.baseline)
+                .map(|r| AssetBaseline::Observer(r.baseline))
                 .map_err(|e| e.to_string()),
         )
     }

@@ -12,10 +12,10 @@
 //! | `GET /v1/assets/{id}/trend` | leak rate, predicted warn/fault crossings with intervals, or why not (SPEC §9) |
 //! | `GET /v1/assets/{id}/runs` | runs seen, newest first, each with what the charge observer made of it (`observer`) |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
-//! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`source`: `api` or `config`), 404 if none |
-//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
+//! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`kind`: `observer` with `read_bar`, `read_sd_bar`, or `road` with `offset_n`, `blocks`; `source`: `api` or `config`), 404 if none |
+//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it; for a road asset `{"charge_bar", "offset_n", "blocks"}`, bare or under `road_baseline` as `shocktwin road --baseline` prints it; `409` for the other kind); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
 //! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
-//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …, "at": …}`, the charge the unit was filled to and, optionally, when (RFC 3339 or Unix s; default now); runs recorded before it are not read): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (see [`super::baselines`]); the trend restarts at it; in a NATS group it goes to the group's bucket `shocktwin_services` and the worker that takes the asset's next run reads it; the ingest role when tokens are on; `409` with a model that does not read the observer |
+//! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …, "at": …}`, the charge the unit was filled to and, optionally, when (RFC 3339 or Unix s; default now); runs recorded before it are not read): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (a road asset's drive is read by the road observer into a road baseline; see [`super::baselines`]); the trend restarts at it; in a NATS group it goes to the group's bucket `shocktwin_services` and the worker that takes the asset's next run reads it; the ingest role when tokens are on; `409` with a model that does not read the observer |
 //! | `GET /v1/assets/{id}/service` | the pending service (`charge_bar`, `set_at`, `state`, `last_refusal`: why the last run gave no baseline), 404 if none |
 //! | `DELETE /v1/assets/{id}/service` | withdraws the pending service (the API baseline before it applies again) |
 //! | `GET /v1/events` | Server-Sent Events: `estimate`, `health`, `run`; `lagged` (data: count) when a slow reader skipped events |
@@ -55,7 +55,7 @@ use super::metrics::Metrics;
 use super::security::{Role, Tokens};
 use super::state::{AssetSummary, LiveState};
 use super::store::{
-    parse_time_ms, rfc3339_ms, FleetStore, HistoryPoint, PendingService, StoreError,
+    parse_time_ms, rfc3339_ms, AssetBaseline, FleetStore, HistoryPoint, PendingService, StoreError,
     StoredBaseline, TrendSummary, TrendView, Trends,
 };
 
@@ -335,6 +335,8 @@ struct AssetRow<'a> {
     summary: &'a AssetSummary,
     warn_bar: f64,
     fault_bar: f64,
+    /// Driven on roads (`road = true`): the road observer reads its charge.
+    road: bool,
     trend: Option<TrendSummary<'a>>,
     /// The unit baseline in effect, if any.
     baseline: Option<BaselineView>,
@@ -357,6 +359,7 @@ async fn assets(State(app): State<AppState>) -> Response {
                 summary: s,
                 warn_bar: a.warn_bar,
                 fault_bar: a.fault_bar,
+                road: a.road,
                 trend: t.as_deref().map(TrendView::summary),
                 baseline: app.baselines.view(&app.config, &s.asset_id),
                 service: app
@@ -453,11 +456,7 @@ fn bad_asset_id(id: &str) -> Option<Response> {
 
 /// `409` when this daemon's model cannot take `baseline` for `id`. A fleet
 /// view of a NATS group runs no model: the workers check it when they use it.
-fn refuse_here(
-    app: &AppState,
-    id: &str,
-    baseline: dt_core::charge::UnitBaseline,
-) -> Option<Response> {
+fn refuse_here(app: &AppState, id: &str, baseline: AssetBaseline) -> Option<Response> {
     let checkable = app.model.is_some() || app.group.is_none();
     checkable
         .then(|| refuse_baseline(app.model.as_ref(), &app.config, id, baseline))
@@ -465,12 +464,14 @@ fn refuse_here(
         .map(|why| error(StatusCode::CONFLICT, why))
 }
 
-/// Why `model` cannot take `baseline` for `id`, if it cannot.
+/// Why `model` cannot take `baseline` for `id`, if it cannot: a road asset
+/// (`road = true`) takes a road baseline, any other an observer baseline,
+/// when the model reads that observer.
 fn refuse_baseline(
     model: Option<&EstimatorFactory>,
     config: &Config,
     id: &str,
-    baseline: dt_core::charge::UnitBaseline,
+    baseline: AssetBaseline,
 ) -> Option<String> {
     let Some(model) = model else {
         return Some(
@@ -478,22 +479,65 @@ fn refuse_baseline(
                 .into(),
         );
     };
-    if !model
-        .bundle()
-        .groups
-        .contains(&dt_core::features::Group::Observer)
-    {
-        return Some(format!(
-            "the model {} does not read the charge observer (no `observer` group), so a \
-             baseline has nothing to correct",
-            model.bundle().dir.display()
-        ));
-    }
     let mut asset = config.asset(id);
-    asset.observer_baseline = Some(baseline);
-    dt_core::estimator::Estimator::new(Arc::clone(model.bundle()), model.config_for(&asset))
+    match baseline {
+        AssetBaseline::Road(r) if asset.road => asset.road_baseline = Some(r),
+        AssetBaseline::Road(_) => {
+            return Some(format!(
+                "asset `{id}` is not driven on roads (`road = true` in [assets.{id}]): a road \
+                 baseline (offset_n, blocks) has nothing to correct; an observer baseline is \
+                 {{charge_bar, read_bar, read_sd_bar}}"
+            ))
+        }
+        AssetBaseline::Observer(_) if asset.road => {
+            return Some(format!(
+                "asset `{id}` is driven on roads (`road = true`): the road observer reads it, and \
+                 its baseline is {{charge_bar, offset_n, blocks}} (`shocktwin road --baseline`), \
+                 or report a service (PUT /v1/assets/{id}/service) and its next drive is read"
+            ))
+        }
+        AssetBaseline::Observer(_)
+            if !model
+                .bundle()
+                .groups
+                .contains(&dt_core::features::Group::Observer) =>
+        {
+            return Some(format!(
+                "the model {} does not read the charge observer (no `observer` group), so a \
+                 baseline has nothing to correct",
+                model.bundle().dir.display()
+            ));
+        }
+        AssetBaseline::Observer(u) => asset.observer_baseline = Some(u),
+    }
+    model
+        .estimator_for(&asset)
         .err()
         .map(|e| format!("the model cannot use this baseline: {e}"))
+}
+
+/// A baseline from a request's body: `{charge_bar, read_bar, read_sd_bar}`
+/// (bare or under `observer_baseline`, as `train.observer baseline` writes
+/// it) or `{charge_bar, offset_n, blocks}` (bare or under `road_baseline`, as
+/// `shocktwin road --baseline` prints it).
+fn baseline_from_document(doc: serde_json::Value) -> Result<AssetBaseline, String> {
+    let road = match &doc {
+        serde_json::Value::Object(map) if map.contains_key("road_baseline") => {
+            Some(map["road_baseline"].clone())
+        }
+        serde_json::Value::Object(map) if map.contains_key("offset_n") => Some(doc.clone()),
+        _ => None,
+    };
+    match road {
+        Some(inner) => {
+            let b: dt_core::road::RoadBaseline = serde_json::from_value(inner).map_err(|e| {
+                format!("a road baseline needs charge_bar (bar), offset_n (N) and blocks: {e}")
+            })?;
+            b.validate()?;
+            Ok(AssetBaseline::Road(b))
+        }
+        None => dt_core::charge::UnitBaseline::from_document(doc).map(AssetBaseline::Observer),
+    }
 }
 
 async fn put_baseline(
@@ -508,7 +552,7 @@ async fn put_baseline(
         Ok(v) => v,
         Err(e) => return error(StatusCode::BAD_REQUEST, format!("body: not JSON ({e})")),
     };
-    let baseline = match dt_core::charge::UnitBaseline::from_document(doc) {
+    let baseline = match baseline_from_document(doc) {
         Ok(b) => b,
         Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
     };
@@ -520,8 +564,7 @@ async fn put_baseline(
     if let Err(r) = change_unit(&app, &id, UnitChange::Baseline(Some(stored))).await {
         return r;
     }
-    tracing::info!(asset = %id, charge_bar = baseline.charge_bar, read_bar = baseline.read_bar,
-        read_sd_bar = baseline.read_sd_bar, "unit baseline set; used from the asset's next run");
+    tracing::info!(asset = %id, baseline = %baseline, "unit baseline set; used from the asset's next run");
     Json(BaselineView::api(baseline, set_ms)).into_response()
 }
 
@@ -536,11 +579,7 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
         return r;
     }
     tracing::info!(asset = %id, "unit baseline removed; used from the asset's next run");
-    let now = app
-        .config
-        .asset(&id)
-        .observer_baseline
-        .map(BaselineView::config);
+    let now = app.baselines.view(&app.config, &id);
     Json(serde_json::json!({ "baseline": now })).into_response()
 }
 
@@ -603,10 +642,18 @@ async fn put_service(
         }
         Some(Err(e)) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: at: {e}")),
     };
-    let probe = dt_core::charge::UnitBaseline {
-        charge_bar,
-        read_bar: charge_bar,
-        read_sd_bar: 1.0,
+    let probe = if app.config.asset(&id).road {
+        AssetBaseline::Road(dt_core::road::RoadBaseline {
+            charge_bar,
+            offset_n: 0.0,
+            blocks: 1,
+        })
+    } else {
+        AssetBaseline::Observer(dt_core::charge::UnitBaseline {
+            charge_bar,
+            read_bar: charge_bar,
+            read_sd_bar: 1.0,
+        })
     };
     if let Some(r) = refuse_here(&app, &id, probe) {
         return r;

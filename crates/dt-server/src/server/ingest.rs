@@ -22,7 +22,7 @@ use super::baselines::{recorded_before, Baselines, ServiceOutcome};
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{ObserverRead, RunEnd, RunInfo, RunOutcome, SinkMsg, SourceKind};
-use super::store::FleetStore;
+use super::store::{AssetBaseline, FleetStore};
 use super::twin::{AssetTwin, TwinError, TwinFactory};
 
 /// Bytes read from a stream at a time.
@@ -652,7 +652,7 @@ async fn complete_service(
     ingest: &Ingest,
     info: &RunInfo,
     first_t_ns: Option<i64>,
-    read: Result<dt_core::charge::UnitBaseline, String>,
+    read: Result<AssetBaseline, String>,
 ) {
     let (Some(service), Some(store)) = (info.asset.read_service, ingest.inner.store.clone()) else {
         return;
@@ -672,8 +672,7 @@ async fn complete_service(
     let (asset, run) = (&info.meta.asset_id, &info.meta.run_id);
     match (done, logged) {
         (Ok(Ok(ServiceOutcome::Completed)), Ok(b)) => tracing::info!(
-            asset = %asset, run = %run, charge_bar = b.charge_bar, read_bar = b.read_bar,
-            read_sd_bar = b.read_sd_bar,
+            asset = %asset, run = %run, baseline = %b,
             "unit baseline read after the service; used from the asset's next run"
         ),
         (Ok(Ok(ServiceOutcome::StillPending)), Err(why)) => tracing::warn!(

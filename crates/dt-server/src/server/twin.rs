@@ -50,7 +50,7 @@ pub trait AssetTwin: Send {
     /// After [`finish`](Self::finish): the unit's baseline this run read for
     /// a pending service (`AssetConfig::read_service`), or why it read none;
     /// `None` when the run was not reading one.
-    fn service_baseline(&self) -> Option<Result<dt_core::charge::UnitBaseline, String>> {
+    fn service_baseline(&self) -> Option<Result<super::store::AssetBaseline, String>> {
         None
     }
 }

@@ -106,11 +106,59 @@ pub struct RunRecord {
     pub observer: Option<crate::server::sink::ObserverRead>,
 }
 
-/// A unit baseline set over the API (`PUT /v1/assets/{id}/baseline`).
+/// A unit's baseline: what the dyno observer read of the unit at a known
+/// charge, or what the road observer read of its seal (a road asset).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum AssetBaseline {
+    /// [`dt_core::charge::UnitBaseline`] (`observer_baseline`).
+    Observer(dt_core::charge::UnitBaseline),
+    /// [`dt_core::road::RoadBaseline`] (`road_baseline`).
+    Road(dt_core::road::RoadBaseline),
+}
+
+impl AssetBaseline {
+    /// The charge the unit held, bar gauge at 20 °C.
+    #[must_use]
+    pub fn charge_bar(&self) -> f64 {
+        match self {
+            Self::Observer(b) => b.charge_bar,
+            Self::Road(b) => b.charge_bar,
+        }
+    }
+
+    /// `observer` or `road`.
+    #[must_use]
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::Observer(_) => "observer",
+            Self::Road(_) => "road",
+        }
+    }
+}
+
+impl std::fmt::Display for AssetBaseline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Observer(b) => write!(
+                f,
+                "observer read {:.2} ± {:.2} bar at a known {:.2} bar",
+                b.read_bar, b.read_sd_bar, b.charge_bar
+            ),
+            Self::Road(b) => write!(
+                f,
+                "road: seal offset {:+.2} N over {} blocks at a known {:.2} bar",
+                b.offset_n, b.blocks, b.charge_bar
+            ),
+        }
+    }
+}
+
+/// A unit baseline set over the API (`PUT /v1/assets/{id}/baseline`) or read
+/// after a service.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StoredBaseline {
-    /// The three numbers.
-    pub baseline: dt_core::charge::UnitBaseline,
+    /// The baseline.
+    pub baseline: AssetBaseline,
     /// When it was set (wall clock), ms since the Unix epoch.
     pub set_ms: i64,
 }

@@ -13,21 +13,22 @@ use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
 use dt_core::charge::{ObserverCounters, UnitBaseline};
+use dt_core::road::RoadBaseline;
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
 
 use crate::server::sink::ObserverRead;
 
 use super::{
-    health_code, health_from_code, health_from_str, AssetState, FleetStore, HealthChange,
-    HistoryPoint, PendingService, RunRecord, StoreError, StoreOp, StoredBaseline,
+    health_code, health_from_code, health_from_str, AssetBaseline, AssetState, FleetStore,
+    HealthChange, HistoryPoint, PendingService, RunRecord, StoreError, StoreOp, StoredBaseline,
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 4;
+pub const SCHEMA_VERSION: i64 = 5;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 4] = [
+const MIGRATIONS: [&str; 5] = [
     r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
@@ -89,6 +90,17 @@ CREATE TABLE services (
     r"
 ALTER TABLE runs ADD COLUMN observer TEXT;
 ",
+    // A road asset's baseline (`dt_core::road::RoadBaseline`); an asset has
+    // at most one row in `baselines` and `road_baselines` together.
+    r"
+CREATE TABLE road_baselines (
+    asset      INTEGER PRIMARY KEY REFERENCES assets(id),
+    charge_bar REAL NOT NULL,
+    offset_n   REAL NOT NULL,
+    blocks     INTEGER NOT NULL,
+    set_ms     INTEGER NOT NULL
+);
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
@@ -110,7 +122,8 @@ fn know_asset(tx: &rusqlite::Transaction<'_>, asset_id: &str) -> rusqlite::Resul
     .map(drop)
 }
 
-/// Deletes `asset_id`'s row of `table` (`baselines` or `services`) within `tx`.
+/// Deletes `asset_id`'s row of `table` (`baselines`, `road_baselines` or
+/// `services`) within `tx`.
 fn forget(tx: &rusqlite::Transaction<'_>, table: &str, asset_id: &str) -> rusqlite::Result<()> {
     tx.execute(
         &format!("DELETE FROM {table} WHERE asset = {ASSET}"),
@@ -119,28 +132,44 @@ fn forget(tx: &rusqlite::Transaction<'_>, table: &str, asset_id: &str) -> rusqli
     .map(drop)
 }
 
-/// Keeps `b` as `asset_id`'s baseline within `tx` (the asset made known).
+/// Keeps `b` as `asset_id`'s baseline within `tx` (the asset made known;
+/// a baseline of the other kind forgotten).
 fn put_baseline(
     tx: &rusqlite::Transaction<'_>,
     asset_id: &str,
     b: &StoredBaseline,
 ) -> rusqlite::Result<()> {
     know_asset(tx, asset_id)?;
-    tx.execute(
-        &format!(
-            "INSERT OR REPLACE INTO baselines \
-             (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
-             VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
-        ),
-        params![
-            asset_id,
-            b.baseline.charge_bar,
-            b.baseline.read_bar,
-            b.baseline.read_sd_bar,
-            b.set_ms
-        ],
-    )?;
+    forget_baseline(tx, asset_id)?;
+    match b.baseline {
+        AssetBaseline::Observer(u) => tx.execute(
+            &format!(
+                "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+            ),
+            params![asset_id, u.charge_bar, u.read_bar, u.read_sd_bar, b.set_ms],
+        )?,
+        AssetBaseline::Road(r) => tx.execute(
+            &format!(
+                "INSERT INTO road_baselines (asset, charge_bar, offset_n, blocks, set_ms) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+            ),
+            params![
+                asset_id,
+                r.charge_bar,
+                r.offset_n,
+                i64::try_from(r.blocks).unwrap_or(i64::MAX),
+                b.set_ms
+            ],
+        )?,
+    };
     Ok(())
+}
+
+/// Forgets `asset_id`'s baseline, of either kind, within `tx`.
+fn forget_baseline(tx: &rusqlite::Transaction<'_>, asset_id: &str) -> rusqlite::Result<()> {
+    forget(tx, "baselines", asset_id)?;
+    forget(tx, "road_baselines", asset_id)
 }
 
 fn finite(v: f64) -> Option<f64> {
@@ -538,7 +567,7 @@ impl FleetStore for SqliteStore {
             let tx = c.transaction()?;
             match baseline {
                 Some(b) => put_baseline(&tx, asset_id, b)?,
-                None => forget(&tx, "baselines", asset_id)?,
+                None => forget_baseline(&tx, asset_id)?,
             }
             tx.commit()
         })
@@ -548,22 +577,44 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms \
-                 FROM baselines b JOIN assets a ON a.id = b.asset ORDER BY a.asset_id",
+                 FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
-            let rows = stmt.query_map([], |r| {
+            let mut all = stmt
+                .query_map([], |r| {
+                    Ok((
+                        r.get(0)?,
+                        StoredBaseline {
+                            baseline: AssetBaseline::Observer(UnitBaseline {
+                                charge_bar: r.get(1)?,
+                                read_bar: r.get(2)?,
+                                read_sd_bar: r.get(3)?,
+                            }),
+                            set_ms: r.get(4)?,
+                        },
+                    ))
+                })?
+                .collect::<rusqlite::Result<Vec<(String, StoredBaseline)>>>()?;
+            let mut stmt = c.prepare(
+                "SELECT a.asset_id, b.charge_bar, b.offset_n, b.blocks, b.set_ms \
+                 FROM road_baselines b JOIN assets a ON a.id = b.asset",
+            )?;
+            for row in stmt.query_map([], |r| {
                 Ok((
                     r.get(0)?,
                     StoredBaseline {
-                        baseline: UnitBaseline {
+                        baseline: AssetBaseline::Road(RoadBaseline {
                             charge_bar: r.get(1)?,
-                            read_bar: r.get(2)?,
-                            read_sd_bar: r.get(3)?,
-                        },
+                            offset_n: r.get(2)?,
+                            blocks: u64::try_from(r.get::<_, i64>(3)?).unwrap_or(0),
+                        }),
                         set_ms: r.get(4)?,
                     },
                 ))
-            })?;
-            rows.collect()
+            })? {
+                all.push(row?);
+            }
+            all.sort_by(|a, b| a.0.cmp(&b.0));
+            Ok(all)
         })
     }
 
@@ -734,11 +785,11 @@ mod tests {
         assert_eq!(store.runs("a1", 5).unwrap()[0].ticks, 7);
         assert!(store.baselines().unwrap().is_empty());
         let b = StoredBaseline {
-            baseline: UnitBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
                 charge_bar: 12.0,
                 read_bar: 10.84,
                 read_sd_bar: 0.7,
-            },
+            }),
             set_ms: 1_700_000_000_000,
         };
         // An asset the store has never seen a run of can be given one too.
@@ -770,19 +821,44 @@ mod tests {
         store.set_service("van-2", None).unwrap();
         drop(store);
         let store = SqliteStore::open(&path).unwrap();
-        assert_eq!(store.services().unwrap(), vec![("van-1".to_owned(), svc)]);
+        assert_eq!(
+            store.services().unwrap(),
+            vec![("van-1".to_owned(), svc.clone())]
+        );
         let b = StoredBaseline {
-            baseline: UnitBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
                 charge_bar: 12.0,
                 read_bar: 10.6,
                 read_sd_bar: 0.4,
-            },
+            }),
             set_ms: 1_700_000_000_000,
         };
         store.complete_service("van-1", &b).unwrap();
         drop(store);
         let again = SqliteStore::open(&path).unwrap();
         assert!(again.services().unwrap().is_empty());
+        assert_eq!(again.baselines().unwrap(), vec![("van-1".to_owned(), b)]);
+        // A road asset's service completes into a road baseline, which
+        // replaces the observer's: one baseline an asset.
+        let road = StoredBaseline {
+            baseline: AssetBaseline::Road(RoadBaseline {
+                charge_bar: 11.5,
+                offset_n: -3.25,
+                blocks: 41,
+            }),
+            set_ms: 1_700_000_100_000,
+        };
+        again.set_service("van-1", Some(&svc)).unwrap();
+        again.complete_service("van-1", &road).unwrap();
+        again.complete_service("car-2", &road).unwrap();
+        drop(again);
+        let again = SqliteStore::open(&path).unwrap();
+        assert_eq!(
+            again.baselines().unwrap(),
+            vec![("car-2".to_owned(), road), ("van-1".to_owned(), road)]
+        );
+        again.set_baseline("car-2", None).unwrap();
+        again.set_baseline("van-1", Some(&b)).unwrap();
         assert_eq!(again.baselines().unwrap(), vec![("van-1".to_owned(), b)]);
     }
 
