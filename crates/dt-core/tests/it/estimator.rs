@@ -617,14 +617,18 @@ fn checkpoint_of_another_model_or_garbage_is_refused() {
 
 /// An estimator with the road calibration fixture, its blocks shortened to
 /// 2 s (settling 1 s) so that a 12 s synthetic run reads several.
-fn road_estimator(b: &Arc<Bundle>) -> Estimator {
+/// The road calibration fixture with 2 s blocks.
+fn road_calibration() -> dt_core::road::RoadCalibration {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/road.json");
     let mut v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir).unwrap()).unwrap();
     v["block_s"] = 2.0.into();
     v["settle_s"] = 1.0.into();
-    let cal = dt_core::road::RoadCalibration::from_json("road.json", &v.to_string()).unwrap();
-    estimator(b).with_road(cal).unwrap()
+    dt_core::road::RoadCalibration::from_json("road.json", &v.to_string()).unwrap()
+}
+
+fn road_estimator(b: &Arc<Bundle>) -> Estimator {
+    estimator(b).with_road(road_calibration()).unwrap()
 }
 
 /// With the road observer the estimates carry its estimate and interval
@@ -681,4 +685,36 @@ fn the_road_observer_streams_and_checkpoints_bit_for_bit() {
         ticks.extend(stream(&mut est, &samples[cut..]));
         same(&ticks, &whole, &format!("cut {cut}"));
     }
+}
+
+/// After a service the road estimator reads the unit's road baseline from
+/// every block it reads: the same, to the bit, as the calibration's
+/// `read_baseline` over the blocks the observer reads of the whole run, and
+/// across a checkpoint.
+#[test]
+fn a_road_baseline_is_read_block_by_block_and_survives_a_checkpoint() {
+    let b = bundle("bundle-mlp13");
+    let samples = sorted_samples(&synth_log(T0, 12, 0.04, 11));
+    let mut est = road_estimator(&b).read_road_baseline(12.0);
+    stream(&mut est, &samples);
+    let read = est.road_baseline().unwrap().unwrap();
+    assert!(read.blocks >= 3 && read.offset_n.is_finite(), "{read:?}");
+
+    let cal = road_calibration();
+    let mut obs = dt_core::road::RoadObserver::new(cal.clone(), HealthConfig::default()).unwrap();
+    for s in &samples {
+        obs.push(s);
+    }
+    obs.finish();
+    assert_eq!(cal.read_baseline(&obs.drain(), 12.0).unwrap(), read);
+
+    let cut = samples.len() / 2;
+    let mut est = road_estimator(&b).read_road_baseline(12.0);
+    for s in &samples[..cut] {
+        est.push(*s).unwrap();
+    }
+    let mut est = Estimator::restore(Arc::clone(&b), &est.checkpoint()).unwrap();
+    stream(&mut est, &samples[cut..]);
+    assert_eq!(est.road_baseline().unwrap().unwrap(), read);
+    assert!(road_estimator(&b).road_baseline().is_none());
 }
