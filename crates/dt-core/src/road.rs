@@ -483,6 +483,26 @@ pub struct RoadObserver {
     health: HealthMachine,
     blocks: u64,
     out: Vec<RoadBlock>,
+    #[serde(skip)]
+    scratch: Scratch,
+}
+
+/// A block's large buffers, kept from block to block (a block's regression
+/// is ~10 000 × 150: allocated afresh each block, its pages were faulted in
+/// and returned every time). Not state: not serialised, not cloned.
+#[derive(Debug, Default)]
+struct Scratch {
+    /// The regressors, column after column (`n_cols × m`).
+    cols: Vec<f64>,
+    /// The regression's matrix and its transpose (their storage).
+    xm: Vec<f64>,
+    xt: Vec<f64>,
+}
+
+impl Clone for Scratch {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
 }
 
 fn mat4(rows: &[Vec<f64>]) -> Matrix4<f64> {
@@ -546,6 +566,7 @@ impl RoadObserver {
             health: HealthMachine::new(health),
             blocks: 0,
             out: Vec::new(),
+            scratch: Scratch::default(),
             cal,
         })
     }
@@ -848,7 +869,8 @@ impl RoadObserver {
             s.rows_base += 1;
         }
         let t: Vec<f64> = rows.iter().map(|r| r.t_s).collect();
-        let cols = self.columns(&t, &x);
+        let mut cols = std::mem::take(&mut self.scratch.cols);
+        self.columns(&t, &x, &mut cols);
         let stroke = (x.iter().map(|v| v[1] * v[1]).sum::<f64>() / m as f64).sqrt();
         let started = self.stretch.as_ref().expect("running").started_s;
         let t_end = t[m - 1];
@@ -856,14 +878,15 @@ impl RoadObserver {
         while self.temps.len() > 1 && self.temps[1].0 <= t_end {
             self.temps.pop_front();
         }
-        if t[0] - started < self.cal.settle_s
+        let skip = t[0] - started < self.cal.settle_s
             || stroke < self.cal.filters.min_stroke_rms_mps
-            || 2 * positions < per_block
-        {
-            return;
-        }
+            || 2 * positions < per_block;
         let a2: Vec<f64> = rows.iter().map(|r| r.a2).collect();
-        let Some((alpha, alpha_sd, resid)) = regress(&cols, &a2) else {
+        let read = (!skip)
+            .then(|| regress(&cols, m, &a2, &mut self.scratch))
+            .flatten();
+        self.scratch.cols = cols;
+        let Some((alpha, alpha_sd, resid)) = read else {
             return;
         };
         let origin = self.origin_ns.expect("samples seen");
@@ -884,10 +907,11 @@ impl RoadObserver {
         });
     }
 
-    /// The regressors at the accelerometer's samples: the force basis at
-    /// `fine` samples per millisecond through the mount's filter (state kept
-    /// from block to block), then sampled.
-    fn columns(&mut self, t: &[f64], x: &[Vector4<f64>]) -> Vec<Vec<f64>> {
+    /// The regressors at the accelerometer's samples, into `cols` (column
+    /// after column, `t.len()` rows each): the force basis at `fine` samples
+    /// per millisecond through the mount's filter (state kept from block to
+    /// block), then sampled.
+    fn columns(&mut self, t: &[f64], x: &[Vector4<f64>], cols: &mut Vec<f64>) {
         let fine = self.cal.filters.fine;
         let m = t.len();
         let dt = ACC_DT_NS as f64 / NS_PER_S;
@@ -909,7 +933,8 @@ impl RoadObserver {
             s.zi = vec![vec![0.0; n_cols]; order - 1];
         }
         let vs = self.cal.observer.friction_v_smooth_mps;
-        let mut cols = vec![Vec::with_capacity(m); n_cols];
+        cols.clear();
+        cols.resize(n_cols * m, 0.0);
         let (b, a) = (&self.mount_b, &self.mount_a);
         let (mut f, mut out) = (vec![0.0; n_cols], vec![0.0; n_cols]);
         for q in 0..m * fine {
@@ -928,30 +953,32 @@ impl RoadObserver {
             f[n_cols - 1] = yf[q];
             // scipy.signal.lfilter's transposed direct form II, every column at once
             if let [z0, z1, z2] = &mut s.zi[..] {
-                // the mount and the accelerometer's filter: third order (the same sums as below)
-                for ((((o, fc), z0), z1), z2) in out
-                    .iter_mut()
-                    .zip(&f)
-                    .zip(z0.iter_mut())
-                    .zip(z1.iter_mut())
-                    .zip(z2.iter_mut())
-                {
-                    let y = b[0] * fc + *z0;
-                    *z0 = *z1 + b[1] * fc - a[1] * y;
-                    *z1 = *z2 + b[2] * fc - a[2] * y;
-                    *z2 = 0.0 + b[3] * fc - a[3] * y;
-                    *o = y;
+                // the mount and the accelerometer's filter: third order (the same sums as
+                // `lfilter_step`); slices of one length and the coefficients in locals, so
+                // that the columns go through in SIMD lanes (each column's arithmetic, and
+                // so every bit, unchanged)
+                let (z0, z1, z2) = (&mut z0[..n_cols], &mut z1[..n_cols], &mut z2[..n_cols]);
+                let (fs, os) = (&f[..n_cols], &mut out[..n_cols]);
+                let (b0, b1, b2, b3) = (b[0], b[1], b[2], b[3]);
+                let (a1, a2, a3) = (a[1], a[2], a[3]);
+                for c in 0..n_cols {
+                    let fc = fs[c];
+                    let y = b0 * fc + z0[c];
+                    z0[c] = z1[c] + b1 * fc - a1 * y;
+                    z1[c] = z2[c] + b2 * fc - a2 * y;
+                    z2[c] = 0.0 + b3 * fc - a3 * y;
+                    os[c] = y;
                 }
             } else {
                 lfilter_step(b, a, &mut s.zi, &f, &mut out);
             }
             if q % fine == 0 {
-                for (col, o) in cols.iter_mut().zip(&out) {
-                    col.push(*o);
+                let row = q / fine;
+                for (c, o) in out.iter().enumerate() {
+                    cols[c * m + row] = *o;
                 }
             }
         }
-        cols
     }
 
     fn mean_temp(&self, t: &[f64]) -> f64 {
@@ -1047,9 +1074,11 @@ pub fn read_run(
     Ok(out)
 }
 
-/// Least squares of `a2` on the columns (friction first) and a constant over
-/// the rows where `a2` is finite; columns that are zero there are left out.
-/// Returns `α`, its standard deviation and the residuals' RMS.
+/// Least squares of `a2` on the columns (`cols`: column after column, `m`
+/// rows each; friction first) and a constant over the rows where `a2` is
+/// finite; columns that are zero there are left out. Returns `α`, its
+/// standard deviation and the residuals' RMS. `scratch` lends the matrices'
+/// storage.
 ///
 /// The columns are scaled to unit norm (which leaves the solution's
 /// condition about 10⁴–10⁵ on a road); the normal equations are formed by a
@@ -1058,22 +1087,35 @@ pub fn read_run(
 /// accuracy of a QR solution at a tenth of its cost). When the Gram matrix
 /// is not positive definite in floating point, Householder QR of the rows
 /// instead.
-fn regress(cols: &[Vec<f64>], a2: &[f64]) -> Option<(f64, f64, f64)> {
+fn regress(cols: &[f64], m: usize, a2: &[f64], scratch: &mut Scratch) -> Option<(f64, f64, f64)> {
+    let col = |c: usize| &cols[c * m..(c + 1) * m];
     let good: Vec<usize> = (0..a2.len()).filter(|&i| a2[i].is_finite()).collect();
-    let active: Vec<usize> = (0..cols.len())
-        .filter(|&c| c == 0 || good.iter().any(|&i| cols[c][i].abs() > 1e-12))
+    let every_row = good.len() == m;
+    let active: Vec<usize> = (0..cols.len() / m)
+        .filter(|&c| {
+            c == 0
+                || if every_row {
+                    col(c).iter().any(|x| x.abs() > 1e-12)
+                } else {
+                    good.iter().any(|&i| col(c)[i].abs() > 1e-12)
+                }
+        })
         .collect();
     let (n, p) = (good.len(), active.len() + 1);
     if n <= p {
         return None;
     }
-    let mut xm = DMatrix::from_fn(n, p, |r, c| {
-        if c < active.len() {
-            cols[active[c]][good[r]]
+    let mut data = std::mem::take(&mut scratch.xm);
+    data.clear();
+    for &c in &active {
+        if every_row {
+            data.extend_from_slice(col(c));
         } else {
-            1.0
+            data.extend(good.iter().map(|&i| col(c)[i]));
         }
-    });
+    }
+    data.resize(n * p, 1.0);
+    let mut xm = DMatrix::from_vec(n, p, data);
     let scale: Vec<f64> = (0..p)
         .map(|c| {
             let norm = xm.column(c).norm();
@@ -1088,20 +1130,31 @@ fn regress(cols: &[Vec<f64>], a2: &[f64]) -> Option<(f64, f64, f64)> {
         xm.column_mut(c).scale_mut(*k);
     }
     let rhs = DVector::from_iterator(n, good.iter().map(|&i| a2[i]));
-    let (coef, w) = semi_normal(&xm, &rhs).or_else(|| householder(&xm, &rhs))?;
-    let resid = &rhs - &xm * &coef;
-    let s2 = resid.norm_squared() / (n - p) as f64;
-    let out = (coef[0] * scale[0], (s2 * w).sqrt() * scale[0], s2.sqrt());
-    (out.0.is_finite() && out.1.is_finite()).then_some(out)
+    let mut xt_data = std::mem::take(&mut scratch.xt);
+    xt_data.resize(n * p, 0.0);
+    let mut xt = DMatrix::from_vec(p, n, xt_data);
+    xm.transpose_to(&mut xt);
+    let solved = semi_normal(&xm, &xt, &rhs).or_else(|| householder(&xm, &rhs));
+    let out = solved.map(|(coef, w)| {
+        let resid = &rhs - &xm * &coef;
+        let s2 = resid.norm_squared() / (n - p) as f64;
+        (coef[0] * scale[0], (s2 * w).sqrt() * scale[0], s2.sqrt())
+    });
+    scratch.xm = xm.data.into();
+    scratch.xt = xt.data.into();
+    out.filter(|o| o.0.is_finite() && o.1.is_finite())
 }
 
 /// Solution and `(XᵀX)⁻¹₀₀` by Cholesky of the Gram matrix, refined once.
-fn semi_normal(xm: &DMatrix<f64>, rhs: &DVector<f64>) -> Option<(DVector<f64>, f64)> {
-    let xt = xm.transpose();
-    let chol = (&xt * xm).cholesky()?;
-    let mut coef = chol.solve(&(&xt * rhs));
+fn semi_normal(
+    xm: &DMatrix<f64>,
+    xt: &DMatrix<f64>,
+    rhs: &DVector<f64>,
+) -> Option<(DVector<f64>, f64)> {
+    let chol = (xt * xm).cholesky()?;
+    let mut coef = chol.solve(&(xt * rhs));
     let r = rhs - xm * &coef;
-    coef += chol.solve(&(&xt * r));
+    coef += chol.solve(&(xt * r));
     let mut e0 = DVector::zeros(xm.ncols());
     e0[0] = 1.0;
     let w = chol.l().solve_lower_triangular(&e0)?;
@@ -1143,7 +1196,9 @@ mod tests {
         let zero = vec![0.0; 200];
         let mut a2: Vec<f64> = (0..200).map(|i| 2.5 * c0[i] - c1[i] + 0.3).collect();
         a2[7] = f64::NAN;
-        let (alpha, sd, resid) = regress(&[c0, c1, zero], &a2).expect("solvable");
+        let cols = [c0, c1, zero].concat();
+        let (alpha, sd, resid) =
+            regress(&cols, 200, &a2, &mut Scratch::default()).expect("solvable");
         assert!((alpha - 2.5).abs() < 1e-12, "{alpha}");
         assert!(sd < 1e-12 && resid < 1e-12);
     }

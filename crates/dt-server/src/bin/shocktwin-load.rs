@@ -96,6 +96,11 @@ struct Args {
     /// Run log to stream (default: a quick 12 bar, 2 Hz run simulated in memory).
     #[arg(long)]
     run: Option<PathBuf>,
+    /// Road calibration: every asset is driven on roads (`road = true`), read
+    /// by the road observer (the started daemon gets `--road` and a
+    /// configuration with `[defaults] road = true`; give a road `--run`).
+    #[arg(long)]
+    road: Option<PathBuf>,
     /// Each connection writes what is due every this many milliseconds.
     #[arg(long, default_value_t = 10)]
     send_period_ms: u64,
@@ -248,6 +253,13 @@ fn load_template(args: &Args) -> anyhow::Result<Template> {
     );
     let cfg = EstimatorConfig::from_bundle(&bundle);
     let mut est = Estimator::new(bundle, cfg).context("estimator")?;
+    if let Some(path) = &args.road {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let cal = dt_core::road::RoadCalibration::from_json(&path.display().to_string(), &text)
+            .map_err(anyhow::Error::msg)?;
+        est = est.with_road(cal).map_err(anyhow::Error::msg)?;
+    }
     let mut expected_ticks = 0u64;
     for (_, s) in &samples {
         est.push(*s).context("reference estimator")?;
@@ -861,6 +873,13 @@ impl SpawnedDaemon {
         .stderr(Stdio::piped());
         if let Some(d) = &record_dir {
             cmd.arg("--record-dir").arg(d);
+        }
+        if let Some(road) = &args.road {
+            let config = std::env::temp_dir()
+                .join(format!("shocktwin-load-{}-{n}.toml", std::process::id()));
+            std::fs::write(&config, "[defaults]\nroad = true\n")
+                .with_context(|| format!("writing {}", config.display()))?;
+            cmd.arg("--road").arg(road).arg("--config").arg(config);
         }
         if args.store {
             let db = std::env::temp_dir()
