@@ -483,13 +483,13 @@ pub struct RoadObserver {
     health: HealthMachine,
     blocks: u64,
     out: Vec<RoadBlock>,
-    #[serde(skip)]
-    scratch: Scratch,
 }
 
-/// A block's large buffers, kept from block to block (a block's regression
-/// is ~10 000 × 150: allocated afresh each block, its pages were faulted in
-/// and returned every time). Not state: not serialised, not cloned.
+/// A block's large buffers (a block's regression is ~10 000 × 150, 35 MB
+/// in all): allocated afresh each block, their pages were faulted in and
+/// returned every time. One set per thread, lent to whichever observer reads
+/// a block there (kept in each observer, a daemon's thousand assets would
+/// hold 35 MB each).
 #[derive(Debug, Default)]
 struct Scratch {
     /// The regressors, column after column (`n_cols × m`).
@@ -499,10 +499,8 @@ struct Scratch {
     xt: Vec<f64>,
 }
 
-impl Clone for Scratch {
-    fn clone(&self) -> Self {
-        Self::default()
-    }
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
 }
 
 fn mat4(rows: &[Vec<f64>]) -> Matrix4<f64> {
@@ -566,7 +564,6 @@ impl RoadObserver {
             health: HealthMachine::new(health),
             blocks: 0,
             out: Vec::new(),
-            scratch: Scratch::default(),
             cal,
         })
     }
@@ -869,7 +866,8 @@ impl RoadObserver {
             s.rows_base += 1;
         }
         let t: Vec<f64> = rows.iter().map(|r| r.t_s).collect();
-        let mut cols = std::mem::take(&mut self.scratch.cols);
+        let mut scratch = SCRATCH.with_borrow_mut(std::mem::take);
+        let mut cols = std::mem::take(&mut scratch.cols);
         self.columns(&t, &x, &mut cols);
         let stroke = (x.iter().map(|v| v[1] * v[1]).sum::<f64>() / m as f64).sqrt();
         let started = self.stretch.as_ref().expect("running").started_s;
@@ -883,9 +881,10 @@ impl RoadObserver {
             || 2 * positions < per_block;
         let a2: Vec<f64> = rows.iter().map(|r| r.a2).collect();
         let read = (!skip)
-            .then(|| regress(&cols, m, &a2, &mut self.scratch))
+            .then(|| regress(&cols, m, &a2, &mut scratch))
             .flatten();
-        self.scratch.cols = cols;
+        scratch.cols = cols;
+        SCRATCH.with_borrow_mut(|s| *s = scratch);
         let Some((alpha, alpha_sd, resid)) = read else {
             return;
         };
