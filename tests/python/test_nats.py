@@ -562,3 +562,58 @@ def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
     finally:
         w.stop()
         view.stop()
+
+
+def test_a_service_of_a_road_asset_is_read_by_the_worker_into_a_road_baseline(
+        shocktwin_bin: Path, nats_server: NatsServer, tmp_path: Path) -> None:
+    """The same on a road asset (`road = true`, `--road`): the worker reads the drive after
+    the service with the road observer into a road baseline, which the fleet view shows; it
+    equals what `shocktwin road --baseline` reads from the same file."""
+    import httpx
+
+    road = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "road.json"
+    bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+    sim = tmp_path / "road"
+    proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "60", "--pressures", "12", "--seed", "3",
+                           "--out", str(sim)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    run = sorted(sim.glob("*.mcap"))[0]
+    proc = subprocess.run([str(shocktwin_bin), "road", "--calibration", str(road), "--baseline", f"{run}@12", str(run)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    m = re.search(r"offset_n = (\S+), blocks = (\d+)", proc.stderr)
+    assert m, proc.stderr
+    (tmp_path / "worker.toml").write_text("[assets.veh-r0]\nroad = true\n")
+    (tmp_path / "view.toml").write_text("[nats]\nworker = false\n\n[assets.veh-r0]\nroad = true\n")
+    common = ["--model", str(bundle), "--road", str(road), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"]
+    w = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--config", str(tmp_path / "worker.toml"),
+                      *common])
+    view = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--config", str(tmp_path / "view.toml"),
+                         *common])
+    try:
+        def status(d: ServeProcess, what: str) -> int:
+            return httpx.get(f"http://{d.http}/v1/assets/veh-r0/{what}", timeout=5).status_code
+
+        r = put_once_joined(f"http://{view.http}/v1/assets/veh-r0/service",
+                            {"charge_bar": 12.0, "at": "2023-11-01T00:00:00Z"})
+        assert r.status_code == 202, r.text
+        deadline = time.monotonic() + 20
+        while status(w, "service") != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "veh-r",
+                               str(run)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(nats_server.url, {"veh-r0"}, 120, [w, view])
+        assert done["veh-r0"]["meta"]["outcome"] == "completed", done
+        deadline = time.monotonic() + 20
+        while status(view, "baseline") != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        b = httpx.get(f"http://{view.http}/v1/assets/veh-r0/baseline", timeout=5)
+        assert b.status_code == 200, (b.text, w.text()[-3000:])
+        got = b.json()
+        assert (got["kind"], got["charge_bar"], got["blocks"]) == ("road", 12.0, int(m.group(2))), got
+        assert abs(got["offset_n"] - float(m.group(1))) < 1e-9, (got, m.group(0))
+        assert status(view, "service") == 404 and status(w, "service") == 404
+    finally:
+        w.stop()
+        view.stop()
