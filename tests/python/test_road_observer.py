@@ -5,6 +5,7 @@ look-ahead beyond a block's lag."""
 from __future__ import annotations
 
 import csv
+from datetime import datetime
 import json
 import re
 import subprocess
@@ -16,6 +17,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 from scipy import signal
 
 import shocktwin
@@ -522,3 +524,79 @@ def test_a_service_on_a_road_asset_reads_its_next_drive_into_the_unit_s_road_bas
         assert float(last["pressure_lo_bar"]) <= 2.0 <= float(last["pressure_hi_bar"]), last
     finally:
         daemon.stop()
+
+
+def test_a_road_vehicle_losing_gas_gets_its_leak_rate_and_fault_date(
+        shocktwin_bin: Path, road_model: tuple[Path, Path], tmp_path: Path) -> None:
+    """What a maintainer runs the daemon for, on a road vehicle: six days of simulated drives of
+    a unit losing 1 bar a day from 11 bar (`simulate --road 60 --days 6`, each day its own drive
+    file; quick runs). A service at 11 bar is reported before day 0, whose drive becomes the road
+    baseline; days 1-5 are read with it. Each day's interval covers its charge, the trend's leak
+    rate interval covers 1 bar/day and excludes 0, and the predicted fault (5 bar) crossing
+    interval covers the true one (day 6, at day 0's hour)."""
+    days = tmp_path / "days"
+    proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "60", "--days", "6", "--leak-rate", "1",
+                           "--start-bar", "11", "--asset-id", "car-33", "--seed", "5", "--out", str(days)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    files = sorted(days.glob("d*.mcap"))
+    assert len(files) == 6
+    config = tmp_path / "serve.toml"
+    config.write_text(f'[model]\nroad = "{road_model[1]}"\n\n[assets.car-33]\nroad = true\n')
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    daemon = ServeProcess([str(shocktwin_bin), "serve", "--config", str(config), "--model", str(FIXTURE_BUNDLE),
+                           "--db", str(tmp_path / "fleet.sqlite"), "--inbox", str(inbox), "--listen", "127.0.0.1:0",
+                           "--http", "127.0.0.1:0"])
+    api = f"http://{daemon.http}/v1/assets/car-33"
+
+    def completed(n: int) -> list[dict[str, Any]]:
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            r = httpx.get(f"{api}/runs", timeout=10)
+            if r.status_code == 200:
+                runs = [x for x in r.json()["runs"] if x["status"] == "completed"]
+                if len(runs) >= n:
+                    return runs
+            time.sleep(0.5)
+        raise AssertionError(f"{n} runs did not complete:\n{daemon.text()[-3000:]}")
+
+    try:
+        r = httpx.put(f"{api}/service", json={"charge_bar": 11.0, "at": "2023-11-14T00:00:00Z"}, timeout=10)
+        assert r.status_code == 202, r.text
+        (inbox / files[0].name).write_bytes(files[0].read_bytes())
+        completed(1)
+        base = httpx.get(f"{api}/baseline", timeout=10).json()
+        assert base["kind"] == "road" and base["charge_bar"] == 11.0 and base["blocks"] >= 3, base
+        for f in files[1:]:
+            (inbox / f.name).write_bytes(f.read_bytes())
+        completed(6)
+        history = httpx.get(f"{api}/history", params={"since": "2023-11-14T00:00:00Z", "step_s": 1}, timeout=10).json()
+        trend = httpx.get(f"{api}/trend", timeout=10).json()
+    finally:
+        daemon.stop()
+    assert trend["status"] == "ok" and trend["runs_used"] == 6, trend
+    assert 0 < trend["leak_rate_lo_bar_per_day"] <= 1.0 <= trend["leak_rate_hi_bar_per_day"], trend
+    for day, point in enumerate(trend["points"]):
+        assert abs(point["pressure_bar"] - (11.0 - day)) < 2 * point["sd_bar"] + 0.5, point
+    # each day's last estimate: its interval covers the day's charge
+    def unix(t: str) -> float:
+        return datetime.fromisoformat(t.replace("Z", "+00:00")).timestamp()
+
+    points = [{**p, "t_s": unix(p["t"])} for p in history["points"] if p["pressure_bar"] is not None]
+    assert points, history
+    starts = []
+    for f in files:
+        with open(f, "rb") as fh:
+            starts.append(next(m for _, _, m in make_reader(fh).iter_messages(log_time_order=True)).log_time / 1e9)
+    for day, (f, start) in enumerate(zip(files, starts)):
+        if day == 0:
+            continue
+        last = [p for p in points if start <= p["t_s"] < start + 3600][-1]
+        assert last["pressure_lo_bar"] <= 11.0 - day <= last["pressure_hi_bar"], (f.name, last)
+    # the true crossing: the line through the true charges at the runs' times, at 5 bar
+    slope, intercept = np.polyfit(np.array(starts) - starts[0], 11.0 - np.arange(6.0), 1)
+    true_fault = starts[0] + (5.0 - intercept) / slope
+    fault = trend["fault"]
+    lo, hi = unix(fault["t_lo"]), unix(fault["t_hi"])
+    assert lo <= true_fault <= hi, (fault, true_fault)

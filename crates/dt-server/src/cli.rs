@@ -138,7 +138,8 @@ pub struct SimulateArgs {
     /// a car at this speed (km/h) over an ISO 8608 road (--road-class),
     /// through a linear quarter-car, 0.5-20 Hz; one run per pressure, every
     /// run the same drive file (from --seed); --frequencies is not used.
-    #[arg(long, conflicts_with = "days")]
+    /// With --days: a vehicle on roads, each day's drive its own drive file.
+    #[arg(long)]
     pub road: Option<f64>,
     /// With --road: the ISO 8608 road class, A (very good) to E (very poor).
     #[arg(long, default_value = "C", requires = "road", value_parser = parse_road_class)]

@@ -25,6 +25,11 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
             quick: args.quick,
             unit: args.unit,
             asset_id: args.asset_id.clone(),
+            road: args.road.map(|speed_kmh| dt_sim::RoadDrive {
+                speed_kmh,
+                class: args.road_class,
+                seed: args.seed,
+            }),
         };
         let bar = crate::progress::bar(u64::from(days), "simulate");
         let done =

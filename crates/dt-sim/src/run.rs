@@ -519,6 +519,10 @@ pub struct LeakHistorySpec {
     /// Asset id written to the metadata (`None`: the unit's, see
     /// [`RunSpec::asset_id`]).
     pub asset_id: Option<String>,
+    /// A vehicle on roads instead of the sine: every day a drive of this
+    /// speed and road class, each day's drive file its own (drawn from the
+    /// drive's seed and the day); the rig and unit stay the same.
+    pub road: Option<RoadDrive>,
 }
 
 /// Hour of the day (UTC) at which the day's run starts, before a jitter of
@@ -536,6 +540,10 @@ impl LeakHistorySpec {
             unit: self.unit,
             quick: self.quick,
             repeat: day,
+            road: self.road.map(|r| RoadDrive {
+                seed: mix_seed(&[r.seed, u64::from(day), 0x726f_6164]),
+                ..r
+            }),
             ..RunSpec::paper(charge_bar, self.frequency_hz, self.seed)
         };
         let jitter =
