@@ -27,7 +27,9 @@
    through the inbox and the daemon reads it into the vehicle's road baseline (printed
    beside what ``shocktwin road --baseline`` reads from the same drive); then its held-out
    leaking road run goes through the inbox and the daemon's verdict, estimate and
-   interval are printed (the road observer's, dt-core ``road``).
+   interval are printed (the road observer's, dt-core ``road``). A second road vehicle
+   (``car-33``) has six days of drives behind it, losing 1 bar a day: a service before the
+   first day gives its road baseline, and its leak rate and predicted fault date are printed.
 The data are simulated.
 """
 
@@ -198,6 +200,8 @@ def simulate_fleet(binary: str, inbox: Path) -> int:
 
 
 ROAD_VEHICLE = "car-21"
+# A road vehicle in service (simulated): asset, charge on day 0 (bar), leak (bar/day), days.
+ROAD_HISTORY = ("car-33", 11.0, 1.0, 6)
 
 
 def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) -> tuple[Path, Path, Path, str]:
@@ -212,7 +216,8 @@ def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) ->
         raise RuntimeError(f"shocktwin road --baseline printed no road_baseline line: {proc.stderr}")
     out.mkdir(parents=True, exist_ok=True)
     config = out / "serve.toml"
-    config.write_text(f'[model]\nroad = "{road.resolve()}"\n\n[assets.{ROAD_VEHICLE}]\nroad = true\n')
+    config.write_text(f'[model]\nroad = "{road.resolve()}"\n\n[assets.{ROAD_VEHICLE}]\nroad = true\n\n'
+                      f'[assets.{ROAD_HISTORY[0]}]\nroad = true\n')
     renamed = []
     for src_path in (run, Path(baseline.rsplit("@", 1)[0])):
         dst_path = out / f"{ROAD_VEHICLE}-{src_path.name}"
@@ -226,15 +231,16 @@ def road_config(binary: str, road: Path, run: Path, baseline: str, out: Path) ->
     return config, renamed[0], renamed[1], line.group(0)
 
 
-def road_service(http: str, drive: Path, charge_bar: float, inbox: Path, expected: str) -> dict[str, Any]:
-    """A service of the road vehicle at ``charge_bar`` reported to the daemon, then its drive at
-    that charge dropped into the inbox: the road baseline the daemon read from it."""
-    url = f"http://{http}/v1/assets/{ROAD_VEHICLE}"
+def road_service(http: str, asset: str, drive: Path, charge_bar: float, inbox: Path,
+                 expected: str | None = None) -> dict[str, Any]:
+    """A service of the road vehicle ``asset`` at ``charge_bar`` reported to the daemon, then
+    its drive at that charge dropped into the inbox: the road baseline the daemon read from it."""
+    url = f"http://{http}/v1/assets/{asset}"
     with open(drive, "rb") as fh:
         first_s = next(m for _, _, m in make_reader(fh).iter_messages(log_time_order=True)).log_time * 1e-9
     r = httpx.put(f"{url}/service", json={"charge_bar": charge_bar, "at": f"{first_s - 600.0:.3f}"}, timeout=30)
     r.raise_for_status()
-    print(f"service of {ROAD_VEHICLE} reported at {charge_bar:g} bar; its next drive ({drive.name}) goes through the inbox ...")
+    print(f"service of {asset} reported at {charge_bar:g} bar; its next drive ({drive.name}) goes through the inbox ...")
     shutil.copy(drive, inbox / drive.name)
     deadline = time.monotonic() + SERVICE_TIMEOUT_S
     while (b := httpx.get(f"{url}/baseline", timeout=10)).status_code != 200:
@@ -245,10 +251,44 @@ def road_service(http: str, drive: Path, charge_bar: float, inbox: Path, expecte
             raise SystemExit(f"the daemon did not read {drive.name} within {SERVICE_TIMEOUT_S:.0f} s")
         time.sleep(0.5)
     base = cast("dict[str, Any]", b.json())
-    print(f"road baseline of {ROAD_VEHICLE}, read by the daemon from that drive (simulated): the seal "
+    also = f"; `shocktwin road --baseline` read {expected}" if expected else ""
+    print(f"road baseline of {asset}, read by the daemon from that drive (simulated): the seal "
           f"{base['offset_n']:+.3f} N from the calibration's over {base['blocks']} blocks (GET …/baseline: "
-          f"kind {base['kind']}, source {base['source']}); `shocktwin road --baseline` read {expected}")
+          f"kind {base['kind']}, source {base['source']}){also}")
     return base
+
+
+def road_history(binary: str, http: str, inbox: Path, out: Path) -> None:
+    """A road vehicle in service (``ROAD_HISTORY``, simulated: one quick drive a day, each its
+    own drive file, the unit losing gas): a service before day 0, whose drive becomes its road
+    baseline, then the other days through the inbox; prints its trend."""
+    asset, start_bar, leak, days = ROAD_HISTORY
+    subprocess.run([binary, "simulate", "--quick", "--road", "60", "--days", str(days), "--leak-rate", f"{leak:g}",
+                    "--start-bar", f"{start_bar:g}", "--asset-id", asset, "--seed", "5", "--out", str(out)],
+                   check=True, stdout=subprocess.DEVNULL)
+    files = sorted(out.glob("d*.mcap"))
+    road_service(http, asset, files[0], start_bar, inbox)
+    for f in files[1:]:
+        shutil.copy(f, inbox / f"{asset}-{f.name}")
+    deadline = time.monotonic() + SERVICE_TIMEOUT_S
+    url = f"http://{http}/v1/assets/{asset}"
+    while sum(r["status"] == "completed" for r in httpx.get(f"{url}/runs", timeout=10).json()["runs"]) < days:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"the daemon did not read {asset}'s {days} drives within {SERVICE_TIMEOUT_S:.0f} s")
+        time.sleep(0.5)
+    tr = httpx.get(f"{url}/trend", timeout=10).json()
+    a = httpx.get(url, timeout=10).json()
+    head = (f"{asset} on roads ({days} daily drives, simulated; true leak {leak:g} bar/day from {start_bar:g} bar): "
+            f"last drive {a['pressure_bar']:.2f} [{a['pressure_lo_bar']:.2f}, {a['pressure_hi_bar']:.2f}] bar "
+            f"(true {start_bar - leak * (days - 1):g}), {a['health']}")
+    if tr.get("status") != "ok":
+        print(f"{head}; trend: {tr.get('reason')}")
+        return
+    fault = tr.get("fault") or {}
+    when = (f"fault (5 bar) at {fault['t'][:16]} [{(fault.get('t_lo') or '?')[:16]} .. {(fault.get('t_hi') or 'open')[:16]}]"
+            if fault.get("t") else (fault.get("reason") or "no prediction"))
+    print(f"{head}; leak {tr['leak_rate_bar_per_day']:+.2f} bar/day [{tr['leak_rate_lo_bar_per_day']:+.2f}, "
+          f"{tr['leak_rate_hi_bar_per_day']:+.2f}]; {when}")
 
 
 def wait_road(http: str, asset: str, run: Path, inbox: Path, timeout_s: float = 300.0) -> dict[str, Any]:
@@ -413,13 +453,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         wait_fleet(http, n_fleet)
         print_fleet(http)
         if road_run is not None and road_drive is not None:
-            road_service(http, road_drive, float(args.road_baseline.rsplit("@", 1)[1]), inbox, road_line)
+            road_service(http, ROAD_VEHICLE, road_drive, float(args.road_baseline.rsplit("@", 1)[1]), inbox, road_line)
             with open(road_run, "rb") as fh:
                 road_meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["shocktwin.run"]
             v = wait_road(http, ROAD_VEHICLE, road_run, inbox)
             print(f"{ROAD_VEHICLE} on the road ({road_meta['excitation']}, true charge {road_meta['charge_pressure_bar']} bar, "
                   f"simulated): the daemon's road observer reads {v['pressure_bar']:.2f} bar "
                   f"[{v['pressure_lo_bar']:.2f}, {v['pressure_hi_bar']:.2f}], health {v['health']}")
+            road_history(args.bin, http, inbox, args.out / "road-history")
         baseline = (service_baseline(args.bin, args.bundle, args.unit, http, asset_id, args.out / "service", inbox)
                     if args.unit else None)
         if baseline is not None:
