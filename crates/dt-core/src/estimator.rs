@@ -195,6 +195,10 @@ pub struct EstimatorCounters {
     /// segments (zero when the bundle does not read it).
     #[serde(default)]
     pub observer: crate::charge::ObserverCounters,
+    /// What the road observer made of the blocks, on a road asset
+    /// ([`Estimator::with_road`]).
+    #[serde(default)]
+    pub road: Option<crate::road::RoadCounters>,
     /// Ticks on which a fast channel had no sample (held value), summed over
     /// the loadcell, potentiometer and accelerometers, all segments.
     pub gaps: u64,
@@ -570,6 +574,7 @@ impl Estimator {
         if let Some(o) = self.s.pipe.observer() {
             c.observer += o.counters();
         }
+        c.road = self.s.road.as_ref().map(|l| l.obs.counters());
         c
     }
 

@@ -381,6 +381,51 @@ impl RoadBaselineReading {
     }
 }
 
+/// What the road observer made of a stream's blocks: how many it read and
+/// why the others were not read.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RoadCounters {
+    /// Blocks read (each updated the estimate).
+    pub read: u64,
+    /// Not read: within `settle_s` of the stream's start or of a restart.
+    pub settling: u64,
+    /// Not read: the stroke moved less than `min_stroke_rms_mps` (a rest).
+    pub at_rest: u64,
+    /// Not read: positions at fewer than half its steps (a silent
+    /// potentiometer).
+    pub without_positions: u64,
+    /// Not read: no solution, or a reading that was not finite.
+    pub unsolved: u64,
+}
+
+impl RoadCounters {
+    /// Why no block was read although some were complete, when so: the
+    /// estimate then keeps its prior (`unknown`).
+    #[must_use]
+    pub fn why_none(&self) -> Option<String> {
+        if self.read > 0 {
+            return None;
+        }
+        let reasons = [
+            (self.at_rest, "the stroke too small (at rest)"),
+            (
+                self.without_positions,
+                "positions at fewer than half its steps (the potentiometer silent)",
+            ),
+            (self.unsolved, "no solution"),
+            (
+                self.settling,
+                "within the settling time of the drive's start",
+            ),
+        ];
+        let total: u64 = reasons.iter().map(|r| r.0).sum();
+        let (n, why) = reasons.iter().max_by_key(|r| r.0)?;
+        (*n > 0).then(|| {
+            format!("the road observer read none of {total} blocks: {n} with {why}; the estimate keeps its prior")
+        })
+    }
+}
+
 /// One block's reading and the estimate after it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RoadBlock {
@@ -483,6 +528,8 @@ pub struct RoadObserver {
     health: HealthMachine,
     blocks: u64,
     out: Vec<RoadBlock>,
+    #[serde(default)]
+    counters: RoadCounters,
 }
 
 /// A block's large buffers (a block's regression is ~10 000 × 150, 35 MB
@@ -564,6 +611,7 @@ impl RoadObserver {
             health: HealthMachine::new(health),
             blocks: 0,
             out: Vec::new(),
+            counters: RoadCounters::default(),
             cal,
         })
     }
@@ -608,6 +656,12 @@ impl RoadObserver {
             }
         }
         self.advance(true);
+    }
+
+    /// What it made of the blocks so far.
+    #[must_use]
+    pub fn counters(&self) -> RoadCounters {
+        self.counters
     }
 
     /// Blocks read since the last call, oldest first.
@@ -876,9 +930,16 @@ impl RoadObserver {
         while self.temps.len() > 1 && self.temps[1].0 <= t_end {
             self.temps.pop_front();
         }
-        let skip = t[0] - started < self.cal.settle_s
-            || stroke < self.cal.filters.min_stroke_rms_mps
-            || 2 * positions < per_block;
+        let skip = if t[0] - started < self.cal.settle_s {
+            Some(&mut self.counters.settling)
+        } else if stroke < self.cal.filters.min_stroke_rms_mps {
+            Some(&mut self.counters.at_rest)
+        } else if 2 * positions < per_block {
+            Some(&mut self.counters.without_positions)
+        } else {
+            None
+        };
+        let skip = skip.map(|n| *n += 1).is_some();
         let a2: Vec<f64> = rows.iter().map(|r| r.a2).collect();
         let read = (!skip)
             .then(|| regress(&cols, m, &a2, &mut scratch))
@@ -886,6 +947,7 @@ impl RoadObserver {
         scratch.cols = cols;
         SCRATCH.with_borrow_mut(|s| *s = scratch);
         let Some((alpha, alpha_sd, resid)) = read else {
+            self.counters.unsolved += u64::from(!skip);
             return;
         };
         let origin = self.origin_ns.expect("samples seen");
@@ -994,8 +1056,10 @@ impl RoadObserver {
     fn update(&mut self, mut b: RoadBlock) {
         let (p, sd) = self.cal.charge_of(b.alpha_n, b.temp_c);
         if !(p.is_finite() && sd.is_finite()) {
+            self.counters.unsolved += 1;
             return;
         }
+        self.counters.read += 1;
         let last = *self.last_t_s.get_or_insert(b.t_s);
         self.var += self.cal.walk_bar2_per_s * (b.t_s - last).max(0.0);
         self.last_t_s = Some(b.t_s);

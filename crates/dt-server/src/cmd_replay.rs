@@ -716,6 +716,18 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
         if let Some(line) = observer_line(&c.observer) {
             println!("  {}: {line}", r.file.display());
         }
+        if let Some(road) = c.road {
+            println!(
+                "  {}: road observer: {} blocks read, {} at rest, {} without positions, {} settling, {} unsolved{}",
+                r.file.display(),
+                road.read,
+                road.at_rest,
+                road.without_positions,
+                road.settling,
+                road.unsolved,
+                road.why_none().map_or(String::new(), |w| format!(" ({w})"))
+            );
+        }
     }
     println!(
         "replayed {} run(s), {:.0} s of data in {:.2} s wall ({:.0}x real time); estimates in {}{}",

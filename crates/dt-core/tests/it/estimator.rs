@@ -718,3 +718,21 @@ fn a_road_baseline_is_read_block_by_block_and_survives_a_checkpoint() {
     assert_eq!(est.road_baseline().unwrap().unwrap(), read);
     assert!(road_estimator(&b).road_baseline().is_none());
 }
+
+/// The road observer counts its blocks: a drive reads them; a stroke of a
+/// tenth of a millimetre (a parked car's engine) reads none, and says why.
+#[test]
+fn the_road_observer_says_why_it_read_no_block() {
+    let b = bundle("bundle-mlp13");
+    let mut est = road_estimator(&b);
+    stream(&mut est, &sorted_samples(&synth_log(T0, 12, 0.04, 11)));
+    let drive = est.counters().road.unwrap();
+    assert!(drive.read >= 3 && drive.why_none().is_none(), "{drive:?}");
+    let mut est = road_estimator(&b);
+    stream(&mut est, &sorted_samples(&synth_log(T0, 12, 0.000_1, 11)));
+    let rest = est.counters().road.unwrap();
+    assert_eq!(rest.read, 0, "{rest:?}");
+    assert!(rest.at_rest > 0, "{rest:?}");
+    assert!(rest.why_none().unwrap().contains("at rest"), "{rest:?}");
+    assert!(estimator(&b).counters().road.is_none());
+}

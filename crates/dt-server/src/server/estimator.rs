@@ -192,6 +192,7 @@ impl AssetTwin for EstimatorTwin {
             // observer's counters (not calibrated at a road) would mislead
             observer: (self.est.observer().is_some() && self.est.road().is_none())
                 .then_some(c.observer),
+            road: c.road,
         }
     }
 }

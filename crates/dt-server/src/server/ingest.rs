@@ -577,6 +577,9 @@ impl RunHandle {
         if let Some(o) = &counters.observer {
             log_observer(&self.info.source, &self.info.meta.asset_id, o);
         }
+        if let Some(r) = &counters.road {
+            log_road(&self.info.source, &self.info.meta.asset_id, r);
+        }
         if result.is_ok() {
             let (ack_tx, ack_rx) = oneshot::channel();
             let sent = self
@@ -640,6 +643,25 @@ fn log_observer(source: &str, asset_id: &str, o: &dt_core::charge::ObserverCount
             rejected = o.rejected,
             uncalibrated = o.uncalibrated,
             "charge observer"
+        );
+    }
+}
+
+/// What the road observer made of a road asset's run: a warning when it read
+/// no block although some were complete (the estimate kept its prior).
+fn log_road(source: &str, asset_id: &str, r: &dt_core::road::RoadCounters) {
+    if let Some(why) = r.why_none() {
+        tracing::warn!(source = %source, asset = %asset_id, "{why}");
+    } else if r.read > 0 {
+        tracing::info!(
+            source = %source,
+            asset = %asset_id,
+            read = r.read,
+            at_rest = r.at_rest,
+            without_positions = r.without_positions,
+            settling = r.settling,
+            unsolved = r.unsolved,
+            "road observer blocks"
         );
     }
 }

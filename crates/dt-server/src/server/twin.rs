@@ -33,6 +33,9 @@ pub struct TwinCounters {
     /// What the charge observer made of the velocity reversals (`None`
     /// when the bundle does not read it).
     pub observer: Option<dt_core::charge::ObserverCounters>,
+    /// What the road observer made of the blocks (`None` unless the asset
+    /// is read on roads).
+    pub road: Option<dt_core::road::RoadCounters>,
 }
 
 /// One asset's estimator for one run: fed samples in any interleaving, it
