@@ -242,15 +242,7 @@ def road_service(http: str, asset: str, drive: Path, charge_bar: float, inbox: P
     r.raise_for_status()
     print(f"service of {asset} reported at {charge_bar:g} bar; its next drive ({drive.name}) goes through the inbox ...")
     shutil.copy(drive, inbox / drive.name)
-    deadline = time.monotonic() + SERVICE_TIMEOUT_S
-    while (b := httpx.get(f"{url}/baseline", timeout=10)).status_code != 200:
-        pending = httpx.get(f"{url}/service", timeout=10)
-        if pending.status_code == 200 and pending.json()["last_refusal"]:
-            raise SystemExit(f"no road baseline from {drive.name}: {pending.json()['last_refusal']}")
-        if time.monotonic() > deadline:
-            raise SystemExit(f"the daemon did not read {drive.name} within {SERVICE_TIMEOUT_S:.0f} s")
-        time.sleep(0.5)
-    base = cast("dict[str, Any]", b.json())
+    base = read_baseline(url, drive)
     also = f"; `shocktwin road --baseline` read {expected}" if expected else ""
     print(f"road baseline of {asset}, read by the daemon from that drive (simulated): the seal "
           f"{base['offset_n']:+.3f} N from the calibration's over {base['blocks']} blocks (GET …/baseline: "
@@ -401,6 +393,13 @@ def service_baseline(binary: str, bundle: Path, unit: int, http: str, asset_id: 
           f"\"{r.json()['set_at']}\"}} -> {r.status_code} ({r.json()['state']}); the unit's next drive goes through "
           "the inbox ...")
     (inbox / drive.name).write_bytes(drive.read_bytes())
+    return read_baseline(url, drive)
+
+
+def read_baseline(url: str, drive: Path) -> dict[str, Any]:
+    """The baseline the daemon reads from ``drive`` after a service reported at ``url``
+    (``…/v1/assets/{id}``): waits for ``…/baseline``; stops the demo with the daemon's reason
+    if the drive gave none, or after ``SERVICE_TIMEOUT_S``."""
     deadline = time.monotonic() + SERVICE_TIMEOUT_S
     while (b := httpx.get(f"{url}/baseline", timeout=10)).status_code != 200:
         pending = httpx.get(f"{url}/service", timeout=10)
