@@ -51,7 +51,7 @@ pub enum BaselineSource {
 }
 
 /// An asset's baseline in effect, as the API shows it: `kind` `observer`
-/// carries `read_bar` and `read_sd_bar` ([`UnitBaseline`]), `road` carries
+/// carries `read_bar` and `read_sd_bar` ([`dt_core::charge::UnitBaseline`]), `road` carries
 /// `offset_n` and `blocks` ([`dt_core::road::RoadBaseline`]).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct BaselineView {

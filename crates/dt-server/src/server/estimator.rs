@@ -90,8 +90,9 @@ impl EstimatorFactory {
         cfg.health.warn_bar = asset.warn_bar;
         cfg.health.fault_bar = asset.fault_bar;
         cfg.observer_baseline = asset.observer_baseline;
-        // A service reading takes every reversal: its sd conditions the unit.
-        cfg.observer_fit_all = asset.read_service.is_some();
+        // A service reading takes every reversal: its sd conditions the unit
+        // (a road asset's is read by the road observer instead).
+        cfg.observer_fit_all = asset.read_service.is_some() && !asset.road;
         cfg
     }
 }
