@@ -68,7 +68,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo --road $(OUT)/road.json --road-run $(OUT)/road-held/p2.0-roadC60-s2.mcap --road-baseline $(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
 	@shot=$(OUT)/serve-demo/dashboard.png; [ -f $$shot ] || shot="not taken (no chromium)"; \
-	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), the charge read on a road $(OUT)/road/road_observer.md, figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18, then http://127.0.0.1:7411/)"
+	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), the charge read on a road $(OUT)/road/road_observer.md, figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18 --config $(OUT)/serve-demo/road/serve.toml, then http://127.0.0.1:7411/)"
 
 study: setup ## the full study on the default campaign: physics, charge observer, Tables 2-3, suites (docs/study; simulated data)
 	rm -rf $(OUT)/full-campaign

@@ -480,8 +480,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         shot = args.out / "dashboard.png"
         leaking = max(FLEET, key=lambda a: a[1])[0]
         if screenshot(f"http://{http}/", shot, select=leaking):
+            again = f" --config {config}" if config is not None else ""
             print(f"dashboard: http://{http}/ (saved as {shot}; to browse it again: "
-                  f"{args.bin} serve --db {args.out / 'fleet.sqlite'} --model {args.bundle}, "
+                  f"{args.bin} serve --db {args.out / 'fleet.sqlite'} --model {args.bundle}{again}, "
                   "then open http://127.0.0.1:7411/)")
     finally:
         proc.terminate()
