@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import pytest
 from mcap.reader import make_reader
@@ -508,6 +508,39 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
         view.stop()
 
 
+def service_read_by_the_group(shocktwin_bin: Path, url: str, w: ServeProcess, view: ServeProcess, prefix: str,
+                              run: Path) -> dict[str, Any]:
+    """A service at 12 bar reported to the fleet view for asset `<prefix>0` (dated before the
+    simulated run's clock), the run published under that name: the baseline the worker read from
+    it, as the view shows it; the service is then gone everywhere."""
+    import httpx
+
+    asset = f"{prefix}0"
+
+    def status(d: ServeProcess, what: str) -> int:
+        return httpx.get(f"http://{d.http}/v1/assets/{asset}/{what}", timeout=5).status_code
+
+    r = put_once_joined(f"http://{view.http}/v1/assets/{asset}/service",
+                        {"charge_bar": 12.0, "at": "2023-11-01T00:00:00Z"})
+    assert r.status_code == 202 and r.json()["state"] == "pending", r.text
+    deadline = time.monotonic() + 20
+    while status(w, "service") != 200 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert status(w, "service") == 200, w.text()[-3000:]
+    proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", url, "--rename-assets", prefix, str(run)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    done = wait_ended(url, {asset}, 120, [w, view])
+    assert done[asset]["meta"]["outcome"] == "completed", done
+    deadline = time.monotonic() + 20
+    while status(view, "baseline") != 200 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    b = httpx.get(f"http://{view.http}/v1/assets/{asset}/baseline", timeout=5)
+    assert b.status_code == 200, (b.text, w.text()[-3000:])
+    assert status(view, "service") == 404 and status(w, "service") == 404
+    return cast("dict[str, Any]", b.json())
+
+
 def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
         shocktwin_bin: Path, nats_server: NatsServer, calibrated_campaign: tuple[Path, Path],
         tmp_path: Path) -> None:
@@ -515,7 +548,6 @@ def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
     worker (another daemon) reads the asset's next run into its baseline and writes it to the
     baseline bucket, which the view then shows; the baseline equals what `python -m
     train.observer baseline` makes of that run, and the service is gone everywhere."""
-    import httpx
 
     sys.path.insert(0, str(ROOT))
     from train import observer as observer_tool
@@ -534,31 +566,10 @@ def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
                          "--config", str(tmp_path / "view.toml"), "--listen", "127.0.0.1:0",
                          "--http", "127.0.0.1:0", "--no-db"])
     try:
-        def status(d: ServeProcess, what: str) -> int:
-            return httpx.get(f"http://{d.http}/v1/assets/veh-s0/{what}", timeout=5).status_code
-
-        body = {"charge_bar": 12.0, "at": "2023-11-01T00:00:00Z"}  # before the simulated run's clock
-        r = put_once_joined(f"http://{view.http}/v1/assets/veh-s0/service", body)
-        assert r.status_code == 202 and r.json()["state"] == "pending", r.text
-        deadline = time.monotonic() + 20
-        while status(w, "service") != 200 and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert status(w, "service") == 200, w.text()[-3000:]
-        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "veh-s",
-                               str(run)], capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
-        done = wait_ended(nats_server.url, {"veh-s0"}, 120, [w, view])
-        assert done["veh-s0"]["meta"]["outcome"] == "completed", done
-        deadline = time.monotonic() + 20
-        while status(view, "baseline") != 200 and time.monotonic() < deadline:
-            time.sleep(0.2)
-        b = httpx.get(f"http://{view.http}/v1/assets/veh-s0/baseline", timeout=5)
-        assert b.status_code == 200, (b.text, w.text()[-3000:])
-        got = b.json()
+        got = service_read_by_the_group(shocktwin_bin, nats_server.url, w, view, "veh-s", run)
         assert got["charge_bar"] == 12.0 and got["set_at"].startswith("2023-11-01T00:00:00"), got
         assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
         assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
-        assert status(view, "service") == 404 and status(w, "service") == 404
     finally:
         w.stop()
         view.stop()
@@ -569,7 +580,6 @@ def test_a_service_of_a_road_asset_is_read_by_the_worker_into_a_road_baseline(
     """The same on a road asset (`road = true`, `--road`): the worker reads the drive after
     the service with the road observer into a road baseline, which the fleet view shows; it
     equals what `shocktwin road --baseline` reads from the same file."""
-    import httpx
 
     road = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "road.json"
     bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
@@ -591,29 +601,9 @@ def test_a_service_of_a_road_asset_is_read_by_the_worker_into_a_road_baseline(
     view = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--config", str(tmp_path / "view.toml"),
                          *common])
     try:
-        def status(d: ServeProcess, what: str) -> int:
-            return httpx.get(f"http://{d.http}/v1/assets/veh-r0/{what}", timeout=5).status_code
-
-        r = put_once_joined(f"http://{view.http}/v1/assets/veh-r0/service",
-                            {"charge_bar": 12.0, "at": "2023-11-01T00:00:00Z"})
-        assert r.status_code == 202, r.text
-        deadline = time.monotonic() + 20
-        while status(w, "service") != 200 and time.monotonic() < deadline:
-            time.sleep(0.2)
-        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "veh-r",
-                               str(run)], capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
-        done = wait_ended(nats_server.url, {"veh-r0"}, 120, [w, view])
-        assert done["veh-r0"]["meta"]["outcome"] == "completed", done
-        deadline = time.monotonic() + 20
-        while status(view, "baseline") != 200 and time.monotonic() < deadline:
-            time.sleep(0.2)
-        b = httpx.get(f"http://{view.http}/v1/assets/veh-r0/baseline", timeout=5)
-        assert b.status_code == 200, (b.text, w.text()[-3000:])
-        got = b.json()
+        got = service_read_by_the_group(shocktwin_bin, nats_server.url, w, view, "veh-r", run)
         assert (got["kind"], got["charge_bar"], got["blocks"]) == ("road", 12.0, int(m.group(2))), got
         assert abs(got["offset_n"] - float(m.group(1))) < 1e-9, (got, m.group(0))
-        assert status(view, "service") == 404 and status(w, "service") == 404
     finally:
         w.stop()
         view.stop()
