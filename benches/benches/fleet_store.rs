@@ -103,6 +103,7 @@ fn populate(path: &std::path::Path, assets: i64, days: i64, hours: i64) {
                     sd_bar: 0.3,
                 }),
                 observer: None,
+                road: None,
             });
         }
         store.apply(&ops).expect("apply");

@@ -509,10 +509,10 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
 
 
 def service_read_by_the_group(shocktwin_bin: Path, url: str, w: ServeProcess, view: ServeProcess, prefix: str,
-                              run: Path) -> dict[str, Any]:
+                              run: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """A service at 12 bar reported to the fleet view for asset `<prefix>0` (dated before the
     simulated run's clock), the run published under that name: the baseline the worker read from
-    it, as the view shows it; the service is then gone everywhere."""
+    it, as the view shows it (the service is then gone everywhere), and the run's `ended` event."""
     import httpx
 
     asset = f"{prefix}0"
@@ -538,7 +538,7 @@ def service_read_by_the_group(shocktwin_bin: Path, url: str, w: ServeProcess, vi
     b = httpx.get(f"http://{view.http}/v1/assets/{asset}/baseline", timeout=5)
     assert b.status_code == 200, (b.text, w.text()[-3000:])
     assert status(view, "service") == 404 and status(w, "service") == 404
-    return cast("dict[str, Any]", b.json())
+    return cast("dict[str, Any]", b.json()), done[asset]
 
 
 def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
@@ -566,7 +566,8 @@ def test_a_service_reported_to_the_group_is_read_by_the_worker_into_a_baseline(
                          "--config", str(tmp_path / "view.toml"), "--listen", "127.0.0.1:0",
                          "--http", "127.0.0.1:0", "--no-db"])
     try:
-        got = service_read_by_the_group(shocktwin_bin, nats_server.url, w, view, "veh-s", run)
+        got, ended = service_read_by_the_group(shocktwin_bin, nats_server.url, w, view, "veh-s", run)
+        assert "road" not in ended and ended["observer"]["used"] > 0, ended
         assert got["charge_bar"] == 12.0 and got["set_at"].startswith("2023-11-01T00:00:00"), got
         assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
         assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
@@ -601,9 +602,20 @@ def test_a_service_of_a_road_asset_is_read_by_the_worker_into_a_road_baseline(
     view = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--config", str(tmp_path / "view.toml"),
                          *common])
     try:
-        got = service_read_by_the_group(shocktwin_bin, nats_server.url, w, view, "veh-r", run)
+        got, ended = service_read_by_the_group(shocktwin_bin, nats_server.url, w, view, "veh-r", run)
         assert (got["kind"], got["charge_bar"], got["blocks"]) == ("road", 12.0, int(m.group(2))), got
         assert abs(got["offset_n"] - float(m.group(1))) < 1e-9, (got, m.group(0))
+        # what the worker's road observer made of the drive travels with its end to the fleet view
+        assert ended["road"]["read"] == got["blocks"] and "observer" not in ended, ended
+        import httpx
+
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            seen = httpx.get(f"http://{view.http}/v1/assets/veh-r0", timeout=5).json().get("last_run_road")
+            if seen:
+                break
+            time.sleep(0.2)
+        assert seen == ended["road"], seen
     finally:
         w.stop()
         view.stop()

@@ -456,14 +456,35 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
         daemon.wait(timeout=30)
 
 
+def parked(drive: Path, out: Path) -> Path:
+    """The drive's log with the stroke held still (the position at its first value, the body
+    accelerometer's reading on the wheel end too): a vehicle standing with its engine on."""
+    lg = shocktwin.read_log(str(drive))
+    topics = {}
+    for topic in lg.topics:
+        d = lg.topic(topic)
+        fields = {k: v for k, v in d.items() if k != "t_s"}
+        if topic == "/position":
+            fields["position_m"] = np.full_like(fields["position_m"], fields["position_m"][0])
+        if topic == "/acceleration":
+            fields["a1_mps2"] = fields["a2_mps2"]
+        topics[topic] = (lg.t0_ns + np.round(d["t_s"] * 1e9).astype(np.int64), fields)
+    meta = {k: str(v) for k, v in lg.metadata.items()} | {"run_id": "parked"}
+    return write_mcap_log(out, meta, topics)
+
+
 def test_a_service_on_a_road_asset_reads_its_next_drive_into_the_unit_s_road_baseline(
-        shocktwin_bin: Path, road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path], tmp_path: Path) -> None:
+        shocktwin_bin: Path, road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path], tmp_path: Path,
+        driver: Any) -> None:
     """The fleet flow on a road asset: the maintainer reports a service at 12 bar
     (`PUT …/service`); the unit's next drive, dropped into the inbox, is read by the road
     observer into the asset's road baseline — the offset `shocktwin road --baseline` reads from
     the same file, kept in the fleet store across a restart — and the drive after it (2 bar) ends
     `leak` with the estimate and interval of `replay --road --road-baseline`. An observer
-    baseline is refused for the road asset, naming the kind it takes; `/v1/assets` marks it."""
+    baseline is refused for the road asset, naming the kind it takes; `/v1/assets` marks it.
+    What the road observer made of each run is in `/runs` and the asset's `last_run_road`, kept
+    across the restart; a parked run (no stroke) says why it read nothing, and the dashboard
+    (headless Chromium) marks the asset and gives each run's blocks."""
     _, held, base = road_sets
     drive, run = base / "p12.0-roadC60-s3.mcap", held / "p2.0-roadC60-s2.mcap"
     proc = subprocess.run([str(shocktwin_bin), "road", "--calibration", str(road_model[1]), "--baseline",
@@ -509,6 +530,9 @@ def test_a_service_on_a_road_asset_reads_its_next_drive_into_the_unit_s_road_bas
         assert (b["kind"], b["source"], b["blocks"]) == ("road", "api", want["blocks"]), (b, daemon.text())
         assert b["charge_bar"] == want["charge_bar"] and b["offset_n"] == pytest.approx(want["offset_n"], abs=1e-9)
         assert "read_bar" not in b
+        # the baseline is the mean over the blocks the road observer read of that drive
+        assert asset["last_run_road"]["read"] == want["blocks"] and "why_none" not in asset["last_run_road"], asset
+        assert "last_run_observer" not in asset, asset
         r = httpx.put(f"{api}/baseline", json={"charge_bar": 12.0, "read_bar": 10.8, "read_sd_bar": 0.3}, timeout=10)
         assert r.status_code == 409 and "offset_n" in r.json()["error"], r.text
     finally:
@@ -522,8 +546,45 @@ def test_a_service_on_a_road_asset_reads_its_next_drive_into_the_unit_s_road_bas
         for key in ("pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar"):
             assert asset[key] == pytest.approx(float(last[key]), abs=1e-9), key
         assert float(last["pressure_lo_bar"]) <= 2.0 <= float(last["pressure_hi_bar"]), last
+        api = f"http://{daemon.http}/v1/assets/dyno-unit-A"
+        parked(run, inbox / "parked.mcap")
+        asset = settled(daemon.http, 3)
+        still = asset["last_run_road"]
+        assert still["read"] == 0 and still["at_rest"] >= 3, still
+        assert "at rest" in still["why_none"] and "keeps its prior" in still["why_none"], still
+        runs = {x["run_id"]: x["road"] for x in httpx.get(f"{api}/runs", timeout=10).json()["runs"]}
+        assert runs["parked"] == still and runs[drive.stem]["read"] == want["blocks"], runs
+        assert runs[run.stem]["read"] >= 3 and "why_none" not in runs[run.stem], runs
+
+        from selenium.webdriver.common.by import By
+
+        driver.get(f"http://{daemon.http}/#dyno-unit-A")
+        pill = wait_for(lambda: driver.find_elements(By.CSS_SELECTOR, 'tr[data-asset-id="dyno-unit-A"] .road-none'))[0]
+        assert pill.text == "road: no block read" and "at rest" in pill.get_attribute("title")
+        cells = wait_for(lambda: {r: c[0].text for r in runs
+                                  if (c := driver.find_elements(By.CSS_SELECTOR, f'tr[data-run-id="{r}"] td.obs.road'))}
+                         if len(driver.find_elements(By.CSS_SELECTOR, "td.obs.road")) == 3 else None)
+        total = {r: sum(v for k, v in c.items() if k != "why_none") for r, c in runs.items()}
+        assert cells == {"parked": "none read", drive.stem: f"{want['blocks']}/{total[drive.stem]}",
+                         run.stem: f"{runs[run.stem]['read']}/{total[run.stem]}"}, cells
+        shot = tmp_path / "road-runs.png"
+        driver.save_screenshot(str(shot))
+        print(f"screenshot: {shot}")
+        errors = [e for e in driver.get_log("browser") if e["level"] in ("SEVERE", "WARNING")]
+        assert not errors, errors
     finally:
         daemon.stop()
+
+
+def wait_for(probe: Any, timeout_s: float = 20) -> Any:
+    """``probe()`` once it returns something truthy."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        got = probe()
+        if got:
+            return got
+        time.sleep(0.2)
+    raise AssertionError("timed out")
 
 
 def test_a_road_vehicle_losing_gas_gets_its_leak_rate_and_fault_date(

@@ -141,10 +141,12 @@ function renderFleet() {
       `the unit's next drive is read into its baseline${sv.last_refusal ? `; last run: ${esc(sv.last_refusal)}` : ""}">service pending</span>` : "";
     const obs = a.last_run_observer?.not_calibrated_here ? ` <span class="pill bad obs-uncal" title="${esc(observerText(a.last_run_observer))}` +
       `: the estimate kept its prior; calibrate the observer at this excitation (python -m train.observer fit)">observer not calibrated here</span>` : "";
+    const rn = a.last_run_road?.why_none ? ` <span class="pill bad road-none" title="${esc(a.last_run_road.why_none)}` +
+      `">road: no block read</span>` : "";
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
     return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
-      <td class="id">${esc(a.asset_id)}${run}${road}${base}${svc}${obs}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td class="id">${esc(a.asset_id)}${run}${road}${base}${svc}${obs}${rn}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td class="fault">${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");
@@ -247,14 +249,33 @@ function observerCell(o) {
   return `<td class="small obs" title="${esc(text)}">${o.detected ? `${o.used}/${o.detected}` : "none"}</td>`;
 }
 
+// What the road observer made of a road asset's run: its 10 s blocks (`road` of /runs, `last_run_road`).
+function roadText(r) {
+  const total = r.read + r.settling + r.at_rest + r.without_positions + r.unsolved;
+  if (!total) return "no complete block: the run was shorter than one";
+  const parts = [`${total} blocks`, `${r.read} read`];
+  if (r.at_rest) parts.push(`${r.at_rest} at rest (the stroke too small)`);
+  if (r.without_positions) parts.push(`${r.without_positions} without positions (the potentiometer silent)`);
+  if (r.unsolved) parts.push(`${r.unsolved} without a solution`);
+  if (r.settling) parts.push(`${r.settling} settling after the start`);
+  return parts.join(", ");
+}
+function roadCell(r) {
+  const text = roadText(r);
+  const total = r.read + r.settling + r.at_rest + r.without_positions + r.unsolved;
+  if (r.why_none) return `<td class="small bad obs road" title="${esc(text)}">none read</td>`;
+  return `<td class="small obs road" title="${esc(text)}">${total ? `${r.read}/${total}` : "none"}</td>`;
+}
+
 function renderRuns(runs) {
   const tb = $("runs").tBodies[0];
   if (!runs.length) { tb.innerHTML = `<tr><td colspan="7" class="muted">no runs recorded</td></tr>`; return; }
   tb.innerHTML = runs.slice(0, 20).map((r) => `<tr data-run-id="${esc(r.run_id)}">
     <td>${esc(r.run_id)}</td><td class="small src">${esc(r.source || DASH)}</td>
     <td>${fmtTime(tsec(r.start))}</td><td>${duration(tsec(r.start), tsec(r.end))}</td><td>${r.ticks ?? DASH}</td>
-    <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td>${observerCell(r.observer)}</tr>` +
+    <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td>${r.road ? roadCell(r.road) : observerCell(r.observer)}</tr>` +
     (r.reason ? `<tr><td></td><td colspan="6" class="reason">${esc(r.reason)}</td></tr>` : "") +
+    (r.road?.why_none ? `<tr><td></td><td colspan="6" class="reason">${esc(r.road.why_none)}</td></tr>` : "") +
     (r.observer?.not_calibrated_here ? `<tr><td></td><td colspan="6" class="reason">charge observer: ${esc(observerText(r.observer))}; ` +
       `the estimate kept its prior — calibrate the observer at this excitation (<code>python -m train.observer fit</code>)</td></tr>` : "")).join("");
 }

@@ -72,6 +72,10 @@ struct RunEventIn {
     /// What the worker's charge observer made of the run (when ended).
     #[serde(default)]
     observer: Option<dt_core::charge::ObserverCounters>,
+    /// What the worker's road observer made of the run (when ended, a road
+    /// asset's).
+    #[serde(default)]
+    road: Option<dt_core::road::RoadCounters>,
 }
 
 async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
@@ -135,7 +139,7 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
                             Ok(ev) => {
                                 if runs.get(&asset).is_some_and(|r| r.info().meta.run_id == ev.run_id) {
                                     if let Some(mut r) = runs.remove(&asset) {
-                                        r.relay_observer(ev.observer);
+                                        r.relay_counters(ev.observer, ev.road);
                                         let outcome = match ev.meta.get("outcome").map(String::as_str) {
                                             Some("failed") => RunOutcome::Failed { kind: "twin", reason: format!("{source}: the worker's twin failed") },
                                             Some("interrupted") => RunOutcome::Interrupted,

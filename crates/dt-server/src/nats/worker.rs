@@ -757,14 +757,13 @@ impl Partition {
         // on a road asset the road observer reads the charge (see EstimatorTwin::counters)
         let observer = (open.est.observer().is_some() && open.est.road().is_none())
             .then_some(counters.observer);
-        self.run_event(
-            asset,
-            &open.run_id,
-            "ended",
-            &map,
-            Some((counters.ticks, observer)),
-        )
-        .await?;
+        let ended = RunEnded {
+            ticks: counters.ticks,
+            observer,
+            road: counters.road,
+        };
+        self.run_event(asset, &open.run_id, "ended", &map, Some(ended))
+            .await?;
         tracing::info!(partition = self.p, asset, run = %open.run_id, outcome, "run ended");
         Ok(())
     }
@@ -866,7 +865,7 @@ impl Partition {
         run_id: &str,
         event: &str,
         meta: &BTreeMap<String, String>,
-        ended: Option<(u64, Option<dt_core::charge::ObserverCounters>)>,
+        ended: Option<RunEnded>,
     ) -> Result<(), Refused> {
         let token = super::payload::subject_token(asset);
         let payload = serde_json::to_vec(&RunEvent {
@@ -874,8 +873,9 @@ impl Partition {
             asset_id: asset,
             run_id,
             meta,
-            ticks: ended.map(|(ticks, _)| ticks),
-            observer: ended.and_then(|(_, observer)| observer),
+            ticks: ended.map(|e| e.ticks),
+            observer: ended.and_then(|e| e.observer),
+            road: ended.and_then(|e| e.road),
         })
         .map_err(|e| Refused::Publish(NatsError::new("run event encoding", e)))?;
         let id = format!("r/{asset}/{run_id}/{event}");
@@ -939,6 +939,18 @@ pub struct RunEvent<'a> {
     /// checkpoint across a failover).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub observer: Option<dt_core::charge::ObserverCounters>,
+    /// What the road observer made of the run's blocks (when ended, on a
+    /// road asset; kept in the estimator's checkpoint likewise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub road: Option<dt_core::road::RoadCounters>,
+}
+
+/// What an `ended` run event carries beyond the metadata.
+#[derive(Debug, Clone, Copy)]
+struct RunEnded {
+    ticks: u64,
+    observer: Option<dt_core::charge::ObserverCounters>,
+    road: Option<dt_core::road::RoadCounters>,
 }
 
 impl From<PayloadError> for Refused {

@@ -10,7 +10,7 @@
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
 //! | `GET /v1/assets/{id}/history?since=&until=&step_s=` | 1 s history from the fleet store (SPEC §9); times RFC 3339 or Unix s; default the last day of the asset's data |
 //! | `GET /v1/assets/{id}/trend` | leak rate, predicted warn/fault crossings with intervals, or why not (SPEC §9) |
-//! | `GET /v1/assets/{id}/runs` | runs seen, newest first, each with what the charge observer made of it (`observer`) |
+//! | `GET /v1/assets/{id}/runs` | runs seen, newest first, each with what the charge observer made of it (`observer`), or a road asset's road observer (`road`: its blocks, and `why_none` when it read none) |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
 //! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`kind`: `observer` with `read_bar`, `read_sd_bar`, or `road` with `offset_n`, `blocks`; `source`: `api` or `config`), 404 if none |
 //! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it; for a road asset `{"charge_bar", "offset_n", "blocks"}`, bare or under `road_baseline` as `shocktwin road --baseline` prints it; `409` for the other kind); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
@@ -890,6 +890,7 @@ async fn runs(State(app): State<AppState>, Path(id): Path<String>) -> Response {
                         "summary_bar": r.summary.map(|s| s.pressure_bar),
                         "summary_sd_bar": r.summary.map(|s| s.sd_bar),
                         "observer": r.observer,
+                        "road": r.road,
                     })
                 })
                 .collect();

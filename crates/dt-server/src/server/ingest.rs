@@ -21,7 +21,7 @@ use tokio_util::sync::CancellationToken;
 use super::baselines::{recorded_before, Baselines, ServiceOutcome};
 use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
-use super::sink::{ObserverRead, RunEnd, RunInfo, RunOutcome, SinkMsg, SourceKind};
+use super::sink::{ObserverRead, RoadRead, RunEnd, RunInfo, RunOutcome, SinkMsg, SourceKind};
 use super::store::{AssetBaseline, FleetStore};
 use super::twin::{AssetTwin, TwinError, TwinFactory};
 
@@ -240,6 +240,7 @@ impl Ingest {
             last_t_ns: None,
             arrived: None,
             relayed_observer: None,
+            relayed_road: None,
         })
     }
 
@@ -460,6 +461,8 @@ pub struct RunHandle {
     arrived: Option<Instant>,
     /// A relayed run's observer counts (its twin is elsewhere).
     relayed_observer: Option<dt_core::charge::ObserverCounters>,
+    /// A relayed run's road observer counts (likewise).
+    relayed_road: Option<dt_core::road::RoadCounters>,
 }
 
 impl std::fmt::Debug for RunHandle {
@@ -496,10 +499,15 @@ impl RunHandle {
         }
     }
 
-    /// Hands in what the charge observer made of a relayed run, for its
-    /// end (its twin is elsewhere).
-    pub fn relay_observer(&mut self, observer: Option<dt_core::charge::ObserverCounters>) {
+    /// Hands in what the charge observer and the road observer made of a
+    /// relayed run, for its end (its twin is elsewhere).
+    pub fn relay_counters(
+        &mut self,
+        observer: Option<dt_core::charge::ObserverCounters>,
+        road: Option<dt_core::road::RoadCounters>,
+    ) {
         self.relayed_observer = observer;
+        self.relayed_road = road;
     }
 
     /// Says when the samples pushed since the last flush arrived (the read
@@ -594,6 +602,7 @@ impl RunHandle {
                             .observer
                             .or(self.relayed_observer)
                             .map(ObserverRead::from),
+                        road: counters.road.or(self.relayed_road).map(RoadRead::from),
                     },
                     ack_tx,
                 ))

@@ -11,6 +11,7 @@ use std::time::{Instant, SystemTime};
 use dt_core::charge::ObserverCounters;
 use dt_core::estimate::Estimate;
 use dt_core::log::RunMetadata;
+use dt_core::road::RoadCounters;
 use serde::Serialize;
 use tokio::sync::{mpsc, oneshot};
 
@@ -105,6 +106,9 @@ pub struct RunEnd {
     pub outcome: RunOutcome,
     /// What the observer read, `None` when the model does not read it.
     pub observer: Option<ObserverRead>,
+    /// What the road observer read, `None` unless the asset is driven on
+    /// roads.
+    pub road: Option<RoadRead>,
 }
 
 /// What the charge observer made of one run's velocity reversals, as the
@@ -127,6 +131,30 @@ impl From<ObserverCounters> for ObserverRead {
         Self {
             counts,
             not_calibrated_here: counts.not_calibrated_here(),
+        }
+    }
+}
+
+/// What the road observer made of one run's blocks, as the API and the
+/// fleet store tell it: the counts, and why no block was read when none
+/// was.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct RoadRead {
+    /// The counts (`read`, `settling`, `at_rest`, `without_positions`,
+    /// `unsolved`).
+    #[serde(flatten)]
+    pub counts: RoadCounters,
+    /// No block read although some were complete: the main reason
+    /// ([`RoadCounters::why_none`]); the estimate kept its prior.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub why_none: Option<String>,
+}
+
+impl From<RoadCounters> for RoadRead {
+    fn from(counts: RoadCounters) -> Self {
+        Self {
+            counts,
+            why_none: counts.why_none(),
         }
     }
 }

@@ -11,7 +11,7 @@ use serde::Serialize;
 use tokio::sync::broadcast;
 
 use super::config::Config;
-use super::sink::{ObserverRead, RunEnd, RunInfo, Sink, SinkError};
+use super::sink::{ObserverRead, RoadRead, RunEnd, RunInfo, Sink, SinkError};
 use super::store::{AssetState, HistoryPoint};
 
 /// One event of the live stream; the SSE event name is [`LiveEvent::name`].
@@ -105,6 +105,10 @@ pub struct AssetSummary {
     /// `not_calibrated_here`, why an excited asset stays `unknown`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub last_run_observer: Option<ObserverRead>,
+    /// What the road observer made of its last run's blocks (a road asset):
+    /// with `why_none`, why a driven asset stays `unknown`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_run_road: Option<RoadRead>,
 }
 
 /// [`AssetSummary`] with the recent estimates, oldest first.
@@ -212,6 +216,7 @@ impl LiveState {
                 },
                 last_run_reason: st.last_run_reason.clone(),
                 last_run_observer: st.last_run_observer,
+                last_run_road: st.last_run_road.clone(),
             };
             assets.insert(
                 st.asset_id.clone(),
@@ -249,6 +254,7 @@ impl LiveState {
                     last_run_status: None,
                     last_run_reason: None,
                     last_run_observer: None,
+                    last_run_road: None,
                 },
                 history: VecDeque::with_capacity(self.history_len.min(4096)),
             });
@@ -347,6 +353,7 @@ impl Sink for LiveSink {
             v.summary.last_run_status = Some(outcome.status());
             v.summary.last_run_reason = outcome.reason().map(str::to_owned);
             v.summary.last_run_observer = end.observer;
+            v.summary.last_run_road.clone_from(&end.road);
         });
         self.0.publish(LiveState::run_event(
             run,

@@ -35,6 +35,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use dt_core::charge::ObserverCounters;
 use dt_core::estimate::Health;
+use dt_core::road::RoadCounters;
 use dt_core::trend::{Crossing, RunPoint, Trend, DAY_S};
 use serde::Serialize;
 
@@ -104,6 +105,8 @@ pub struct RunRecord {
     pub summary: Option<RunPoint>,
     /// What the charge observer made of its reversals, if the model read it.
     pub observer: Option<crate::server::sink::ObserverRead>,
+    /// What the road observer made of its blocks, if the asset is a road one.
+    pub road: Option<crate::server::sink::RoadRead>,
 }
 
 /// A unit's baseline: what the dyno observer read of the unit at a known
@@ -225,6 +228,8 @@ pub struct AssetState {
     pub last_run_reason: Option<String>,
     /// What the observer made of the latest run, if the model read it.
     pub last_run_observer: Option<crate::server::sink::ObserverRead>,
+    /// What the road observer made of the latest run, if a road asset's.
+    pub last_run_road: Option<crate::server::sink::RoadRead>,
 }
 
 /// One write of the daemon, applied in order by the writer thread.
@@ -275,6 +280,8 @@ pub enum StoreOp {
         summary: Option<RunPoint>,
         /// What the charge observer made of its reversals.
         observer: Option<ObserverCounters>,
+        /// What the road observer made of its blocks.
+        road: Option<RoadCounters>,
     },
 }
 

@@ -443,6 +443,7 @@ impl Sink for StoreSink {
             reason: outcome.reason().map(str::to_owned),
             summary: summarise(&acc.excited),
             observer: end.observer.map(|o| o.counts),
+            road: end.road.as_ref().map(|r| r.counts),
         });
         // Durable before the source takes the run as done (SPEC of `Sink`).
         let ops = self.sent.load(Ordering::Relaxed);

@@ -13,11 +13,11 @@ use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
 use dt_core::charge::{ObserverCounters, UnitBaseline};
-use dt_core::road::RoadBaseline;
+use dt_core::road::{RoadBaseline, RoadCounters};
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
 
-use crate::server::sink::ObserverRead;
+use crate::server::sink::{ObserverRead, RoadRead};
 
 use super::{
     health_code, health_from_code, health_from_str, AssetBaseline, AssetState, FleetStore,
@@ -25,10 +25,10 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 5;
+pub const SCHEMA_VERSION: i64 = 6;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 5] = [
+const MIGRATIONS: [&str; 6] = [
     r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
@@ -100,6 +100,11 @@ CREATE TABLE road_baselines (
     blocks     INTEGER NOT NULL,
     set_ms     INTEGER NOT NULL
 );
+",
+    // What the road observer made of a road asset's run: its counters as
+    // JSON (`dt_core::road::RoadCounters`), NULL for other assets.
+    r"
+ALTER TABLE runs ADD COLUMN road TEXT;
 ",
 ];
 
@@ -348,12 +353,13 @@ impl SqliteStore {
                 reason,
                 summary,
                 observer,
+                road,
                 ..
             } => {
                 tx.prepare_cached(
                     "UPDATE runs SET end_ms = ?2, ticks = ?3, status = ?4, reason = ?5, \
-                     summary_t_ms = ?6, summary_bar = ?7, summary_sd_bar = ?8, observer = ?9 \
-                     WHERE key = ?1",
+                     summary_t_ms = ?6, summary_bar = ?7, summary_sd_bar = ?8, observer = ?9, \
+                     road = ?10 WHERE key = ?1",
                 )?
                 .execute(params![
                     key,
@@ -365,6 +371,7 @@ impl SqliteStore {
                     summary.map(|s| s.pressure_bar),
                     summary.map(|s| s.sd_bar),
                     observer.map(|o| serde_json::to_string(&o).unwrap_or_default()),
+                    road.map(|r| serde_json::to_string(&r).unwrap_or_default()),
                 ])?;
             }
         }
@@ -377,6 +384,13 @@ impl SqliteStore {
 fn observer_from(json: Option<String>) -> Option<ObserverRead> {
     json.and_then(|j| serde_json::from_str::<ObserverCounters>(&j).ok())
         .map(ObserverRead::from)
+}
+
+/// A run's road observer counters as kept (`None`: not a road asset's run,
+/// or a value this build cannot read).
+fn road_from(json: Option<String>) -> Option<RoadRead> {
+    json.and_then(|j| serde_json::from_str::<RoadCounters>(&j).ok())
+        .map(RoadRead::from)
 }
 
 fn point_from_row(r: &rusqlite::Row<'_>, at: usize) -> rusqlite::Result<HistoryPoint> {
@@ -414,7 +428,7 @@ impl FleetStore for SqliteStore {
                 "SELECT a.asset_id, r.run_id, r.status, r.reason, \
                    (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
                    s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited, \
-                   r.observer \
+                   r.observer, r.road \
                  FROM assets a \
                  LEFT JOIN runs r ON r.key = \
                    (SELECT key FROM runs WHERE asset = a.id ORDER BY start_ms DESC LIMIT 1) \
@@ -432,6 +446,7 @@ impl FleetStore for SqliteStore {
                         .unwrap_or_else(|| "unknown".into()),
                     last_run_reason: r.get(3)?,
                     last_run_observer: observer_from(r.get(11)?),
+                    last_run_road: road_from(r.get(12)?),
                     ticks: r.get::<_, i64>(4)?.max(0) as u64,
                     last: if t_ms.is_some() {
                         Some(point_from_row(r, 5)?)
@@ -502,7 +517,7 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare_cached(&format!(
                 "SELECT run_id, source, start_ms, end_ms, ticks, status, reason, \
-                   summary_t_ms, summary_bar, summary_sd_bar, observer \
+                   summary_t_ms, summary_bar, summary_sd_bar, observer, road \
                  FROM runs WHERE asset = {ASSET} ORDER BY start_ms DESC LIMIT ?2"
             ))?;
             let limit = i64::try_from(limit).unwrap_or(i64::MAX);
@@ -529,6 +544,7 @@ impl FleetStore for SqliteStore {
                     reason: r.get(6)?,
                     summary,
                     observer: observer_from(r.get(10)?),
+                    road: road_from(r.get(11)?),
                 })
             })?;
             rows.collect()
@@ -703,6 +719,61 @@ mod tests {
     }
 
     #[test]
+    fn a_road_runs_block_counts_come_back_with_why_none_was_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = SqliteStore::open(&dir.path().join("fleet.sqlite")).unwrap();
+        let run = |key: &str, start_ms: i64, road: RoadCounters| {
+            [
+                StoreOp::RunStarted {
+                    key: key.into(),
+                    asset_id: "car-1".into(),
+                    run_id: key.into(),
+                    source: "test".into(),
+                    start_ms,
+                },
+                StoreOp::RunEnded {
+                    key: key.into(),
+                    asset_id: "car-1".into(),
+                    end_ms: start_ms + 60_000,
+                    ticks: 3000,
+                    status: "completed".into(),
+                    reason: None,
+                    summary: None,
+                    observer: None,
+                    road: Some(road),
+                },
+            ]
+        };
+        let driven = RoadCounters {
+            read: 40,
+            settling: 2,
+            ..RoadCounters::default()
+        };
+        let parked = RoadCounters {
+            at_rest: 5,
+            settling: 1,
+            ..RoadCounters::default()
+        };
+        store.apply(&run("drive", 0, driven)).unwrap();
+        store.apply(&run("parked", 100_000, parked)).unwrap();
+        let runs = store.runs("car-1", 10).unwrap();
+        let got: Vec<_> = runs.iter().map(|r| r.road.clone().unwrap()).collect();
+        assert_eq!(got[1].counts, driven);
+        assert_eq!(got[1].why_none, None);
+        assert_eq!(got[0].counts, parked);
+        let why = got[0].why_none.as_deref().unwrap();
+        assert!(
+            why.contains("none of 6 blocks") && why.contains("at rest"),
+            "{why}"
+        );
+        // The asset's latest run is the parked one.
+        assert_eq!(
+            store.asset_states().unwrap()[0].last_run_road,
+            Some(got[0].clone())
+        );
+    }
+
+    #[test]
     fn writes_read_back_and_average_over_steps() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("sub/fleet.sqlite");
@@ -733,6 +804,7 @@ mod tests {
                 skipped: 2,
                 ..ObserverCounters::default()
             }),
+            road: None,
         });
         store.apply(&ops).unwrap();
         let h = store.history("a1", (0, 9000), 1000, 100).unwrap().unwrap();
@@ -757,6 +829,7 @@ mod tests {
         assert_eq!((o.counts.detected, o.counts.uncalibrated), (40, 38));
         assert!(o.not_calibrated_here);
         assert_eq!(store.asset_states().unwrap()[0].last_run_observer, Some(o));
+        assert_eq!(runs[0].road, None);
         assert_eq!(store.newest_ms("a1").unwrap(), Some(9000));
         assert_eq!(store.prune(5000).unwrap(), 5);
         drop(store);
