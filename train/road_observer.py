@@ -222,6 +222,17 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+def calibrated_blocks(r: dict[str, np.ndarray], model: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The blocks a calibration vouches for: none slower than the slowest it read (dt-core's rule,
+    ``slowest_calibrated_stroke_rms_mps``). The friction read falls short of the calibration's
+    line the slower the stroke, and a calibration at faster strokes cannot say by how much."""
+    slowest = model.get("filters", {}).get("slowest_calibrated_stroke_rms_mps")
+    if slowest is None:
+        return r
+    keep = r["stroke_rms_mps"] >= slowest
+    return {k: v[keep] for k, v in r.items()}
+
+
 def _readings(args: tuple[str, dict[str, Any], dict[str, float]]) -> dict[str, np.ndarray]:
     return block_readings(*args)
 
@@ -343,13 +354,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
     model["drives"] = sorted({drive[i] for i in use})
     model["campaign"] = str(args.campaign)
     model["blocks"] = int(sum(len(blocks[i]["alpha_n"]) for i in use))
+    model["filters"]["slowest_calibrated_stroke_rms_mps"] = float(min(blocks[i]["stroke_rms_mps"].min() for i in use))
     model["simulated"] = campaign.simulated
     args.out.write_text(json.dumps(model, indent=2) + "\n")
     print(f"road observer: alpha = {coef[0]:.2f} N + {coef[1]:.3f} N/bar · p_g over {model['blocks']} blocks of "
           f"{opts['block_s']:g} s; block spread {sd:.2f} N ({sd / coef[1]:.2f} bar); systematic "
           f"{held_sd:.2f} bar leaving one {model['held_out']} out ({len(model['drives'])} drive files), "
           f"{model['systematic_sd_bar']:.2f} bar + {100 * tol:g} % of the charge with another unit's seal "
-          f"(--unit-tolerance-pct)")
+          f"(--unit-tolerance-pct); blocks slower than {model['filters']['slowest_calibrated_stroke_rms_mps']:.3f} m/s "
+          f"stroke RMS (the slowest read here) will not be read")
     for n, lab, m, s in held:
         print(f"  {n}: {lab:g} bar read as {m:.2f} ± {s:.2f} bar without its {model['held_out']}")
     print(f"wrote {args.out}" + (" (simulated data)" if campaign.simulated else ""))
@@ -427,10 +440,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         name, _, d = spec.partition("=")
         campaign = load_campaign(Path(d))
         campaign.require_labels()
-        blocks = readings([r.path for r in campaign.runs], physics, opts, args.jobs, cache)
+        blocks = [calibrated_blocks(r, model) for r in readings([r.path for r in campaign.runs], physics, opts, args.jobs, cache)]
         set_model = dict(model)
         if name in baselines:
-            set_model = with_baseline(model, physics, *baselines[name], readings([baselines[name][0]], physics, opts, 1, cache)[0])
+            base = calibrated_blocks(readings([baselines[name][0]], physics, opts, 1, cache)[0], model)
+            set_model = with_baseline(model, physics, *baselines[name], base)
         for run, r in zip(campaign.runs, blocks):
             lab = float(run.label_bar)  # type: ignore[arg-type]
             if len(r["alpha_n"]) == 0:

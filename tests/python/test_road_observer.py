@@ -235,7 +235,7 @@ def test_a_log_without_the_accelerometers_is_refused_by_name(make_log, tmp_path:
 def python_reading(path: Path, model: dict[str, Any], physics: dict[str, Any]) -> dict[str, Any]:
     """The reference: ``block_readings`` (batch, scipy) then ``track`` and the health rule."""
     opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
-    r = ro.block_readings(str(path), physics, opts)
+    r = ro.calibrated_blocks(ro.block_readings(str(path), physics, opts), model)
     p, sd = ro.charge_of(r, model, physics)
     est, lo, hi = ro.track(p, sd, r["t_s"], model, (6.0, 6.0), 1e-4)
     return {**r, "reading_bar": p, "estimate_bar": est, "lo_bar": lo, "hi_bar": hi,
@@ -381,6 +381,36 @@ def test_shocktwin_road_reads_a_held_out_drive_with_a_baseline(shocktwin_bin: Pa
 
 
 FIXTURE_BUNDLE = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+
+
+def test_a_drive_slower_than_the_calibration_s_is_not_read(shocktwin_bin: Path, road_sets: tuple[Path, Path, Path],
+                                                           road_model: tuple[Path, Path], tmp_path: Path) -> None:
+    """The friction read falls short of the calibration's line the slower the stroke (README,
+    "Nineteenth session": a healthy 12 bar unit read `low` at 2 km/h). The fit keeps the slowest
+    stroke it read; a drive at 5 km/h on the same road class, slower than every calibration
+    block, is not read — `unknown`, the reason named by `shocktwin road` and `replay --road` —
+    while the held-out drive at the calibration's speed still is."""
+    model = json.loads(road_model[1].read_text())
+    slowest = model["filters"]["slowest_calibrated_stroke_rms_mps"]
+    cal_blocks = ro.readings(sorted(road_sets[0].glob("*.mcap")), json.loads(road_model[0].read_text()),
+                             {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}, 2)
+    assert slowest == pytest.approx(min(float(b["stroke_rms_mps"].min()) for b in cal_blocks if len(b["t_s"])), rel=1e-12)
+    proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "5", "--pressures", "12", "--seed", "2",
+                           "--out", str(tmp_path / "slow")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    (slow,) = (tmp_path / "slow").glob("*.mcap")
+    held = road_sets[1] / "p12.0-roadC60-s2.mcap"
+    proc = subprocess.run([str(shocktwin_bin), "road", "--calibration", str(road_model[1]), str(slow), str(held)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    rows = {ln.split("|")[1].strip(): ln for ln in proc.stdout.splitlines() if ln.startswith("| p12")}
+    assert "| 0 |" in rows["p12.0-roadC5-s2"] and "slower than the calibration's slowest" in rows["p12.0-roadC5-s2"], rows
+    assert "unknown" in rows["p12.0-roadC5-s2"] and "| 0 |" not in rows["p12.0-roadC60-s2"], rows
+    proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(FIXTURE_BUNDLE), "--road", str(road_model[1]),
+                           "--out", str(tmp_path / "slow.csv"), str(slow)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert re.search(r"road observer: 0 blocks read, 0 at rest, [1-9]\d* slower than calibrated", proc.stdout), proc.stdout
+    assert {r["health"] for r in csv.DictReader((tmp_path / "slow.csv").open())} == {"unknown"}
 
 
 def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Path, road_sets: tuple[Path, Path, Path],

@@ -251,10 +251,11 @@ function observerCell(o) {
 
 // What the road observer made of a road asset's run: its 10 s blocks (`road` of /runs, `last_run_road`).
 function roadText(r) {
-  const total = r.read + r.settling + r.at_rest + r.without_positions + r.unsolved;
+  const total = r.read + r.settling + r.at_rest + (r.slower_than_calibrated || 0) + r.without_positions + r.unsolved;
   if (!total) return "no complete block: the run was shorter than one";
   const parts = [`${total} blocks`, `${r.read} read`];
   if (r.at_rest) parts.push(`${r.at_rest} at rest (the stroke too small)`);
+  if (r.slower_than_calibrated) parts.push(`${r.slower_than_calibrated} slower than the calibration's slowest stroke`);
   if (r.without_positions) parts.push(`${r.without_positions} without positions (the potentiometer silent)`);
   if (r.unsolved) parts.push(`${r.unsolved} without a solution`);
   if (r.settling) parts.push(`${r.settling} settling after the start`);
@@ -262,7 +263,7 @@ function roadText(r) {
 }
 function roadCell(r) {
   const text = roadText(r);
-  const total = r.read + r.settling + r.at_rest + r.without_positions + r.unsolved;
+  const total = r.read + r.settling + r.at_rest + (r.slower_than_calibrated || 0) + r.without_positions + r.unsolved;
   if (r.why_none) return `<td class="small bad obs road" title="${esc(text)}">none read</td>`;
   return `<td class="small obs road" title="${esc(text)}">${total ? `${r.read}/${total}` : "none"}</td>`;
 }

@@ -718,10 +718,11 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
         }
         if let Some(road) = c.road {
             println!(
-                "  {}: road observer: {} blocks read, {} at rest, {} without positions, {} settling, {} unsolved{}",
+                "  {}: road observer: {} blocks read, {} at rest, {} slower than calibrated, {} without positions, {} settling, {} unsolved{}",
                 r.file.display(),
                 road.read,
                 road.at_rest,
+                road.slower_than_calibrated,
                 road.without_positions,
                 road.settling,
                 road.unsolved,

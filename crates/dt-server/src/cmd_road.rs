@@ -24,7 +24,7 @@ use anyhow::{bail, Context, Result};
 use dt_core::bundle::HealthConfig;
 use dt_core::estimate::Health;
 use dt_core::log::read_log;
-use dt_core::road::{read_run, RoadBlock, RoadCalibration};
+use dt_core::road::{read_run_counted, RoadBlock, RoadCalibration, RoadCounters};
 
 use crate::cli::RoadArgs;
 
@@ -34,17 +34,19 @@ pub(crate) struct Read {
     asset_id: String,
     label_bar: Option<f64>,
     pub(crate) blocks: Vec<RoadBlock>,
+    counters: RoadCounters,
 }
 
 pub(crate) fn read_one(path: &Path, cal: &RoadCalibration, health: HealthConfig) -> Result<Read> {
     let log = read_log(path).with_context(|| format!("reading {}", path.display()))?;
-    let blocks = read_run(&log, cal, health)
+    let (blocks, counters) = read_run_counted(&log, cal, health)
         .with_context(|| format!("{}: road observer", path.display()))?;
     Ok(Read {
         run_id: log.metadata.run_id.clone(),
         asset_id: log.metadata.asset_id.clone(),
         label_bar: log.metadata.charge_pressure_bar,
         blocks,
+        counters,
     })
 }
 
@@ -127,8 +129,12 @@ fn print_table(runs: &[Read], health: &HealthConfig, simulated: bool) {
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for r in runs {
         let Some(last) = r.blocks.last() else {
+            let why = r
+                .counters
+                .why_none()
+                .unwrap_or_else(|| "no complete block: the run is shorter than one".into());
             println!(
-                "| {} | {} | {} | 0 | — | — | unknown (no block read: no stroke?) | | | |",
+                "| {} | {} | {} | 0 | — | — | unknown ({why}) | | | |",
                 r.run_id,
                 r.asset_id,
                 r.label_bar.map_or("—".into(), |l| format!("{l}"))

@@ -735,4 +735,22 @@ fn the_road_observer_says_why_it_read_no_block() {
     assert!(rest.at_rest > 0, "{rest:?}");
     assert!(rest.why_none().unwrap().contains("at rest"), "{rest:?}");
     assert!(estimator(&b).counters().road.is_none());
+    // the same drive (0.36 m/s stroke RMS) with a calibration whose slowest
+    // block was faster, then slower, than that
+    let read_with = |slowest: f64| {
+        let mut cal = road_calibration();
+        cal.filters.slowest_calibrated_stroke_rms_mps = Some(slowest);
+        let mut est = estimator(&b).with_road(cal).unwrap();
+        stream(&mut est, &sorted_samples(&synth_log(T0, 12, 0.04, 11)));
+        est.counters().road.unwrap()
+    };
+    let slow = read_with(0.5);
+    assert_eq!((slow.read, slow.at_rest), (0, 0), "{slow:?}");
+    assert_eq!(slow.slower_than_calibrated, drive.read, "{slow:?}");
+    let why = slow.why_none().unwrap();
+    assert!(
+        why.contains("slower than the calibration's slowest"),
+        "{why}"
+    );
+    assert_eq!(read_with(0.3), drive);
 }

@@ -667,6 +667,7 @@ fn log_road(source: &str, asset_id: &str, r: &dt_core::road::RoadCounters) {
             asset = %asset_id,
             read = r.read,
             at_rest = r.at_rest,
+            slower_than_calibrated = r.slower_than_calibrated,
             without_positions = r.without_positions,
             settling = r.settling,
             unsolved = r.unsolved,

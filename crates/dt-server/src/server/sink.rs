@@ -140,7 +140,7 @@ impl From<ObserverCounters> for ObserverRead {
 /// was.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct RoadRead {
-    /// The counts (`read`, `settling`, `at_rest`, `without_positions`,
+    /// The counts (`read`, `settling`, `at_rest`, `slower_than_calibrated`, `without_positions`,
     /// `unsolved`).
     #[serde(flatten)]
     pub counts: RoadCounters,
