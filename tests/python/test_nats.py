@@ -490,12 +490,7 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
         # What the worker's observer made of the run travels with its end to every fleet view.
         observer = done["veh-b0"]["observer"]
         assert observer["used"] > 0 and observer["detected"] >= observer["used"], observer
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            seen = httpx.get(f"http://{view.http}/v1/assets/veh-b0", timeout=5).json().get("last_run_observer")
-            if seen:
-                break
-            time.sleep(0.2)
+        seen = summary_field(view, "veh-b0", "last_run_observer")
         assert seen == {**observer, "not_calibrated_here": False}, seen
         gone = httpx.delete(f"http://{w.http}/v1/assets/veh-b0/baseline", timeout=10)
         assert gone.status_code == 200, gone.text
@@ -506,6 +501,19 @@ def test_a_baseline_set_on_one_daemon_reaches_the_worker_of_another(
     finally:
         w.stop()
         view.stop()
+
+
+def summary_field(d: ServeProcess, asset: str, field: str, timeout_s: float = 20) -> Any:
+    """`field` of the asset's summary on daemon `d`, once it is there (the run's end is relayed
+    to a fleet view a moment after the worker publishes it)."""
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        seen = httpx.get(f"http://{d.http}/v1/assets/{asset}", timeout=5).json().get(field)
+        if seen or time.monotonic() > deadline:
+            return seen
+        time.sleep(0.2)
 
 
 def service_read_by_the_group(shocktwin_bin: Path, url: str, w: ServeProcess, view: ServeProcess, prefix: str,
@@ -607,15 +615,7 @@ def test_a_service_of_a_road_asset_is_read_by_the_worker_into_a_road_baseline(
         assert abs(got["offset_n"] - float(m.group(1))) < 1e-9, (got, m.group(0))
         # what the worker's road observer made of the drive travels with its end to the fleet view
         assert ended["road"]["read"] == got["blocks"] and "observer" not in ended, ended
-        import httpx
-
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            seen = httpx.get(f"http://{view.http}/v1/assets/veh-r0", timeout=5).json().get("last_run_road")
-            if seen:
-                break
-            time.sleep(0.2)
-        assert seen == ended["road"], seen
+        assert summary_field(view, "veh-r0", "last_run_road") == ended["road"]
     finally:
         w.stop()
         view.stop()
