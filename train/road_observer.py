@@ -11,7 +11,7 @@ modelled as the damper force through the calibrated body-end mount and the accel
 first-order filter (the ``observer`` section of physics.json), the force linear in its
 parameters::
 
-    F(t) = α tanh(ẏ/v_s) + Σ_j (c_j + d_j τ) b_j(ẏ) + k y + f_0,     τ = time in the block
+    F(t) = α tanh(ẏ/v_s) + Σ_j (c_j + d_j τ) b_j(ẏ) + k y + f_0,     τ = t / 100 s (the run's time)
     a2   = H_acc * F + c_0 + ε
 
 ``b_j`` a damping law flexible enough for a valve's knee (slopes each side and hinges every
