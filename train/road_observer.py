@@ -42,6 +42,13 @@ spread) with a 95 % interval widened by the systematic part, and reports error, 
 the SPEC §6a verdict over time. ``--baseline SET=RUN.mcap@BAR`` gives a drive of that set's
 unit at a known charge (after a service): its seal's offset is read from it, and only the
 slope's tolerance stays systematic. Blocks are kept under ``OUT/blocks`` and read back.
+
+A calibration vouches only for strokes as fast as those it read: ``fit`` keeps the slowest
+block's stroke velocity RMS (``filters.slowest_calibrated_stroke_rms_mps``), and a slower block
+is not read (here by :func:`calibrated_blocks`, in dt-core by the streaming observer). Driven
+slower, the friction read falls short of the calibration's line by a factor (the stroke
+filter's velocity error weighs more on a slow stroke; README, "Nineteenth session"): calibrate
+with drives at the speeds the vehicles drive.
 """
 
 from __future__ import annotations
