@@ -662,17 +662,8 @@ fn log_road(source: &str, asset_id: &str, r: &dt_core::road::RoadCounters) {
     if let Some(why) = r.why_none() {
         tracing::warn!(source = %source, asset = %asset_id, "{why}");
     } else if r.read > 0 {
-        tracing::info!(
-            source = %source,
-            asset = %asset_id,
-            read = r.read,
-            at_rest = r.at_rest,
-            slower_than_calibrated = r.slower_than_calibrated,
-            without_positions = r.without_positions,
-            settling = r.settling,
-            unsolved = r.unsolved,
-            "road observer blocks"
-        );
+        // the counts as one field: they are the API's `last_run_road`, by name
+        tracing::info!(source = %source, asset = %asset_id, blocks = ?r, "road observer");
     }
 }
 
