@@ -64,6 +64,8 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(PY) -m train.road_observer fit --campaign $(OUT)/road-cal --physics $(OUT)/physics.json --out $(OUT)/road.json
 	$(PY) -m train.road_observer evaluate --physics $(OUT)/physics.json --road $(OUT)/road.json --score-from-s 30 --out $(OUT)/road --baseline held=$(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12 held=$(OUT)/road-held
 	$(BIN) road --calibration $(OUT)/road.json --baseline $(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12 --out $(OUT)/road/blocks.csv $(OUT)/road-held/*.mcap
+	$(BIN) simulate --quick --road 5 --seed 2 --pressures 12 --out $(OUT)/road-slow
+	$(BIN) road --calibration $(OUT)/road.json $(OUT)/road-slow/*.mcap
 	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo --road $(OUT)/road.json --road-run $(OUT)/road-held/p2.0-roadC60-s2.mcap --road-baseline $(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
