@@ -250,8 +250,11 @@ function observerCell(o) {
 }
 
 // What the road observer made of a road asset's run: its 10 s blocks (`road` of /runs, `last_run_road`).
+function roadBlocks(r) {   // every complete block, read or not
+  return r.read + r.settling + r.at_rest + r.slower_than_calibrated + r.without_positions + r.unsolved;
+}
 function roadText(r) {
-  const total = r.read + r.settling + r.at_rest + (r.slower_than_calibrated || 0) + r.without_positions + r.unsolved;
+  const total = roadBlocks(r);
   if (!total) return "no complete block: the run was shorter than one";
   const parts = [`${total} blocks`, `${r.read} read`];
   if (r.at_rest) parts.push(`${r.at_rest} at rest (the stroke too small)`);
@@ -262,8 +265,7 @@ function roadText(r) {
   return parts.join(", ");
 }
 function roadCell(r) {
-  const text = roadText(r);
-  const total = r.read + r.settling + r.at_rest + (r.slower_than_calibrated || 0) + r.without_positions + r.unsolved;
+  const text = roadText(r), total = roadBlocks(r);
   if (r.why_none) return `<td class="small bad obs road" title="${esc(text)}">none read</td>`;
   return `<td class="small obs road" title="${esc(text)}">${total ? `${r.read}/${total}` : "none"}</td>`;
 }
