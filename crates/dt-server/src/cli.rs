@@ -134,6 +134,12 @@ pub struct SimulateArgs {
     /// With `--format dyno-csv`: the export's sample rate, Hz.
     #[arg(long, default_value_t = 300.0)]
     pub csv_rate_hz: f64,
+    /// Rate of the logged `/truth/velocity` (the plant's stroke velocity, a
+    /// label the twin never reads), Hz: a divisor of 1000. 1000 logs it at
+    /// the accelerometers' rate, for studying the stroke velocity estimate's
+    /// error; nothing else in the run changes.
+    #[arg(long, default_value_t = dt_sim::run::DEFAULT_TRUTH_VELOCITY_HZ, conflicts_with = "days")]
+    pub truth_velocity_hz: u32,
     /// Play a road drive file instead of the sines: the suspension stroke of
     /// a car at this speed (km/h) over an ISO 8608 road (--road-class),
     /// through a linear quarter-car, 0.5-20 Hz; one run per pressure, every

@@ -61,6 +61,7 @@ fn campaign(args: &SimulateArgs) -> anyhow::Result<Vec<dt_sim::RunSummary>> {
             class: args.road_class,
             seed: args.seed,
         }),
+        truth_velocity_hz: args.truth_velocity_hz,
         ..CampaignSpec::paper(args.seed)
     };
     let bar = crate::progress::bar(spec.runs().len() as u64, "simulate");

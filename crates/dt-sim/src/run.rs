@@ -66,7 +66,15 @@ pub struct RunSpec {
     /// A road drive file instead of the sine ([`crate::road`]);
     /// `frequency_hz` and `stroke_pp_m` are then not used.
     pub road: Option<RoadDrive>,
+    /// Rate of the logged `/truth/velocity`, Hz: a divisor of 1000
+    /// ([`DEFAULT_TRUTH_VELOCITY_HZ`]; 1000 for studying the stroke velocity
+    /// estimate's error at the accelerometers' rate). Logging only: the
+    /// plant, the sensors and every other topic do not change.
+    pub truth_velocity_hz: u32,
 }
+
+/// `/truth/velocity`'s rate unless asked otherwise, Hz.
+pub const DEFAULT_TRUTH_VELOCITY_HZ: u32 = 100;
 
 /// Why a run ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -144,6 +152,7 @@ impl RunSpec {
             quick: false,
             repeat: 0,
             road: None,
+            truth_velocity_hz: DEFAULT_TRUTH_VELOCITY_HZ,
         }
     }
 
@@ -279,8 +288,17 @@ pub fn simulate_run_with<F>(
 where
     F: FnMut(&Sample) -> Result<(), SimError>,
 {
+    let hz = spec.truth_velocity_hz;
+    if hz == 0 || 1000 % hz != 0 {
+        return Err(SimError::InvalidSpec {
+            field: "truth_velocity_hz",
+            value: f64::from(hz),
+            reason: "must divide 1000 (the simulator's millisecond)",
+        });
+    }
+    let every_ms = u64::from(1000 / hz);
     drive(spec, params, |ms, truth, sensors, summary| {
-        emit_tick(ms, truth, sensors, summary, &mut sink)
+        emit_tick(ms, every_ms, truth, sensors, summary, &mut sink)
     })
 }
 
@@ -383,6 +401,7 @@ where
 /// topic-rank order; returns the shock thermocouple reading on 1 s ticks.
 fn emit_tick<F>(
     ms: u64,
+    truth_velocity_every_ms: u64,
     truth: &crate::plant::Truth,
     sensors: &mut Sensors,
     summary: &mut RunSummary,
@@ -430,7 +449,7 @@ where
             static_bar: truth.static_gas_bar,
         })?;
     }
-    if ms % 10 == 0 {
+    if ms % truth_velocity_every_ms == 0 {
         emit(Sample::TruthVelocity {
             t_ns,
             velocity_mps: truth.velocity_mps,
@@ -628,6 +647,9 @@ pub struct CampaignSpec {
     /// A road drive file instead of the sines: one run per pressure (the
     /// frequencies are not used), every run the same drive file.
     pub road: Option<RoadDrive>,
+    /// Rate of the logged `/truth/velocity`, Hz (see
+    /// [`RunSpec::truth_velocity_hz`]).
+    pub truth_velocity_hz: u32,
 }
 
 impl CampaignSpec {
@@ -643,6 +665,7 @@ impl CampaignSpec {
             unit: None,
             repeat: 0,
             road: None,
+            truth_velocity_hz: DEFAULT_TRUTH_VELOCITY_HZ,
         }
     }
 
@@ -666,6 +689,7 @@ impl CampaignSpec {
                     quick: self.quick,
                     repeat: self.repeat,
                     road: self.road,
+                    truth_velocity_hz: self.truth_velocity_hz,
                 });
             }
         }

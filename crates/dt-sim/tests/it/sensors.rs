@@ -47,6 +47,7 @@ fn at_rest_rates_and_noise_match_the_table() {
         quick: false,
         repeat: 0,
         road: None,
+        truth_velocity_hz: dt_sim::run::DEFAULT_TRUTH_VELOCITY_HZ,
     };
     let mut samples = Vec::new();
     let summary = simulate_run_with(&spec, &p, |s| {
@@ -194,4 +195,43 @@ fn accelerometers_clip_at_8_g() {
     let (a1, a2) = s.sample_acceleration();
     assert!((a1 - p.acc_range_mps2).abs() < 1e-12, "{a1}");
     assert!((a2 + p.acc_range_mps2).abs() < 1e-12, "{a2}");
+}
+
+#[test]
+fn truth_velocity_at_1_khz_changes_nothing_else() {
+    let mut p = PlantParams::nominal();
+    p.rest_s = 0.5;
+    p.max_excitation_s = 1.5;
+    let run = |hz: u32| -> Result<(Vec<Sample>, Vec<Sample>), dt_sim::SimError> {
+        let spec = RunSpec {
+            truth_velocity_hz: hz,
+            ..RunSpec::paper(4.0, 2.0, 5)
+        };
+        let (mut truth, mut rest) = (Vec::new(), Vec::new());
+        simulate_run_with(&spec, &p, |s| {
+            match s {
+                Sample::TruthVelocity { .. } => truth.push(*s),
+                _ => rest.push(*s),
+            }
+            Ok(())
+        })?;
+        Ok((truth, rest))
+    };
+    let (truth_100, rest_100) = run(100).unwrap();
+    let (truth_1k, rest_1k) = run(1000).unwrap();
+    // Every other topic bit for bit: the truth's rate is logging only.
+    assert_eq!(rest_1k, rest_100);
+    // Fence posts: the run's last millisecond ends both series.
+    assert_eq!(truth_1k.len(), 10 * (truth_100.len() - 1) + 1);
+    let every_tenth: Vec<Sample> = truth_1k.iter().step_by(10).copied().collect();
+    assert_eq!(every_tenth, truth_100);
+    let Some(Sample::TruthVelocity { t_ns: t1, .. }) = truth_1k.get(1) else {
+        panic!("no second truth sample")
+    };
+    let Some(Sample::TruthVelocity { t_ns: t0, .. }) = truth_1k.first() else {
+        panic!("no truth sample")
+    };
+    assert_eq!(t1 - t0, 1_000_000);
+    let err = run(300).unwrap_err().to_string();
+    assert!(err.contains("truth_velocity_hz = 300"), "{err}");
 }
