@@ -46,9 +46,10 @@ slope's tolerance stays systematic. Blocks are kept under ``OUT/blocks`` and rea
 A calibration vouches only for strokes as fast as those it read: ``fit`` keeps the slowest
 block's stroke velocity RMS (``filters.slowest_calibrated_stroke_rms_mps``), and a slower block
 is not read (here by :func:`calibrated_blocks`, in dt-core by the streaming observer). Driven
-slower, the friction read falls short of the calibration's line by a factor (the stroke
-filter's velocity error weighs more on a slow stroke; README, "Nineteenth session"): calibrate
-with drives at the speeds the vehicles drive.
+slower, the friction read falls short of the calibration's line by a factor: errors in
+variables, the sensors' noise in the stroke velocity weighing more on a slow stroke
+(:mod:`train.road_velocity` measures it; :func:`simex_alpha` corrects for it, in this reference
+only; README, "Twentieth session"): calibrate with drives at the speeds the vehicles drive.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ import json
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import scipy.linalg
@@ -160,9 +161,100 @@ def law_forces(v: np.ndarray, y: np.ndarray, tau: np.ndarray, v_s: float) -> lis
     return [np.tanh(v / v_s)] + law + [f * tau for f in law] + [y]
 
 
-def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -> dict[str, np.ndarray]:
+def stroke_input(ra: np.ndarray, obs: dict[str, Any]) -> np.ndarray:
+    """The stroke filter's input from ``a1 − a2`` sampled at 1 kHz (m/s²): the accelerometers'
+    first-order lag inverted, then each millisecond's mean (trapezoid), not its first sample held."""
+    ra = ra + np.r_[0.0, np.diff(ra)] / (2 * np.pi * obs["accel_bw_hz"] * ACC_DT_S)
+    return np.r_[0.5 * (ra[1:] + ra[:-1]), ra[-1]]
+
+
+def block_columns(t: np.ndarray, v: np.ndarray, y: np.ndarray, obs: dict[str, Any],
+                  mount: tuple[np.ndarray, np.ndarray], zi: list[np.ndarray] | None
+                  ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A block's force columns at the accelerometer's samples (built at ``FINE_HZ`` from the
+    velocity ``v`` and extension ``y`` at the block's millisecond times ``t``, through the mount
+    and accelerometer filter ``mount``), and the filters' state after it (``zi``: before it)."""
+    b, a = mount
+    tf = t[0] + np.arange(len(t) * FINE) * ACC_DT_S / FINE
+    forces = law_forces(np.interp(tf, t, v), np.interp(tf, t, y), tf / 100.0, obs["friction_v_smooth_mps"])
+    state = [np.zeros(max(len(a), len(b)) - 1) for _ in forces] if zi is None else zi
+    cols, after = [], []
+    for f, z in zip(forces, state):
+        col, z_end = signal.lfilter(b, a, f, zi=z)
+        cols.append(col[::FINE])
+        after.append(z_end)
+    return cols, after
+
+
+def block_alpha(cols: list[np.ndarray], a2: np.ndarray) -> tuple[float, float, float]:
+    """Least squares of ``a2`` on the columns and a constant: ``α`` (the first column's), its
+    standard deviation and the residual variance (samples where ``a2`` is missing left out)."""
+    good = np.isfinite(a2)
+    xm = np.column_stack(cols + [np.ones(len(a2))])[good]
+    active = np.abs(xm).max(axis=0) > 1e-12
+    active[0] = True
+    xm = xm[:, active]
+    coef = scipy.linalg.lstsq(xm, a2[good], lapack_driver="gelsy")[0]  # QR: ten times an SVD's speed
+    r = a2[good] - xm @ coef
+    s2 = float(r @ r) / max(1, len(r) - xm.shape[1])
+    # var(α) = s² / |the part of α's column the other columns do not explain|²
+    rest = xm[:, 0] - xm[:, 1:] @ scipy.linalg.lstsq(xm[:, 1:], xm[:, 0], lapack_driver="gelsy")[0]
+    return float(coef[0]), float(np.sqrt(s2 / max(float(rest @ rest), 1e-300))), s2
+
+
+def velocity_noise(n_ms: int, rng: np.random.Generator, physics: dict[str, Any], opts: dict[str, float],
+                   figures: dict[str, float], warm_ms: int = 2000) -> np.ndarray:
+    """The stroke filter's velocity (m/s, one per millisecond) when its sensors read noise alone:
+    white noise and uniform quantisation at ``figures`` (``accel_noise_mps2``, ``accel_lsb_mps2``
+    on ``a1`` and ``a2``, ``pos_noise_m``, ``pos_lsb_m``), through the same input, filter and
+    smoother as the observer's; the first ``warm_ms`` (the filter settling) dropped."""
+    obs = physics.get("observer") or shocktwin.default_observer_params()
+    kal = physics.get("kalman") or shocktwin.default_params()["kalman"]
+    m = (n_ms + warm_ms) // POT_PER_ACC + 1
+    n = m * POT_PER_ACC
+
+    def acc() -> np.ndarray:
+        lsb = figures["accel_lsb_mps2"]
+        return rng.normal(0.0, figures["accel_noise_mps2"], n) + rng.uniform(-lsb / 2, lsb / 2, n)
+
+    u = stroke_input(acc() - acc(), obs).reshape(m, POT_PER_ACC)
+    lsb = figures["pos_lsb_m"]
+    z = rng.normal(0.0, figures["pos_noise_m"], m + 1) + rng.uniform(-lsb / 2, lsb / 2, m + 1)
+    kf = StrokeFilter(opts["pot_rc_hz"], opts["sigma_accel"], kal["sigma_bias"], kal["sigma_position"])
+    xf, xp = kf.forward(u, z)
+    return kf.fill(kf.smooth(xf, xp, 0, m), u)[warm_ms:warm_ms + n_ms, 1]
+
+
+def simex_alpha(alpha: float, t: np.ndarray, v: np.ndarray, y: np.ndarray, a2: np.ndarray, obs: dict[str, Any],
+                mount: tuple[np.ndarray, np.ndarray], zi: list[np.ndarray] | None, physics: dict[str, Any],
+                opts: dict[str, float], simex: dict[str, Any], block: int) -> float:
+    """``α`` corrected for the velocity's noise by SIMEX (Cook & Stefanski 1994): the block read
+    again with the sensors' noise (:func:`velocity_noise`, ``simex["figures"]``) added once and
+    twice more (``simex["reps"]`` draws each, seeded by ``simex["seed"]`` and the block), and the
+    reads at noise variance λ = 1, 2, 3 times the data's extrapolated quadratically to λ = 0:
+    ``3 α₁ − 3 α₂ + α₃``."""
+    rng = np.random.default_rng([int(simex["seed"]), block])
+    means = [alpha]
+    for extra in (1, 2):
+        reads = []
+        for _ in range(int(simex["reps"])):
+            noise = sum(velocity_noise(len(t), rng, physics, opts, simex["figures"]) for _ in range(extra))
+            reads.append(block_alpha(block_columns(t, v + noise, y, obs, mount, zi)[0], a2)[0])
+        means.append(float(np.mean(reads)))
+    return 3 * means[0] - 3 * means[1] + means[2]
+
+
+def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float],
+                   velocity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                   simex: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
     """Per block of a run: ``t_s`` (block end), ``alpha_n``, ``alpha_sd_n`` (the regression's own),
-    ``residual_mps2``, ``temp_c`` (shock thermocouple), ``stroke_rms_mps``."""
+    ``residual_mps2``, ``temp_c`` (shock thermocouple), ``stroke_rms_mps``.
+
+    ``velocity`` (a study's hook, :mod:`train.road_velocity`): called with each block's
+    millisecond times (s) and the stroke filter's velocity there, returns the velocity to regress
+    instead (the simulator's truth, or the filter's with more noise); the blocks read and their
+    stroke RMS stay the filter's. ``simex`` (``{"figures", "reps", "seed"}``): each block's ``α``
+    corrected for the velocity's noise (:func:`simex_alpha`; its sd stays the regression's)."""
     lg = shocktwin.read_log(path)
     missing = [t for t in TOPICS if t not in lg.topics]
     if missing:
@@ -175,9 +267,7 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -
     ok = np.isfinite(ra)
     if ok.sum() < 2 or not np.isfinite(pos["position_m"]).any() or not np.isfinite(tc["temperature_c"]).any():
         raise ValueError(f"{path}: no usable /acceleration, /position or /temperature/shock samples")
-    ra = np.interp(t_acc, t_acc[ok], ra[ok])  # a missing sample: its neighbours' line
-    ra = ra + np.r_[0.0, np.diff(ra)] / (2 * np.pi * obs["accel_bw_hz"] * ACC_DT_S)  # the sensors' lag, inverted
-    ra = np.r_[0.5 * (ra[1:] + ra[:-1]), ra[-1]]  # each millisecond's mean (trapezoid), not its first sample held
+    ra = stroke_input(np.interp(t_acc, t_acc[ok], ra[ok]), obs)  # a missing sample: its neighbours' line
     first = int(np.argmax(np.isfinite(pos["position_m"])))  # the filter starts at the first position read
     pos = {k: v[first:] for k, v in pos.items()}
     tc_ok = np.isfinite(tc["temperature_c"])
@@ -196,33 +286,19 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float]) -
         xs = kf.smooth(xf, xp, k0, k0 + per_block + lag)[:per_block + 1]
         x = kf.fill(xs, u[k0:k0 + per_block])
         t = t_acc[i0 + k0 * POT_PER_ACC:i0 + (k0 + per_block) * POT_PER_ACC]
-        tf = t[0] + np.arange(len(t) * FINE) * ACC_DT_S / FINE
-        vf = np.interp(tf, t, x[:, 1])
-        forces = law_forces(vf, np.interp(tf, t, x[:, 0]), tf / 100.0, obs["friction_v_smooth_mps"])
-        if zi is None:
-            zi = [np.zeros(max(len(a), len(b)) - 1) for _ in forces]
-        cols = []
-        for j, f in enumerate(forces):
-            col, zi[j] = signal.lfilter(b, a, f, zi=zi[j])
-            cols.append(col[::FINE])
+        v = x[:, 1] if velocity is None else velocity(t, x[:, 1])
+        zi_start = zi
+        cols, zi = block_columns(t, v, x[:, 0], obs, (b, a), zi)
         stroke = float(np.sqrt(np.mean(x[:, 1] ** 2)))
         if t[0] < opts["settle_s"] or stroke < MIN_STROKE_RMS_MPS:
             continue
         a2 = acc["a2_mps2"][i0 + k0 * POT_PER_ACC:i0 + (k0 + per_block) * POT_PER_ACC]
-        good = np.isfinite(a2)
-        xm = np.column_stack(cols + [np.ones(len(t))])[good]
-        active = np.abs(xm).max(axis=0) > 1e-12
-        active[0] = True
-        xm = xm[:, active]
-        coef = scipy.linalg.lstsq(xm, a2[good], lapack_driver="gelsy")[0]  # QR: ten times an SVD's speed
-        r = a2[good] - xm @ coef
-        s2 = float(r @ r) / max(1, len(r) - xm.shape[1])
-        # var(α) = s² / |the part of α's column the other columns do not explain|²
-        rest = xm[:, 0] - xm[:, 1:] @ scipy.linalg.lstsq(xm[:, 1:], xm[:, 0], lapack_driver="gelsy")[0]
-        cov00 = s2 / max(float(rest @ rest), 1e-300)
+        alpha, sd, s2 = block_alpha(cols, a2)
+        if simex is not None:
+            alpha = simex_alpha(alpha, t, v, x[:, 0], a2, obs, (b, a), zi_start, physics, opts, simex, k0 // per_block)
         out["t_s"].append(float(t[-1]))
-        out["alpha_n"].append(float(coef[0]))
-        out["alpha_sd_n"].append(float(np.sqrt(cov00)))
+        out["alpha_n"].append(alpha)
+        out["alpha_sd_n"].append(sd)
         out["residual_mps2"].append(float(np.sqrt(s2)))
         out["temp_c"].append(float(np.mean(np.interp(t, tc["t_s"], tc["temperature_c"]))))
         out["stroke_rms_mps"].append(stroke)
@@ -450,7 +526,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         blocks = [calibrated_blocks(r, model) for r in readings([r.path for r in campaign.runs], physics, opts, args.jobs, cache)]
         set_model = dict(model)
         if name in baselines:
-            base = calibrated_blocks(readings([baselines[name][0]], physics, opts, 1, cache)[0], model)
+            raw = readings([baselines[name][0]], physics, opts, 1, cache)[0]
+            base = calibrated_blocks(raw, model)
+            if len(raw["alpha_n"]) and not len(base["alpha_n"]):
+                raise ValueError(
+                    f"{baselines[name][0]}: every block of the baseline drive is slower than the calibration's slowest "
+                    f"({model['filters']['slowest_calibrated_stroke_rms_mps']:.3f} m/s stroke RMS, fastest here "
+                    f"{float(raw['stroke_rms_mps'].max()):.3f}): drive it faster, or calibrate at its speed")
             set_model = with_baseline(model, physics, *baselines[name], base)
         for run, r in zip(campaign.runs, blocks):
             lab = float(run.label_bar)  # type: ignore[arg-type]

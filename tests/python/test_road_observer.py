@@ -411,6 +411,42 @@ def test_a_drive_slower_than_the_calibration_s_is_not_read(shocktwin_bin: Path, 
     assert proc.returncode == 0, proc.stderr
     assert re.search(r"road observer: 0 blocks read, 0 at rest, [1-9]\d* slower than calibrated", proc.stdout), proc.stdout
     assert {r["health"] for r in csv.DictReader((tmp_path / "slow.csv").open())} == {"unknown"}
+    # nor is it a baseline: the Python tool names the floor instead of reading nothing
+    with pytest.raises(ValueError, match=r"every block of the baseline drive is slower than the calibration's slowest"):
+        ro.main(["evaluate", "--physics", str(road_model[0]), "--road", str(road_model[1]), "--out", str(tmp_path / "ev"),
+                 "--baseline", f"held={slow}@12", "--jobs", "1", f"held={road_sets[1]}"])
+
+
+def test_at_a_slow_drive_the_friction_falls_short_by_the_sensors_noise_and_simex_restores_it(
+        shocktwin_bin: Path, road_model: tuple[Path, Path], tmp_path: Path) -> None:
+    """Why a slow drive reads low (README, "Twentieth session"): a 5 km/h drive at 2 and 12 bar
+    with the simulator's velocity logged at 1 kHz. The stroke filter's error there is almost all
+    what the sensors' noise figures give through the filter alone; regressed on that velocity,
+    the friction's slope against the gas pressure falls short of the true velocity's by more
+    than 5 %, and errors-in-variables SIMEX with those noise figures brings it back within 3 %.
+    The study refuses a run whose truth is logged at the default 100 Hz, by name."""
+    proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "5", "--pressures", "2,12", "--seed", "2",
+                           "--truth-velocity-hz", "1000", "--out", str(tmp_path / "slow")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    from train import road_velocity as rv
+    out = tmp_path / "study.json"
+    runs = sorted((tmp_path / "slow").glob("*.mcap"))
+    assert rv.main(["--physics", str(road_model[0]), "--road", str(road_model[1]), "--json", str(out),
+                    *map(str, runs)]) == 0
+    study = json.loads(out.read_text())
+    for row in study["runs"]:
+        assert row["noise_only_rms_mps"] >= 0.8 * row["error_rms_mps"], row
+    (slope,) = study["slopes"]
+    truth = slope["slope_truth_n_per_bar"]
+    assert slope["slope_filter_n_per_bar"] < 0.95 * truth, slope
+    assert slope["slope_simex_n_per_bar"] == pytest.approx(truth, rel=0.03), slope
+    proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "5", "--pressures", "12", "--seed", "2",
+                           "--out", str(tmp_path / "plain")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    (plain,) = (tmp_path / "plain").glob("*.mcap")
+    with pytest.raises(ValueError, match=r"/truth/velocity is logged at 100 Hz.*--truth-velocity-hz 1000"):
+        rv.main(["--physics", str(road_model[0]), "--road", str(road_model[1]), str(plain)])
 
 
 def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Path, road_sets: tuple[Path, Path, Path],
