@@ -5,14 +5,16 @@ jupytext converts it; nbclient runs it on an ipykernel ``python3`` kernel whose
 kernelspec (written to a temporary ``JUPYTER_PATH``) starts this interpreter, i.e. the
 project's .venv with the ``shocktwin`` package. The notebook simulates its own data
 with the CLI (``target/release/shocktwin`` or ``SHOCKTWIN_BIN``, built when missing),
-trains a small observer bundle with ``train/`` and writes its figure to
-``SHOCKTWIN_NOTEBOOK_OUT`` (~30–40 s on two cores).
+trains a small observer bundle with ``train/``, fits a road calibration and reads a held-out
+drive with the road observer, and writes its figures to ``SHOCKTWIN_NOTEBOOK_OUT`` (~1.5 min on
+two cores).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -20,7 +22,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOK = ROOT / "docs" / "analyst.py"
-CELL_TIMEOUT_S = 150  # the longest cell trains the bundle (~20 s alone, more on a busy machine)
+CELL_TIMEOUT_S = 150  # the longest cells train the bundle and fit the road calibration (~20–35 s alone)
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +84,9 @@ def test_the_notebook_makes_its_figure(executed):
     assert width > 800 and height > 400
     shown = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
              if "image/png" in o.get("data", {})]
-    assert len(shown) == 1, "the estimate figure is displayed in the notebook"
+    assert len(shown) == 2, "the estimate and road figures are displayed in the notebook"
+    road = out / "analyst-road.png"
+    assert road.is_file() and road.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_the_notebook_shows_the_interval_against_the_truth_of_simulated_data(executed):
@@ -98,3 +102,22 @@ def test_the_notebook_shows_the_interval_against_the_truth_of_simulated_data(exe
     # the estimate is the network on the features the notebook computed
     parity = next(s for s in text.splitlines() if s.startswith("max |estimate - predict(features)| = "))
     assert float(parity.split("= ", 1)[1].split()[0]) < 1e-9, parity
+
+
+def test_the_notebook_reads_a_held_out_drive_with_the_road_observer(executed):
+    """Section 6: a road calibration fitted in the notebook, and `shocktwin.road_blocks` with the
+    unit's baseline reads the held-out drive file's 2 and 12 bar runs: the truth inside each
+    final interval, and the 2 bar run `leak`, the 12 bar run `ok` (SPEC §6a)."""
+    nb, _ = executed
+    text = stdout(nb)
+    assert "road observer: alpha = " in text, text[-2000:]
+    finals = {}
+    for line in text.splitlines():
+        m = re.match(r"p[\d.]+-roadC60-s2\.mcap: true charge ([\d.]+) bar; (\d+) blocks read; final "
+                     r"([-\d.]+) bar \[([-\d.]+), ([-\d.]+)\], health (\w+)", line)
+        if m:
+            finals[float(m[1])] = (int(m[2]), float(m[4]), float(m[5]), m[6])
+    assert set(finals) == {2.0, 12.0}, text[-2000:]
+    for charge, (blocks, lo, hi, health) in finals.items():
+        assert blocks >= 3 and lo < charge < hi, (charge, finals)
+    assert finals[2.0][3] == "leak" and finals[12.0][3] == "ok", finals
