@@ -492,9 +492,9 @@ def with_baseline(model: dict[str, Any], physics: dict[str, Any], path: Path, ba
 
 def drive_of(run: Any) -> str:
     """The drive file a run played: its excitation and seed (every charge of a simulated road
-    campaign plays the same file)."""
+    campaign plays the same file; ``drive_seed`` when it was chosen apart from the rig's)."""
     meta = run.log.metadata
-    return f"{meta.get('excitation', run.run_id)} (seed {meta.get('seed', '?')})"
+    return f"{meta.get('excitation', run.run_id)} (seed {meta.get('drive_seed', meta.get('seed', '?'))})"
 
 
 def options(args: argparse.Namespace) -> dict[str, float]:

@@ -90,7 +90,7 @@ def study_run(path: Path, physics: dict[str, Any], model: dict[str, Any], figure
     ways["simex"] = block_readings(str(path), physics, opts, simex={"figures": figures, "reps": 2, "seed": seed})
     meta = shocktwin.read_log(str(path)).metadata
     row: dict[str, Any] = {
-        "run": path.name, "excitation": meta.get("excitation"), "seed": meta.get("seed"),
+        "run": path.name, "excitation": meta.get("excitation"), "seed": meta.get("drive_seed", meta.get("seed")),
         "charge_bar": meta.get("charge_pressure_bar"), "blocks": int(len(ways["filter"]["alpha_n"])),
         "stroke_rms_mps": float(np.sqrt(np.mean(v ** 2))),
         "lead_ms": lead_s * 1e3,

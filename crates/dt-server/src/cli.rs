@@ -140,6 +140,11 @@ pub struct SimulateArgs {
     /// error; nothing else in the run changes.
     #[arg(long, default_value_t = dt_sim::run::DEFAULT_TRUTH_VELOCITY_HZ, conflicts_with = "days")]
     pub truth_velocity_hz: u32,
+    /// With --road: the drive file's own seed, apart from --seed (which keeps
+    /// drawing the rig's sensor errors, the room and the noise): another road
+    /// on the same vehicle and sensors. Run ids get `-d<seed>`.
+    #[arg(long, requires = "road", conflicts_with = "days")]
+    pub drive_seed: Option<u64>,
     /// Play a road drive file instead of the sines: the suspension stroke of
     /// a car at this speed (km/h) over an ISO 8608 road (--road-class),
     /// through a linear quarter-car, 0.5-20 Hz; one run per pressure, every

@@ -71,6 +71,11 @@ pub struct RunSpec {
     /// estimate's error at the accelerometers' rate). Logging only: the
     /// plant, the sensors and every other topic do not change.
     pub truth_velocity_hz: u32,
+    /// With `road`: the drive file's own seed (`road.seed`), apart from the
+    /// campaign's `seed`, which keeps drawing the rig's sensor errors, the
+    /// room and the noise: another road on the same vehicle. `None`: the
+    /// drive file follows the campaign's seed (or the leak history's day).
+    pub drive_seed: Option<u64>,
 }
 
 /// `/truth/velocity`'s rate unless asked otherwise, Hz.
@@ -153,6 +158,7 @@ impl RunSpec {
             repeat: 0,
             road: None,
             truth_velocity_hz: DEFAULT_TRUTH_VELOCITY_HZ,
+            drive_seed: None,
         }
     }
 
@@ -165,8 +171,8 @@ impl RunSpec {
         }
     }
 
-    /// E.g. `p12.0-f2.0-s1`, `p12.0-roadC60-s1` (`-u<n>` appended for a varied unit, `-r<k>` for
-    /// repeat take `k > 0`).
+    /// E.g. `p12.0-f2.0-s1`, `p12.0-roadC60-s1` (`-d<k>` appended for a drive file of seed `k`
+    /// on the campaign's rig, `-u<n>` for a varied unit, `-r<k>` for repeat take `k > 0`).
     #[must_use]
     pub fn run_id(&self) -> String {
         let excitation = match self.road {
@@ -174,6 +180,9 @@ impl RunSpec {
             None => format!("f{}", fmt_num(self.frequency_hz)),
         };
         let mut id = format!("p{}-{excitation}-s{}", fmt_num(self.charge_bar), self.seed);
+        if let Some(d) = self.drive_seed {
+            id = format!("{id}-d{d}");
+        }
         if let Some(n) = self.unit {
             id = format!("{id}-u{n}");
         }
@@ -218,6 +227,9 @@ impl RunSpec {
         meta.extra.insert("simulated".into(), "true".into());
         meta.extra.insert("simulator".into(), SIM_VERSION.into());
         meta.extra.insert("seed".into(), self.seed.to_string());
+        if let Some(d) = self.drive_seed {
+            meta.extra.insert("drive_seed".into(), d.to_string());
+        }
         meta.extra.insert("quick".into(), self.quick.to_string());
         if let Some(n) = self.unit {
             meta.extra.insert("unit_seed".into(), n.to_string());
@@ -236,6 +248,11 @@ impl RunSpec {
                 u64::from(r.class.letter()),
                 0x726f_6164,
             ]),
+        };
+        let excitation = match self.drive_seed {
+            // a drive file of its own: its own noise and room (runs made before it keep theirs)
+            Some(d) => mix_seed(&[excitation, d, 0x0064_7269_7665]),
+            None => excitation,
         };
         let base = [
             self.seed,
@@ -650,6 +667,9 @@ pub struct CampaignSpec {
     /// Rate of the logged `/truth/velocity`, Hz (see
     /// [`RunSpec::truth_velocity_hz`]).
     pub truth_velocity_hz: u32,
+    /// With `road`: the drive file's seed apart from the rig's (see
+    /// [`RunSpec::drive_seed`]).
+    pub drive_seed: Option<u64>,
 }
 
 impl CampaignSpec {
@@ -666,6 +686,7 @@ impl CampaignSpec {
             repeat: 0,
             road: None,
             truth_velocity_hz: DEFAULT_TRUTH_VELOCITY_HZ,
+            drive_seed: None,
         }
     }
 
@@ -688,8 +709,12 @@ impl CampaignSpec {
                     unit: self.unit,
                     quick: self.quick,
                     repeat: self.repeat,
-                    road: self.road,
+                    road: self.road.map(|r| RoadDrive {
+                        seed: self.drive_seed.unwrap_or(r.seed),
+                        ..r
+                    }),
                     truth_velocity_hz: self.truth_velocity_hz,
+                    drive_seed: self.road.and(self.drive_seed),
                 });
             }
         }

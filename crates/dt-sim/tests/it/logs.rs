@@ -96,3 +96,67 @@ fn full_4_hz_run_stops_at_80_c_within_minutes() {
     // Energy bookkeeping: stored + lost = dissipated (within 0.5 %).
     assert!(summary.heat_to_room_j < summary.energy_dissipated_j);
 }
+
+/// A drive file of its own seed on the campaign's rig: the rig's sensor errors
+/// stay the campaign seed's (the accelerometers' reading at rest), the road is
+/// the drive seed's (the stroke), and the run id and metadata say so.
+#[test]
+fn a_drive_seed_plays_another_road_on_the_same_sensors() {
+    let dir = tempfile::tempdir().unwrap();
+    let road = |seed: u64| dt_sim::RoadDrive {
+        speed_kmh: 60.0,
+        class: dt_sim::RoadClass::C,
+        seed,
+    };
+    let run = |name: &str, seed: u64, drive: Option<u64>| {
+        let spec = dt_sim::CampaignSpec {
+            pressures_bar: vec![12.0],
+            quick: true,
+            road: Some(road(seed)),
+            drive_seed: drive,
+            ..dt_sim::CampaignSpec::paper(seed)
+        };
+        let out = dir.path().join(name);
+        dt_sim::simulate_campaign(&spec, &out).unwrap();
+        let path = std::fs::read_dir(&out)
+            .unwrap()
+            .next()
+            .unwrap()
+            .unwrap()
+            .path();
+        read_log(&path).unwrap()
+    };
+    let (rig4, rig4_road6, rig6) = (run("a", 4, None), run("b", 4, Some(6)), run("c", 6, None));
+    assert_eq!(rig4_road6.metadata.run_id, "p12.0-roadC60-s4-d6");
+    let extra = |log: &dt_core::log::RunLog, key: &str| log.metadata.extra.get(key).cloned();
+    assert_eq!(extra(&rig4_road6, "drive_seed").as_deref(), Some("6"));
+    assert_eq!(extra(&rig4_road6, "seed").as_deref(), Some("4"));
+    assert_eq!(extra(&rig4, "drive_seed"), None);
+    // the body accelerometer at rest (the first 5 s): the rig's offset and gain
+    let rest_a2 = |log: &dt_core::log::RunLog| {
+        let v: Vec<f64> = log.acceleration.iter().take(5000).map(|a| a.2).collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    assert!((rest_a2(&rig4_road6) - rest_a2(&rig4)).abs() < 0.005);
+    assert!((rest_a2(&rig4_road6) - rest_a2(&rig6)).abs() > 0.03);
+    // the stroke while driving: the drive seed's road
+    let stroke = |log: &dt_core::log::RunLog| -> Vec<f64> {
+        log.position.iter().skip(2000).map(|p| p.1).collect()
+    };
+    let corr = |a: &[f64], b: &[f64]| {
+        let n = a.len().min(b.len());
+        let (ma, mb) = (
+            a[..n].iter().sum::<f64>() / n as f64,
+            b[..n].iter().sum::<f64>() / n as f64,
+        );
+        let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+        for i in 0..n {
+            sab += (a[i] - ma) * (b[i] - mb);
+            saa += (a[i] - ma) * (a[i] - ma);
+            sbb += (b[i] - mb) * (b[i] - mb);
+        }
+        sab / (saa * sbb).sqrt()
+    };
+    assert!(corr(&stroke(&rig4_road6), &stroke(&rig6)) > 0.99);
+    assert!(corr(&stroke(&rig4_road6), &stroke(&rig4)).abs() < 0.5);
+}
