@@ -727,3 +727,18 @@ def test_a_road_vehicle_losing_gas_gets_its_leak_rate_and_fault_date(
     fault = trend["fault"]
     lo, hi = unix(fault["t_lo"]), unix(fault["t_hi"])
     assert lo <= true_fault <= hi, (fault, true_fault)
+
+
+def test_a_drive_file_of_its_own_seed_is_its_own_drive_for_the_calibration() -> None:
+    """`simulate --drive-seed` runs carry `drive_seed`: the fit's leave-one-drive-out groups by it,
+    not by the rig's `seed` (two roads on one rig are two drive files)."""
+    class Run:
+        def __init__(self, meta: dict[str, str]) -> None:
+            self.run_id = meta.get("run_id", "r")
+            self.log = type("Log", (), {"metadata": meta})()
+
+    road = "road: ISO 8608 class C at 60 km/h"
+    same_rig = [Run({"excitation": road, "seed": "4"}), Run({"excitation": road, "seed": "4", "drive_seed": "6"})]
+    other_rig = Run({"excitation": road, "seed": "6"})
+    assert ro.drive_of(same_rig[0]) != ro.drive_of(same_rig[1])
+    assert ro.drive_of(same_rig[1]) == ro.drive_of(other_rig)
