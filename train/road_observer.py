@@ -3,6 +3,7 @@ accelerometer, regressed over ten-second blocks of drive (a research tool; simul
 
     python -m train.road_observer fit --campaign DIR --physics physics.json --out road.json
     python -m train.road_observer evaluate --physics physics.json --road road.json --out DIR NAME=DIR ...
+    python -m train.road_observer skew --physics physics.json --road road.json RUN.mcap ...
 
 The dyno observer (dt-core ``charge``) fits one window per velocity reversal of a sine and
 refuses a road (README, "Fifteenth session"); ``train.road_bound`` says the information is
@@ -244,9 +245,25 @@ def simex_alpha(alpha: float, t: np.ndarray, v: np.ndarray, y: np.ndarray, a2: n
     return 3 * means[0] - 3 * means[1] + means[2]
 
 
+def skewed(x: np.ndarray, skew_s: float) -> np.ndarray:
+    """``x`` (sampled at 1 kHz) as sampled ``skew_s`` later: a band-limited fractional shift by
+    FFT (zero-padded to twice its length, held at its ends; missing samples bridged, then left
+    missing)."""
+    ok = np.isfinite(x)
+    idx = np.arange(len(x))
+    filled = np.interp(idx, idx[ok], x[ok]) if ok.any() else np.zeros(len(x))
+    n = len(filled)
+    size = 1 << int(np.ceil(np.log2(2 * max(n, 1))))
+    padded = np.r_[filled, np.full(size - n, filled[-1] if n else 0.0)]
+    f = np.fft.rfftfreq(size, ACC_DT_S)
+    out = np.fft.irfft(np.fft.rfft(padded) * np.exp(2j * np.pi * f * skew_s), size)[:n]
+    out[~ok] = np.nan
+    return out
+
+
 def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float],
                    velocity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-                   simex: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
+                   simex: dict[str, Any] | None = None, a2_skew_s: float = 0.0) -> dict[str, np.ndarray]:
     """Per block of a run: ``t_s`` (block end), ``alpha_n``, ``alpha_sd_n`` (the regression's own),
     ``residual_mps2``, ``temp_c`` (shock thermocouple), ``stroke_rms_mps``.
 
@@ -254,7 +271,9 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float],
     millisecond times (s) and the stroke filter's velocity there, returns the velocity to regress
     instead (the simulator's truth, or the filter's with more noise); the blocks read and their
     stroke RMS stay the filter's. ``simex`` (``{"figures", "reps", "seed"}``): each block's ``α``
-    corrected for the velocity's noise (:func:`simex_alpha`; its sd stays the regression's)."""
+    corrected for the velocity's noise (:func:`simex_alpha`; its sd stays the regression's).
+    ``a2_skew_s``: read as if ``a2`` had been sampled this much after ``a1`` (:func:`skewed`; a
+    study of the data acquisition)."""
     lg = shocktwin.read_log(path)
     missing = [t for t in TOPICS if t not in lg.topics]
     if missing:
@@ -263,6 +282,8 @@ def block_readings(path: str, physics: dict[str, Any], opts: dict[str, float],
     kal = physics.get("kalman") or shocktwin.default_params()["kalman"]
     acc, pos, tc = lg.topic("/acceleration"), lg.topic("/position"), lg.topic("/temperature/shock")
     t_acc = acc["t_s"]
+    if a2_skew_s:
+        acc = {**acc, "a2_mps2": skewed(acc["a2_mps2"], a2_skew_s)}
     ra = acc["a1_mps2"] - acc["a2_mps2"]
     ok = np.isfinite(ra)
     if ok.sum() < 2 or not np.isfinite(pos["position_m"]).any() or not np.isfinite(tc["temperature_c"]).any():
@@ -613,6 +634,32 @@ def report(out: Path, rows: list[dict[str, Any]], traces: dict[str, Any], model:
     print(f"wrote {out / 'road_observer.md'}, road_observer.json, road_observer.png (simulated data)")
 
 
+def cmd_skew(args: argparse.Namespace) -> int:
+    """Each run read with ``a2`` taken later than ``a1`` by each skew: the mean friction read and
+    the charge it gives, against the unskewed read. A calibration absorbs a skew its drives
+    share; this says how closely the vehicles' acquisition must match the rig's."""
+    physics = json.loads(args.physics.read_text())
+    model = json.loads(args.road.read_text())
+    opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
+    skews = [float(v) for v in args.skew_us.split(",")]
+    print("The friction read against a sampling skew of a2 behind a1"
+          + (" (SIMULATED DATA)" if model.get("simulated") else "") + "\n")
+    print("| run | skew, µs | blocks | alpha, N | change | charge read, bar | change, bar |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for path in args.runs:
+        base: tuple[float, float] | None = None
+        for us in skews:
+            r = calibrated_blocks(block_readings(str(path), physics, opts, a2_skew_s=us * 1e-6), model)
+            if not len(r["alpha_n"]):
+                print(f"| {path.name} | {us:g} | 0 | | | | |")
+                continue
+            alpha, bar = float(np.mean(r["alpha_n"])), float(np.mean(charge_of(r, model, physics)[0]))
+            base = base or (alpha, bar)
+            print(f"| {path.name} | {us:g} | {len(r['alpha_n'])} | {alpha:.2f} | {100 * (alpha / base[0] - 1):+.2f} % "
+                  f"| {bar:.2f} | {bar - base[1]:+.2f} |")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m train.road_observer", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -641,8 +688,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             s.add_argument("--baseline", action="append", default=[], metavar="SET=RUN.mcap@BAR",
                            help="a drive of that set's unit at a known charge (after a service): reads its seal's offset")
             s.add_argument("sets", nargs="+", help="NAME=DIR of held-out road runs")
+    s = sub.add_parser("skew", help="how a sampling skew of a2 behind a1 moves the read (a data-acquisition study)")
+    s.add_argument("--physics", required=True, type=Path, help="physics.json (mount, filter, geometry)")
+    s.add_argument("--road", required=True, type=Path, help="a road calibration (the fit's output)")
+    s.add_argument("--skew-us", default="0,25,50,100,250", help="skews of a2 behind a1 to read at, µs (comma separated)")
+    s.add_argument("runs", nargs="+", type=Path, help="road runs at known charges")
     args = ap.parse_args(argv)
-    return cmd_fit(args) if args.cmd == "fit" else cmd_evaluate(args)
+    return {"fit": cmd_fit, "evaluate": cmd_evaluate, "skew": cmd_skew}[args.cmd](args)
 
 
 if __name__ == "__main__":

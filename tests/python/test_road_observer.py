@@ -742,3 +742,27 @@ def test_a_drive_file_of_its_own_seed_is_its_own_drive_for_the_calibration() -> 
     other_rig = Run({"excitation": road, "seed": "6"})
     assert ro.drive_of(same_rig[0]) != ro.drive_of(same_rig[1])
     assert ro.drive_of(same_rig[1]) == ro.drive_of(other_rig)
+
+
+def test_a_sampling_skew_of_a2_behind_a1_lowers_the_friction_read(road_sets: tuple[Path, Path, Path],
+                                                                     road_model: tuple[Path, Path],
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """`road_observer skew` (README, "Twentieth session"): read unskewed, a run reads as the
+    observer does; `a2` sampled 100 µs after `a1` reads the friction, and so the charge, lower
+    (about 2 % at 60 km/h); a skew of 0 is the plain reading exactly. A fractional shift by
+    FFT moves a sampled sine by its skew."""
+    held = road_sets[1] / "p12.0-roadC60-s2.mcap"
+    assert ro.main(["skew", "--physics", str(road_model[0]), "--road", str(road_model[1]), "--skew-us", "0,100",
+                    str(held)]) == 0
+    rows = [ln.split("|") for ln in capsys.readouterr().out.splitlines() if ln.startswith(f"| {held.name}")]
+    assert [float(r[2]) for r in rows] == [0.0, 100.0]
+    model = json.loads(road_model[1].read_text())
+    opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
+    plain = ro.calibrated_blocks(ro.block_readings(str(held), json.loads(road_model[0].read_text()), opts), model)
+    assert float(rows[0][4]) == pytest.approx(float(np.mean(plain["alpha_n"])), abs=0.006)  # printed to 0.01 N
+    change = float(rows[1][5].strip().rstrip("%"))
+    assert -6.0 < change < -1.0, rows
+    assert float(rows[1][7]) < -0.2, rows
+    t = np.arange(4000) * 1e-3
+    x = np.sin(2 * np.pi * 7.0 * t)
+    np.testing.assert_allclose(ro.skewed(x, 250e-6)[500:3500], np.sin(2 * np.pi * 7.0 * (t + 250e-6))[500:3500], atol=1e-3)
