@@ -247,7 +247,7 @@ def simex_alpha(alpha: float, t: np.ndarray, v: np.ndarray, y: np.ndarray, a2: n
 
 def skewed(x: np.ndarray, skew_s: float) -> np.ndarray:
     """``x`` (sampled at 1 kHz) as sampled ``skew_s`` later: a band-limited fractional shift by
-    FFT (zero-padded to twice its length, held at its ends; missing samples bridged, then left
+    FFT (padded to twice its length with its last value; missing samples bridged, then left
     missing)."""
     ok = np.isfinite(x)
     idx = np.arange(len(x))
@@ -518,6 +518,11 @@ def drive_of(run: Any) -> str:
     return f"{meta.get('excitation', run.run_id)} (seed {meta.get('drive_seed', meta.get('seed', '?'))})"
 
 
+def calibration_options(model: dict[str, Any]) -> dict[str, float]:
+    """The block options a calibration was fitted with (what :func:`block_readings` needs)."""
+    return {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
+
+
 def options(args: argparse.Namespace) -> dict[str, float]:
     return {"block_s": args.block_s, "lag_s": args.lag_s, "pot_rc_hz": args.pot_rc_hz,
             "sigma_accel": args.sigma_accel, "settle_s": args.settle_s}
@@ -526,7 +531,7 @@ def options(args: argparse.Namespace) -> dict[str, float]:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     model = json.loads(args.road.read_text())
-    opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
+    opts = calibration_options(model)
     args.out.mkdir(parents=True, exist_ok=True)
     cache = args.out / "blocks"
     baselines = {}
@@ -640,7 +645,7 @@ def cmd_skew(args: argparse.Namespace) -> int:
     share; this says how closely the vehicles' acquisition must match the rig's."""
     physics = json.loads(args.physics.read_text())
     model = json.loads(args.road.read_text())
-    opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
+    opts = calibration_options(model)
     skews = [float(v) for v in args.skew_us.split(",")]
     print("The friction read against a sampling skew of a2 behind a1"
           + (" (SIMULATED DATA)" if model.get("simulated") else "") + "\n")

@@ -43,10 +43,10 @@ import shocktwin
 from train.campaign import main_wrapper
 from train.observer import P_ATM_BAR
 from train.progress import progress
-from train.road_observer import ACC_DT_S, block_readings, charge_of, gas_ratio, velocity_noise
+from train.road_observer import (ACC_DT_S, block_readings, calibration_options, charge_of, gas_ratio,
+                                 velocity_noise)
 
 TRUTH_TOPIC = "/truth/velocity"
-OPTS = ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")
 
 
 def truth_velocity(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -65,7 +65,7 @@ def truth_velocity(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def study_run(path: Path, physics: dict[str, Any], model: dict[str, Any], figures: dict[str, float],
               seed: int) -> dict[str, Any]:
     """One run's row: the velocity error's parts and each way's α and charge reading."""
-    opts = {k: model[k] for k in OPTS}
+    opts = calibration_options(model)
     t_true, v_true = truth_velocity(path)
     seen: list[tuple[np.ndarray, np.ndarray]] = []
 
@@ -129,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--accel-lsb-mps2", type=float, default=0.03826, help="each accelerometer's quantisation step")
     ap.add_argument("--pos-noise-m", type=float, default=1.0e-5, help="the potentiometer's white noise")
     ap.add_argument("--pos-lsb-m", type=float, default=2.29e-6, help="the potentiometer's quantisation step")
-    ap.add_argument("--seed", type=int, default=17, help="the SIMEX noise's seed")
+    ap.add_argument("--seed", type=int, default=17, help="the seed of the noise (SIMEX, and the noise-alone RMS)")
     ap.add_argument("--json", type=Path, help="write the rows and slopes here")
     ap.add_argument("runs", nargs="+", type=Path, help="simulated runs with /truth/velocity at 1 kHz")
     args = ap.parse_args(argv)
