@@ -19,7 +19,7 @@
 # real damper.
 #
 # The notebook makes its own data, so it runs anywhere the `shocktwin` Python package
-# and the `shocktwin` command line are (about 1.5 min on two cores):
+# and the `shocktwin` command line are (under a minute on two cores):
 #
 # 1. simulate a small labelled campaign (4, 8 and 12 bar, 1 Hz, 60 s each) and one
 #    held-out run at 6 bar, a charge the campaign does not have;

@@ -6,7 +6,7 @@ kernelspec (written to a temporary ``JUPYTER_PATH``) starts this interpreter, i.
 project's .venv with the ``shocktwin`` package. The notebook simulates its own data
 with the CLI (``target/release/shocktwin`` or ``SHOCKTWIN_BIN``, built when missing),
 trains a small observer bundle with ``train/``, fits a road calibration and reads a held-out
-drive with the road observer, and writes its figures to ``SHOCKTWIN_NOTEBOOK_OUT`` (~1.5 min on
+drive with the road observer, and writes its figures to ``SHOCKTWIN_NOTEBOOK_OUT`` (under a minute on
 two cores).
 """
 
