@@ -145,7 +145,9 @@ def test_fit_then_evaluate_reads_a_held_out_drive(road_sets: tuple[Path, Path, P
     assert 0.5 < model["b_n_per_bar"] < 3.0  # the seal's friction grows with the gas pressure
     assert model["held_out"] == "drive" and len(model["drives"]) == 2
     for row in model["held_out_reads"]:  # each run read by the other drive file's calibration
-        assert abs(row["read_bar"] - row["label_bar"]) < 1.5, row
+        # worst 1.53 bar (12 bar C60 read 13.53) since the simulator's step was made second
+        # order (README, "Twenty-first session"); below 1.5 before
+        assert abs(row["read_bar"] - row["label_bar"]) < 2.0, row
     assert 0.0 < model["held_out_sd_bar"] < 1.5  # one drive file reads beside another: measured, kept
     assert model["systematic_sd_bar"] > 1.0  # 10 % of the seal's friction, in bar
 
@@ -419,12 +421,14 @@ def test_a_drive_slower_than_the_calibration_s_is_not_read(shocktwin_bin: Path, 
 
 def test_at_a_slow_drive_the_friction_falls_short_by_the_sensors_noise_and_simex_restores_it(
         shocktwin_bin: Path, road_model: tuple[Path, Path], tmp_path: Path) -> None:
-    """Why a slow drive reads low (README, "Twentieth session"): a 5 km/h drive at 2 and 12 bar
-    with the simulator's velocity logged at 1 kHz. The stroke filter's error there is almost all
-    what the sensors' noise figures give through the filter alone; regressed on that velocity,
-    the friction's slope against the gas pressure falls short of the true velocity's by more
-    than 5 %, and errors-in-variables SIMEX with those noise figures brings it back within 3 %.
-    The study refuses a run whose truth is logged at the default 100 Hz, by name."""
+    """Why a slow drive reads low (README, "Twentieth session" and "Twenty-first session"): a
+    5 km/h drive at 2 and 12 bar with the simulator's velocity logged at 1 kHz. The stroke
+    filter's error there is mostly what the sensors' noise figures give through the filter
+    alone; regressed on that velocity, the friction's slope against the gas pressure falls short
+    of the true velocity's by more than 5 %, and errors-in-variables SIMEX with those noise
+    figures recovers part of it (39 % here; all of it on the simulator's first-order step, whose
+    body velocity was half a step old). The study refuses a run whose truth is logged at the
+    default 100 Hz, by name."""
     proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "5", "--pressures", "2,12", "--seed", "2",
                            "--truth-velocity-hz", "1000", "--out", str(tmp_path / "slow")],
                           capture_output=True, text=True, timeout=300)
@@ -440,7 +444,8 @@ def test_at_a_slow_drive_the_friction_falls_short_by_the_sensors_noise_and_simex
     (slope,) = study["slopes"]
     truth = slope["slope_truth_n_per_bar"]
     assert slope["slope_filter_n_per_bar"] < 0.95 * truth, slope
-    assert slope["slope_simex_n_per_bar"] == pytest.approx(truth, rel=0.03), slope
+    filt, simex = slope["slope_filter_n_per_bar"], slope["slope_simex_n_per_bar"]
+    assert filt + 0.25 * (truth - filt) < simex < 1.03 * truth, slope
     proc = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--road", "5", "--pressures", "12", "--seed", "2",
                            "--out", str(tmp_path / "plain")], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -744,25 +749,24 @@ def test_a_drive_file_of_its_own_seed_is_its_own_drive_for_the_calibration() -> 
     assert ro.drive_of(same_rig[1]) == ro.drive_of(other_rig)
 
 
-def test_a_sampling_skew_of_a2_behind_a1_lowers_the_friction_read(road_sets: tuple[Path, Path, Path],
-                                                                     road_model: tuple[Path, Path],
-                                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    """`road_observer skew` (README, "Twentieth session"): read unskewed, a run reads as the
-    observer does; `a2` sampled 100 µs after `a1` reads the friction, and so the charge, lower
-    (about 2 % at 60 km/h); a skew of 0 is the plain reading exactly. A fractional shift by
-    FFT moves a sampled sine by its skew."""
+def test_a_sampling_skew_of_a2_behind_a1_beyond_100_us_lowers_the_friction_read(
+        road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """`road_observer skew` (README, "Twentieth session" and "Twenty-first session"): read
+    unskewed, a run reads as the observer does; `a2` sampled 100 µs after `a1` moves the friction
+    read by well under 2 %, 250 µs lowers it (about 6 % at 60 km/h) and so the charge; a skew of
+    0 is the plain reading exactly. A fractional shift by FFT moves a sampled sine by its skew."""
     held = road_sets[1] / "p12.0-roadC60-s2.mcap"
-    assert ro.main(["skew", "--physics", str(road_model[0]), "--road", str(road_model[1]), "--skew-us", "0,100",
+    assert ro.main(["skew", "--physics", str(road_model[0]), "--road", str(road_model[1]), "--skew-us", "0,100,250",
                     str(held)]) == 0
     rows = [ln.split("|") for ln in capsys.readouterr().out.splitlines() if ln.startswith(f"| {held.name}")]
-    assert [float(r[2]) for r in rows] == [0.0, 100.0]
+    assert [float(r[2]) for r in rows] == [0.0, 100.0, 250.0]
     model = json.loads(road_model[1].read_text())
     opts = {k: model[k] for k in ("block_s", "lag_s", "pot_rc_hz", "sigma_accel", "settle_s")}
     plain = ro.calibrated_blocks(ro.block_readings(str(held), json.loads(road_model[0].read_text()), opts), model)
     assert float(rows[0][4]) == pytest.approx(float(np.mean(plain["alpha_n"])), abs=0.006)  # printed to 0.01 N
-    change = float(rows[1][5].strip().rstrip("%"))
-    assert -6.0 < change < -1.0, rows
-    assert float(rows[1][7]) < -0.2, rows
+    change = [float(r[5].strip().rstrip("%")) for r in rows]
+    assert abs(change[1]) < 2.0, rows
+    assert change[2] < -2.0 and float(rows[2][7]) < -0.5, rows
     t = np.arange(4000) * 1e-3
     x = np.sin(2 * np.pi * 7.0 * t)
     np.testing.assert_allclose(ro.skewed(x, 250e-6)[500:3500], np.sin(2 * np.pi * 7.0 * (t + 250e-6))[500:3500], atol=1e-3)

@@ -16,8 +16,13 @@
 //! **Mount** (body end): `m ẍ_b = F − k x_b − c ẋ_b`, `F` the damper force
 //! (tension pulls the body toward the rod). Integrated by semi-implicit
 //! (symplectic) Euler at the plant sub-step (`ω_n dt ≈ 0.16`, stable and
-//! non-dissipative). The loadcell in series with the mount reads
-//! `k x_b + c ẋ_b = F − m ẍ_b`.
+//! non-dissipative). Its velocity is the leapfrog's, half a step behind the
+//! position; the velocity at the step's time, which the damper's stroke
+//! velocity, the mount's own damping and the truth take, is that half step
+//! advanced by the last acceleration (`v + a dt / 2`, second order; before
+//! the twenty-first session the half-step velocity was taken as it was, so
+//! the damper's friction flipped on a body velocity 0.125 ms old). The
+//! loadcell in series with the mount reads `k x_b + c ẋ_b = F − m ẍ_b`.
 
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -91,7 +96,8 @@ impl Actuator {
 pub struct Mount {
     /// Body-end displacement along the axis, m.
     pub x_m: f64,
-    /// Body-end velocity, m/s.
+    /// Body-end velocity over the last step (the leapfrog's half step,
+    /// `dt / 2` behind `x_m`), m/s; [`Mount::velocity_now`] is at `x_m`'s time.
     pub v_mps: f64,
     /// Body-end acceleration of the last step, m/s².
     pub a_mps2: f64,
@@ -114,15 +120,23 @@ impl Mount {
         }
     }
 
-    /// Force the mount passes to the frame (what the loadcell carries), N.
+    /// Body-end velocity at the time of `x_m` (the half step advanced by
+    /// the last acceleration), m/s.
     #[must_use]
-    pub fn frame_force_n(&self) -> f64 {
-        self.k_n_per_m * self.x_m + self.c_ns_per_m * self.v_mps
+    pub fn velocity_now(&self, dt_s: f64) -> f64 {
+        self.v_mps + 0.5 * dt_s * self.a_mps2
+    }
+
+    /// Force the mount passes to the frame (what the loadcell carries) at
+    /// the time of `x_m`, N.
+    #[must_use]
+    pub fn frame_force_n(&self, dt_s: f64) -> f64 {
+        self.k_n_per_m * self.x_m + self.c_ns_per_m * self.velocity_now(dt_s)
     }
 
     /// One semi-implicit Euler step under the damper force `force_n`.
     pub fn step(&mut self, force_n: f64, dt_s: f64) {
-        self.a_mps2 = (force_n - self.frame_force_n()) / self.mass_kg;
+        self.a_mps2 = (force_n - self.frame_force_n(dt_s)) / self.mass_kg;
         self.v_mps += dt_s * self.a_mps2;
         self.x_m += dt_s * self.v_mps;
     }

@@ -302,7 +302,8 @@ impl Plant {
         let dt = self.dt_s;
         let (x_r, v_r, a_r) = self.actuator.kinematics(t);
         let y = x_r - self.mount.x_m;
-        let ydot = v_r - self.mount.v_mps;
+        let v_body = self.mount.velocity_now(dt);
+        let ydot = v_r - v_body;
         let oil_c = self.nodes.oil_c;
         let p_g = self.gas.pressure_pa(self.gas_c, oil_c, y, self.void_m3)?;
         let hyd = self.hyd.evaluate(ydot, p_g, self.void_m3, self.nu_ratio)?;
@@ -312,8 +313,8 @@ impl Plant {
                 value: hyd.force_n,
             });
         }
-        let frame_force_n = self.mount.frame_force_n();
-        let body = (self.mount.x_m, self.mount.v_mps);
+        let frame_force_n = self.mount.frame_force_n(dt);
+        let body = (self.mount.x_m, v_body);
         self.mount.step(hyd.force_n, dt);
         let void_before = self.void_m3;
         self.void_m3 = (self.void_m3 + hyd.dvoid_m3_per_s * dt).max(0.0);

@@ -9,6 +9,7 @@ mod gas;
 mod logs;
 mod params;
 mod sensors;
+mod step;
 mod thermal;
 
 use dt_sim::{Plant, PlantConfig, PlantParams};
