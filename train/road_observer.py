@@ -49,8 +49,9 @@ block's stroke velocity RMS (``filters.slowest_calibrated_stroke_rms_mps``), and
 is not read (here by :func:`calibrated_blocks`, in dt-core by the streaming observer). Driven
 slower, the friction read falls short of the calibration's line by a factor: errors in
 variables, the sensors' noise in the stroke velocity weighing more on a slow stroke
-(:mod:`train.road_velocity` measures it; :func:`simex_alpha` corrects for it, in this reference
-only; README, "Twentieth session"): calibrate with drives at the speeds the vehicles drive.
+(:mod:`train.road_velocity` measures it; :func:`simex_alpha` corrects for the noise's part, about
+40 % of the loss on the corrected simulator, in this reference only; README, "Twentieth session"
+and "Twenty-first session"): calibrate with drives at the speeds the vehicles drive.
 """
 
 from __future__ import annotations

@@ -419,7 +419,7 @@ def test_a_drive_slower_than_the_calibration_s_is_not_read(shocktwin_bin: Path, 
                  "--baseline", f"held={slow}@12", "--jobs", "1", f"held={road_sets[1]}"])
 
 
-def test_at_a_slow_drive_the_friction_falls_short_by_the_sensors_noise_and_simex_restores_it(
+def test_at_a_slow_drive_the_friction_falls_short_by_the_sensors_noise_and_simex_recovers_part_of_it(
         shocktwin_bin: Path, road_model: tuple[Path, Path], tmp_path: Path) -> None:
     """Why a slow drive reads low (README, "Twentieth session" and "Twenty-first session"): a
     5 km/h drive at 2 and 12 bar with the simulator's velocity logged at 1 kHz. The stroke
@@ -753,7 +753,7 @@ def test_a_sampling_skew_of_a2_behind_a1_beyond_100_us_lowers_the_friction_read(
         road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> None:
     """`road_observer skew` (README, "Twentieth session" and "Twenty-first session"): read
     unskewed, a run reads as the observer does; `a2` sampled 100 µs after `a1` moves the friction
-    read by well under 2 %, 250 µs lowers it (about 6 % at 60 km/h) and so the charge; a skew of
+    read by well under 2 %, 250 µs lowers it (6 % on the demo's quick 60 km/h drive) and so the charge; a skew of
     0 is the plain reading exactly. A fractional shift by FFT moves a sampled sine by its skew."""
     held = road_sets[1] / "p12.0-roadC60-s2.mcap"
     assert ro.main(["skew", "--physics", str(road_model[0]), "--road", str(road_model[1]), "--skew-us", "0,100,250",
