@@ -678,7 +678,7 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     datasheet, held); None (with the reason) without nominal windows or when they span less
     than ``min_span_k`` of oil temperature. ``form`` ``valve``: the hinges' law refined
     with an extension valve (``fit_valve_law_windows``, started from the hinges' fit)."""
-    from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_windows, fit_valve_law_windows,
+    from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_valve_law_windows,
                                    reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
@@ -697,7 +697,7 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     if span < LAW_MIN_TEMP_SPAN_K and beta_per_k is None:
         log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
                     "is poorly determined", span)
-    fit = fit_law_windows(wins, physics, obs, beta_per_k=beta_per_k)
+    fit = fit_law_staged(wins, physics, obs, beta_per_k=beta_per_k)
     if form == "valve":
         hinges = fit
         fit = fit_valve_law_windows(wins, physics, obs, fit["law"]["beta_per_k"], start=hinges)
