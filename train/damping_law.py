@@ -27,8 +27,8 @@ window with its friction amplitude held at what those read at its oil temperatur
 everything free. Fitted at once from the linear law, the 2 Hz windows at the top of the
 stroke (most of them in compression) settle where the law carries the friction: on the
 corrected simulator (dt-sim 0.2.0) they read 15 N of a seal friction of about 50 N, the law
-fell 30 % short of the plant's compression force at 0.06 m/s, and the observer's
-measurement model leaned on ``|ÿ|`` to make up for it.
+fell a third short of the plant's compression force at −0.06 m/s (−121 against −183 N at
+56 °C), and the observer's measurement model leaned on ``|ÿ|`` to make up for it.
 
 The data are simulated (``shocktwin simulate``).
 """
