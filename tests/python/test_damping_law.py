@@ -10,6 +10,7 @@ and the law's thinning with the heat."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -193,8 +194,7 @@ def test_the_staged_law_reads_the_friction_alike_at_1_and_2_hz_on_the_simulated_
     not of the excitation) alike at both excitations and both ends of the stroke. Measured:
     51.0 / 54.4 N at 1 Hz, 50.1 / 48.3 N at 2 Hz, residual 0.13 m/s². On these windows and the
     default physics a single fit from the linear law (``fit_law_windows``) reads alike too;
-    the trap the stages avoid shows on the full campaign with the fitted physics (the
-    module docs and README "Twenty-second session"), too long for a test."""
+    the trap the stages avoid shows on the full campaign's windows (the next test)."""
     import subprocess
 
     from train.campaign import load_campaign
@@ -222,5 +222,32 @@ def test_the_staged_law_reads_the_friction_alike_at_1_and_2_hz_on_the_simulated_
     print("friction read (2 Hz?, ÿ > 0?): N", medians, "residual", round(fit["residual_rms_mps2"], 3))
     assert fit["residual_rms_mps2"] < 0.2, fit["residual_rms_mps2"]
     # the quick runs' oil is cold (20-46 °C), where the observer carries a cold term: 6 N
+    for alphas in read.values():
+        assert abs(np.median(alphas) - slow) < 6.0, (medians, slow)
+
+
+def test_the_staged_law_does_not_let_the_2_hz_windows_read_the_friction_as_law() -> None:
+    """The trap itself, on the full campaign's windows: the 80 reversal windows of the
+    simulated dyno's 12 bar 1 and 2 Hz full-length runs that ``observer fit`` fits the law on
+    (``data/law_windows_dyno.json``, simulated data; how they were made is in the file). Fitted
+    at once from the linear law (``fit_law_windows``) the hinges end at 0.48 m/s² RMS and the
+    2 Hz windows at the top of the stroke read 16.7 N of the seal's ≈ 50 N (measured: this test
+    fails then); in stages (``fit_law_staged``) they end at 0.21, each group of windows (1 and
+    2 Hz, either end) reading 49.7-53.8 N."""
+    from train.damping_law import fit_law_staged
+
+    data = json.loads((Path(__file__).parent / "data" / "law_windows_dyno.json").read_text())
+    assert data["simulated_data"]
+    windows = [{**w, "times": np.array(w["times"]), "a2": np.array(w["a2"])} for w in data["windows"]]
+    obs = {**shocktwin.default_observer_params(), **data["observer"]}
+    fit = fit_law_staged(windows, shocktwin.default_params(), obs, beta_per_k=data["beta_per_k"])
+    read = {}
+    for q in fit["per_window"]:
+        read.setdefault((abs(q["accel_mps2"]) > 3.0, q["accel_mps2"] > 0), []).append(q["alpha_n"])
+    medians = {k: round(float(np.median(v)), 1) for k, v in read.items()}
+    print("friction read (2 Hz?, ÿ > 0?): N", medians, "residual", round(fit["residual_rms_mps2"], 3))
+    assert len(read) == 4, medians
+    assert fit["residual_rms_mps2"] < 0.3, fit["residual_rms_mps2"]
+    slow = np.median(read[(False, True)] + read[(False, False)])
     for alphas in read.values():
         assert abs(np.median(alphas) - slow) < 6.0, (medians, slow)
