@@ -354,10 +354,11 @@ def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, 
     at the oil's (the datasheet). The valve's start assumes nothing of it but the windows'
     median linear slope ``c``: a laminar bleed of slope ``c`` that cracks at ``c · 0.1 m/s``,
     the shims then adding as much flow again; the hinges start as in ``fit_law_windows``, or,
-    given ``start`` (``fit_law_windows``' result on the same windows), from its compression
-    hinges and its windows' amplitudes and shifts: at 2 Hz each window has two minima of
-    nearly the same residual (the module docs of dt-core ``charge``), and a fit from the
-    linear start lands the compression windows in the one of ≈ 15 N."""
+    given ``start`` (a hinges' fit on the same windows: ``fit_law_staged``'s in ``observer
+    fit``), from its compression hinges and its windows' amplitudes and shifts: at 2 Hz each
+    window has two minima of nearly the same residual (the module docs of dt-core
+    ``charge``), and a fit from the linear start lands the compression windows in the one of
+    ≈ 15 N — as does a single hinges' fit (``fit_law_windows``) on the corrected simulator."""
     if not windows:
         raise ValueError("no reversal windows to measure the damping law on")
     nh = len(NEG_KNOTS) + 1

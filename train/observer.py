@@ -676,8 +676,9 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     """The window model's damping law, fitted on the nominal runs' reversal windows
     (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
-    than ``min_span_k`` of oil temperature. ``form`` ``valve``: the hinges' law refined
-    with an extension valve (``fit_valve_law_windows``, started from the hinges' fit)."""
+    than ``min_span_k`` of oil temperature. The hinges' law is fitted in stages
+    (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
+    (``fit_valve_law_windows``, started from the hinges' fit)."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_valve_law_windows,
                                    reversal_windows)
 
