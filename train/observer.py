@@ -20,7 +20,8 @@ from the charge in the warm bins; with ``--single-end``, while only one end has 
 a calibrated excitation, the observer reports that end with this spread added (off by
 default: README, "One end alone").
 The law's extension side is a valve whose knee sits at a force (``--law-form valve``, the
-default; ``hinges``: knees at fixed velocities only), and each window's two law scales get a
+default; ``hinges``: knees at fixed velocities only; ``valves``: a valve on either side, which
+extrapolates as a valve does beyond the windows' speeds: README, "Twenty-third session"), and each window's two law scales get a
 Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by default; 0: free).
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
 An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
@@ -680,7 +681,7 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
     (``fit_valve_law_windows``, started from the hinges' fit)."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_valve_law_windows,
-                                   reversal_windows)
+                                   fit_valves_law_windows, reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
     wins = [w for w in reversal_windows(runs, physics, obs, per_run)
@@ -699,11 +700,13 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
         log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
                     "is poorly determined", span)
     fit = fit_law_staged(wins, physics, obs, beta_per_k=beta_per_k)
-    if form == "valve":
+    if form in ("valve", "valves"):
         hinges = fit
         fit = fit_valve_law_windows(wins, physics, obs, fit["law"]["beta_per_k"], start=hinges)
         print(f"damping law, the hinges alone: residual {hinges['residual_rms_mps2']:.3f} m/s² RMS; "
-              "with the extension valve:")
+              f"with the extension valve: {fit['residual_rms_mps2']:.3f}" + (", with both valves:" if form == "valves" else ":"))
+    if form == "valves":
+        fit = fit_valves_law_windows(wins, physics, obs, start=fit)
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
           f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
@@ -967,9 +970,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="fit a reversal's window only when one more reading could narrow the reported variance of "
                         "the charge by this share (default %(default)g; 0: fit every reversal; dt-core "
                         "ObserverParams::fit_gain_floor)")
-    f.add_argument("--law-form", choices=("hinges", "valve"), default="valve",
+    f.add_argument("--law-form", choices=("hinges", "valve", "valves"), default="valve",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
-                        "extension valve whose knee sits at a force (README, \"The extension valve\")")
+                        "extension valve whose knee sits at a force (README, \"The extension valve\"), or a valve "
+                        "on either side (README, \"Twenty-third session\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)
