@@ -331,6 +331,7 @@ def fit_law_staged(windows: Sequence[dict[str, Any]], physics: dict[str, Any], o
 
 
 VALVE_SCALE = np.array([1000.0, 10_000.0, 100.0, 1e-5])  # a N·s/m, b N·s²/m², F_c N, g m/(s·N^1.5)
+VALVE_FIELDS = ("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15")  # dt-core ``LawValve``
 VALVE_KNEE_SCALE = 10.0                                   # N
 NEG_KNOTS = [j for j, k in enumerate(KNOTS_MPS) if k < 0]
 
@@ -343,12 +344,15 @@ def valve_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
     visc, dry = np.zeros(N_COEF), np.zeros(N_COEF)
     idx = [0] + [j + 1 for j in NEG_KNOTS]
     visc[idx], dry[idx] = np.asarray(z[:nh]) * 1000.0, np.asarray(z[nh:2 * nh]) * 1000.0
-    ext = dict(zip(("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15"),
-                   (float(x) for x in np.asarray(z[2 * nh:2 * nh + 4]) * VALVE_SCALE)))
     return {"knots_mps": [k if k < 0 else 0.0 for k in KNOTS_MPS], "width_mps": WIDTH_MPS,
             "viscous_nspm": [float(x) for x in visc], "dry_nspm": [float(x) for x in dry],
             "beta_per_k": float(beta_per_k),
-            "valves": {"extension": ext, "knee_n": float(z[2 * nh + 4] * VALVE_KNEE_SCALE)}}
+            "valves": {"extension": _valve_of(z[2 * nh:2 * nh + 4]), "knee_n": float(z[2 * nh + 4] * VALVE_KNEE_SCALE)}}
+
+
+def _valve_of(z: np.ndarray) -> dict[str, float]:
+    """One valve's fields (dt-core ``LawValve``) from its scaled parameters ``[a, b, F_c, g] / VALVE_SCALE``."""
+    return dict(zip(VALVE_FIELDS, (float(x) for x in np.asarray(z) * VALVE_SCALE)))
 
 
 def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
@@ -400,8 +404,7 @@ def _valve_start(v: np.ndarray, f: np.ndarray, ratio: float, knee_n: float, z0: 
     from scipy.optimize import least_squares
 
     def resid(z: np.ndarray) -> np.ndarray:
-        valve = dict(zip(("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15"), z * VALVE_SCALE))
-        return (valve_velocity(f, ratio, valve, knee_n) - v) / np.maximum(v, 0.01)
+        return (valve_velocity(f, ratio, _valve_of(z), knee_n) - v) / np.maximum(v, 0.01)
 
     lower = np.array([1e-3, 0.0, 0.0, 0.0])
     return least_squares(resid, np.clip(z0, lower + 1e-9, np.inf), bounds=(lower, np.full(4, np.inf))).x
@@ -411,12 +414,9 @@ def valves_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
     """The dt-core ``DampingLaw`` fields of the two-valve form for the scaled parameters
     ``z = [extension a, b, F_c, g, knee, compression a, b, F_c, g]``: a valve on each side
     (dt-core ``LawValves``), no hinges."""
-    def valve(q: np.ndarray) -> dict[str, float]:
-        return dict(zip(("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15"),
-                        (float(x) for x in np.asarray(q) * VALVE_SCALE)))
     return {"knots_mps": [0.0] * len(KNOTS_MPS), "width_mps": WIDTH_MPS,
             "viscous_nspm": [0.0] * N_COEF, "dry_nspm": [0.0] * N_COEF, "beta_per_k": float(beta_per_k),
-            "valves": {"extension": valve(z[:4]), "compression": valve(z[5:9]),
+            "valves": {"extension": _valve_of(z[:4]), "compression": _valve_of(z[5:9]),
                        "knee_n": float(z[4] * VALVE_KNEE_SCALE)}}
 
 
@@ -436,7 +436,7 @@ def fit_valves_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str,
     ratio = float(np.exp(-beta * (np.median([w["oil_c"] for w in windows]) - 40.0)))
     v = np.linspace(0.02, reach, 24)
     f = -law(-v, 40.0 - np.log(ratio) / beta, law0)
-    z_ext = np.array([ext[k] for k in ("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15")]) / VALVE_SCALE
+    z_ext = np.array([ext[k] for k in VALVE_FIELDS]) / VALVE_SCALE
     z_comp = _valve_start(v, np.maximum(f, 1e-3), ratio, knee, z_ext)
     z_law = np.concatenate([z_ext, [knee / VALVE_KNEE_SCALE], z_comp])
     lower = np.concatenate([[1e-3, 0, 0, 0], [0.1 / VALVE_KNEE_SCALE], [1e-3, 0, 0, 0]])

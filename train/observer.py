@@ -21,8 +21,9 @@ a calibrated excitation, the observer reports that end with this spread added (o
 default: README, "One end alone").
 The law's extension side is a valve whose knee sits at a force (``--law-form valve``, the
 default; ``hinges``: knees at fixed velocities only; ``valves``: a valve on either side, which
-extrapolates as a valve does beyond the windows' speeds: README, "Twenty-third session"), and each window's two law scales get a
-Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by default; 0: free).
+extrapolates as a valve does beyond the windows' speeds: README, "Twenty-third session"), and
+each window's two law scales get a Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by
+default; 0: free).
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
 An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
 model of its own per end of the stroke, with a drift in the gas temperature, when it validates
@@ -679,7 +680,8 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     datasheet, held); None (with the reason) without nominal windows or when they span less
     than ``min_span_k`` of oil temperature. The hinges' law is fitted in stages
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
-    (``fit_valve_law_windows``, started from the hinges' fit)."""
+    (``fit_valve_law_windows``, started from the hinges' fit); ``valves``: that one refined
+    with a compression valve too (``fit_valves_law_windows``)."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_valve_law_windows,
                                    fit_valves_law_windows, reversal_windows)
 
@@ -704,7 +706,8 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
         hinges = fit
         fit = fit_valve_law_windows(wins, physics, obs, fit["law"]["beta_per_k"], start=hinges)
         print(f"damping law, the hinges alone: residual {hinges['residual_rms_mps2']:.3f} m/s² RMS; "
-              f"with the extension valve: {fit['residual_rms_mps2']:.3f}" + (", with both valves:" if form == "valves" else ":"))
+              f"with the extension valve: {fit['residual_rms_mps2']:.3f}"
+              + (", with both valves:" if form == "valves" else ":"))
     if form == "valves":
         fit = fit_valves_law_windows(wins, physics, obs, start=fit)
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
