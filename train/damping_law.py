@@ -332,6 +332,8 @@ def fit_law_staged(windows: Sequence[dict[str, Any]], physics: dict[str, Any], o
 
 VALVE_SCALE = np.array([1000.0, 10_000.0, 100.0, 1e-5])  # a N·s/m, b N·s²/m², F_c N, g m/(s·N^1.5)
 VALVE_FIELDS = ("laminar_nspm", "turbulent_ns2pm2", "crack_n", "shim_mps_per_n15")  # dt-core ``LawValve``
+# a valve's scaled lower bounds: a bleed with a laminar part (dt-core: not both coefficients 0)
+VALVE_LOWER = np.array([1e-3, 0.0, 0.0, 0.0])
 VALVE_KNEE_SCALE = 10.0                                   # N
 NEG_KNOTS = [j for j, k in enumerate(KNOTS_MPS) if k < 0]
 
@@ -347,7 +349,8 @@ def valve_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
     return {"knots_mps": [k if k < 0 else 0.0 for k in KNOTS_MPS], "width_mps": WIDTH_MPS,
             "viscous_nspm": [float(x) for x in visc], "dry_nspm": [float(x) for x in dry],
             "beta_per_k": float(beta_per_k),
-            "valves": {"extension": _valve_of(z[2 * nh:2 * nh + 4]), "knee_n": float(z[2 * nh + 4] * VALVE_KNEE_SCALE)}}
+            "valves": {"extension": _valve_of(z[2 * nh:2 * nh + 4]),
+                       "knee_n": float(z[2 * nh + 4] * VALVE_KNEE_SCALE)}}
 
 
 def _valve_of(z: np.ndarray) -> dict[str, float]:
@@ -389,8 +392,7 @@ def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, 
         z_law[:nh] = np.asarray(start["law"]["viscous_nspm"])[idx] / 1000.0
         z_law[nh:2 * nh] = np.asarray(start["law"]["dry_nspm"])[idx] / 1000.0
         per0 = [(max(q["alpha_n"], 5.0), q["shift_ms"]) for q in start["per_window"]]
-    lower = np.concatenate([np.full(2 * nh, -np.inf), np.zeros(4), [0.1 / VALVE_KNEE_SCALE]])
-    lower[2 * nh] = 1e-3  # a bleed with a laminar part (dt-core: not both coefficients 0)
+    lower = np.concatenate([np.full(2 * nh, -np.inf), VALVE_LOWER, [0.1 / VALVE_KNEE_SCALE]])
     upper = np.full(n_law, np.inf)
     return _fit_windows(windows, physics, obs, lambda z: valve_law_dict(z, beta_per_k), z_law, (lower, upper),
                         penalty, per0, max_nfev)
@@ -406,8 +408,7 @@ def _valve_start(v: np.ndarray, f: np.ndarray, ratio: float, knee_n: float, z0: 
     def resid(z: np.ndarray) -> np.ndarray:
         return (valve_velocity(f, ratio, _valve_of(z), knee_n) - v) / np.maximum(v, 0.01)
 
-    lower = np.array([1e-3, 0.0, 0.0, 0.0])
-    return least_squares(resid, np.clip(z0, lower + 1e-9, np.inf), bounds=(lower, np.full(4, np.inf))).x
+    return least_squares(resid, np.clip(z0, VALVE_LOWER + 1e-9, np.inf), bounds=(VALVE_LOWER, np.full(4, np.inf))).x
 
 
 def valves_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
@@ -433,13 +434,14 @@ def fit_valves_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str,
     knee = law0["valves"]["knee_n"]
     beta = law0["beta_per_k"]
     reach = max(abs(w["accel"]) * max(-float(np.min(w["times"])), float(np.max(w["times"]))) for w in windows)
-    ratio = float(np.exp(-beta * (np.median([w["oil_c"] for w in windows]) - 40.0)))
+    oil_c = float(np.median([w["oil_c"] for w in windows]))
+    ratio = float(np.exp(-beta * (oil_c - 40.0)))  # ``law``'s viscosity ratio there
     v = np.linspace(0.02, reach, 24)
-    f = -law(-v, 40.0 - np.log(ratio) / beta, law0)
+    f = -law(-v, oil_c, law0)
     z_ext = np.array([ext[k] for k in VALVE_FIELDS]) / VALVE_SCALE
     z_comp = _valve_start(v, np.maximum(f, 1e-3), ratio, knee, z_ext)
     z_law = np.concatenate([z_ext, [knee / VALVE_KNEE_SCALE], z_comp])
-    lower = np.concatenate([[1e-3, 0, 0, 0], [0.1 / VALVE_KNEE_SCALE], [1e-3, 0, 0, 0]])
+    lower = np.concatenate([VALVE_LOWER, [0.1 / VALVE_KNEE_SCALE], VALVE_LOWER])
     per0 = [(max(q["alpha_n"], 5.0), q["shift_ms"]) for q in start["per_window"]]
     return _fit_windows(windows, physics, obs, lambda z: valves_law_dict(z, beta), z_law,
                         (lower, np.full(len(z_law), np.inf)), lambda z: np.zeros(0), per0, max_nfev)
