@@ -250,11 +250,15 @@ def in_clusters(rev: dict[str, np.ndarray], clusters: Sequence[tuple[float, floa
     return ok.any(axis=1)
 
 
-def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct: float) -> dict[str, Any]:
+def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct: float,
+              leave_out: Sequence[float] = ()) -> dict[str, Any]:
     """The measurement model, validated run by run: leave-one-run-out charge errors per
     excitation (reversal-acceleration cluster); an excitation whose LORO RMS exceeds
-    ``CLUSTER_MAX_LORO_BAR`` is dropped (the observer skips its reversals) and the rest refitted."""
-    clusters = accel_clusters(revs, obs["accel_cluster_rel"])
+    ``CLUSTER_MAX_LORO_BAR`` is dropped (the observer skips its reversals) and the rest refitted.
+    ``leave_out``: the centres (``|a|``, m/s²) of excitations kept off the shared model from the
+    start (``add_own_excitations`` may give them one of their own)."""
+    clusters = [c for c in accel_clusters(revs, obs["accel_cluster_rel"])
+                if not any(np.isclose(c[0], x) for x in leave_out)]
     if not clusters:
         raise ValueError(f"no run has {MIN_CLUSTER_REVERSALS} fitted reversals: nothing to calibrate the observer on")
     rel, spacing_rel = obs["accel_cluster_rel"], obs["spacing_rel"]
@@ -681,9 +685,10 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     than ``min_span_k`` of oil temperature. The hinges' law is fitted in stages
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
     (``fit_valve_law_windows``, started from the hinges' fit); ``valves``: that one refined
-    with a compression valve too (``fit_valves_law_windows``)."""
-    from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_valve_law_windows,
-                                   fit_valves_law_windows, reversal_windows)
+    with a compression valve too (``fit_valves_law_windows``); ``twin-tube``: that one with
+    the compression valve split in two, base and piston (``fit_twin_law_windows``)."""
+    from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_twin_law_windows,
+                                   fit_valve_law_windows, fit_valves_law_windows, reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
     wins = [w for w in reversal_windows(runs, physics, obs, per_run)
@@ -702,19 +707,70 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
         log.warning("the damping law is fitted on %.0f K of oil temperature only: its viscosity coefficient "
                     "is poorly determined", span)
     fit = fit_law_staged(wins, physics, obs, beta_per_k=beta_per_k)
-    if form in ("valve", "valves"):
+    if form in ("valve", "valves", "twin-tube"):
         hinges = fit
         fit = fit_valve_law_windows(wins, physics, obs, fit["law"]["beta_per_k"], start=hinges)
         print(f"damping law, the hinges alone: residual {hinges['residual_rms_mps2']:.3f} m/s² RMS; "
               f"with the extension valve: {fit['residual_rms_mps2']:.3f}"
-              + (", with both valves:" if form == "valves" else ":"))
-    if form == "valves":
+              + (":" if form == "valve" else ", with both valves:"))
+    if form in ("valves", "twin-tube"):
         fit = fit_valves_law_windows(wins, physics, obs, start=fit)
+    if form == "twin-tube":
+        print(f"damping law with a valve each way: {fit['residual_rms_mps2']:.3f} m/s² RMS; "
+              "with the compression valve split in two (base and piston):")
+        fit = fit_twin_law_windows(wins, physics, obs, start=fit)
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
           f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
           f"{'fitted' if beta_per_k is None else 'the datasheet oil'})")
     return fit["law"]
+
+
+def shared_calibration(revs: Sequence[dict[str, Any]], law_obs: dict[str, Any], unit_tol_pct: float,
+                       leave_out: Sequence[float] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """``calibrate`` with the damping law, then again without the windows whose residual reads the
+    charge biased on the calibration runs (``residual_cut``; the cut goes into the calibration's
+    ``max_residual_mps2``). Returns the calibration and the reversals kept."""
+    obs = dict(law_obs)
+    cal = calibrate(revs, obs, unit_tol_pct, leave_out)
+    kept = list(revs)
+    cut = residual_cut(revs, cal)
+    if cut < obs["max_residual_mps2"]:
+        print(f"damping law: windows that fit worse than {cut:.2f} m/s² read the charge biased on the "
+              "calibration runs; the observer skips them")
+        obs["max_residual_mps2"] = cut
+        kept = [{k: (v[r["residual_mps2"] <= cut] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+                for r in revs]
+        cal = calibrate(kept, obs, unit_tol_pct, leave_out)
+    return cal, kept
+
+
+def fastest_on_its_own(cal: dict[str, Any], campaign: Any, physics: dict[str, Any],
+                       revs: Sequence[dict[str, Any]], law_obs: dict[str, Any],
+                       args: argparse.Namespace) -> dict[str, Any]:
+    """With three or more excitations on the shared measurement model, the same calibration with
+    the fastest of them left off it and given a model of its own (``add_own_excitations``), its
+    residual cut found again without it (``shared_calibration``; ``revs``: the reversals before
+    any cut); kept when it covers as many excitations and reads the calibration runs left out one
+    at a time better (leave-one-run-out RMS). The fastest excitation is where a line in ``|ÿ|``
+    bends (the window law's reach, cavitation at a low charge): on the simulated dyno the
+    twin-tube law (``--law-form twin-tube``) fits the 4 Hz windows well enough for them to join
+    the line, and read LORO 0.82 bar with 4 Hz on it against 0.08 with a model of its own, which
+    also keeps the cavitation bound (README, twenty-fourth session). ``--keep-fastest-shared``
+    skips this."""
+    o = cal["observer"]
+    own = (o.get("excitations") or {}).get("own") or [False] * 4
+    shared = [c for k, c in enumerate(o["accel_clusters_mps2"]) if c > 0 and not own[k]]
+    if len(shared) < 3:
+        return cal
+    fastest = max(shared)
+    alt, kept = shared_calibration(revs, law_obs, args.unit_tolerance_pct, leave_out=[fastest])
+    alt = add_own_excitations(alt, campaign, physics, kept, args.jobs, args.unit_tolerance_pct)
+    n = [sum(c > 0 for c in x["observer"]["accel_clusters_mps2"]) for x in (cal, alt)]
+    print(f"the fastest excitation (|a| = {fastest:.2f} m/s²) on the shared model: leave-one-run-out RMS "
+          f"{cal['loro_rms_bar']:.2f} bar over {n[0]} excitation(s); with a model of its own: "
+          f"{alt['loro_rms_bar']:.2f} bar over {n[1]}")
+    return alt if n[1] >= n[0] and alt["loro_rms_bar"] < cal["loro_rms_bar"] else cal
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -752,17 +808,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
         log.info("fitting reversals of %d runs with the damping law", len(campaign.runs))
         revs = reversals(campaign.runs, {**physics, "observer": law_obs}, args.jobs)
         law_obs["cold_ref_c"] = cold_reference(revs, law_obs)
-        cal = calibrate(revs, law_obs, args.unit_tolerance_pct)
-        cut = residual_cut(revs, cal)
-        if cut < law_obs["max_residual_mps2"]:
-            print(f"damping law: windows that fit worse than {cut:.2f} m/s² read the charge biased on the "
-                  "calibration runs; the observer skips them")
-            law_obs["max_residual_mps2"] = cut
-            revs = [{k: (v[r["residual_mps2"] <= cut] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
-                    for r in revs]
-            cal = calibrate(revs, law_obs, args.unit_tolerance_pct)
+        cal, kept = shared_calibration(revs, law_obs, args.unit_tolerance_pct)
         if not args.no_own_excitations:
-            cal = add_own_excitations(cal, campaign, physics, revs, args.jobs, args.unit_tolerance_pct)
+            cal = add_own_excitations(cal, campaign, physics, kept, args.jobs, args.unit_tolerance_pct)
+            if not args.keep_fastest_shared:
+                cal = fastest_on_its_own(cal, campaign, physics, revs, law_obs, args)
     if args.damping in ("linear", "auto"):
         log.info("fitting reversals of %d runs with linear damping slopes", len(campaign.runs))
         lin = calibrate(reversals(campaign.runs, {**physics, "observer": obs}, args.jobs), obs,
@@ -973,10 +1023,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="fit a reversal's window only when one more reading could narrow the reported variance of "
                         "the charge by this share (default %(default)g; 0: fit every reversal; dt-core "
                         "ObserverParams::fit_gain_floor)")
-    f.add_argument("--law-form", choices=("hinges", "valve", "valves"), default="valve",
+    f.add_argument("--keep-fastest-shared", action="store_true",
+                   help="keep the fastest excitation on the shared measurement model even when a model of its own "
+                        "reads the calibration runs better: reversals between it and the next excitation are then "
+                        "read, and it loses its cavitation bound (README, \"Twenty-fourth session\")")
+    f.add_argument("--law-form", choices=("hinges", "valve", "valves", "twin-tube"), default="valve",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
                         "extension valve whose knee sits at a force (README, \"The extension valve\"), or a valve "
-                        "on either side (README, \"Twenty-third session\")")
+                        "on either side (README, \"Twenty-third session\"), or the compression side as the base "
+                        "and piston valves together (README, \"Twenty-fourth session\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)

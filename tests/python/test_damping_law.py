@@ -306,3 +306,44 @@ def test_a_valve_on_each_side_reads_the_friction_alike_everywhere_and_bends_like
     print("compression slopes 0.1-0.2 / 0.2-0.4 m/s: N·s/m", round(near), round(far),
           "(the extension valve's hinges:", [round(x) for x in comp_slopes(one["law"])], ")")
     assert 0.0 < far < near, (near, far)
+
+
+# A twin-tube's compression: two valves whose forces add at the same speed (dt-core
+# ``LawValves::compression_piston``) — a base valve of mostly turbulent bleed cracking early and
+# a piston valve of mostly laminar bleed cracking later, as dt-sim builds them (simulated).
+A_TWIN_LAW = {**A_MIXED_LAW, "knots_mps": [0.0] * 8, "viscous_nspm": [0.0] * 9, "dry_nspm": [0.0] * 9,
+              "valves": {"extension": A_VALVE, "knee_n": 20.0,
+                         "compression": {"laminar_nspm": 150.0, "turbulent_ns2pm2": 55_000.0, "crack_n": 130.0,
+                                         "shim_mps_per_n15": 5e-5},
+                         "compression_piston": {"laminar_nspm": 500.0, "turbulent_ns2pm2": 6_000.0,
+                                                "crack_n": 250.0, "shim_mps_per_n15": 3e-5}}}
+
+
+def test_two_compression_valves_add_and_the_twin_tube_fit_gives_them_back() -> None:
+    """The numpy law's compression side is the two valves' forces added (each inverted by its own
+    bisection); windows made with that law by dt-core's window model: the twin-tube fit
+    (``fit_twin_law_windows``, from a valve each way) fits them to the noise, gives back the
+    amplitudes, and the compression force where the windows look."""
+    from train.damping_law import fit_twin_law_windows, fit_valve_law_windows, fit_valves_law_windows, valve_force
+
+    vs = A_TWIN_LAW["valves"]
+    v = np.linspace(1e-4, 0.5, 200)
+    for oil_c in (25.0, 100.0):
+        r = np.exp(-0.03 * (oil_c - 40.0))
+        want = valve_force(v, r, vs["compression"], 20.0) + valve_force(v, r, vs["compression_piston"], 20.0)
+        assert np.array_equal(law(-v, oil_c, A_TWIN_LAW), -want)
+    params, obs = shocktwin.default_params(), dict(shocktwin.default_observer_params())
+    windows, alphas = synthetic_windows(A_TWIN_LAW)
+    hinges = fit_law_windows(windows, params, obs, beta_per_k=0.03)
+    one = fit_valve_law_windows(windows, params, obs, 0.03, start=hinges)
+    both = fit_valves_law_windows(windows, params, obs, start=one)
+    twin = fit_twin_law_windows(windows, params, obs, start=both)
+    print("residual m/s²: valve each way", round(both["residual_rms_mps2"], 4), "twin-tube",
+          round(twin["residual_rms_mps2"], 4))
+    assert twin["residual_rms_mps2"] < 1.5 * NOISE_MPS2, twin["residual_rms_mps2"]
+    err = np.array([w["alpha_n"] for w in twin["per_window"]]) - np.array(alphas)
+    assert np.sqrt(np.mean(err ** 2)) < 3.0, err
+    v = np.linspace(-0.15, 0.0, 31)
+    for oil_c in (25.0, 115.0):
+        want, got = law(v, oil_c, A_TWIN_LAW), law(v, oil_c, twin["law"])
+        assert np.max(np.abs(got - want)) < 0.10 * np.ptp(want), (oil_c, got - want)
