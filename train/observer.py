@@ -255,10 +255,11 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
     """The measurement model, validated run by run: leave-one-run-out charge errors per
     excitation (reversal-acceleration cluster); an excitation whose LORO RMS exceeds
     ``CLUSTER_MAX_LORO_BAR`` is dropped (the observer skips its reversals) and the rest refitted.
-    ``leave_out``: the centres (``|a|``, m/s²) of excitations kept off the shared model from the
-    start (``add_own_excitations`` may give them one of their own)."""
+    ``leave_out``: excitations (``|a|``, m/s², matched within ``accel_cluster_rel``: a centre
+    moves a little with the reversals it is found on) kept off the shared model from the start
+    (``add_own_excitations`` may give them one of their own)."""
     clusters = [c for c in accel_clusters(revs, obs["accel_cluster_rel"])
-                if not any(np.isclose(c[0], x) for x in leave_out)]
+                if not any(abs(c[0] - x) <= obs["accel_cluster_rel"] * x for x in leave_out)]
     if not clusters:
         raise ValueError(f"no run has {MIN_CLUSTER_REVERSALS} fitted reversals: nothing to calibrate the observer on")
     rel, spacing_rel = obs["accel_cluster_rel"], obs["spacing_rel"]
