@@ -471,12 +471,13 @@ def twin_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
 def fit_twin_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
                          start: dict[str, Any], max_nfev: int = 200) -> dict[str, Any]:
     """As ``fit_valves_law_windows`` with the compression side two valves whose forces add at
-    the same speed (``--law-form twin-tube``; the module docs). Started from ``start`` (the
-    two-valve fit): its extension valve, knee, windows' amplitudes and shifts, and its
-    compression valve split in two that sum to it — each half its bleed and cracking force
-    (the shims' gain ×2√2 then carries half the force at the same speed), one with most of
-    the turbulent bleed and the lower crack, the other most of the laminar bleed (two equal
-    halves would be a saddle the fit cannot leave)."""
+    the same speed (``--law-form twin-tube``; the module docs). Started from ``start``
+    (``fit_valves_law_windows``'s fit, a valve each way): its extension valve, knee, windows'
+    amplitudes and shifts, and its compression valve split in two that sum to it — its bleed
+    split 90/10 and 10/90 (one valve takes most of the turbulent bleed, the other most of the
+    laminar), its cracking force 45/55, and the shims' gain ×2√2 in each (half the force
+    above half the crack passes the same speed). Two equal halves would be a saddle the fit
+    cannot leave."""
     law0 = start["law"]
     vs = law0["valves"]
     comp = np.array([vs["compression"][k] for k in VALVE_FIELDS])
