@@ -792,6 +792,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     elif args.datasheet:
         obs.update(json.loads(args.datasheet.read_text()))
     obs["window_sd"] = bool(args.window_sd)
+    obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
     cal, law = None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
@@ -1033,6 +1034,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "extension valve whose knee sits at a force (README, \"The extension valve\"), or a valve "
                         "on either side (README, \"Twenty-third session\"), or the compression side as the base "
                         "and piston valves together (README, \"Twenty-fourth session\")")
+    f.add_argument("--reversal-accel", choices=("velocity-chord", "accelerometers"), default="velocity-chord",
+                   help="where the velocity slope at a reversal is read: the Kalman velocity's chord over "
+                        "±20 ms, or the mean of a1 − a2 (less the filter's bias) over ±5 ms (README, "
+                        "\"Twenty-fifth session\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)

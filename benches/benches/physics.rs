@@ -221,7 +221,7 @@ fn bench_charge(c: &mut Criterion) {
             let mut obs = ChargeObserver::new(params).unwrap();
             obs.set_gas_temp_c(oil_c);
             for &(t_ns, a2, v) in &samples {
-                obs.sample(t_ns, black_box(a2), 0.0, v);
+                obs.sample(t_ns, black_box(a2), 0.0, v, f64::NAN);
             }
             let c = obs.counters();
             assert!(c.used + c.rejected >= REVERSALS as u64 - 2, "{c:?}");
