@@ -412,15 +412,26 @@ def fit_valve_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, 
 
 def _valve_start(v: np.ndarray, f: np.ndarray, ratio: float, knee_n: float, z0: np.ndarray) -> np.ndarray:
     """Scaled valve parameters ``[a, b, F_c, g] / VALVE_SCALE`` whose force best matches
-    ``f`` (N, ≥ 0) at speeds ``v`` (m/s, > 0) with the viscosity ratio ``ratio``, from ``z0``
-    (scipy ``least_squares`` on the valve's velocity at each force: ``valve_velocity`` is
-    explicit, its inverse is not)."""
+    ``f`` (N, ≥ 0) at speeds ``v`` (m/s, > 0) with the viscosity ratio ``ratio`` (scipy
+    ``least_squares`` on the valve's velocity at each force: ``valve_velocity`` is explicit,
+    its inverse is not). Started from ``z0`` and from valves that crack at the force of a
+    quarter, half and all of the speeds' range (a laminar bleed through that point, shims
+    adding as much flow again): from ``z0`` alone the fit can end at a bleed whose crack lies
+    beyond every force (README, "Twenty-fifth session"). The best of those fits."""
     from scipy.optimize import least_squares
 
     def resid(z: np.ndarray) -> np.ndarray:
         return (valve_velocity(f, ratio, _valve_of(z), knee_n) - v) / np.maximum(v, 0.01)
 
-    return least_squares(resid, np.clip(z0, VALVE_LOWER + 1e-9, np.inf), bounds=(VALVE_LOWER, np.full(4, np.inf))).x
+    starts = [np.clip(z0, VALVE_LOWER + 1e-9, np.inf)]
+    for q in (0.25, 0.5, 1.0):
+        i = min(int(q * (len(v) - 1)), len(v) - 1)
+        crack = max(float(f[i]), 1.0)
+        a = crack / (float(v[i]) * ratio)
+        starts.append(np.array([a, 0.0, crack, 1.0 / (a * np.sqrt(crack))]) / VALVE_SCALE)
+    fits = [least_squares(resid, np.maximum(z, VALVE_LOWER + 1e-9), bounds=(VALVE_LOWER, np.full(4, np.inf)))
+            for z in starts]
+    return min(fits, key=lambda r: r.cost).x
 
 
 def valves_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
