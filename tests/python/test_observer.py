@@ -494,6 +494,43 @@ def test_an_excitation_gets_a_measurement_model_of_its_own() -> None:
     assert obs_tool.warm_terms(with_table, 7.0) == pytest.approx(obs_tool.warm_terms(o, 7.0))
 
 
+def test_the_fastest_keeps_its_place_on_the_line_beside_its_own_model() -> None:
+    """``own_model_on_the_line``: the fastest excitation, validated on the shared line, keeps its
+    slot there (the line reads between it and the next) and gets its own model in a free slot;
+    the leave-one-run-out rows are the line's but for the runs the own model reads."""
+    obs = observer_physics(damping_law=A_LAW)["observer"]
+    line = {**obs, "accel_clusters_mps2": [1.5, 6.0, 24.0, 0.0], "reversal_spacings_s": [0.5, 0.25, 0.125, 0.0],
+            "step_dir_n": -1.2, "step_per_accel_ns2pm": -0.25, "step_per_bar_accel": 0.04}
+
+    def row(run: str, err: float, own: bool = False) -> dict:
+        r = {"run": run, "truth_bar": 5.0, "estimate_bar": 5.0 + err, "stat_sd_bar": 0.05, "error_bar": err}
+        return {**r, "own_excitation": True} if own else r
+
+    cal = {"observer": line, "loro": [row("f1", 0.1), row("f2", -0.1), row("f4", 0.5)], "loro_rms_bar": 0.3}
+    own_model = {"models": {1: (np.array([44.0, 1.1, 0.0, 0.0]), 0.9), -1: (np.array([31.0, 1.8, 0.0, 0.0]), 2.8)},
+                 "max_residual_mps2": 1.2, "silent_below_bar": {1: 0.0, -1: 4.0}}
+    two = {**line, "accel_clusters_mps2": [1.5, 6.0, 24.1, 0.0]}
+    alt = {"observer": {**two, "excitations": obs_tool.excitation_table(two, {2: own_model})},
+           "loro": [row("f1", 0.12), row("f2", -0.08), row("f4", 0.05, own=True)], "loro_rms_bar": 0.09,
+           "own_excitations": [{"accel_mps2": 24.1, "spacing_s": 0.125, "max_residual_mps2": 1.2,
+                                "loro_rms_bar": 0.05}]}
+    both = obs_tool.own_model_on_the_line(cal, alt, 24.0, 10.0)
+    o = both["observer"]
+    assert o["accel_clusters_mps2"] == [1.5, 6.0, 24.0, 24.1]
+    x = o["excitations"]
+    assert x["own"] == [False, False, False, True]
+    assert x["offset_n"][3] == [44.0, 31.0] and x["silent_below_bar"][3] == [0.0, 4.0]
+    # the line through 24 m/s² is the shared model's, as before
+    assert x["offset_n"][2][1] == pytest.approx(line["step_offset_n"] + 1.2 - 0.25 * 24.0)
+    assert obs_tool.warm_terms(o, 15.0) == pytest.approx(obs_tool.warm_terms(line, 15.0))
+    assert obs_tool.warm_terms(o, 24.0) == pytest.approx((37.5, 1.45))
+    assert [r["run"] for r in both["loro"]] == ["f1", "f2", "f4"]
+    assert both["loro_rms_bar"] == pytest.approx(np.sqrt((0.1 ** 2 + 0.1 ** 2 + 0.05 ** 2) / 3))
+    assert cal["observer"]["accel_clusters_mps2"][3] == 0.0  # the line's calibration untouched
+    full = {**cal, "observer": {**line, "accel_clusters_mps2": [1.5, 6.0, 12.0, 24.0]}}
+    assert obs_tool.own_model_on_the_line(full, alt, 24.0, 10.0) is None  # no free slot
+
+
 def test_a_baseline_is_refused_at_an_excitation_with_its_own_model(run_4bar: Path) -> None:
     """dt-core's baseline conditions the shared model's unit error only: a run read at an
     excitation with a model of its own gives no baseline, and the error names the run."""

@@ -587,9 +587,14 @@ pub struct ExcitationModel {
     /// not the shared line's): its reversals are read at it only, with its
     /// own terms across its `±accel_cluster_rel`, never
     /// [between](ObserverParams::between_excitations) it and another
-    /// excitation. Nothing validates a line to it: on the simulated dyno
-    /// the `ÿ_r < 0` amplitude at 3 Hz lies ≈ 11 N below both the 2 Hz
-    /// line's and the 4 Hz model's (README "4 Hz, read").
+    /// excitation through this slot: on the simulated dyno, with the
+    /// Kalman chord's `ÿ_r`, the `ÿ_r < 0` amplitude at 3 Hz lies ≈ 11 N
+    /// below both the 2 Hz line's and the 4 Hz model's (README "4 Hz,
+    /// read"). The same excitation may also hold another slot on the shared
+    /// line, when the calibration validated the line through it (`python -m
+    /// train.observer fit`, README "Twenty-fifth session"): its own model
+    /// then reads it, and the line the reversals between it and the next
+    /// excitation.
     pub own: [bool; 4],
 }
 
@@ -3622,6 +3627,34 @@ mod tests {
             ..alone
         };
         assert!(blended.calibrated_at(15.0, spacing(15.0)));
+        // On the line and with its own model, in two slots: read by its own
+        // model at it, on the line between it and 6 m/s².
+        let mut both = own;
+        both.offset_n[3] = [50.0, 20.0];
+        both.per_bar_n[3] = [1.0, 2.0];
+        both.sd_n[3] = [0.7, 3.0];
+        both.max_residual_mps2[3] = 0.9;
+        both.own[3] = true;
+        let on_line = ObserverParams {
+            accel_clusters_mps2: [1.5, 6.0, 24.0, 24.1],
+            reversal_spacings_s: [0.5, 0.25, 0.125, 0.125],
+            excitations: Some(both),
+            between_excitations: true,
+            ..three
+        };
+        on_line.validate().unwrap();
+        let t = on_line.terms(-23.0);
+        assert_eq!(
+            (t.offset_n, t.per_bar_n, t.sd_n, t.max_residual_mps2),
+            (20.0, 2.0, 3.0, 0.9)
+        );
+        let (line, mid) = (blended.terms(15.0), on_line.terms(15.0));
+        assert_eq!(
+            (mid.offset_n, mid.per_bar_n),
+            (line.offset_n, line.per_bar_n)
+        );
+        assert!(on_line.calibrated_at(15.0, spacing(15.0)));
+        assert!(on_line.calibrated_at(23.0, spacing(23.0)));
         // The drift with the heat enters `a_r`.
         let (warm, hot) = (at(three, 60.0, 24.0), at(three, 70.0, 24.0));
         let gas = |t: f64| 1.1 * P_ATM_BAR * (gas_ratio(&three, t, 0.03) - 1.0);
