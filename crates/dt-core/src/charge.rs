@@ -27,8 +27,8 @@
 //! first on the other is `t_r` (the mount's ringing inside the band does not
 //! make more reversals). It counts when the velocity slope across it,
 //! `ÿ_r = (ẏ̂(t_r + 20 ms) − ẏ̂(t_r − 20 ms)) / 40 ms` (or, with
-//! [`ReversalAccel::Accelerometers`], the mean of the accelerometers'
-//! `a1 − a2 − b̂_a` over `t_r ± 5 ms`), is at least
+//! [`ReversalAccel::Accelerometers`], the rod end's own acceleration
+//! `(a1 − a2 − b̂_a) + (a2 − ā2)` averaged over `t_r ± 5 ms`), is at least
 //! [`ObserverParams::min_reversal_accel_mps2`], no other reversal came
 //! within [`ObserverParams::window_post_s`], and (once calibrated) it matches
 //! an excitation of the calibration campaign in both `|ÿ_r|` and its spacing
