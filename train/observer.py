@@ -1092,7 +1092,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "and piston valves together (README, \"Twenty-fourth session\")")
     f.add_argument("--reversal-accel", choices=("velocity-chord", "accelerometers"), default="velocity-chord",
                    help="where the velocity slope at a reversal is read: the Kalman velocity's chord over "
-                        "±20 ms, or the mean of a1 − a2 (less the filter's bias) over ±5 ms (README, "
+                        "±20 ms, or the rod end's own acceleration from the accelerometers, a1 − a2 (less the "
+                        "filter's bias) plus a2 less its running mean, over ±5 ms (dt-core ReversalAccel; README, "
                         "\"Twenty-fifth session\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)

@@ -1885,22 +1885,28 @@ impl ChargeObserver {
             None => None,
         };
         // The body accelerometer's running mean (its DC: the sensor's offset
-        // and gravity), first order, restarted after a gap.
-        match prev_ns {
-            Some(prev)
-                if self.a2_mean.is_finite() && t_ns - prev <= (A2_MEAN_TAU_S * 1e9) as i64 =>
-            {
-                let w = -(-((t_ns - prev) as f64 * 1e-9) / A2_MEAN_TAU_S).exp_m1();
-                self.a2_mean += w * (a2_mps2 - self.a2_mean);
+        // and gravity), first order, restarted after a gap; kept only where
+        // the reversal's slope is read from it.
+        let rod_mps2 = if self.p.reversal_accel == ReversalAccel::Accelerometers {
+            match prev_ns {
+                Some(prev)
+                    if self.a2_mean.is_finite() && t_ns - prev <= (A2_MEAN_TAU_S * 1e9) as i64 =>
+                {
+                    let w = -(-((t_ns - prev) as f64 * 1e-9) / A2_MEAN_TAU_S).exp_m1();
+                    self.a2_mean += w * (a2_mps2 - self.a2_mean);
+                }
+                _ => self.a2_mean = a2_mps2,
             }
-            _ => self.a2_mean = a2_mps2,
-        }
+            arel_mps2 + a2_mps2 - self.a2_mean
+        } else {
+            f64::NAN
+        };
         let point = AccPoint {
             t_ns,
             a2_mps2,
             v_mps,
             y_m,
-            rod_mps2: arel_mps2 + a2_mps2 - self.a2_mean,
+            rod_mps2,
         };
         if v_mps.abs() >= self.p.reversal_band_mps {
             if let Some(out) = self.outside {

@@ -950,8 +950,6 @@ pub struct FeaturePipeline {
     pending_n: f64,
     pending_a_sum: f64,
     pending_a2: f64,
-    /// The relative acceleration `a1 − a2` of that sample, m/s².
-    pending_arel: f64,
     bias_mps2: f64,
     observer: Option<ChargeObserver>,
 
@@ -1033,7 +1031,6 @@ impl FeaturePipeline {
             pending_n: 0.0,
             pending_a_sum: 0.0,
             pending_a2: f64::NAN,
-            pending_arel: f64::NAN,
             bias_mps2: f64::NAN,
             observer,
             temp_shock_c: f64::NAN,
@@ -1140,7 +1137,6 @@ impl FeaturePipeline {
                         self.pending_n += 1.0;
                         self.pending_a_sum += a;
                         self.pending_a2 = a2_mps2;
-                        self.pending_arel = a;
                     }
                 } else {
                     self.missing_samples += 1;
@@ -1227,7 +1223,8 @@ impl FeaturePipeline {
         if let (Some(obs), Some(t), Some(x)) =
             (self.observer.as_mut(), self.pending_t_ns, self.kf.state())
         {
-            obs.sample(t, self.pending_a2, x[0], x[1], self.pending_arel - x[2]);
+            let arel = self.pending_a_sum / self.pending_n - x[2];
+            obs.sample(t, self.pending_a2, x[0], x[1], arel);
         }
         if let Some(x) = self.kf.state().filter(|_| in_tick) {
             let n = self.pending_n;
@@ -1244,7 +1241,6 @@ impl FeaturePipeline {
         self.pending_n = 0.0;
         self.pending_a_sum = 0.0;
         self.pending_a2 = f64::NAN;
-        self.pending_arel = f64::NAN;
     }
 
     /// What the shock thermocouple should read with the cylinder at `cyl_c`
