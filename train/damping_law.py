@@ -13,7 +13,8 @@ twin's modelled oil temperature, the one the observer uses at run time. The knot
 where a valve may crack or blow off; their slopes are what is fitted, so the law assumes
 nothing about how the valves are built.
 
-The valve form (``fit_valve_law_windows``, ``observer fit --law-form valve``, the default)
+The valve form (``fit_valve_law_windows``, ``observer fit --law-form valve``, the
+default until the twenty-sixth session)
 keeps the hinges for compression and makes the extension side a bleed-and-shim valve
 (dt-core ``LawValves``), whose knee sits at a force and so moves to a higher velocity as the
 oil thins: hinges at fixed velocities cannot follow it, and the 2 Hz windows at the bottom
@@ -36,7 +37,7 @@ corrected simulator (dt-sim 0.2.0) they read 15 N of a seal friction of about 50
 fell a third short of the plant's compression force at −0.06 m/s (−121 against −183 N at
 56 °C), and the observer's measurement model leaned on ``|ÿ|`` to make up for it.
 
-The twin-tube form (``fit_twin_law_windows``, ``--law-form twin-tube``) makes the compression
+The twin-tube form (``fit_twin_law_windows``, ``--law-form twin-tube``, the default) makes the compression
 side the two valves a twin-tube damper works at once, base and piston, their forces added at
 the same speed (dt-core ``LawValves::compression_piston``). One valve fitted to dt-sim's
 compression force at 80 °C within 7 N still left the 3.5 Hz windows of a noise-free run

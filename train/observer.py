@@ -19,12 +19,17 @@ With each end of the stroke filtered apart, ``single_end_sd_bar`` is how far one
 from the charge in the warm bins; with ``--single-end``, while only one end has been read at
 a calibrated excitation, the observer reports that end with this spread added (off by
 default: README, "One end alone").
-The law's extension side is a valve whose knee sits at a force (``--law-form valve``, the
-default; ``hinges``: knees at fixed velocities only; ``valves``: a valve on either side, which
-extrapolates as a valve does beyond the windows' speeds: README, "Twenty-third session"), and
+The law's compression side is the twin-tube damper's base and piston valves working together and
+its extension side a valve whose knee sits at a force (``--law-form twin-tube``, the default;
+``valve``: the extension valve with hinges in compression, the default until the twenty-sixth
+session; ``hinges``: knees at fixed velocities only; ``valves``: a single valve on either side:
+README, "Twenty-third session"), and
 each window's two law scales get a Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by
 default; 0: free).
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
+Each reversal's slope ``ÿ_r`` is read from the accelerometers, the rod end's own acceleration
+(``--reversal-accel accelerometers``, the default; ``velocity-chord``: the Kalman velocity's
+chord, biased by end and frequency: README, "Twenty-fifth session").
 An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
 model of its own per end of the stroke, with a drift in the gas temperature, when it validates
 leave one run out; its reversals are then read at that excitation only (``--no-own-excitations``:
@@ -1085,14 +1090,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="when the fastest excitation gets a model of its own, take it off the shared line too: "
                         "reversals between it and the next excitation are then not read (the twenty-fourth "
                         "session's behaviour; README, \"Twenty-fifth session\")")
-    f.add_argument("--law-form", choices=("hinges", "valve", "valves", "twin-tube"), default="valve",
+    f.add_argument("--law-form", choices=("hinges", "valve", "valves", "twin-tube"), default="twin-tube",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
                         "extension valve whose knee sits at a force (README, \"The extension valve\"), or a valve "
                         "on either side (README, \"Twenty-third session\"), or the compression side as the base "
-                        "and piston valves together (README, \"Twenty-fourth session\")")
-    f.add_argument("--reversal-accel", choices=("velocity-chord", "accelerometers"), default="velocity-chord",
+                        "and piston valves together (the default; README, \"Twenty-fourth session\")")
+    f.add_argument("--reversal-accel", choices=("velocity-chord", "accelerometers"), default="accelerometers",
                    help="where the velocity slope at a reversal is read: the Kalman velocity's chord over "
-                        "±20 ms, or the rod end's own acceleration from the accelerometers, a1 − a2 (less the "
+                        "±20 ms, or (the default) the rod end's own acceleration from the accelerometers, a1 − a2 (less the "
                         "filter's bias) plus a2 less its running mean, over ±5 ms (dt-core ReversalAccel; README, "
                         "\"Twenty-fifth session\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
