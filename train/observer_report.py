@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 from scipy.integrate import solve_ivp
+from scipy.optimize import brentq
 
 import shocktwin
 
@@ -189,6 +190,24 @@ def window_model(theta: np.ndarray, accel: float, obs: dict[str, Any], times: np
     return sol.y[2] + c0
 
 
+def verdict_reach(obs: dict[str, Any]) -> dict[str, float]:
+    """How far the SPEC §6a verdict can reach on a unit never baselined, however many reversals
+    it reads: the reported sd never falls below the systematic floor ``hypot(systematic_sd_bar,
+    systematic_rel · p)`` (the unit-to-unit tolerance of the seal friction), so the 95 % interval
+    lies below the fault threshold (``leak``) only for a reading below ``leak_below_bar`` and above
+    the warn threshold (``ok``) only for one above ``ok_above_bar`` (``brentq`` on
+    ``p ± Z95 · floor(p) = threshold``; no hysteresis: the first entry into either verdict)."""
+    sys_bar, rel = float(obs["systematic_sd_bar"]), float(obs.get("systematic_rel", 0.0))
+
+    def floor(p: float) -> float:
+        return float(np.hypot(sys_bar, rel * p))
+
+    leak = brentq(lambda p: p + Z95 * floor(p) - FAULT_BAR, FAULT_BAR - 100.0, FAULT_BAR)
+    ok = (brentq(lambda p: p - Z95 * floor(p) - WARN_BAR, WARN_BAR, WARN_BAR + 1000.0)
+          if Z95 * rel < 1.0 else float("inf"))
+    return {"leak_below_bar": float(leak), "ok_above_bar": float(ok)}
+
+
 def fisher_per_reversal(obs: dict[str, float], freq_hz: float, p_bar: float) -> float:
     """Fisher information on the charge (1/bar²) of one reversal, nuisances profiled out."""
     accel = STROKE_AMP_M * (2 * np.pi * freq_hz) ** 2
@@ -297,7 +316,8 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
     t_grid = np.linspace(1.0, 600.0, 300)
     freqs = sorted({r["frequency_hz"] for r in rows})
     p_ref = 7.0
-    bound: dict[str, Any] = {"p_ref_bar": p_ref, "freq_hz": {}, "gas_spring_sd_600s_bar": {}}
+    bound: dict[str, Any] = {"p_ref_bar": p_ref, "freq_hz": {}, "gas_spring_sd_600s_bar": {},
+                             "verdict_reach_without_baseline": verdict_reach(obs)}
     fig, ax = plt.subplots(figsize=(9, 5.5))
     floor = float(np.hypot(obs["systematic_sd_bar"], obs.get("systematic_rel", 0.0) * p_ref))
     for i, f in enumerate(freqs):
@@ -365,6 +385,7 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
     result = {"simulated_data": True, "settle_s": settle, "sets": sets, "bound": bound,
               "runs": [{k: v for k, v in r.items() if k not in ("trace", "sq_err", "sq_err_avg", "covered")} for r in rows]}
     (out / "observer.json").write_text(json.dumps(result, indent=2) + "\n")
+    reach = bound["verdict_reach_without_baseline"]
     lines = [f"# Charge observer, cheap suite (potentiometer, accelerometers, thermocouples) — SIMULATED DATA\n",
              f"Scored ticks: excited, from {settle:g} s after excitation onset. Interval: central 95 %.\n",
              "| set | runs | RMSE (bar) | RMSE 1 s avg (bar) | coverage | ≤3 bar & ≥2 Hz runs at `leak` ≤ 120 s | nominal runs with a false alarm |",
@@ -386,6 +407,11 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
               ", ".join(f"{f} Hz: {v['sd_60s_bar']:.3f} bar" for f, v in bound["freq_hz"].items()),
               f"; unit-tolerance floor (Bayesian) {floor:.2f} bar at {p_ref:g} bar. Gas-spring channel after 600 s: "
               + ", ".join(f"{f} Hz: {v:.1f} bar" for f, v in bound["gas_spring_sd_600s_bar"].items()) + ".",
+              "", "On a unit never baselined that floor stays in every interval, however many reversals are read: "
+              f"the verdict can say `leak` only for a reading below {reach['leak_below_bar']:.2f} bar and `ok` only "
+              f"for one above {reach['ok_above_bar']:.2f} bar (95 % interval, fault {FAULT_BAR:g} and warn "
+              f"{WARN_BAR:g} bar). A unit baseline (`python -m train.observer baseline`) conditions it"
+              + (f" (scored with one here: {', '.join(sorted(baselines))})." if baselines else "."),
               "", "![bound](observer_bound.png)", "", "![runs](observer_runs.png)", ""]
     (out / "observer.md").write_text("\n".join(lines))
     return lines

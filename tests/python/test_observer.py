@@ -9,7 +9,8 @@ simulated runs (``shocktwin simulate --quick``):
 - no excitation: a wide interval, never a confident number;
 - a log without the observer's sensors: an error naming them;
 - calibrated on one campaign, the interval covers the truth on held-out runs;
-- another unit's baseline at a known charge narrows its interval, which still covers.
+- another unit's baseline at a known charge narrows its interval, which still covers;
+- the verdict's reach on a unit never baselined is where the health rule itself turns.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from scipy.optimize import least_squares
 import shocktwin
 from conftest import write_mcap_log
 from train import observer as obs_tool
-from train.observer_report import window_model
+from train.observer_report import health_series, verdict_reach, window_model
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(os.environ.get("SHOCKTWIN_BIN", ROOT / "target" / "release" / "shocktwin"))
@@ -559,3 +560,26 @@ def test_an_end_that_falls_silent_bounds_the_charge() -> None:
     assert obs_tool.silent_bounds(revs[2:]) == {1: 0.0, -1: 0.0}
     # too few windows on the other end to call an end silent
     assert obs_tool.silent_bounds([run(0.5, 30, 0), run(4.0, 400, 400)]) == {1: 0.0, -1: 0.0}
+
+
+def test_the_verdicts_reach_without_a_baseline_is_where_the_health_rule_turns() -> None:
+    """``verdict_reach``: with the systematic floor of the full campaign's calibration (2.06 bar
+    and 10 % of the charge), a steady reading just below its ``leak_below_bar`` and its floor as
+    the sd turns the SPEC §6a rule (``health_series``, the evaluation's) to `leak`, just above it
+    never does; the same for `ok`. Without a floor the reach is the thresholds themselves."""
+    obs = {"systematic_sd_bar": 2.06, "systematic_rel": 0.1}
+    reach = verdict_reach(obs)
+    t = np.arange(0.0, 60.0, 0.02)
+
+    def health(read: float) -> str:
+        sd = float(np.hypot(obs["systematic_sd_bar"], obs["systematic_rel"] * read))
+        m = np.full(len(t), read)
+        return health_series(t, m, m - obs_tool.Z95 * sd, m + obs_tool.Z95 * sd, np.ones(len(t), bool))[-1]
+
+    leak, ok = reach["leak_below_bar"], reach["ok_above_bar"]
+    assert 0.5 < leak < obs_tool.FAULT_BAR and obs_tool.WARN_BAR < ok < 20.0, reach
+    assert health(leak - 0.01) == "leak" and health(leak + 0.01) == "low"
+    assert health(ok + 0.01) == "ok" and health(ok - 0.01) == "unknown"
+    bare = verdict_reach({"systematic_sd_bar": 0.0, "systematic_rel": 0.0})
+    assert bare["leak_below_bar"] == pytest.approx(obs_tool.FAULT_BAR, abs=1e-9)
+    assert bare["ok_above_bar"] == pytest.approx(obs_tool.WARN_BAR, abs=1e-9)
