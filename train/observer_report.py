@@ -190,21 +190,22 @@ def window_model(theta: np.ndarray, accel: float, obs: dict[str, Any], times: np
     return sol.y[2] + c0
 
 
+def systematic_floor(obs: dict[str, Any], p_bar: float) -> float:
+    """The systematic part of the reported sd at a reading ``p_bar`` on a unit never baselined,
+    bar: ``hypot(systematic_sd_bar, systematic_rel · p)``, the calibration's leave-one-run-out
+    spread and the unit-to-unit tolerance of the seal friction (dt-core ``systematic_var``)."""
+    return float(np.hypot(obs["systematic_sd_bar"], obs.get("systematic_rel", 0.0) * p_bar))
+
+
 def verdict_reach(obs: dict[str, Any]) -> dict[str, float]:
     """How far the SPEC §6a verdict can reach on a unit never baselined, however many reversals
-    it reads: the reported sd never falls below the systematic floor ``hypot(systematic_sd_bar,
-    systematic_rel · p)`` (the unit-to-unit tolerance of the seal friction), so the 95 % interval
-    lies below the fault threshold (``leak``) only for a reading below ``leak_below_bar`` and above
+    it reads: the reported sd never falls below ``systematic_floor``, so the 95 % interval lies
+    below the fault threshold (``leak``) only for a reading below ``leak_below_bar`` and above
     the warn threshold (``ok``) only for one above ``ok_above_bar`` (``brentq`` on
     ``p ± Z95 · floor(p) = threshold``; no hysteresis: the first entry into either verdict)."""
-    sys_bar, rel = float(obs["systematic_sd_bar"]), float(obs.get("systematic_rel", 0.0))
-
-    def floor(p: float) -> float:
-        return float(np.hypot(sys_bar, rel * p))
-
-    leak = brentq(lambda p: p + Z95 * floor(p) - FAULT_BAR, FAULT_BAR - 100.0, FAULT_BAR)
-    ok = (brentq(lambda p: p - Z95 * floor(p) - WARN_BAR, WARN_BAR, WARN_BAR + 1000.0)
-          if Z95 * rel < 1.0 else float("inf"))
+    leak = brentq(lambda p: p + Z95 * systematic_floor(obs, p) - FAULT_BAR, FAULT_BAR - 100.0, FAULT_BAR)
+    ok = (brentq(lambda p: p - Z95 * systematic_floor(obs, p) - WARN_BAR, WARN_BAR, WARN_BAR + 1000.0)
+          if Z95 * obs.get("systematic_rel", 0.0) < 1.0 else float("inf"))
     return {"leak_below_bar": float(leak), "ok_above_bar": float(ok)}
 
 
@@ -319,7 +320,7 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
     bound: dict[str, Any] = {"p_ref_bar": p_ref, "freq_hz": {}, "gas_spring_sd_600s_bar": {},
                              "verdict_reach_without_baseline": verdict_reach(obs)}
     fig, ax = plt.subplots(figsize=(9, 5.5))
-    floor = float(np.hypot(obs["systematic_sd_bar"], obs.get("systematic_rel", 0.0) * p_ref))
+    floor = systematic_floor(obs, p_ref)
     for i, f in enumerate(freqs):
         ip = fisher_per_reversal(obs, f, p_ref)
         crlb = 1.0 / np.sqrt(2 * f * t_grid * ip)

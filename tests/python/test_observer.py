@@ -572,7 +572,7 @@ def test_the_verdicts_reach_without_a_baseline_is_where_the_health_rule_turns() 
     t = np.arange(0.0, 60.0, 0.02)
 
     def health(read: float) -> str:
-        sd = float(np.hypot(obs["systematic_sd_bar"], obs["systematic_rel"] * read))
+        sd = float(np.hypot(obs["systematic_sd_bar"], obs["systematic_rel"] * read))  # dt-core systematic_var
         m = np.full(len(t), read)
         return health_series(t, m, m - obs_tool.Z95 * sd, m + obs_tool.Z95 * sd, np.ones(len(t), bool))[-1]
 
