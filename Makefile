@@ -37,10 +37,11 @@ $(VENV)/.shocktwin: $(VENV)/.deps $(PY_EXT_SRC)
 	  $(VENV)/bin/maturin develop -q --release -m crates/dt-py/Cargo.toml
 	touch $@
 
-# One build of every Rust target (tests and benches included) with the feature set the
-# tests use, so that `cargo test` below reuses it instead of compiling again.
+# The CLI and the load generator only: `make demo` needs no test or bench target. The
+# dependencies' features are unified across the workspace (crates/workspace-hack), so the
+# bindings' build above, this one and `cargo test` below share one compilation of them.
 $(BIN): $(RUST_SRC) Cargo.lock
-	$(CARGO) build $(CARGO_PROFILE) --workspace --exclude dt-py --all-targets
+	$(CARGO) build $(CARGO_PROFILE) -p dt-server --bins
 
 setup: $(VENV)/.shocktwin $(BIN) ## create .venv, build the CLI and the Python package
 
@@ -79,8 +80,10 @@ study: setup ## the full study on the default campaign: physics, charge observer
 	$(PY) -m train.observer fit --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --datasheet $(DATASHEET)
 	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --out docs/study
 
+# dt-bench holds no test, and its dev-dependency criterion would be compiled for nothing:
+# `make bench` builds the benches, `make lint` checks them.
 test-rust: ## Rust unit and integration tests
-	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py
+	$(CARGO) test $(CARGO_PROFILE) --workspace --exclude dt-py --exclude dt-bench
 
 # The dashboard test drives Debian's Chromium through chromedriver (tests/python/test_dashboard.py).
 # CI (CI=true, as root) installs them; elsewhere this says which command to run.
