@@ -98,8 +98,10 @@ browser: ## check for (in CI as root: install) chromium and chromium-driver, for
 	  exit 1; \
 	fi
 
+# Three workers on two cores: a tenth of the tests' time is spent waiting on real-time streams
+# and servers (NATS failover, the daemon's drives), which a third worker fills.
 test-python: setup $(BIN) browser ## pytest: the Python contract, references and interop, the dashboard in Chromium
-	$(PY) -m pytest -q -n 2 --dist loadfile --durations=15 tests/python
+	$(PY) -m pytest -q -n 3 --dist loadfile --durations=15 tests/python
 
 test: setup test-rust test-python ## set up, then run every test
 
