@@ -481,7 +481,8 @@ def twin_law_dict(z: np.ndarray, beta_per_k: float) -> dict[str, Any]:
 
 
 def fit_twin_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, Any], obs: dict[str, Any],
-                         start: dict[str, Any], max_nfev: int = 200) -> dict[str, Any]:
+                         start: dict[str, Any], max_nfev: int = 200,
+                         loadcell: "LoadcellRows | None" = None) -> dict[str, Any]:
     """As ``fit_valves_law_windows`` with the compression side two valves whose forces add at
     the same speed (``--law-form twin-tube``; the module docs). Started from ``start``
     (``fit_valves_law_windows``'s fit, a valve each way): its extension valve, knee, windows'
@@ -489,17 +490,303 @@ def fit_twin_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, A
     split 90/10 and 10/90 (one valve takes most of the turbulent bleed, the other most of the
     laminar), its cracking force 45/55, and the shims' gain ×2√2 in each (half the force
     above half the crack passes the same speed). Two equal halves would be a saddle the fit
-    cannot leave."""
+    cannot leave. A ``start`` that is already this form's fit starts from its own valves.
+
+    ``loadcell``: the nominal runs' loadcell rows (``LoadcellRows``) join the windows' —
+    the speeds beyond the windows' reach (``loadcell_law_rows``)."""
     law0 = start["law"]
     vs = law0["valves"]
-    comp = np.array([vs["compression"][k] for k in VALVE_FIELDS])
-    a, b, crack, g = comp
-    base = np.array([0.1 * a, 0.9 * b, 0.45 * crack, 2.0 * np.sqrt(2.0) * g])
-    piston = np.array([0.9 * a, 0.1 * b, 0.55 * crack, 2.0 * np.sqrt(2.0) * g])
     z_ext = np.array([vs["extension"][k] for k in VALVE_FIELDS]) / VALVE_SCALE
+    if vs.get("compression_piston"):
+        base = np.array([vs["compression"][k] for k in VALVE_FIELDS])
+        piston = np.array([vs["compression_piston"][k] for k in VALVE_FIELDS])
+    else:
+        a, b, crack, g = np.array([vs["compression"][k] for k in VALVE_FIELDS])
+        base = np.array([0.1 * a, 0.9 * b, 0.45 * crack, 2.0 * np.sqrt(2.0) * g])
+        piston = np.array([0.9 * a, 0.1 * b, 0.55 * crack, 2.0 * np.sqrt(2.0) * g])
     z_law = np.concatenate([z_ext, [vs["knee_n"] / VALVE_KNEE_SCALE], base / VALVE_SCALE, piston / VALVE_SCALE])
     lower = np.concatenate([VALVE_LOWER, [0.1 / VALVE_KNEE_SCALE], VALVE_LOWER, VALVE_LOWER])
     per0 = [(max(q["alpha_n"], 5.0), q["shift_ms"]) for q in start["per_window"]]
     beta = law0["beta_per_k"]
-    return _fit_windows(windows, physics, obs, lambda z: twin_law_dict(z, beta), np.maximum(z_law, lower + 1e-9),
-                        (lower, np.full(len(z_law), np.inf)), lambda z: np.zeros(0), per0, max_nfev)
+    rows = (lambda z: loadcell(twin_law_dict(z, beta))) if loadcell is not None else (lambda z: np.zeros(0))
+    fit = _fit_windows(windows, physics, obs, lambda z: twin_law_dict(z, beta), np.maximum(z_law, lower + 1e-9),
+                       (lower, np.full(len(z_law), np.inf)), rows, per0, max_nfev)
+    if loadcell is not None:
+        fit["loadcell_rms_n"] = float(np.sqrt(np.mean(np.concatenate(loadcell.residuals_n(fit["law"])) ** 2)))
+    return fit
+
+
+# ---------------------------------------------------------------------------------------
+# the law's loadcell rows: the nominal runs' loadcell, mid-stroke
+# ---------------------------------------------------------------------------------------
+
+# The reversal windows of the 1 and 2 Hz nominal runs reach 0.16 m/s only in their last
+# milliseconds; at 3 Hz the windows run to 0.3 m/s, where dt-sim's compression valves have
+# blown off (README, "Twenty-seventh session"). The dyno's loadcell sees every speed of every
+# stroke: mid-stroke its reading is the law, the seal friction, the gas force and the mount's
+# inertia, through the amplifier's low pass (dt-sim 0.2.0: within 8 N RMS of the reading, on
+# 6 N of noise, with the plant's own static curve and a velocity of the potentiometer's).
+LOADCELL_CHUNK_S = 4.0          # s of loadcell per chunk; each chunk has its own nuisances
+LOADCELL_CHUNKS_PER_RUN = 6     # spread over the excited part of each nominal run
+LOADCELL_GRID_S = 1e-3          # the model force's grid (filtered, then read at the samples)
+LOADCELL_LEAD_S = 0.3           # grid before a chunk's first sample (the filter's start)
+LOADCELL_SAVGOL = (7, 3)        # the potentiometer's derivative: window (samples), order
+LOADCELL_FILTER_HZ = np.geomspace(5.0, 200.0, 41)  # the amplifier's low pass, searched
+# A loadcell row's weight against a window's: 10 N of loadcell residual counts as 0.1 m/s²
+# of a window's (each at about its noise-free model error).
+LOADCELL_MPS2_PER_N = 0.01
+# The loadcell's rows start at this speed: the windows hold the law below it.
+LOADCELL_MIN_SPEED_MPS = 0.1
+# The velocities the law is tabulated at for the loadcell rows: 1 mm/s up to 0.06 m/s (the
+# friction's knee), 2.5 mm/s to 0.6 m/s (the valves' knees), 10 mm/s beyond, to 1.5 m/s.
+_LV = np.concatenate([np.arange(0.0, 0.06, 0.001), np.arange(0.06, 0.6, 0.0025), np.arange(0.6, 1.5001, 0.01)])
+LOADCELL_LAW_V = np.concatenate([-_LV[:0:-1], _LV])
+
+
+def lag_behind_accel_s(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]) -> float:
+    """The lag (s, a 0.1 ms grid to 10 ms) by which a position lags an accelerometer: for each
+    ``(t_pos, z, t_acc, acc)`` the position's second derivative (Savitzky–Golay, scipy) against
+    the accelerometer read that much earlier, each with its own gain and mean, the squared
+    misfit summed over the pairs."""
+    from scipy.signal import savgol_filter
+
+    lags = np.arange(0.0, 10.0001, 0.1) * 1e-3
+    cost = np.zeros(len(lags))
+    for tp, zp, ta, acc in pairs:
+        dt = float(np.median(np.diff(tp)))
+        y = savgol_filter(zp, LOADCELL_SAVGOL[0], LOADCELL_SAVGOL[1], deriv=2, delta=dt)
+        y = y[LOADCELL_SAVGOL[0]:-LOADCELL_SAVGOL[0]]
+        t = tp[LOADCELL_SAVGOL[0]:-LOADCELL_SAVGOL[0]]
+        y = y - y.mean()
+        for i, lag in enumerate(lags):
+            x = np.interp(t - lag, ta, acc)
+            x = x - x.mean()
+            g = (x @ y) / max(x @ x, 1e-12)
+            cost[i] += float(np.sum((y - g * x) ** 2))
+    return float(lags[int(np.argmin(cost))])
+
+
+def potentiometer_lag_s(runs: Sequence[Run], accel_bw_hz: float) -> float | None:
+    """The potentiometer's lag (s) behind the rod end: its lag behind the rod-end
+    accelerometer ``a1`` over the excited parts of ``runs`` (``lag_behind_accel_s``) plus
+    ``a1``'s own first-order lag ``1 / (2π accel_bw_hz)``. No law enters it. None without
+    accelerometers."""
+    pairs = []
+    for run in runs:
+        if "/acceleration" not in run.log.topics or "/position" not in run.log.topics:
+            continue
+        pos, acc = run.log.topic("/position"), run.log.topic("/acceleration")
+        ok = np.isfinite(pos["position_m"])
+        m = ok & (pos["t_s"] > rest_end_s(run) + SKIP_AFTER_ONSET_S)
+        if m.sum() < 50:
+            continue
+        oka = np.isfinite(acc["a1_mps2"])
+        pairs.append((pos["t_s"][m], pos["position_m"][m], acc["t_s"][oka], acc["a1_mps2"][oka]))
+    if not pairs:
+        return None
+    return lag_behind_accel_s(pairs) + 1.0 / (2.0 * np.pi * accel_bw_hz)
+
+
+def loadcell_chunks(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any],
+                    lag_s: float, per_run: int = LOADCELL_CHUNKS_PER_RUN) -> list[dict[str, Any]]:
+    """``per_run`` chunks of ``LOADCELL_CHUNK_S`` of each run's loadcell, spread over its
+    excited part: on a ``LOADCELL_GRID_S`` grid the stroke velocity (the potentiometer's
+    Savitzky–Golay derivative, advanced by its lag ``lag_s``: ``potentiometer_lag_s``), the
+    position, ``a2`` and the twin's oil temperature (the one the observer uses); the
+    loadcell's samples and their indices on the grid. Runs without a loadcell are skipped."""
+    from scipy.interpolate import CubicSpline
+    from scipy.signal import savgol_filter
+
+    out = []
+    for run in runs:
+        if not {"/force", "/position", "/acceleration"} <= set(run.log.topics):
+            continue
+        trace = shocktwin.twin_trace(run.log, physics)
+        t0 = min(run.log.topic(t)["t_s"][0] for t in run.log.topics if len(run.log.topic(t)["t_s"]))
+        pos, acc, fc = run.log.topic("/position"), run.log.topic("/acceleration"), run.log.topic("/force")
+        ok = np.isfinite(pos["position_m"])
+        tp, zp = pos["t_s"][ok] - t0, pos["position_m"][ok]
+        dt = float(np.median(np.diff(tp)))
+        vel = CubicSpline(tp, savgol_filter(zp, LOADCELL_SAVGOL[0], LOADCELL_SAVGOL[1], deriv=1, delta=dt))
+        okf = np.isfinite(fc["force_n"])
+        tf, ff = fc["t_s"][okf] - t0, fc["force_n"][okf]
+        start = rest_end_s(run) - t0 + SKIP_AFTER_ONSET_S + LOADCELL_LEAD_S
+        end = min(tp[-1], tf[-1]) - 0.1
+        if end - start < LOADCELL_CHUNK_S:
+            continue
+        for c in range(per_run):
+            a = start + (c + 0.5) / per_run * (end - start - LOADCELL_CHUNK_S)
+            grid = np.arange(a - LOADCELL_LEAD_S, a + LOADCELL_CHUNK_S, LOADCELL_GRID_S)
+            sel = (tf >= a) & (tf < a + LOADCELL_CHUNK_S)
+            if sel.sum() < 20:
+                continue
+            out.append({"run": run.name, "t_s": float(a), "v": vel(grid + lag_s),
+                        "y": np.interp(grid + lag_s, tp, zp),
+                        "a2": np.interp(grid, acc["t_s"] - t0, acc["a2_mps2"]),
+                        "oil_c": np.interp(grid, trace["t_s"], trace["oil_temp_model_c"]),
+                        "force": ff[sel],
+                        "at": np.clip(np.round((tf[sel] - grid[0]) / LOADCELL_GRID_S).astype(int), 0, len(grid) - 1)})
+    return out
+
+
+class LoadcellRows:
+    """The loadcell rows of the law's fit on ``chunks`` (``loadcell_chunks``) through the
+    amplifier's low pass, a 2nd-order Butterworth at ``filter_hz`` (scipy, on the grid): per
+    chunk the reading ``F = LP[L(v, T) + α tanh(v / v_s) + k y − m a2] + c``, the nuisances
+    ``k`` (the gas spring), ``m`` (the mount's mass) and ``c`` (the gas force and the
+    loadcell's zero) eliminated by least squares (variable projection), so only the law ``L``
+    is left to fit. Only the samples at ``min_speed_mps`` or faster are rows: near a reversal
+    the reading turns on the velocity's timing (a potentiometer lag read 0.6 ms long is 15 N
+    there at 4 Hz) and the windows hold the law better. The seal friction's amplitude ``α`` is ``alpha_at(T_oil)`` (N) — what the
+    windows read at that oil temperature — or, without it, a nuisance too: mid-stroke
+    ``tanh(v / v_s)`` is the sign of the velocity, and a free ``α`` per chunk takes up any
+    part of the law that is, so the law then thinned too fast with the heat (dt-sim: 14 %
+    weak at 0.16 m/s and 80 °C). Rows in m/s² (``LOADCELL_MPS2_PER_N``)."""
+
+    def __init__(self, chunks: Sequence[dict[str, Any]], v_smooth_mps: float, filter_hz: float,
+                 alpha_at: Any = None, min_speed_mps: float = 0.0):
+        from scipy.signal import butter
+
+        self.chunks = []
+        for ch in chunks:  # only the samples at ``min_speed_mps`` or faster are rows
+            keep = np.abs(ch["v"][ch["at"]]) >= min_speed_mps
+            if keep.sum() >= 8:
+                self.chunks.append({**ch, "at": ch["at"][keep], "force": ch["force"][keep]})
+        self.filter_hz, self.min_speed_mps = float(filter_hz), float(min_speed_mps)
+        self.ba = butter(2, filter_hz, fs=1.0 / LOADCELL_GRID_S)
+        self.q, self.friction = [], []
+        for ch in self.chunks:
+            tanh = np.tanh(ch["v"] / v_smooth_mps)
+            cols = [self.lowpass(ch["y"]), self.lowpass(ch["a2"])]
+            if alpha_at is None:
+                cols.append(self.lowpass(tanh))
+                self.friction.append(np.zeros(len(ch["at"])))
+            else:
+                self.friction.append(self.lowpass(np.asarray(alpha_at(ch["oil_c"])) * tanh)[ch["at"]])
+            x = np.column_stack([c[ch["at"]] for c in cols] + [np.ones(len(ch["at"]))])
+            self.q.append(np.linalg.qr(x)[0])
+
+    def lowpass(self, x: np.ndarray) -> np.ndarray:
+        from scipy.signal import lfilter, lfilter_zi
+
+        return lfilter(*self.ba, x, zi=lfilter_zi(*self.ba) * x[0])[0]
+
+    def law_forces(self, d: dict[str, Any]) -> list[np.ndarray]:
+        """Per chunk, the law dict ``d``'s force on the grid, read off a table of it
+        (``LOADCELL_LAW_V``) at the chunk's coldest and hottest oil, linear between (a chunk
+        spans about a kelvin): one ``law`` call for every chunk at once (within 0.4 N of
+        ``law`` at every point on the simulated dyno's chunks)."""
+        n = len(LOADCELL_LAW_V)
+        temps = np.array([[np.min(ch["oil_c"]), np.max(ch["oil_c"])] for ch in self.chunks]).ravel()
+        table = law(np.tile(LOADCELL_LAW_V, len(temps)), np.repeat(temps, n), d).reshape(len(temps), n)
+        out = []
+        for k, ch in enumerate(self.chunks):
+            lo, hi = temps[2 * k], temps[2 * k + 1]
+            f = np.interp(ch["v"], LOADCELL_LAW_V, table[2 * k])
+            if hi - lo > 1e-6:
+                w = (ch["oil_c"] - lo) / (hi - lo)
+                f = (1.0 - w) * f + w * np.interp(ch["v"], LOADCELL_LAW_V, table[2 * k + 1])
+            out.append(f)
+        return out
+
+    def residuals_n(self, d: dict[str, Any]) -> list[np.ndarray]:
+        """Per chunk, the loadcell's residual (N) with the law dict ``d`` (``law_forces``), its
+        nuisances projected out."""
+        out = []
+        for ch, q, f, fr in zip(self.chunks, self.q, self.law_forces(d), self.friction):
+            r = ch["force"] - fr - self.lowpass(f)[ch["at"]]
+            out.append(r - q @ (q.T @ r))
+        return out
+
+    def __call__(self, d: dict[str, Any]) -> np.ndarray:
+        return LOADCELL_MPS2_PER_N * np.concatenate(self.residuals_n(d))
+
+    @classmethod
+    def searched(cls, chunks: Sequence[dict[str, Any]], v_smooth_mps: float, d: dict[str, Any],
+                 max_speed_mps: float) -> "LoadcellRows":
+        """The rows whose low pass (``LOADCELL_FILTER_HZ``) fits the loadcell best with the law
+        ``d`` on the chunks' samples below ``max_speed_mps`` (where ``d`` was measured)."""
+        best = None
+        for hz in LOADCELL_FILTER_HZ:
+            rows = cls(chunks, v_smooth_mps, hz)
+            cost = 0.0
+            for ch, r in zip(rows.chunks, rows.residuals_n(d)):
+                slow = np.abs(ch["v"][ch["at"]]) <= max_speed_mps
+                cost += float(np.sum(r[slow] ** 2))
+            if best is None or cost < best[0]:
+                best = (cost, rows)
+        return best[1]
+
+
+def fit_loadcell_filter(chunks: Sequence[dict[str, Any]], v_smooth_mps: float, start: dict[str, Any],
+                        max_nfev: int = 60, alpha_at: Any = None) -> tuple[float, dict[str, Any], float]:
+    """The loadcell amplifier's low pass (Hz), measured with the twin-tube law on the loadcell
+    alone (scipy ``least_squares``, soft-L1): the law's valves and the cut-off fitted
+    together from ``start`` (a twin-tube fit on the windows) and 20 Hz. The windows' law is
+    wrong beyond their reach, and a cut-off searched with it held read 24 Hz for dt-sim's
+    20 (the loadcell alone: 19.4). Returns the cut-off, the law (only the cut-off is kept:
+    the loadcell alone holds the law poorly below 0.1 m/s, where the windows hold it) and the
+    loadcell's RMS residual (N)."""
+    from scipy.optimize import least_squares
+
+    law0 = start["law"]
+    vs, beta = law0["valves"], law0["beta_per_k"]
+    z0 = np.concatenate([np.array([vs["extension"][k] for k in VALVE_FIELDS]) / VALVE_SCALE,
+                         [vs["knee_n"] / VALVE_KNEE_SCALE],
+                         np.array([vs["compression"][k] for k in VALVE_FIELDS]) / VALVE_SCALE,
+                         np.array([vs["compression_piston"][k] for k in VALVE_FIELDS]) / VALVE_SCALE,
+                         [np.log(20.0)]])
+    lower = np.concatenate([VALVE_LOWER, [0.1 / VALVE_KNEE_SCALE], VALVE_LOWER, VALVE_LOWER,
+                            [np.log(LOADCELL_FILTER_HZ[0])]])
+    upper = np.concatenate([np.full(13, np.inf), [np.log(LOADCELL_FILTER_HZ[-1])]])
+    cache: dict[float, LoadcellRows] = {}
+
+    def rows_at(log_hz: float) -> LoadcellRows:
+        key = round(float(log_hz), 12)
+        if key not in cache:
+            cache.clear()
+            cache[key] = LoadcellRows(chunks, v_smooth_mps, float(np.exp(log_hz)), alpha_at,
+                                      LOADCELL_MIN_SPEED_MPS)
+        return cache[key]
+
+    def resid(z: np.ndarray) -> np.ndarray:
+        return rows_at(z[13])(twin_law_dict(z[:13], beta)) / LOADCELL_MPS2_PER_N
+
+    sol = least_squares(resid, np.clip(z0, lower + 1e-9, upper - 1e-9), bounds=(lower, upper), x_scale="jac",
+                        loss="soft_l1", f_scale=20.0, max_nfev=max_nfev)
+    return float(np.exp(sol.x[13])), twin_law_dict(sol.x[:13], beta), float(np.sqrt(np.mean(sol.fun ** 2)))
+
+
+def loadcell_law_rows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any],
+                      start: dict[str, Any]) -> LoadcellRows | None:
+    """The loadcell rows of the nominal ``runs`` for the twin-tube law's fit (``start``: its
+    fit on the windows alone), or None when they carry no loadcell (or no accelerometers:
+    the potentiometer's lag is measured against ``a1``). The potentiometer's lag
+    (``potentiometer_lag_s``), the chunks (``loadcell_chunks``) and the amplifier's cut-off
+    (``fit_loadcell_filter``) are printed; the seal friction is held at what the windows of
+    ``start`` read (``friction_of_windows``)."""
+    if not any({"/force", "/position", "/acceleration"} <= set(r.log.topics) for r in runs):
+        return None
+    lag = potentiometer_lag_s(runs, obs["accel_bw_hz"])
+    if lag is None:
+        return None
+    chunks = loadcell_chunks(runs, physics, obs, lag)
+    if not chunks:
+        return None
+    alpha_at = friction_of_windows(start)
+    hz, _, rms = fit_loadcell_filter(chunks, obs["friction_v_smooth_mps"], start, alpha_at=alpha_at)
+    print(f"damping law, the loadcell rows: {len(chunks)} chunks of {LOADCELL_CHUNK_S:.0f} s "
+          f"({sum(len(c['force']) for c in chunks)} samples) of {len({c['run'] for c in chunks})} nominal runs; "
+          f"potentiometer lag {lag * 1e3:.1f} ms, amplifier low pass {hz:.1f} Hz "
+          f"(the loadcell alone: {rms:.1f} N RMS)")
+    return LoadcellRows(chunks, obs["friction_v_smooth_mps"], hz, alpha_at, LOADCELL_MIN_SPEED_MPS)
+
+
+def friction_of_windows(fit: dict[str, Any]) -> Any:
+    """The seal friction's amplitude (N) the windows of ``fit`` read, as a straight line in
+    the oil temperature (numpy ``polyfit`` over its windows; the charge, and so the
+    pressure-energised seal, rises with the heat): the loadcell rows' ``alpha_at``."""
+    oil = np.array([w["oil_c"] for w in fit["per_window"]])
+    alpha = np.array([w["alpha_n"] for w in fit["per_window"]])
+    slope, intercept = np.polyfit(oil, alpha, 1)
+    return lambda t: slope * np.asarray(t, float) + intercept

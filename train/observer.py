@@ -726,7 +726,7 @@ def own_model_on_the_line(cal: dict[str, Any], alt: dict[str, Any], fastest: flo
 
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    per_run: int, min_span_k: float, beta_per_k: float | None = None,
-                   form: str = "hinges") -> dict[str, Any] | None:
+                   form: str = "hinges", loadcell: bool = False) -> dict[str, Any] | None:
     """The window model's damping law, fitted on the nominal runs' reversal windows
     (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
@@ -736,7 +736,8 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     with a compression valve too (``fit_valves_law_windows``); ``twin-tube``: that one with
     the compression valve split in two, base and piston (``fit_twin_law_windows``)."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_twin_law_windows,
-                                   fit_valve_law_windows, fit_valves_law_windows, reversal_windows)
+                                   fit_valve_law_windows, fit_valves_law_windows, loadcell_law_rows,
+                                   reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
     wins = [w for w in reversal_windows(runs, physics, obs, per_run)
@@ -767,6 +768,13 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
         print(f"damping law with a valve each way: {fit['residual_rms_mps2']:.3f} m/s² RMS; "
               "with the compression valve split in two (base and piston):")
         fit = fit_twin_law_windows(wins, physics, obs, start=fit)
+        rows = loadcell_law_rows(runs, physics, obs, fit) if loadcell else None
+        if rows is not None:
+            print(f"damping law on the windows: {fit['residual_rms_mps2']:.3f} m/s² RMS, the loadcell "
+                  f"{np.sqrt(np.mean(np.concatenate(rows.residuals_n(fit['law'])) ** 2)):.1f} N RMS; "
+                  "with the loadcell rows:")
+            fit = fit_twin_law_windows(wins, physics, obs, start=fit, loadcell=rows)
+            print(f"damping law with the loadcell rows: the loadcell {fit['loadcell_rms_n']:.1f} N RMS")
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
           f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
@@ -854,7 +862,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
                              LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0, beta_per_k,
-                             args.law_form)
+                             args.law_form, args.law_loadcell == "auto")
         if law is None and args.damping == "law":
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
     if law is not None:
@@ -1090,6 +1098,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="when the fastest excitation gets a model of its own, take it off the shared line too: "
                         "reversals between it and the next excitation are then not read (the twenty-fourth "
                         "session's behaviour; README, \"Twenty-fifth session\")")
+    f.add_argument("--law-loadcell", choices=("auto", "off"), default="off",
+                   help="with --law-form twin-tube: fit the law on the nominal runs' loadcell too (mid-stroke, "
+                        "the speeds beyond the reversal windows' reach; auto: when they carry one, off: the "
+                        "windows alone; train.damping_law.LoadcellRows)")
     f.add_argument("--law-form", choices=("hinges", "valve", "valves", "twin-tube"), default="twin-tube",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
                         "extension valve whose knee sits at a force (README, \"The extension valve\"), or a valve "
