@@ -531,7 +531,7 @@ LOADCELL_CHUNKS_PER_RUN = 6     # spread over the excited part of each nominal r
 LOADCELL_GRID_S = 1e-3          # the model force's grid (filtered, then read at the samples)
 LOADCELL_LEAD_S = 0.3           # grid before a chunk's first sample (the filter's start)
 LOADCELL_SAVGOL = (7, 3)        # the potentiometer's derivative: window (samples), order
-LOADCELL_FILTER_HZ = np.geomspace(5.0, 200.0, 41)  # the amplifier's low pass, searched
+LOADCELL_FILTER_HZ = (5.0, 200.0)  # the bounds of the amplifier's low pass, fitted
 # A loadcell row's weight against a window's: 10 N of loadcell residual counts as 0.1 m/s²
 # of a window's (each at about its noise-free model error).
 LOADCELL_MPS2_PER_N = 0.01
@@ -637,8 +637,9 @@ class LoadcellRows:
     loadcell's zero) eliminated by least squares (variable projection), so only the law ``L``
     is left to fit. Only the samples at ``min_speed_mps`` or faster are rows: near a reversal
     the reading turns on the velocity's timing (a potentiometer lag read 0.6 ms long is 15 N
-    there at 4 Hz) and the windows hold the law better. The seal friction's amplitude ``α`` is ``alpha_at(T_oil)`` (N) — what the
-    windows read at that oil temperature — or, without it, a nuisance too: mid-stroke
+    there at 4 Hz) and the windows hold the law better. The seal friction's amplitude ``α``
+    is ``alpha_at(T_oil)`` (N) — what the windows read at that oil temperature — or, without
+    it, a nuisance too: mid-stroke
     ``tanh(v / v_s)`` is the sign of the velocity, and a free ``α`` per chunk takes up any
     part of the law that is, so the law then thinned too fast with the heat (dt-sim: 14 %
     weak at 0.16 m/s and 80 °C). Rows in m/s² (``LOADCELL_MPS2_PER_N``)."""
@@ -674,8 +675,8 @@ class LoadcellRows:
     def law_forces(self, d: dict[str, Any]) -> list[np.ndarray]:
         """Per chunk, the law dict ``d``'s force on the grid, read off a table of it
         (``LOADCELL_LAW_V``) at the chunk's coldest and hottest oil, linear between (a chunk
-        spans about a kelvin): one ``law`` call for every chunk at once (within 0.4 N of
-        ``law`` at every point on the simulated dyno's chunks)."""
+        spans about a kelvin): one ``law`` call for every chunk at once (0.42 N from ``law`` at
+        most on the tests' twin-tube law, at its extension valve's knee)."""
         n = len(LOADCELL_LAW_V)
         temps = np.array([[np.min(ch["oil_c"]), np.max(ch["oil_c"])] for ch in self.chunks]).ravel()
         table = law(np.tile(LOADCELL_LAW_V, len(temps)), np.repeat(temps, n), d).reshape(len(temps), n)
@@ -700,22 +701,6 @@ class LoadcellRows:
 
     def __call__(self, d: dict[str, Any]) -> np.ndarray:
         return LOADCELL_MPS2_PER_N * np.concatenate(self.residuals_n(d))
-
-    @classmethod
-    def searched(cls, chunks: Sequence[dict[str, Any]], v_smooth_mps: float, d: dict[str, Any],
-                 max_speed_mps: float) -> "LoadcellRows":
-        """The rows whose low pass (``LOADCELL_FILTER_HZ``) fits the loadcell best with the law
-        ``d`` on the chunks' samples below ``max_speed_mps`` (where ``d`` was measured)."""
-        best = None
-        for hz in LOADCELL_FILTER_HZ:
-            rows = cls(chunks, v_smooth_mps, hz)
-            cost = 0.0
-            for ch, r in zip(rows.chunks, rows.residuals_n(d)):
-                slow = np.abs(ch["v"][ch["at"]]) <= max_speed_mps
-                cost += float(np.sum(r[slow] ** 2))
-            if best is None or cost < best[0]:
-                best = (cost, rows)
-        return best[1]
 
 
 def fit_loadcell_filter(chunks: Sequence[dict[str, Any]], v_smooth_mps: float, start: dict[str, Any],
