@@ -48,7 +48,9 @@
 //! first-order-filtered (`accel_bw_hz`) acceleration plus a constant `c0`;
 //! classical RK4 on a sub-grid of at most [`TEMPLATE_STEP_S`] and a quarter
 //! of the friction's turn-over time `v_s / |ÿ_r|` ([`STEPS_PER_TURNOVER`]), started
-//! quasi-statically 15 ms before the window. Free parameters:
+//! quasi-statically 15 ms before the window (the body on the mount's particular
+//! solution under the force's ramp, with the mount's damping and the damper's
+//! own). Free parameters:
 //! `θ = [α (N), c_ext, c_comp (kN·s/m), δ (ms), c0 (m/s²)]`, every window from
 //! the same start ([`START_DAMPING_KNSPM`], [`START_SHIFT_MS`]; then
 //! [`FALLBACK_DAMPING_KNSPM`] if that fit fails a check below): at 2 Hz the
@@ -2506,8 +2508,13 @@ impl ReversalModel {
             [x[1], a, self.filter_rad_s * (a - x[2])]
         };
         let mut s = times.first().copied().unwrap_or(0.0) - TEMPLATE_LEAD_S;
-        // Quasi-static start: the body follows the smooth force, `x = F/k`,
-        // `ẋ = Ḟ/k` with `Ḟ = (dF/dẏ) ÿ_r`.
+        // Quasi-static start: the body follows the smooth force. With the
+        // force linearised about the start, `F ≈ G(s) − (dF/dẏ) ẋ` (`ẏ = v_r − ẋ`),
+        // the mount obeys `m ẍ + (c_m + dF/dẏ) ẋ + k x = G(s)`, whose particular
+        // solution for `G` linear in `s` is `x = G/k − (c_m + dF/dẏ) Ġ/k²`,
+        // `ẋ = Ġ/k`, `ẍ = 0`, with `Ġ = (dF/dẏ) ÿ_r`. (Before, `x = G/k` alone: the
+        // start then rang at `ω_n (c_m + dF/dẏ) Ġ / k`, up to ≈ 1 m/s² at 3 Hz,
+        // not all gone 15 ms later when the window began.)
         let yd0 = self.accel * (s - shift);
         let slope = match &self.law {
             // Central difference of the law (1 mm/s; the start is 15 ms from
@@ -2524,9 +2531,10 @@ impl ReversalModel {
                 }
             }
         } + alpha / self.v_smooth / (yd0 / self.v_smooth).cosh().powi(2);
+        let g_dot = slope * self.accel;
         let mut st = [
-            force(s, 0.0) / self.stiffness,
-            slope * self.accel / self.stiffness,
+            (force(s, 0.0) - (self.damping + slope) * g_dot / self.stiffness) / self.stiffness,
+            g_dot / self.stiffness,
             0.0,
         ];
         let mut out = Vec::with_capacity(times.len());
