@@ -181,8 +181,10 @@ def window_model(theta: np.ndarray, accel: float, obs: dict[str, Any], times: np
     else:
         dslope = c_ext if yd0 > 0 else c_comp
     slope = dslope + alpha / vs / np.cosh(yd0 / vs) ** 2
-    g_dot = slope * accel  # quasi-static start: the mount's particular solution under a force
-    x0 = [(force(s0, 0.0) - (c + slope) * g_dot / k) / k, g_dot / k, 0.0]  # ramp, its damping and the damper's
+    # quasi-static start: the mount's particular solution under the force's ramp, with the
+    # mount's damping and the damper's own (dt-core `ReversalModel::simulate`)
+    g_dot = slope * accel
+    x0 = [(force(s0, 0.0) - (c + slope) * g_dot / k) / k, g_dot / k, 0.0]
     # max_step: 16 steps through the friction's turn-over at 6 m/s² (v_s / |ÿ| = 0.8 ms); at
     # 2e-5 (before) the windows moved by 4e-8 m/s² at most and took twice as long
     sol = solve_ivp(rhs, (s0, times[-1]), x0, t_eval=times,
