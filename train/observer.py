@@ -569,7 +569,8 @@ def warm_terms(obs: dict[str, Any], accel: float) -> tuple[float, float]:
     """``(offset N, gain N/bar)`` of the measurement model at velocity slope ``accel`` with warm oil
     at ``T_c`` (no cold term, no drift), averaged over the two ends of the stroke: dt-core
     ``ObserverParams::terms`` (the table's own excitation within its band, else the shared
-    excitations' line, extrapolated at its ends), or the one line without a table."""
+    excitations' line, extrapolated at its ends, or held above the fastest with ``held_sd_bar``),
+    or the one line without a table."""
     a = abs(accel)
     x = obs.get("excitations")
     if not x:
@@ -586,6 +587,8 @@ def warm_terms(obs: dict[str, Any], accel: float) -> tuple[float, float]:
         seg = next((i for i in range(len(ks) - 1) if a <= clusters[ks[i + 1]]), len(ks) - 2)
         lo, hi = ks[seg], ks[seg + 1]
         w = (a - clusters[lo]) / (clusters[hi] - clusters[lo])
+        if obs.get("held_sd_bar", 0.0) > 0 and a > clusters[hi] * (1 + rel):
+            w = min(w, 1.0)  # held at the line's fastest excitation
 
     def lerp(v: list[list[float]]) -> float:
         return float(np.mean(v[lo]) + w * (np.mean(v[hi]) - np.mean(v[lo])))
@@ -839,6 +842,44 @@ def fastest_on_its_own(cal: dict[str, Any], campaign: Any, physics: dict[str, An
     return both
 
 
+def held_sd(cal: dict[str, Any], revs: Sequence[dict[str, Any]], law_obs: dict[str, Any],
+            unit_tol_pct: float) -> dict[str, Any] | None:
+    """What reading above the shared line's fastest excitation ``a_1`` costs with the model held
+    there (dt-core ``ObserverParams::held_sd_bar``), measured one step down: the runs at ``a_1``
+    read with the shared model calibrated without them (``shared_calibration`` with ``a_1`` left
+    out), held at the line's next excitation ``a_0`` (every reversal's terms at ``|ÿ| = a_0``;
+    ``cal``'s residual cut, which the observer applies to held reversals too). Returns the RMS of
+    their charge errors and the rows; None with fewer than two spaced excitations on the line or
+    no run at ``a_1`` read. On the simulated dyno the line extrapolated from 1–2 Hz to 3 Hz reads
+    +1.5…+2.2 bar high, a line drawn to the 4 Hz model's terms 2.5–2.9 bar low (README, thirtieth
+    session): neither can be tested on a campaign without 3 Hz, the hold can."""
+    o = cal["observer"]
+    own = (o.get("excitations") or {}).get("own") or [False] * 4
+    line = sorted((c, h) for k, (c, h) in enumerate(zip(o["accel_clusters_mps2"], o["reversal_spacings_s"]))
+                  if c > 0 and h > 0 and not own[k])
+    if len(line) < 2:
+        return None
+    (a0, _), (a1, h1) = line[-2], line[-1]
+    low = shared_calibration(revs, law_obs, unit_tol_pct, leave_out=[a1])[0]["observer"]
+    rows = []
+    for r in revs:
+        keep = (in_clusters(r, [(a1, h1)], o["accel_cluster_rel"], o["spacing_rel"])
+                & (r["residual_mps2"] <= o["max_residual_mps2"]))
+        if keep.sum() < MIN_CLUSTER_REVERSALS:
+            continue
+        rr = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+        rr["accel_mps2"] = np.sign(rr["accel_mps2"]) * a0
+        p, sd = charge_from(rr, coef_of(low), low["step_sd_n"], low)
+        if np.isfinite(p):
+            rows.append({"run": r["run"], "truth_bar": r["truth_bar"], "estimate_bar": p, "stat_sd_bar": sd,
+                         "error_bar": p - r["truth_bar"]})
+    if not rows:
+        return None
+    err = np.array([row["error_bar"] for row in rows])
+    return {"held_sd_bar": float(np.sqrt(np.mean(err ** 2))), "from_accel_mps2": a0, "at_accel_mps2": a1,
+            "reach_accel_mps2": a1 * a1 / a0, "rows": rows}
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     campaign = load_campaign(args.campaign)
@@ -858,7 +899,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         obs.update(json.loads(args.datasheet.read_text()))
     obs["window_sd"] = bool(args.window_sd)
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
-    cal, law = None, None
+    cal, law, law_cal = None, None, None
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows,
                              LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0, beta_per_k,
@@ -880,6 +921,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             cal = add_own_excitations(cal, campaign, physics, kept, args.jobs, args.unit_tolerance_pct)
             if not args.keep_fastest_shared:
                 cal = fastest_on_its_own(cal, campaign, physics, revs, law_obs, args)
+        law_cal = cal
     if args.damping in ("linear", "auto"):
         log.info("fitting reversals of %d runs with linear damping slopes", len(campaign.runs))
         lin = calibrate(reversals(campaign.runs, {**physics, "observer": obs}, args.jobs), obs,
@@ -895,6 +937,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
         else:
             cal = lin
     o = cal["observer"]
+    if cal is law_cal and law_cal is not None and not args.no_held:
+        held = held_sd(cal, revs, law_obs, args.unit_tolerance_pct)
+        if held is not None:
+            o["held_sd_bar"] = held["held_sd_bar"]
+            cal["held"] = held
+            print(f"above the line's fastest excitation (|a| = {held['at_accel_mps2']:.2f} m/s²) up to "
+                  f"{held['reach_accel_mps2']:.2f}, short of an excitation with a model of its own: the "
+                  f"measurement model held there, ± {held['held_sd_bar']:.2f} bar (its runs read with the model "
+                  f"held at {held['from_accel_mps2']:.2f} m/s², calibrated without them: "
+                  + ", ".join(f"{r['error_bar']:+.2f}" for r in held["rows"]) + " bar)")
     cal["single_end_sd_bar"] = o.get("single_end_sd_bar", 0.0)  # measured, kept in `fit` either way
     if not args.single_end:
         o["single_end_sd_bar"] = 0.0
@@ -927,7 +979,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
                                                    if c > 0)
           + f" (±{100 * o['accel_cluster_rel']:.0f} % in |a|, ±{100 * o['spacing_rel']:.0f} % in spacing; "
           f"99 % of the calibration reversals within {100 * cal['spacing_spread_rel']:.1f} % of their spacing); "
-          "reversals elsewhere are skipped")
+          + ("reversals elsewhere are skipped, but for those held above the line (above)" if o.get("held_sd_bar")
+             else "reversals elsewhere are skipped"))
     print(f"leave-one-run-out charge error RMS {cal['loro_rms_bar']:.2f} bar; systematic sd "
           f"{o['systematic_sd_bar']:.2f} bar (+{100 * o['systematic_rel']:.0f} % of the charge)")
     if o["fit_gain_floor"] > 0:
@@ -1078,6 +1131,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "`leak` sooner but raised false alarms on nominal runs (README)")
     f.add_argument("--no-between", action="store_true",
                    help="with the law, skip reversals between calibrated excitations")
+    f.add_argument("--no-held", action="store_true",
+                   help="with the law, skip reversals above the shared line's fastest excitation instead of "
+                        "reading them with the model held there (dt-core ObserverParams::held_sd_bar; README, "
+                        "\"Thirtieth session\")")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
     f.add_argument("--scale-prior-sd", type=float, default=SCALE_PRIOR_SD,

@@ -532,6 +532,46 @@ def test_the_fastest_keeps_its_place_on_the_line_beside_its_own_model() -> None:
     assert obs_tool.own_model_on_the_line(full, alt, 24.0, 10.0) is None  # no free slot
 
 
+def test_the_held_models_spread_is_measured_one_step_down() -> None:
+    """``held_sd``: runs at two excitations on the shared line (1.5 and 6 m/s²) whose friction
+    reading falls with ``|ÿ|`` (``α = 30 − 0.2 |a| + 1.5 p_g``, noise 0.3 N). The 6 m/s² runs read
+    with the model calibrated on the 1.5 m/s² runs alone, held there, are 0.9 N low at every
+    charge: the spread is 0.9 N over each run's gain, and the reach 6² / 1.5 = 24 m/s². With
+    no fall in ``|ÿ|`` it is the noise's (near 0). dt-core's side: ``charge`` test
+    ``above_the_lines_fastest_excitation_the_model_is_held``."""
+    obs = observer_physics(damping_law=A_LAW, cold_ref_c=70.0, max_residual_mps2=0.2)["observer"]
+
+    def runs(fall: float) -> list[dict]:
+        rng = np.random.default_rng(9)
+        out = []
+        for acc, h in ((1.5, 0.5), (6.0, 0.25)):
+            for truth in (0.5, 4.0, 7.0, 10.0, 12.0):
+                n = 200
+                accel = acc * np.where(np.arange(n) % 2, 1.0, -1.0) * (1 + 0.01 * rng.standard_normal(n))
+                rev = {"accel_mps2": accel, "gas_temp_c": np.full(n, 80.0), "extension_m": np.zeros(n),
+                       "label_bar": np.full(n, truth), "residual_mps2": np.full(n, 0.1),
+                       "spacing_s": np.full(n, h), "run": f"p{truth}-a{acc}", "truth_bar": truth}
+                coef = np.array([30.0, 0.0, -fall, 1.5, 0.0, 0.0])
+                rev["alpha_n"] = obs_tool.design(rev, rev["label_bar"], obs) @ coef + 0.3 * rng.standard_normal(n)
+                out.append(rev)
+        return out
+
+    for fall in (0.2, 0.0):
+        revs = runs(fall)
+        cal, _ = obs_tool.shared_calibration(revs, obs, 10.0)
+        held = obs_tool.held_sd(cal, revs, obs, 10.0)
+        assert held is not None
+        assert held["at_accel_mps2"] == pytest.approx(6.0, rel=0.01)
+        assert held["reach_accel_mps2"] == pytest.approx(24.0, rel=0.02)
+        assert len(held["rows"]) == 5
+        gain = 1.5 * obs_tool.theta(revs[0], obs)[0]
+        for row in held["rows"]:
+            assert row["error_bar"] == pytest.approx(-fall * 4.5 / gain, abs=0.05), held["rows"]
+        assert held["held_sd_bar"] == pytest.approx(fall * 4.5 / gain, abs=0.05)
+    one = {**cal, "observer": {**cal["observer"], "accel_clusters_mps2": [6.0, 0.0, 0.0, 0.0]}}
+    assert obs_tool.held_sd(one, revs, obs, 10.0) is None  # one excitation on the line: nothing to hold
+
+
 def test_a_baseline_is_refused_at_an_excitation_with_its_own_model(run_4bar: Path) -> None:
     """dt-core's baseline conditions the shared model's unit error only: a run read at an
     excitation with a model of its own gives no baseline, and the error names the run."""

@@ -137,6 +137,13 @@
 //! (b)) bounds the charge from above
 //! ([`ExcitationModel::silent_below_bar`]).
 //!
+//! **Above the line, held** ([`ObserverParams::held_sd_bar`]): a reversal
+//! faster than the line's fastest excitation `a_1` (up to `a_1² / a_0`,
+//! short of an excitation with its own model, on a calibrated stroke) is
+//! read with the terms at `a_1`, not extrapolated; once one is used, the
+//! reported variance gains `held_sd_bar²`, measured on the calibration
+//! campaign one step down (its `a_1` runs read held at `a_0`).
+//!
 //! Two options change what each reversal or the interval carries (both off
 //! by default): `window_sd` takes `σ_α²` per reversal as the larger of
 //! `step_sd_n²` and its window fit's own variance of `α`; `stroke_ends`
@@ -255,6 +262,24 @@ pub const DEFAULT_COLD_REF_C: f64 = 50.0;
 /// Default relative half-width of a calibrated reversal spacing
 /// ([`ObserverParams::spacing_rel`]).
 pub const DEFAULT_SPACING_REL: f64 = 0.15;
+
+/// The shared line's excitations: the slowest, the two fastest (m/s²) and
+/// the range of their strokes (m).
+struct LineExtent {
+    a_lo: f64,
+    a_next: f64,
+    a_hi: f64,
+    s_lo: f64,
+    s_hi: f64,
+}
+
+impl LineExtent {
+    /// Whether a steady stroke (`|ÿ_r| h² / π²`) is of a calibrated amplitude.
+    fn holds_stroke(&self, abs_accel: f64, spacing_s: f64, rel: f64) -> bool {
+        let stroke = abs_accel * spacing_s * spacing_s / std::f64::consts::PI.powi(2);
+        stroke >= self.s_lo * (1.0 - rel) && stroke <= self.s_hi * (1.0 + rel)
+    }
+}
 
 fn default_spacing_rel() -> f64 {
     DEFAULT_SPACING_REL
@@ -408,6 +433,24 @@ pub struct ObserverParams {
     /// spacings. Default false.
     #[serde(default)]
     pub between_excitations: bool,
+    /// Also read reversals **above** the shared line's fastest excitation
+    /// `a_1` (those with a model of their own aside), up to `a_1² / a_0`
+    /// (`a_0` the line's next excitation: as far again, in ratio, as the
+    /// calibration could test) and short of any excitation with a model of
+    /// its own, on a steady stroke of a calibrated amplitude (as
+    /// [`between_excitations`](Self::between_excitations)): the measurement
+    /// model is **held** at `a_1` (its terms there, not extrapolated), and
+    /// once such a reversal is used this sd (bar) joins the systematic
+    /// spread. `python -m train.observer fit` measures it the same way one
+    /// step down: the runs at `a_1` read with the model calibrated without
+    /// them, held at `a_0` (RMS of their charge errors). On the simulated
+    /// dyno the line extrapolated from 1–2 Hz to 3 Hz read +1.5…+2.2 bar
+    /// high, a line to the 4 Hz model's terms 2.5–2.9 bar low (README,
+    /// thirtieth session). Needs two clusters with spacings on the line.
+    /// 0 (the default, and what a physics file written before this field
+    /// means): such reversals are skipped.
+    #[serde(default)]
+    pub held_sd_bar: f64,
     /// Weigh each reversal by its own window's information too: the
     /// measurement variance is `max(step_sd_n², σ_α²)`, `σ_α²` the window
     /// fit's variance of `α` (`σ̂² (JᵀJ)⁻¹₀₀`, `σ̂²` the residual variance
@@ -1278,6 +1321,7 @@ impl Default for ObserverParams {
             excitations: None,
             damping_law: DampingLaw::default(),
             between_excitations: false,
+            held_sd_bar: 0.0,
             window_sd: false,
             scale_prior_sd: 0.0,
             stroke_ends: false,
@@ -1316,6 +1360,7 @@ impl ObserverParams {
     pub fn calibrated_at(&self, abs_accel: f64, spacing_s: f64) -> bool {
         self.at_excitation(abs_accel, spacing_s)
             || (self.between_excitations && self.between_calibrated(abs_accel, spacing_s))
+            || self.held_at(abs_accel, spacing_s)
     }
 
     /// Whether a reversal matches a calibrated excitation itself (one of
@@ -1368,9 +1413,44 @@ impl ObserverParams {
     /// that of the excitations the shared model holds, not those with a
     /// model of their own ([`ExcitationModel::own`]).
     fn between_calibrated(&self, abs_accel: f64, spacing_s: f64) -> bool {
+        let rel = self.accel_cluster_rel;
+        self.line_extent().is_some_and(|l| {
+            abs_accel >= l.a_lo * (1.0 - rel)
+                && abs_accel <= l.a_hi * (1.0 + rel)
+                && l.holds_stroke(abs_accel, spacing_s, rel)
+        })
+    }
+
+    /// A reversal the measurement model reads held at the line's fastest
+    /// excitation ([`held_sd_bar`](Self::held_sd_bar)).
+    #[must_use]
+    pub fn held_at(&self, abs_accel: f64, spacing_s: f64) -> bool {
+        if self.held_sd_bar <= 0.0 {
+            return false;
+        }
+        let rel = self.accel_cluster_rel;
+        let Some(l) = self.line_extent() else {
+            return false;
+        };
+        let own = self.excitations.map_or([false; 4], |x| x.own);
+        let below_own = self
+            .accel_clusters_mps2
+            .iter()
+            .zip(own)
+            .all(|(&c, own)| !(own && c > l.a_hi) || abs_accel < c * (1.0 - rel));
+        abs_accel > l.a_hi * (1.0 + rel)
+            && abs_accel <= l.a_hi * l.a_hi / l.a_next
+            && below_own
+            && l.holds_stroke(abs_accel, spacing_s, rel)
+    }
+
+    /// The excitations on the shared line (spaced, without a model of their
+    /// own), when there are two or more.
+    fn line_extent(&self) -> Option<LineExtent> {
         let pi2 = std::f64::consts::PI.powi(2);
         let (mut n, mut a_lo, mut a_hi, mut s_lo, mut s_hi) =
             (0, f64::MAX, 0.0_f64, f64::MAX, 0.0_f64);
+        let mut a_next = 0.0_f64;
         let own = self.excitations.map_or([false; 4], |x| x.own);
         for ((&c, &h), own) in self
             .accel_clusters_mps2
@@ -1380,18 +1460,24 @@ impl ObserverParams {
         {
             if c > 0.0 && h > 0.0 && !own {
                 n += 1;
-                (a_lo, a_hi) = (a_lo.min(c), a_hi.max(c));
+                if c > a_hi {
+                    a_next = a_hi;
+                    a_hi = c;
+                } else {
+                    a_next = a_next.max(c);
+                }
+                a_lo = a_lo.min(c);
                 let stroke = c * h * h / pi2;
                 (s_lo, s_hi) = (s_lo.min(stroke), s_hi.max(stroke));
             }
         }
-        let rel = self.accel_cluster_rel;
-        let stroke = abs_accel * spacing_s * spacing_s / pi2;
-        n >= 2
-            && abs_accel >= a_lo * (1.0 - rel)
-            && abs_accel <= a_hi * (1.0 + rel)
-            && stroke >= s_lo * (1.0 - rel)
-            && stroke <= s_hi * (1.0 + rel)
+        (n >= 2).then_some(LineExtent {
+            a_lo,
+            a_next,
+            a_hi,
+            s_lo,
+            s_hi,
+        })
     }
 
     /// The measurement model's terms at a reversal with velocity slope
@@ -1446,6 +1532,14 @@ impl ObserverParams {
                 let (a, b) = (self.accel_clusters_mps2[lo], self.accel_clusters_mps2[hi]);
                 (lo, hi, (abs - a) / (b - a))
             }
+        };
+        // Beyond the band of the line's fastest excitation, held at it when
+        // so calibrated (`held_sd_bar`); within the band, the line as fitted.
+        let beyond = abs > self.accel_clusters_mps2[hi] * (1.0 + self.accel_cluster_rel);
+        let w = if self.held_sd_bar > 0.0 && beyond && n >= 2 {
+            w.min(1.0)
+        } else {
+            w
         };
         let lerp = |v: &[[f64; 2]; 4], w: f64| v[lo][e] + w * (v[hi][e] - v[lo][e]);
         let wc = w.clamp(0.0, 1.0);
@@ -1518,6 +1612,7 @@ impl ObserverParams {
             ("observer.systematic_rel", self.systematic_rel),
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             ("observer.single_end_sd_bar", self.single_end_sd_bar),
+            ("observer.held_sd_bar", self.held_sd_bar),
             ("observer.scale_prior_sd", self.scale_prior_sd),
             ("observer.fit_gain_floor", self.fit_gain_floor),
             (
@@ -1784,6 +1879,10 @@ pub struct ChargeObserver {
     /// applies.
     #[serde(default)]
     used_own: bool,
+    /// Whether a reversal read with the model held at the line's fastest
+    /// excitation ([`ObserverParams::held_sd_bar`]) was used.
+    #[serde(default)]
+    used_held: bool,
     /// Windows in a row that failed, per excitation and end (own models only).
     #[serde(default)]
     silent_run: [[u32; 2]; 4],
@@ -1827,6 +1926,7 @@ impl ChargeObserver {
             ends_used: [0; 2],
             used_between: false,
             used_own: false,
+            used_held: false,
             silent_run: [[0; 2]; 4],
             other_fits: [[0; 2]; 4],
             a2_mean: f64::NAN,
@@ -2033,10 +2133,21 @@ impl ChargeObserver {
             Some([(m1, _), (m2, _)]) if self.p.stroke_ends => 0.5 * (m1 + m2),
             _ => self.mean_bar,
         };
-        if self.p.baseline.is_some() && !self.used_own {
+        let unit = if self.p.baseline.is_some() && !self.used_own {
             UnitCorrection::of(&self.p).apply(read).1
         } else {
             self.p.systematic_sd_bar.powi(2) + (self.p.systematic_rel * read).powi(2)
+        };
+        unit + self.held_var()
+    }
+
+    /// What reading held at the line's fastest excitation adds to the
+    /// systematic variance, bar² ([`ObserverParams::held_sd_bar`]).
+    fn held_var(&self) -> f64 {
+        if self.used_held {
+            self.p.held_sd_bar * self.p.held_sd_bar
+        } else {
+            0.0
         }
     }
 
@@ -2337,6 +2448,9 @@ impl ChargeObserver {
             if self.p.own_excitation(rev.accel_mps2.abs()).is_some() {
                 self.used_own = true;
             }
+            if self.p.held_at(rev.accel_mps2.abs(), rev.spacing_s) {
+                self.used_held = true;
+            }
             *rejected_run = 0;
         } else {
             self.counters.rejected += 1;
@@ -2415,11 +2529,17 @@ impl ChargeObserver {
             let unit = UnitCorrection::of(&self.p);
             let (mean, sys_var) = unit.apply(read);
             let scale = 1.0 + unit.gain_rel;
-            (mean, (read_var / (scale * scale) + sys_var).sqrt())
+            (
+                mean,
+                (read_var / (scale * scale) + sys_var + self.held_var()).sqrt(),
+            )
         } else {
             let sys = self.p.systematic_sd_bar;
             let rel = self.p.systematic_rel * read.abs();
-            (read, (read_var + sys * sys + rel * rel).sqrt())
+            (
+                read,
+                (read_var + sys * sys + rel * rel + self.held_var()).sqrt(),
+            )
         };
         let (mean_bar, sd_bar) = match silent {
             Some((_, bound)) => truncated_above(mean_bar, sd_bar, bound),
@@ -3583,6 +3703,81 @@ mod tests {
             x.max_residual_mps2[k] = shared.max_residual_mps2;
         }
         (shared, x)
+    }
+
+    /// With `held_sd_bar`, reversals above the line's fastest excitation
+    /// (short of one with a model of its own, up to as far again in ratio)
+    /// are read with the model held at it, and once one is used its sd joins
+    /// the systematic spread; within that excitation's band the line is as
+    /// fitted, and without `held_sd_bar` nothing above it is read.
+    #[test]
+    fn above_the_lines_fastest_excitation_the_model_is_held() {
+        let (shared, x) = shared_table();
+        let spacing = |a: f64| std::f64::consts::PI * (0.038 / a).sqrt();
+        let line = ObserverParams {
+            excitations: Some(x),
+            between_excitations: true,
+            ..shared
+        };
+        let held = ObserverParams {
+            held_sd_bar: 0.8,
+            ..line
+        };
+        held.validate().unwrap();
+        assert!(!line.calibrated_at(15.0, spacing(15.0)));
+        for a in [7.3, 15.0, 23.9] {
+            assert!(held.calibrated_at(a, spacing(a)), "{a}");
+        }
+        // Not beyond 6² / 1.5 = 24 m/s², nor on another stroke.
+        assert!(!held.calibrated_at(24.5, spacing(24.5)));
+        assert!(!held.calibrated_at(15.0, 1.5 * spacing(15.0)));
+        for sgn in [1.0, -1.0] {
+            let (top, t) = (held.terms(6.0 * sgn), held.terms(15.0 * sgn));
+            assert_eq!(
+                (t.offset_n, t.per_bar_n, t.cold_n),
+                (top.offset_n, top.per_bar_n, top.cold_n)
+            );
+            let (a, b) = (held.terms(6.5 * sgn), line.terms(6.5 * sgn));
+            assert_eq!((a.offset_n, a.per_bar_n), (b.offset_n, b.per_bar_n));
+            assert!((a.offset_n - top.offset_n).abs() > 0.1);
+        }
+        // Short of an excitation with a model of its own (24 m/s², its band
+        // from 19.2).
+        let mut own = x;
+        own.offset_n[2] = [44.0, 31.0];
+        own.per_bar_n[2] = [1.1, 1.8];
+        own.sd_n[2] = [0.9, 2.8];
+        own.max_residual_mps2[2] = 1.2;
+        own.own[2] = true;
+        let with_own = ObserverParams {
+            accel_clusters_mps2: [1.5, 6.0, 24.0, 0.0],
+            reversal_spacings_s: [0.5, 0.25, 0.125, 0.0],
+            excitations: Some(own),
+            ..held
+        };
+        assert!(with_own.held_at(19.0, spacing(19.0)));
+        assert!(!with_own.held_at(19.5, spacing(19.5)));
+        assert!((with_own.terms(-20.0).offset_n - 31.0).abs() < 1e-12);
+        // The variance: the held reading adds its sd² to the systematic part.
+        let mut obs = ChargeObserver::new(held).unwrap();
+        for i in 0..200 {
+            let sgn = if i % 2 == 0 { 1.0 } else { -1.0 };
+            read_spaced(
+                &mut obs,
+                i * 250_000_000,
+                80.0,
+                6.0 * sgn,
+                8.0,
+                spacing(6.0),
+            );
+        }
+        let t1 = 200 * 250_000_000;
+        let before = obs.estimate(t1);
+        read_spaced(&mut obs, t1, 80.0, 15.0, 8.0, spacing(15.0));
+        let after = obs.estimate(t1);
+        let added = after.sd_bar.powi(2) - before.sd_bar.powi(2);
+        assert!((added - 0.64).abs() < 0.02, "{added}");
+        assert!((after.mean_bar - 8.0).abs() < 1e-3, "{}", after.mean_bar);
     }
 
     /// A third excitation's terms hold at its centre and are blended
