@@ -67,7 +67,7 @@ from pathlib import Path
 from typing import Any, Iterator, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, minimize_scalar
 
 import shocktwin
 
@@ -1031,11 +1031,12 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
-    for path, (*_, own) in zip(paths, reads):
+    for path, (*_, own, _) in zip(paths, reads):
         if own:
             raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a measurement model of "
                              "its own, which a baseline does not condition (dt-core UnitBaseline): take the baseline "
                              "at one of the shared model's excitations (the calibration's 1 Hz run is one)")
+    ranges = [r[4] for r in reads if r[4] is not None]
     reads = [r[:3] for r in reads]
     sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
     rows = []
@@ -1053,7 +1054,11 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     mean = float(np.sum(w * m) / np.sum(w))
     spread = float(np.sum(w * (m - mean) ** 2) / np.sum(w)) if len(rows) > 1 else 0.0
     sd = float(np.sqrt(1.0 / np.sum(w) + spread))
-    return {"observer_baseline": {"charge_bar": float(charge_bar), "read_bar": mean, "read_sd_bar": sd},
+    ob = {"charge_bar": float(charge_bar), "read_bar": mean, "read_sd_bar": sd}
+    if ranges:
+        # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
+        ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
+    return {"observer_baseline": ob,
             "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
                      for (p, x, v), (_, _, d) in zip(rows, reads)],
             "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
@@ -1068,22 +1073,118 @@ def own_reversals(rev: dict[str, np.ndarray], obs: dict[str, Any]) -> int:
     return int(sum(np.count_nonzero(np.abs(a - c) <= obs["accel_cluster_rel"] * c) for c in own))
 
 
-def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float, int]:
+def used_accel_range(rev: dict[str, np.ndarray]) -> list[float] | None:
+    """The smallest and largest ``|ÿ_r|`` of ``rev``'s used reversals, m/s² (dt-core
+    ``ChargeObserver::used_accel_range``); None when none was used."""
+    a = np.abs(np.asarray(rev["accel_mps2"]))[np.asarray(rev["used"]) == 1.0]
+    return [float(a.min()), float(a.max())] if len(a) else None
+
+
+def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float, int, list[float] | None]:
     path, physics = args
-    own = own_reversals(shocktwin.charge_reversals(path, physics), physics["observer"])
+    rev = shocktwin.charge_reversals(path, physics)
+    own, span = own_reversals(rev, physics["observer"]), used_accel_range(rev)
     lg = shocktwin.read_log(path)
     x, cols, t = shocktwin.features(lg, physics, ["observer"])
     onset = rest_end_s(Run(path=Path(path), log=lg, run_id="", asset_id="", label_bar=None, frequency_hz=None))
     end = excitation_end_s(lg, float(t[-1]))
     idx = np.nonzero((t >= onset) & (t <= end))[0]
     if len(idx) == 0:
-        return None, float("nan"), float("nan"), own
+        return None, float("nan"), float("nan"), own, span
     i = idx[-1]
     mean = x[:, cols.index("observer_bar")]
     # how far the reading wanders at this constant charge, at the ticks a score would count
     scored = idx[t[idx] >= onset + BASELINE_SETTLE_S]
     drift = float(np.sqrt(np.mean((mean[scored] - mean[i]) ** 2))) if len(scored) else 0.0
-    return float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift, own
+    return float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift, own, span
+
+
+def away(a: Sequence[float], b: Sequence[float], rel: float) -> bool:
+    """Whether the ``|ÿ_r|`` range ``b`` reaches outside range ``a`` by more than ``rel`` of its ends
+    (dt-core ``UnitBaseline::away_from``, at either end of ``b``)."""
+    return b[0] < a[0] * (1.0 - rel) or b[1] > a[1] * (1.0 + rel)
+
+
+def transfer_sd(physics: dict[str, Any], units: Sequence[Sequence[Path]], charge_bar: float,
+                jobs: int = 2) -> dict[str, Any]:
+    """How far a unit's error moves between excitations of the shared model (dt-core
+    ``ObserverParams::transfer_sd_bar``): each unit's runs at ``charge_bar`` read as a baseline
+    would be (every reversal, the reading at the last excited tick, no baseline applied), and for
+    every pair of one unit's runs whose excitations lie apart (either run's ``|ÿ_r|`` range outside
+    the other's band), the difference of their errors. A baseline read on one and used on the other
+    is off by that difference, which no interval held before. Each difference is modelled as
+    ``d_i ~ N(0, τ² + n_i²)``, ``n_i`` the two readings' own noise (their variance from the
+    reversals, less the systematic part: already in the baseline's and the reading's intervals),
+    and ``τ`` is its maximum-likelihood value (zero mean: a shift shared by the units is part of
+    what a baseline misses). A run the observer barely read (a large ``n_i``) then weighs little,
+    where the plain RMS (reported beside it) takes its difference in full. Needs units other than
+    the calibration's: its one unit cannot say how units differ."""
+    obs = physics["observer"]
+    if obs.get("baseline"):
+        raise SystemExit("the physics carries a unit baseline: give the model's own")
+    physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0, "transfer_sd_bar": 0.0}}
+    flat = [(u, Path(p)) for u, runs in enumerate(units) for p in runs]
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        reads = list(pool.map(_baseline_read, [(str(p), physics) for _, p in flat]))
+    sys2, rel, band = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"], obs["accel_cluster_rel"]
+    per_unit: dict[int, list[dict[str, Any]]] = {}
+    for (u, path), (m, sd, _drift, own, span) in zip(flat, reads):
+        if m is None or span is None:
+            raise SystemExit(f"{path}: no reversal read: no transfer from it")
+        if own:
+            raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own, "
+                             "where no baseline applies: give runs at the shared model's excitations")
+        noise2 = max(sd ** 2 - sys2 - (rel * m) ** 2, 0.0)
+        per_unit.setdefault(u, []).append({"file": path.name, "error_bar": m - charge_bar,
+                                           "noise_sd_bar": float(np.sqrt(noise2)), "accel_range_mps2": span})
+    pairs = []
+    for u, rows in per_unit.items():
+        for i in range(len(rows)):
+            for j in range(i + 1, len(rows)):
+                a, b = rows[i], rows[j]
+                if away(a["accel_range_mps2"], b["accel_range_mps2"], band) or \
+                        away(b["accel_range_mps2"], a["accel_range_mps2"], band):
+                    pairs.append({"unit": u, "runs": [a["file"], b["file"]],
+                                  "difference_bar": b["error_bar"] - a["error_bar"],
+                                  "noise_sd_bar": float(np.hypot(a["noise_sd_bar"], b["noise_sd_bar"]))})
+    if len(pairs) < 2:
+        raise SystemExit(f"{len(pairs)} pair(s) of runs at different excitations: give at least two units, "
+                         "each with runs at two excitations")
+    d = np.array([p["difference_bar"] for p in pairs])
+    n = np.array([p["noise_sd_bar"] for p in pairs])
+
+    def nll(log_tau: float) -> float:
+        v = np.exp(2.0 * log_tau) + n ** 2
+        return float(0.5 * np.sum(np.log(v) + d ** 2 / v))
+
+    best = minimize_scalar(nll, bounds=(np.log(1e-3), np.log(50.0)), method="bounded", options={"xatol": 1e-6})
+    return {"transfer_sd_bar": float(np.exp(best.x)), "rms_bar": float(np.sqrt(np.mean(d ** 2))),
+            "mean_bar": float(np.mean(d)),
+            "noise_rms_bar": float(np.sqrt(np.mean(n ** 2))), "units": len(per_unit), "pairs": pairs,
+            "charge_bar": float(charge_bar)}
+
+
+def cmd_transfer(args: argparse.Namespace) -> int:
+    physics = json.loads(args.physics.read_text())
+    if not physics.get("observer"):
+        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    for p in (p for u in args.unit for p in u):
+        if not p.is_file():
+            raise SystemExit(f"{p}: no such run log")
+    t = transfer_sd(physics, args.unit, args.charge_bar, args.jobs)
+    for p in t["pairs"]:
+        print(f"unit {p['unit'] + 1}: {p['runs'][1]} less {p['runs'][0]}: {p['difference_bar']:+.2f} bar "
+              f"(their noise {p['noise_sd_bar']:.2f})")
+    print(f"transfer spread: ±{t['transfer_sd_bar']:.2f} bar (maximum likelihood beside the readings' own noise, RMS "
+          f"{t['noise_rms_bar']:.2f}) over {len(t['pairs'])} pair(s) of {t['units']} unit(s); the differences' RMS "
+          f"{t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}")
+    physics["observer"]["transfer_sd_bar"] = t["transfer_sd_bar"]
+    physics.setdefault("fit", {})["observer_transfer"] = t | {
+        "note": "measured on units other than the calibration's (simulated data when made from shocktwin simulate)"}
+    out = args.out or args.physics
+    out.write_text(json.dumps(physics, indent=2) + "\n")
+    print(f"wrote {out}")
+    return 0
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
@@ -1186,7 +1287,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--out", required=True, type=Path)
     b.add_argument("--jobs", type=int, default=2)
     b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
+    t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
+                                        "the calibration's (ObserverParams::transfer_sd_bar)")
+    t.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")
+    t.add_argument("--charge-bar", required=True, type=float,
+                   help="the charge every unit held in these runs, bar gauge at 20 °C")
+    t.add_argument("--unit", required=True, action="append", nargs="+", type=Path, metavar="RUN",
+                   help="one unit's runs at that charge, at two or more excitations (repeat per unit)")
+    t.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
+    t.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)
+    if args.cmd == "transfer":
+        return cmd_transfer(args)
     if args.cmd == "fit":
         return cmd_fit(args)
     if args.cmd == "baseline":

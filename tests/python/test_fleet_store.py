@@ -377,6 +377,8 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     # this run: the same reading, sd 0.1722 against 0.1722)
     assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
     assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
+    # and records the excitations it was read at, as the tool does
+    assert np.allclose(got["accel_range_mps2"], ref["accel_range_mps2"], rtol=1e-3), (got, ref)
     assert httpx.get(f"{url}/service").status_code == 404
     row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
     assert row["service"] is None and row["baseline"] == got, row

@@ -435,6 +435,52 @@ def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_cam
         obs_tool.baseline_of(with_b, [run12], 12.0, jobs=1)
 
 
+def test_a_units_transfer_spread_is_the_rms_of_its_errors_between_excitations(
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    """``observer transfer``: two other units, each at a known 12 bar at 1 and 2 Hz. Each pair
+    of one unit's runs at different excitations gives the difference of their errors, the same
+    as two baselines read from those runs one by one say; the spread is the maximum-likelihood
+    sd of those differences beside the readings' own noise (the score of ``d ~ N(0, τ² + n²)``
+    is zero there) and lands in the physics file. Each baseline records the excitation it was
+    read at (1 Hz's ``|ÿ_r|`` ≈ 1.5 m/s², 2 Hz's four times that), and two runs at one
+    excitation make no pair."""
+    _, physics = calibrated_campaign
+    units = []
+    for unit in ("3", "4"):
+        runs = simulate(tmp_path / unit, "--pressures", "12", "--frequencies", "1,2", "--unit", unit)
+        units.append(sorted(runs, key=lambda r: r.name))  # f1.0 before f2.0
+    out = tmp_path / "physics.json"
+    args = ["transfer", "--physics", str(physics), "--charge-bar", "12", "--out", str(out), "--jobs", "1"]
+    assert obs_tool.main([*args, "--unit", *map(str, units[0]), "--unit", *map(str, units[1])]) == 0
+    got = json.loads(out.read_text())
+    diffs, ranges = [], []
+    base = json.loads(physics.read_text())
+    for slow, fast in units:
+        b = [obs_tool.baseline_of(base, [r], 12.0, jobs=1)["observer_baseline"] for r in (slow, fast)]
+        diffs.append(b[1]["read_bar"] - b[0]["read_bar"])
+        ranges.append([x["accel_range_mps2"] for x in b])
+    for lo_hi_1hz, lo_hi_2hz in ranges:
+        assert 1.2 < lo_hi_1hz[0] <= lo_hi_1hz[1] < 1.9, ranges
+        assert 4.8 < lo_hi_2hz[0] <= lo_hi_2hz[1] < 7.6, ranges
+    pairs = got["fit"]["observer_transfer"]["pairs"]
+    assert [p["unit"] for p in pairs] == [0, 1], pairs
+    for p, d in zip(pairs, diffs):
+        assert abs(p["difference_bar"] - d) < 1e-6, (p, d)
+    tau = got["observer"]["transfer_sd_bar"]
+    print(f"units 3 and 4 (simulated, quick): 2 Hz less 1 Hz {diffs[0]:+.2f}, {diffs[1]:+.2f} bar: ±{tau:.2f}")
+    rec = got["fit"]["observer_transfer"]
+    assert abs(rec["rms_bar"] - float(np.sqrt(np.mean(np.square(diffs))))) < 1e-6
+    v = tau ** 2 + np.square([p["noise_sd_bar"] for p in pairs])
+    score = float(np.sum((np.square(diffs) - v) / v ** 2))  # d/d(τ²) of the log-likelihood
+    if tau < 2e-3:  # the differences no larger than the readings' noise: τ at its floor, the score ≤ 0
+        assert score <= 0.0, (tau, score)
+    else:
+        assert abs(score) < 1e-3 * float(np.sum(1.0 / v)), (tau, score)
+    # runs at one excitation only: nothing to measure, and said so
+    with pytest.raises(SystemExit, match="pair"):
+        obs_tool.main([*args, "--unit", str(units[0][0]), str(units[1][0])])
+
+
 def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -> None:
     bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
     bad = tmp_path / "b.json"

@@ -144,6 +144,14 @@
 //! reported variance gains `held_sd_bar²`, measured on the calibration
 //! campaign one step down (its `a_1` runs read held at `a_0`).
 //!
+//! **A baseline away from its excitation** ([`ObserverParams::transfer_sd_bar`]):
+//! a [`UnitBaseline`] corrects the unit's error as measured at the
+//! excitations it was read at (`accel_range_mps2`); a unit's error moves
+//! with the excitation (ten simulated units, 12 bar, 2 Hz less 1 Hz: RMS
+//! 0.68 bar), so once a reversal outside that range is used, the reported
+//! variance gains `transfer_sd_bar²`, measured on units other than the
+//! calibration's by `python -m train.observer transfer`.
+//!
 //! Two options change what each reversal or the interval carries (both off
 //! by default): `window_sd` takes `σ_α²` per reversal as the larger of
 //! `step_sd_n²` and its window fit's own variance of `α`; `stroke_ends`
@@ -451,6 +459,21 @@ pub struct ObserverParams {
     /// means): such reversals are skipped.
     #[serde(default)]
     pub held_sd_bar: f64,
+    /// How far a unit's error moves between excitations of the shared model,
+    /// bar (sd): a [`UnitBaseline`] read at some excitations
+    /// ([`UnitBaseline::accel_range_mps2`]) corrects the unit's error there;
+    /// once a reversal outside that range (beyond
+    /// [`accel_cluster_rel`](Self::accel_cluster_rel) of its ends) is used,
+    /// `transfer_sd_bar²` joins the systematic variance (a baseline without
+    /// a recorded range counts every reversal as outside it).
+    /// `python -m train.observer transfer` measures it on units with runs
+    /// at one known charge and two excitations: the RMS of the differences of
+    /// their errors between the excitations. The calibration campaign's one
+    /// unit cannot say it. 0 (the default, and what a physics file written
+    /// before this field means): a baseline applies alike at every
+    /// excitation of the shared model.
+    #[serde(default)]
+    pub transfer_sd_bar: f64,
     /// Weigh each reversal by its own window's information too: the
     /// measurement variance is `max(step_sd_n², σ_α²)`, `σ_α²` the window
     /// fit's variance of `α` (`σ̂² (JᵀJ)⁻¹₀₀`, `σ̂²` the residual variance
@@ -750,6 +773,12 @@ pub struct UnitBaseline {
     /// Standard deviation of that reading from its reversals alone (without
     /// the systematic part), bar.
     pub read_sd_bar: f64,
+    /// The smallest and largest `|ÿ_r|` of the reversals the reading used,
+    /// m/s²: the excitations the baseline was read at
+    /// ([`ObserverParams::transfer_sd_bar`]). None (a baseline written
+    /// before this field): unknown.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub accel_range_mps2: Option<[f64; 2]>,
 }
 
 impl UnitBaseline {
@@ -765,7 +794,10 @@ impl UnitBaseline {
             other => other,
         };
         let b: Self = serde_json::from_value(inner).map_err(|e| {
-            format!("need charge_bar, read_bar and read_sd_bar (numbers, bar): {e}")
+            format!(
+                "need charge_bar, read_bar and read_sd_bar (numbers, bar), \
+                 and optionally accel_range_mps2 ([lo, hi], m/s²): {e}"
+            )
         })?;
         b.validate().map_err(|e| e.to_string())?;
         Ok(b)
@@ -801,7 +833,27 @@ impl UnitBaseline {
                 });
             }
         }
+        if let Some([lo, hi]) = self.accel_range_mps2 {
+            for value in [lo, hi] {
+                if !(value.is_finite() && value > 0.0 && lo <= hi) {
+                    return Err(PhysicsError::InvalidParameter {
+                        name: "observer.baseline.accel_range_mps2",
+                        value,
+                        reason: "must be two finite positive values, the smaller first",
+                    });
+                }
+            }
+        }
         Ok(())
+    }
+
+    /// Whether a reversal at `abs_accel` (m/s²) lies outside the
+    /// excitations this baseline was read at, beyond `rel` of its range's
+    /// ends (always, when the range is unknown).
+    #[must_use]
+    pub fn away_from(&self, abs_accel: f64, rel: f64) -> bool {
+        self.accel_range_mps2
+            .is_none_or(|[lo, hi]| abs_accel < lo * (1.0 - rel) || abs_accel > hi * (1.0 + rel))
     }
 }
 
@@ -1322,6 +1374,7 @@ impl Default for ObserverParams {
             damping_law: DampingLaw::default(),
             between_excitations: false,
             held_sd_bar: 0.0,
+            transfer_sd_bar: 0.0,
             window_sd: false,
             scale_prior_sd: 0.0,
             stroke_ends: false,
@@ -1613,6 +1666,7 @@ impl ObserverParams {
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             ("observer.single_end_sd_bar", self.single_end_sd_bar),
             ("observer.held_sd_bar", self.held_sd_bar),
+            ("observer.transfer_sd_bar", self.transfer_sd_bar),
             ("observer.scale_prior_sd", self.scale_prior_sd),
             ("observer.fit_gain_floor", self.fit_gain_floor),
             (
@@ -1836,6 +1890,7 @@ struct Pending {
 
 /// The recursive charge observer of one run (see the module docs).
 #[derive(Debug, Clone, Serialize, Deserialize)]
+#[allow(clippy::struct_excessive_bools)] // independent flags of what the estimate holds
 pub struct ChargeObserver {
     p: ObserverParams,
     buf: VecDeque<AccPoint>,
@@ -1883,6 +1938,13 @@ pub struct ChargeObserver {
     /// excitation ([`ObserverParams::held_sd_bar`]) was used.
     #[serde(default)]
     used_held: bool,
+    /// Whether a reversal outside the unit baseline's excitations was used
+    /// ([`ObserverParams::transfer_sd_bar`]).
+    #[serde(default)]
+    used_away: bool,
+    /// The smallest and largest `|ÿ_r|` of the used reversals, m/s².
+    #[serde(default)]
+    used_accel_range: Option<[f64; 2]>,
     /// Windows in a row that failed, per excitation and end (own models only).
     #[serde(default)]
     silent_run: [[u32; 2]; 4],
@@ -1927,6 +1989,8 @@ impl ChargeObserver {
             used_between: false,
             used_own: false,
             used_held: false,
+            used_away: false,
+            used_accel_range: None,
             silent_run: [[0; 2]; 4],
             other_fits: [[0; 2]; 4],
             a2_mean: f64::NAN,
@@ -1944,6 +2008,14 @@ impl ChargeObserver {
     #[must_use]
     pub fn used_own(&self) -> bool {
         self.used_own
+    }
+
+    /// The smallest and largest `|ÿ_r|` of the reversals used so far, m/s²
+    /// (None before the first): what a [`UnitBaseline`] read from this run
+    /// records as [`UnitBaseline::accel_range_mps2`].
+    #[must_use]
+    pub fn used_accel_range(&self) -> Option<[f64; 2]> {
+        self.used_accel_range
     }
 
     /// The fitted reversals kept since [`record_reversals`](Self::record_reversals).
@@ -2138,7 +2210,17 @@ impl ChargeObserver {
         } else {
             self.p.systematic_sd_bar.powi(2) + (self.p.systematic_rel * read).powi(2)
         };
-        unit + self.held_var()
+        unit + self.held_var() + self.transfer_var()
+    }
+
+    /// What a unit baseline used away from its excitations adds to the
+    /// systematic variance, bar² ([`ObserverParams::transfer_sd_bar`]).
+    fn transfer_var(&self) -> f64 {
+        if self.used_away && self.p.baseline.is_some() && !self.used_own {
+            self.p.transfer_sd_bar * self.p.transfer_sd_bar
+        } else {
+            0.0
+        }
     }
 
     /// What reading held at the line's fastest excitation adds to the
@@ -2451,6 +2533,18 @@ impl ChargeObserver {
             if self.p.held_at(rev.accel_mps2.abs(), rev.spacing_s) {
                 self.used_held = true;
             }
+            let a = rev.accel_mps2.abs();
+            if self
+                .p
+                .baseline
+                .is_some_and(|u| u.away_from(a, self.p.accel_cluster_rel))
+            {
+                self.used_away = true;
+            }
+            self.used_accel_range = Some(
+                self.used_accel_range
+                    .map_or([a, a], |[lo, hi]| [lo.min(a), hi.max(a)]),
+            );
             *rejected_run = 0;
         } else {
             self.counters.rejected += 1;
@@ -2531,7 +2625,8 @@ impl ChargeObserver {
             let scale = 1.0 + unit.gain_rel;
             (
                 mean,
-                (read_var / (scale * scale) + sys_var + self.held_var()).sqrt(),
+                (read_var / (scale * scale) + sys_var + self.held_var() + self.transfer_var())
+                    .sqrt(),
             )
         } else {
             let sys = self.p.systematic_sd_bar;
@@ -3219,6 +3314,7 @@ mod tests {
             charge_bar: raw.mean_bar - 2.0,
             read_bar: raw.mean_bar,
             read_sd_bar: sd_b,
+            accel_range_mps2: None,
         };
         let est = read(Some(b));
         let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
@@ -3247,6 +3343,7 @@ mod tests {
                 charge_bar: 12.0,
                 read_bar: -60.0,
                 read_sd_bar: 0.1,
+                accel_range_mps2: None,
             }),
             ..base
         })
@@ -3289,6 +3386,7 @@ mod tests {
                 charge_bar: 8.0,
                 read_bar: 8.0,
                 read_sd_bar: 0.1,
+                accel_range_mps2: None,
             }),
             ..p
         };
@@ -3311,6 +3409,87 @@ mod tests {
         let (w, wo) = (with.estimate(t + 1), without.estimate(t + 1));
         assert!((w.mean_bar - wo.mean_bar).abs() < 1e-12 && (w.sd_bar - wo.sd_bar).abs() < 1e-12);
         assert!(wo.sd_bar > p.systematic_sd_bar, "{wo:?}");
+    }
+
+    /// A baseline read at 1.5 m/s² narrows the interval there as before;
+    /// once a reversal at 6 m/s² (outside its range) is used,
+    /// `transfer_sd_bar²` joins the variance, exactly; a baseline whose
+    /// range is unknown counts every reversal as away, and without a
+    /// baseline the spread changes nothing. The reading's own range is
+    /// kept for the next baseline.
+    #[test]
+    fn a_baseline_used_away_from_its_excitations_carries_the_transfer_spread() {
+        let base = ObserverParams {
+            random_walk_bar2_per_s: 0.0,
+            ..shared_table().0
+        };
+        let b = UnitBaseline {
+            charge_bar: 8.0,
+            read_bar: 8.3,
+            read_sd_bar: 0.1,
+            accel_range_mps2: Some([1.4, 1.6]),
+        };
+        let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                baseline,
+                transfer_sd_bar: transfer,
+                ..base
+            })
+            .unwrap();
+            for k in 0..40 {
+                let a = if k % 2 == 0 { 1.5 } else { -1.5 };
+                read_spaced(&mut obs, k * 500_000_000, 80.0, a, 8.0, 0.5);
+            }
+            let t = 40 * 500_000_000;
+            if fast {
+                for k in 0..8 {
+                    let a = if k % 2 == 0 { 6.0 } else { -6.0 };
+                    read_at(&mut obs, t + k * 250_000_000, 80.0, a, 8.0);
+                }
+            }
+            let est = obs.estimate(t + 8 * 250_000_000);
+            (est, obs.used_accel_range())
+        };
+        let (at, range) = run(Some(b), 0.9, false);
+        let (at_none, _) = run(Some(b), 0.0, false);
+        assert_eq!(at, at_none, "at its own excitation the spread adds nothing");
+        let [lo, hi] = range.unwrap();
+        assert!(
+            (lo - 1.5).abs() < 1e-12 && (hi - 1.5).abs() < 1e-12,
+            "{range:?}"
+        );
+        let (away, range) = run(Some(b), 0.9, true);
+        let (away_none, _) = run(Some(b), 0.0, true);
+        assert!((away.mean_bar - away_none.mean_bar).abs() < 1e-12);
+        let want = (away_none.sd_bar.powi(2) + 0.81).sqrt();
+        assert!((away.sd_bar - want).abs() < 1e-12, "{away:?} {want}");
+        assert_eq!(range.map(|r| r[1]), Some(6.0));
+        // A range that holds 6 m/s² too: not away.
+        let wide = UnitBaseline {
+            accel_range_mps2: Some([1.4, 6.1]),
+            ..b
+        };
+        assert_eq!(run(Some(wide), 0.9, true).0, run(Some(wide), 0.0, true).0);
+        // Unknown range: away from the first reversal.
+        let unknown = UnitBaseline {
+            accel_range_mps2: None,
+            ..b
+        };
+        let (u, _) = run(Some(unknown), 0.9, false);
+        let (u_none, _) = run(Some(unknown), 0.0, false);
+        assert!((u.sd_bar - (u_none.sd_bar.powi(2) + 0.81).sqrt()).abs() < 1e-12);
+        // No baseline: nothing to transfer.
+        assert_eq!(run(None, 0.9, true).0, run(None, 0.0, true).0);
+        // A range that is not one is refused, by name.
+        let err = ChargeObserver::new(ObserverParams {
+            baseline: Some(UnitBaseline {
+                accel_range_mps2: Some([6.0, 1.5]),
+                ..b
+            }),
+            ..base
+        })
+        .unwrap_err();
+        assert!(err.to_string().contains("accel_range_mps2"), "{err}");
     }
 
     /// `N(m, s²)` truncated above: its moments against a numerical

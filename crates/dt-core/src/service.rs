@@ -81,6 +81,9 @@ pub struct ServiceReading {
     at_last_excited: Sums,
     last: Option<(f64, f64)>,
     own: bool,
+    /// The `|ÿ_r|` range of the reversals read, m/s².
+    #[serde(default)]
+    accel_range: Option<[f64; 2]>,
 }
 
 /// What one run read of the unit at its known charge.
@@ -160,6 +163,16 @@ impl ServiceReading {
         self.own |= used_own;
     }
 
+    /// Notes the range of `|ÿ_r|` the observer's used reversals span so far
+    /// ([`crate::charge::ChargeObserver::used_accel_range`]), m/s²: the
+    /// baseline records it ([`UnitBaseline::accel_range_mps2`]).
+    pub fn note_accel_range(&mut self, [lo, hi]: [f64; 2]) {
+        self.accel_range = Some(
+            self.accel_range
+                .map_or([lo, hi], |[a, b]| [a.min(lo), b.max(hi)]),
+        );
+    }
+
     /// Drains the estimator's completed ticks into `out`, reading each (the
     /// estimator's excitation threshold decides `excited`).
     pub fn drain_from(&mut self, est: &mut Estimator, out: &mut Vec<Estimate>) {
@@ -175,6 +188,9 @@ impl ServiceReading {
             out.push(tick.estimate);
         }
         self.note_own(est.observer().is_some_and(ChargeObserver::used_own));
+        if let Some(r) = est.observer().and_then(ChargeObserver::used_accel_range) {
+            self.note_accel_range(r);
+        }
     }
 
     /// The unit's baseline at `charge_bar`, or why this run gives none.
@@ -202,6 +218,7 @@ impl ServiceReading {
                 charge_bar,
                 read_bar: m,
                 read_sd_bar: sd_read,
+                accel_range_mps2: self.accel_range,
             },
             drift_sd_bar: drift,
         })

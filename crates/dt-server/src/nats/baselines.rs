@@ -46,6 +46,9 @@ pub struct BaselineEntry {
     /// See [`UnitBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub read_sd_bar: Option<f64>,
+    /// See [`UnitBaseline`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub accel_range_mps2: Option<[f64; 2]>,
     /// See [`RoadBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -66,6 +69,7 @@ impl From<StoredBaseline> for BaselineEntry {
             charge_bar: b.baseline.charge_bar(),
             read_bar: read.map(|u| u.read_bar),
             read_sd_bar: read.map(|u| u.read_sd_bar),
+            accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
@@ -82,6 +86,7 @@ impl BaselineEntry {
                     charge_bar: self.charge_bar,
                     read_bar,
                     read_sd_bar,
+                    accel_range_mps2: self.accel_range_mps2,
                 };
                 b.validate().map_err(|e| e.to_string())?;
                 AssetBaseline::Observer(b)
@@ -465,8 +470,19 @@ mod tests {
                 charge_bar: 12.0,
                 read_bar: 10.84,
                 read_sd_bar: 0.65,
+                accel_range_mps2: None,
             }),
             set_ms: 1_700_000_000_000,
+        };
+        let ranged = StoredBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
+                accel_range_mps2: Some([1.45, 1.62]),
+                ..match observer.baseline {
+                    AssetBaseline::Observer(u) => u,
+                    AssetBaseline::Road(_) => unreachable!(),
+                }
+            }),
+            ..observer
         };
         let road = StoredBaseline {
             baseline: AssetBaseline::Road(RoadBaseline {
@@ -476,7 +492,7 @@ mod tests {
             }),
             set_ms: 1_700_000_000_001,
         };
-        for b in [observer, road] {
+        for b in [observer, ranged, road] {
             let json = serde_json::to_string(&BaselineEntry::from(b)).unwrap();
             let back: BaselineEntry = serde_json::from_str(&json).unwrap();
             assert_eq!(back.stored().unwrap(), b, "{json}");

@@ -65,6 +65,10 @@ pub struct BaselineView {
     /// That reading's standard deviation, bar.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub read_sd_bar: Option<f64>,
+    /// The `|ÿ_r|` range the reading's reversals spanned, m/s²
+    /// (`null`: unknown).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_range_mps2: Option<[f64; 2]>,
     /// The unit's seal friction offset from the road calibration's, N.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -100,6 +104,7 @@ impl BaselineView {
             kind: b.kind(),
             read_bar: read.map(|u| u.read_bar),
             read_sd_bar: read.map(|u| u.read_sd_bar),
+            accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             source,
@@ -393,6 +398,7 @@ mod tests {
                 charge_bar: 12.0,
                 read_bar: 10.0,
                 read_sd_bar: 0.5,
+                accel_range_mps2: None,
             }),
             set_ms: 1_000,
         };
@@ -432,6 +438,7 @@ mod tests {
             charge_bar: 11.0,
             read_bar: 9.4,
             read_sd_bar: 0.3,
+            accel_range_mps2: Some([1.4, 1.6]),
         };
         assert_eq!(
             baselines

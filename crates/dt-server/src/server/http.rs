@@ -12,8 +12,8 @@
 //! | `GET /v1/assets/{id}/trend` | leak rate, predicted warn/fault crossings with intervals, or why not (SPEC §9) |
 //! | `GET /v1/assets/{id}/runs` | runs seen, newest first, each with what the charge observer made of it (`observer`), or a road asset's road observer (`road`: its blocks, and `why_none` when it read none) |
 //! | `GET /v1/assets/{id}/health` | health changes, newest first |
-//! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`kind`: `observer` with `read_bar`, `read_sd_bar`, or `road` with `offset_n`, `blocks`; `source`: `api` or `config`), 404 if none |
-//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}`, bare or under `observer_baseline` as `train.observer baseline` writes it; for a road asset `{"charge_bar", "offset_n", "blocks"}`, bare or under `road_baseline` as `shocktwin road --baseline` prints it; `409` for the other kind); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
+//! | `GET /v1/assets/{id}/baseline` | the unit baseline in effect (`kind`: `observer` with `read_bar`, `read_sd_bar` and, when known, `accel_range_mps2`, or `road` with `offset_n`, `blocks`; `source`: `api` or `config`), 404 if none |
+//! | `PUT /v1/assets/{id}/baseline` | sets the asset's unit baseline after a service (body: `{"charge_bar", "read_bar", "read_sd_bar"}` and optionally `"accel_range_mps2"`, bare or under `observer_baseline` as `train.observer baseline` writes it; for a road asset `{"charge_bar", "offset_n", "blocks"}`, bare or under `road_baseline` as `shocktwin road --baseline` prints it; `409` for the other kind); kept in the fleet store (in a NATS group: in its bucket `shocktwin_baselines`, for every daemon), used from the asset's next run; the ingest role when tokens are on |
 //! | `DELETE /v1/assets/{id}/baseline` | forgets the API's baseline (a `config` one applies again); answers the baseline now in effect or `null` |
 //! | `PUT /v1/assets/{id}/service` | reports a service (body: `{"charge_bar": …, "at": …}`, the charge the unit was filled to and, optionally, when (RFC 3339 or Unix s; default now); runs recorded before it are not read): kept in the fleet store as pending; the asset's runs that start after it run without a baseline, and the first that reads the unit completes it into the asset's baseline (a road asset's drive is read by the road observer into a road baseline; see [`super::baselines`]); the trend restarts at it; in a NATS group it goes to the group's bucket `shocktwin_services` and the worker that takes the asset's next run reads it; the ingest role when tokens are on; `409` with a model that does not read the observer |
 //! | `GET /v1/assets/{id}/service` | the pending service (`charge_bar`, `set_at`, `state`, `last_refusal`: why the last run gave no baseline), 404 if none |
@@ -653,6 +653,7 @@ async fn put_service(
             charge_bar,
             read_bar: charge_bar,
             read_sd_bar: 1.0,
+            accel_range_mps2: None,
         })
     };
     if let Some(r) = refuse_here(&app, &id, probe) {

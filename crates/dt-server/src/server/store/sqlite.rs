@@ -25,10 +25,10 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 6;
+pub const SCHEMA_VERSION: i64 = 7;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 6] = [
+const MIGRATIONS: [&str; 7] = [
     r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
@@ -106,6 +106,12 @@ CREATE TABLE road_baselines (
     r"
 ALTER TABLE runs ADD COLUMN road TEXT;
 ",
+    // The excitations an observer baseline was read at
+    // (`dt_core::charge::UnitBaseline::accel_range_mps2`), NULL: unknown.
+    r"
+ALTER TABLE baselines ADD COLUMN accel_lo_mps2 REAL;
+ALTER TABLE baselines ADD COLUMN accel_hi_mps2 REAL;
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
@@ -149,10 +155,18 @@ fn put_baseline(
     match b.baseline {
         AssetBaseline::Observer(u) => tx.execute(
             &format!(
-                "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms) \
-                 VALUES ({ASSET}, ?2, ?3, ?4, ?5)"
+                "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms, \
+                 accel_lo_mps2, accel_hi_mps2) VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7)"
             ),
-            params![asset_id, u.charge_bar, u.read_bar, u.read_sd_bar, b.set_ms],
+            params![
+                asset_id,
+                u.charge_bar,
+                u.read_bar,
+                u.read_sd_bar,
+                b.set_ms,
+                u.accel_range_mps2.map(|r| r[0]),
+                u.accel_range_mps2.map(|r| r[1]),
+            ],
         )?,
         AssetBaseline::Road(r) => tx.execute(
             &format!(
@@ -592,7 +606,8 @@ impl FleetStore for SqliteStore {
     fn baselines(&self) -> Result<Vec<(String, StoredBaseline)>, StoreError> {
         self.with_reader(|c| {
             let mut stmt = c.prepare(
-                "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms \
+                "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms, \
+                 b.accel_lo_mps2, b.accel_hi_mps2 \
                  FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
             let mut all = stmt
@@ -604,6 +619,10 @@ impl FleetStore for SqliteStore {
                                 charge_bar: r.get(1)?,
                                 read_bar: r.get(2)?,
                                 read_sd_bar: r.get(3)?,
+                                accel_range_mps2: match (r.get(5)?, r.get(6)?) {
+                                    (Some(lo), Some(hi)) => Some([lo, hi]),
+                                    _ => None,
+                                },
                             }),
                             set_ms: r.get(4)?,
                         },
@@ -862,6 +881,7 @@ mod tests {
                 charge_bar: 12.0,
                 read_bar: 10.84,
                 read_sd_bar: 0.7,
+                accel_range_mps2: Some([1.45, 1.61]),
             }),
             set_ms: 1_700_000_000_000,
         };
@@ -903,6 +923,7 @@ mod tests {
                 charge_bar: 12.0,
                 read_bar: 10.6,
                 read_sd_bar: 0.4,
+                accel_range_mps2: None,
             }),
             set_ms: 1_700_000_000_000,
         };
