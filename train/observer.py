@@ -1105,24 +1105,31 @@ def away(a: Sequence[float], b: Sequence[float], rel: float) -> bool:
     return b[0] < a[0] * (1.0 - rel) or b[1] > a[1] * (1.0 + rel)
 
 
+def ln_distance(base: Sequence[float], other: Sequence[float]) -> float:
+    """The largest distance in ``ln |ÿ_r|`` of reversals spanning ``other`` from a baseline read
+    over ``base`` (dt-core ``UnitBaseline::ln_distance``), 0 inside it."""
+    return max(0.0, float(np.log(base[0] / other[0])), float(np.log(other[1] / base[1])))
+
+
 def transfer_sd(physics: dict[str, Any], units: Sequence[Sequence[Path]], charge_bar: float,
                 jobs: int = 2) -> dict[str, Any]:
     """How far a unit's error moves between excitations of the shared model (dt-core
-    ``ObserverParams::transfer_sd_bar``): each unit's runs at ``charge_bar`` read as a baseline
-    would be (every reversal, the reading at the last excited tick, no baseline applied), and for
-    every pair of one unit's runs whose excitations lie apart (either run's ``|ÿ_r|`` range outside
-    the other's band), the difference of their errors. A baseline read on one and used on the other
-    is off by that difference, which no interval held before. Each difference is modelled as
-    ``d_i ~ N(0, τ² + n_i²)``, ``n_i`` the two readings' own noise (their variance from the
-    reversals, less the systematic part: already in the baseline's and the reading's intervals),
-    and ``τ`` is its maximum-likelihood value (zero mean: a shift shared by the units is part of
-    what a baseline misses). A run the observer barely read (a large ``n_i``) then weighs little,
-    where the plain RMS (reported beside it) takes its difference in full. Needs units other than
-    the calibration's: its one unit cannot say how units differ."""
+    ``ObserverParams::transfer_bar_per_ln_accel``): each unit's runs at ``charge_bar`` read as a
+    baseline would be (every reversal, the reading at the last excited tick, no baseline applied),
+    and for every pair of one unit's runs whose excitations lie apart (either run's ``|ÿ_r|`` range
+    outside the other's band), the difference of their errors. A baseline read on one and used on
+    the other is off by that difference, which no interval held before. Each difference is
+    modelled as ``d_i ~ N(0, (κ L_i)² + n_i²)``: ``L_i`` the runs' distance in ``ln |ÿ_r|`` (as the
+    observer measures it, averaged over the two ways round), ``n_i`` the two readings' own noise
+    (their variance from the reversals, less the systematic part: already in the baseline's and the
+    reading's intervals); ``κ`` is its maximum-likelihood value (zero mean: a shift shared by the
+    units is part of what a baseline misses). A run the observer barely read (a large ``n_i``) then
+    weighs little, where the plain RMS (reported beside it) takes its difference in full. Needs
+    units other than the calibration's: its one unit cannot say how units differ."""
     obs = physics["observer"]
     if obs.get("baseline"):
         raise SystemExit("the physics carries a unit baseline: give the model's own")
-    physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0, "transfer_sd_bar": 0.0}}
+    physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0, "transfer_bar_per_ln_accel": 0.0}}
     flat = [(u, Path(p)) for u, runs in enumerate(units) for p in runs]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for _, p in flat]))
@@ -1142,23 +1149,25 @@ def transfer_sd(physics: dict[str, Any], units: Sequence[Sequence[Path]], charge
         for i in range(len(rows)):
             for j in range(i + 1, len(rows)):
                 a, b = rows[i], rows[j]
-                if away(a["accel_range_mps2"], b["accel_range_mps2"], band) or \
-                        away(b["accel_range_mps2"], a["accel_range_mps2"], band):
+                ra, rb = a["accel_range_mps2"], b["accel_range_mps2"]
+                if away(ra, rb, band) or away(rb, ra, band):
                     pairs.append({"unit": u, "runs": [a["file"], b["file"]],
                                   "difference_bar": b["error_bar"] - a["error_bar"],
+                                  "ln_distance": 0.5 * (ln_distance(ra, rb) + ln_distance(rb, ra)),
                                   "noise_sd_bar": float(np.hypot(a["noise_sd_bar"], b["noise_sd_bar"]))})
     if len(pairs) < 2:
         raise SystemExit(f"{len(pairs)} pair(s) of runs at different excitations: give at least two units, "
                          "each with runs at two excitations")
     d = np.array([p["difference_bar"] for p in pairs])
     n = np.array([p["noise_sd_bar"] for p in pairs])
+    ln_d = np.array([p["ln_distance"] for p in pairs])
 
-    def nll(log_tau: float) -> float:
-        v = np.exp(2.0 * log_tau) + n ** 2
+    def nll(log_kappa: float) -> float:
+        v = (np.exp(log_kappa) * ln_d) ** 2 + n ** 2
         return float(0.5 * np.sum(np.log(v) + d ** 2 / v))
 
     best = minimize_scalar(nll, bounds=(np.log(1e-3), np.log(50.0)), method="bounded", options={"xatol": 1e-6})
-    return {"transfer_sd_bar": float(np.exp(best.x)), "rms_bar": float(np.sqrt(np.mean(d ** 2))),
+    return {"transfer_bar_per_ln_accel": float(np.exp(best.x)), "rms_bar": float(np.sqrt(np.mean(d ** 2))),
             "mean_bar": float(np.mean(d)),
             "noise_rms_bar": float(np.sqrt(np.mean(n ** 2))), "units": len(per_unit), "pairs": pairs,
             "charge_bar": float(charge_bar)}
@@ -1174,11 +1183,12 @@ def cmd_transfer(args: argparse.Namespace) -> int:
     t = transfer_sd(physics, args.unit, args.charge_bar, args.jobs)
     for p in t["pairs"]:
         print(f"unit {p['unit'] + 1}: {p['runs'][1]} less {p['runs'][0]}: {p['difference_bar']:+.2f} bar "
-              f"(their noise {p['noise_sd_bar']:.2f})")
-    print(f"transfer spread: ±{t['transfer_sd_bar']:.2f} bar (maximum likelihood beside the readings' own noise, RMS "
-          f"{t['noise_rms_bar']:.2f}) over {len(t['pairs'])} pair(s) of {t['units']} unit(s); the differences' RMS "
-          f"{t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}")
-    physics["observer"]["transfer_sd_bar"] = t["transfer_sd_bar"]
+              f"(their noise {p['noise_sd_bar']:.2f}; {p['ln_distance']:.2f} apart in ln|ÿ|)")
+    k = t["transfer_bar_per_ln_accel"]
+    print(f"transfer spread: ±{k:.3f} bar per unit of ln|ÿ| (±{k * np.log(4.0):.2f} bar from 1 to 2 Hz; maximum "
+          f"likelihood beside the readings' own noise, RMS {t['noise_rms_bar']:.2f}) over {len(t['pairs'])} pair(s) of "
+          f"{t['units']} unit(s); the differences' RMS {t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}")
+    physics["observer"]["transfer_bar_per_ln_accel"] = k
     physics.setdefault("fit", {})["observer_transfer"] = t | {
         "note": "measured on units other than the calibration's (simulated data when made from shocktwin simulate)"}
     out = args.out or args.physics
@@ -1288,7 +1298,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--jobs", type=int, default=2)
     b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
     t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
-                                        "the calibration's (ObserverParams::transfer_sd_bar)")
+                                        "the calibration's (ObserverParams::transfer_bar_per_ln_accel)")
     t.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")
     t.add_argument("--charge-bar", required=True, type=float,
                    help="the charge every unit held in these runs, bar gauge at 20 °C")

@@ -439,11 +439,11 @@ def test_a_units_transfer_spread_is_the_rms_of_its_errors_between_excitations(
         calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
     """``observer transfer``: two other units, each at a known 12 bar at 1 and 2 Hz. Each pair
     of one unit's runs at different excitations gives the difference of their errors, the same
-    as two baselines read from those runs one by one say; the spread is the maximum-likelihood
-    sd of those differences beside the readings' own noise (the score of ``d ~ N(0, τ² + n²)``
-    is zero there) and lands in the physics file. Each baseline records the excitation it was
-    read at (1 Hz's ``|ÿ_r|`` ≈ 1.5 m/s², 2 Hz's four times that), and two runs at one
-    excitation make no pair."""
+    as two baselines read from those runs one by one say; the spread per unit of ``ln |ÿ_r|`` is
+    the maximum-likelihood value beside the readings' own noise (the score of
+    ``d ~ N(0, (κ L)² + n²)`` is zero there) and lands in the physics file. Each baseline records
+    the excitation it was read at (1 Hz's ``|ÿ_r|`` ≈ 1.5 m/s², 2 Hz's four times that, ``L`` ≈
+    ln 4), and two runs at one excitation make no pair."""
     _, physics = calibrated_campaign
     units = []
     for unit in ("3", "4"):
@@ -466,16 +466,19 @@ def test_a_units_transfer_spread_is_the_rms_of_its_errors_between_excitations(
     assert [p["unit"] for p in pairs] == [0, 1], pairs
     for p, d in zip(pairs, diffs):
         assert abs(p["difference_bar"] - d) < 1e-6, (p, d)
-    tau = got["observer"]["transfer_sd_bar"]
-    print(f"units 3 and 4 (simulated, quick): 2 Hz less 1 Hz {diffs[0]:+.2f}, {diffs[1]:+.2f} bar: ±{tau:.2f}")
+    kappa = got["observer"]["transfer_bar_per_ln_accel"]
+    print(f"units 3 and 4 (simulated, quick): 2 Hz less 1 Hz {diffs[0]:+.2f}, {diffs[1]:+.2f} bar: "
+          f"±{kappa:.2f} bar per unit of ln|ÿ|")
     rec = got["fit"]["observer_transfer"]
     assert abs(rec["rms_bar"] - float(np.sqrt(np.mean(np.square(diffs))))) < 1e-6
-    v = tau ** 2 + np.square([p["noise_sd_bar"] for p in pairs])
-    score = float(np.sum((np.square(diffs) - v) / v ** 2))  # d/d(τ²) of the log-likelihood
-    if tau < 2e-3:  # the differences no larger than the readings' noise: τ at its floor, the score ≤ 0
-        assert score <= 0.0, (tau, score)
+    ln_d = np.array([p["ln_distance"] for p in pairs])
+    assert np.all(np.abs(ln_d - np.log(4.0)) < 0.25), ln_d
+    v = (kappa * ln_d) ** 2 + np.square([p["noise_sd_bar"] for p in pairs])
+    score = float(np.sum(ln_d ** 2 * (np.square(diffs) - v) / v ** 2))  # d/d(κ²) of the log-likelihood
+    if kappa < 2e-3:  # the differences no larger than the readings' noise: κ at its floor, the score ≤ 0
+        assert score <= 0.0, (kappa, score)
     else:
-        assert abs(score) < 1e-3 * float(np.sum(1.0 / v)), (tau, score)
+        assert abs(score) < 1e-3 * float(np.sum(ln_d ** 2 / v)), (kappa, score)
     # runs at one excitation only: nothing to measure, and said so
     with pytest.raises(SystemExit, match="pair"):
         obs_tool.main([*args, "--unit", str(units[0][0]), str(units[1][0])])

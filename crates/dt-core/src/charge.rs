@@ -144,12 +144,13 @@
 //! reported variance gains `held_sd_bar²`, measured on the calibration
 //! campaign one step down (its `a_1` runs read held at `a_0`).
 //!
-//! **A baseline away from its excitation** ([`ObserverParams::transfer_sd_bar`]):
-//! a [`UnitBaseline`] corrects the unit's error as measured at the
-//! excitations it was read at (`accel_range_mps2`); a unit's error moves
-//! with the excitation (ten simulated units, 12 bar, 2 Hz less 1 Hz: RMS
-//! 0.68 bar), so once a reversal outside that range is used, the reported
-//! variance gains `transfer_sd_bar²`, measured on units other than the
+//! **A baseline away from its excitation**
+//! ([`ObserverParams::transfer_bar_per_ln_accel`]): a [`UnitBaseline`]
+//! corrects the unit's error as measured at the excitations it was read at
+//! (`accel_range_mps2`); a unit's error moves with the excitation (ten
+//! simulated units, 12 bar, 2 Hz less 1 Hz: RMS 0.68 bar). The reported
+//! variance gains `(κ L)²`, `L` the largest distance in `ln |ÿ_r|` of a
+//! used reversal from that range and `κ` measured on units other than the
 //! calibration's by `python -m train.observer transfer`.
 //!
 //! Two options change what each reversal or the interval carries (both off
@@ -460,20 +461,24 @@ pub struct ObserverParams {
     #[serde(default)]
     pub held_sd_bar: f64,
     /// How far a unit's error moves between excitations of the shared model,
-    /// bar (sd): a [`UnitBaseline`] read at some excitations
+    /// `κ`: bar of standard deviation per unit of `ln |ÿ_r|`. A
+    /// [`UnitBaseline`] read at some excitations
     /// ([`UnitBaseline::accel_range_mps2`]) corrects the unit's error there;
-    /// once a reversal outside that range (beyond
-    /// [`accel_cluster_rel`](Self::accel_cluster_rel) of its ends) is used,
-    /// `transfer_sd_bar²` joins the systematic variance (a baseline without
-    /// a recorded range counts every reversal as outside it).
+    /// once reversals at a distance `L = ln(lo / |ÿ_r|)` or
+    /// `ln(|ÿ_r| / hi)` from that range are used, `(κ L)²` of the largest
+    /// such `L` joins the systematic variance (a baseline without a
+    /// recorded range could have been read anywhere on the shared model's
+    /// excitations: `L` is then the distance to the farthest of them).
     /// `python -m train.observer transfer` measures it on units with runs
-    /// at one known charge and two excitations: the RMS of the differences of
-    /// their errors between the excitations. The calibration campaign's one
+    /// at one known charge and two or more excitations, by maximum
+    /// likelihood on the differences of their errors; on ten simulated units
+    /// the spread between 1 and 1.5 Hz and between 1 and 2 Hz grew about as
+    /// `L` (README, "Thirty-first session"). The calibration campaign's one
     /// unit cannot say it. 0 (the default, and what a physics file written
     /// before this field means): a baseline applies alike at every
     /// excitation of the shared model.
     #[serde(default)]
-    pub transfer_sd_bar: f64,
+    pub transfer_bar_per_ln_accel: f64,
     /// Weigh each reversal by its own window's information too: the
     /// measurement variance is `max(step_sd_n², σ_α²)`, `σ_α²` the window
     /// fit's variance of `α` (`σ̂² (JᵀJ)⁻¹₀₀`, `σ̂²` the residual variance
@@ -775,7 +780,7 @@ pub struct UnitBaseline {
     pub read_sd_bar: f64,
     /// The smallest and largest `|ÿ_r|` of the reversals the reading used,
     /// m/s²: the excitations the baseline was read at
-    /// ([`ObserverParams::transfer_sd_bar`]). None (a baseline written
+    /// ([`ObserverParams::transfer_bar_per_ln_accel`]). None (a baseline written
     /// before this field): unknown.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub accel_range_mps2: Option<[f64; 2]>,
@@ -847,13 +852,20 @@ impl UnitBaseline {
         Ok(())
     }
 
-    /// Whether a reversal at `abs_accel` (m/s²) lies outside the
-    /// excitations this baseline was read at, beyond `rel` of its range's
-    /// ends (always, when the range is unknown).
+    /// How far a reversal at `abs_accel` (m/s²) lies from the excitations
+    /// this baseline was read at, in `ln |ÿ_r|` (0 inside its range). When
+    /// the range is unknown, the distance to the farther end of `span` (the
+    /// shared model's excitations, `[lo, hi]`; 0 without one).
     #[must_use]
-    pub fn away_from(&self, abs_accel: f64, rel: f64) -> bool {
-        self.accel_range_mps2
-            .is_none_or(|[lo, hi]| abs_accel < lo * (1.0 - rel) || abs_accel > hi * (1.0 + rel))
+    pub fn ln_distance(&self, abs_accel: f64, span: Option<[f64; 2]>) -> f64 {
+        if abs_accel.is_nan() || abs_accel <= 0.0 {
+            return 0.0;
+        }
+        match (self.accel_range_mps2, span) {
+            (Some([lo, hi]), _) => (lo / abs_accel).ln().max((abs_accel / hi).ln()).max(0.0),
+            (None, Some([lo, hi])) => (abs_accel / lo).ln().abs().max((hi / abs_accel).ln().abs()),
+            (None, None) => 0.0,
+        }
     }
 }
 
@@ -1374,7 +1386,7 @@ impl Default for ObserverParams {
             damping_law: DampingLaw::default(),
             between_excitations: false,
             held_sd_bar: 0.0,
-            transfer_sd_bar: 0.0,
+            transfer_bar_per_ln_accel: 0.0,
             window_sd: false,
             scale_prior_sd: 0.0,
             stroke_ends: false,
@@ -1607,6 +1619,20 @@ impl ObserverParams {
         }
     }
 
+    /// The smallest and largest `|ÿ_r|` of the excitations the shared model
+    /// was calibrated at (not those with a model of their own), m/s².
+    #[must_use]
+    pub fn shared_span(&self) -> Option<[f64; 2]> {
+        let own = self.excitations.map_or([false; 4], |x| x.own);
+        self.accel_clusters_mps2
+            .iter()
+            .zip(own)
+            .filter(|&(&c, own)| c > 0.0 && !own)
+            .fold(None, |span, (&c, _)| {
+                Some(span.map_or([c, c], |[lo, hi]: [f64; 2]| [lo.min(c), hi.max(c)]))
+            })
+    }
+
     /// The excitation with a model of its own
     /// ([`ExcitationModel::own`]) whose `±accel_cluster_rel` holds `abs_accel`.
     fn own_excitation(&self, abs_accel: f64) -> Option<usize> {
@@ -1631,6 +1657,7 @@ impl ObserverParams {
 
     /// Checks every parameter; the error names the first bad one.
     pub fn validate(&self) -> Result<(), PhysicsError> {
+        let kappa = self.transfer_bar_per_ln_accel;
         for (name, value) in [
             ("observer.a_rod_m2", self.a_rod_m2),
             ("observer.v_gas_m3", self.v_gas_m3),
@@ -1666,7 +1693,7 @@ impl ObserverParams {
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             ("observer.single_end_sd_bar", self.single_end_sd_bar),
             ("observer.held_sd_bar", self.held_sd_bar),
-            ("observer.transfer_sd_bar", self.transfer_sd_bar),
+            ("observer.transfer_bar_per_ln_accel", kappa),
             ("observer.scale_prior_sd", self.scale_prior_sd),
             ("observer.fit_gain_floor", self.fit_gain_floor),
             (
@@ -1938,10 +1965,10 @@ pub struct ChargeObserver {
     /// excitation ([`ObserverParams::held_sd_bar`]) was used.
     #[serde(default)]
     used_held: bool,
-    /// Whether a reversal outside the unit baseline's excitations was used
-    /// ([`ObserverParams::transfer_sd_bar`]).
+    /// The largest distance in `ln |ÿ_r|` of a used reversal from the unit
+    /// baseline's excitations ([`ObserverParams::transfer_bar_per_ln_accel`]).
     #[serde(default)]
-    used_away: bool,
+    away_ln: f64,
     /// The smallest and largest `|ÿ_r|` of the used reversals, m/s².
     #[serde(default)]
     used_accel_range: Option<[f64; 2]>,
@@ -1989,7 +2016,7 @@ impl ChargeObserver {
             used_between: false,
             used_own: false,
             used_held: false,
-            used_away: false,
+            away_ln: 0.0,
             used_accel_range: None,
             silent_run: [[0; 2]; 4],
             other_fits: [[0; 2]; 4],
@@ -2214,10 +2241,10 @@ impl ChargeObserver {
     }
 
     /// What a unit baseline used away from its excitations adds to the
-    /// systematic variance, bar² ([`ObserverParams::transfer_sd_bar`]).
+    /// systematic variance, bar² ([`ObserverParams::transfer_bar_per_ln_accel`]).
     fn transfer_var(&self) -> f64 {
-        if self.used_away && self.p.baseline.is_some() && !self.used_own {
-            self.p.transfer_sd_bar * self.p.transfer_sd_bar
+        if self.p.baseline.is_some() && !self.used_own {
+            (self.p.transfer_bar_per_ln_accel * self.away_ln).powi(2)
         } else {
             0.0
         }
@@ -2534,12 +2561,8 @@ impl ChargeObserver {
                 self.used_held = true;
             }
             let a = rev.accel_mps2.abs();
-            if self
-                .p
-                .baseline
-                .is_some_and(|u| u.away_from(a, self.p.accel_cluster_rel))
-            {
-                self.used_away = true;
+            if let Some(u) = self.p.baseline {
+                self.away_ln = self.away_ln.max(u.ln_distance(a, self.p.shared_span()));
             }
             self.used_accel_range = Some(
                 self.used_accel_range
@@ -3412,11 +3435,11 @@ mod tests {
     }
 
     /// A baseline read at 1.5 m/s² narrows the interval there as before;
-    /// once a reversal at 6 m/s² (outside its range) is used,
-    /// `transfer_sd_bar²` joins the variance, exactly; a baseline whose
-    /// range is unknown counts every reversal as away, and without a
-    /// baseline the spread changes nothing. The reading's own range is
-    /// kept for the next baseline.
+    /// once reversals at 6 m/s² (outside its range) are used,
+    /// `(κ ln(6 / hi))²` joins the variance, exactly; a baseline whose
+    /// range is unknown is taken at the farther end of the shared model's
+    /// excitations, and without a baseline the spread changes nothing. The
+    /// reading's own range is kept for the next baseline.
     #[test]
     fn a_baseline_used_away_from_its_excitations_carries_the_transfer_spread() {
         let base = ObserverParams {
@@ -3429,10 +3452,11 @@ mod tests {
             read_sd_bar: 0.1,
             accel_range_mps2: Some([1.4, 1.6]),
         };
+        let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {
             let mut obs = ChargeObserver::new(ObserverParams {
                 baseline,
-                transfer_sd_bar: transfer,
+                transfer_bar_per_ln_accel: transfer,
                 ..base
             })
             .unwrap();
@@ -3450,7 +3474,7 @@ mod tests {
             let est = obs.estimate(t + 8 * 250_000_000);
             (est, obs.used_accel_range())
         };
-        let (at, range) = run(Some(b), 0.9, false);
+        let (at, range) = run(Some(b), kappa, false);
         let (at_none, _) = run(Some(b), 0.0, false);
         assert_eq!(at, at_none, "at its own excitation the spread adds nothing");
         let [lo, hi] = range.unwrap();
@@ -3458,10 +3482,10 @@ mod tests {
             (lo - 1.5).abs() < 1e-12 && (hi - 1.5).abs() < 1e-12,
             "{range:?}"
         );
-        let (away, range) = run(Some(b), 0.9, true);
+        let (away, range) = run(Some(b), kappa, true);
         let (away_none, _) = run(Some(b), 0.0, true);
         assert!((away.mean_bar - away_none.mean_bar).abs() < 1e-12);
-        let want = (away_none.sd_bar.powi(2) + 0.81).sqrt();
+        let want = (away_none.sd_bar.powi(2) + (kappa * (6.0_f64 / 1.6).ln()).powi(2)).sqrt();
         assert!((away.sd_bar - want).abs() < 1e-12, "{away:?} {want}");
         assert_eq!(range.map(|r| r[1]), Some(6.0));
         // A range that holds 6 m/s² too: not away.
@@ -3469,17 +3493,20 @@ mod tests {
             accel_range_mps2: Some([1.4, 6.1]),
             ..b
         };
-        assert_eq!(run(Some(wide), 0.9, true).0, run(Some(wide), 0.0, true).0);
-        // Unknown range: away from the first reversal.
+        assert_eq!(run(Some(wide), kappa, true).0, run(Some(wide), 0.0, true).0);
+        // Unknown range: from the first reversal at 1.5 m/s², as far as the
+        // shared model's other end (6 m/s²).
+        assert_eq!(base.shared_span(), Some([1.5, 6.0]));
         let unknown = UnitBaseline {
             accel_range_mps2: None,
             ..b
         };
-        let (u, _) = run(Some(unknown), 0.9, false);
+        let (u, _) = run(Some(unknown), kappa, false);
         let (u_none, _) = run(Some(unknown), 0.0, false);
-        assert!((u.sd_bar - (u_none.sd_bar.powi(2) + 0.81).sqrt()).abs() < 1e-12);
+        let want = (u_none.sd_bar.powi(2) + (kappa * 4.0_f64.ln()).powi(2)).sqrt();
+        assert!((u.sd_bar - want).abs() < 1e-12, "{u:?} {want}");
         // No baseline: nothing to transfer.
-        assert_eq!(run(None, 0.9, true).0, run(None, 0.0, true).0);
+        assert_eq!(run(None, kappa, true).0, run(None, 0.0, true).0);
         // A range that is not one is refused, by name.
         let err = ChargeObserver::new(ObserverParams {
             baseline: Some(UnitBaseline {
