@@ -1101,7 +1101,8 @@ def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, floa
 
 def away(a: Sequence[float], b: Sequence[float], rel: float) -> bool:
     """Whether the ``|ÿ_r|`` range ``b`` reaches outside range ``a`` by more than ``rel`` of its ends
-    (dt-core ``UnitBaseline::away_from``, at either end of ``b``)."""
+    (the band of the calibration's excitations, ``accel_cluster_rel``): two runs at different
+    excitations."""
     return b[0] < a[0] * (1.0 - rel) or b[1] > a[1] * (1.0 + rel)
 
 
@@ -1111,7 +1112,7 @@ def ln_distance(base: Sequence[float], other: Sequence[float]) -> float:
     return max(0.0, float(np.log(base[0] / other[0])), float(np.log(other[1] / base[1])))
 
 
-def transfer_sd(physics: dict[str, Any], units: Sequence[Sequence[Path]], charge_bar: float,
+def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], charge_bar: float,
                 jobs: int = 2) -> dict[str, Any]:
     """How far a unit's error moves between excitations of the shared model (dt-core
     ``ObserverParams::transfer_bar_per_ln_accel``): each unit's runs at ``charge_bar`` read as a
@@ -1121,8 +1122,8 @@ def transfer_sd(physics: dict[str, Any], units: Sequence[Sequence[Path]], charge
     the other is off by that difference, which no interval held before. Each difference is
     modelled as ``d_i ~ N(0, (κ L_i)² + n_i²)``: ``L_i`` the runs' distance in ``ln |ÿ_r|`` (as the
     observer measures it, averaged over the two ways round), ``n_i`` the two readings' own noise
-    (their variance from the reversals, less the systematic part: already in the baseline's and the
-    reading's intervals); ``κ`` is its maximum-likelihood value (zero mean: a shift shared by the
+    (their variance from the reversals and the held model's, less the unit's systematic part: already
+    in the baseline's and the reading's intervals); ``κ`` is its maximum-likelihood value (zero mean: a shift shared by the
     units is part of what a baseline misses). A run the observer barely read (a large ``n_i``) then
     weighs little, where the plain RMS (reported beside it) takes its difference in full. Needs
     units other than the calibration's: its one unit cannot say how units differ."""
@@ -1180,7 +1181,7 @@ def cmd_transfer(args: argparse.Namespace) -> int:
     for p in (p for u in args.unit for p in u):
         if not p.is_file():
             raise SystemExit(f"{p}: no such run log")
-    t = transfer_sd(physics, args.unit, args.charge_bar, args.jobs)
+    t = transfer_spread(physics, args.unit, args.charge_bar, args.jobs)
     for p in t["pairs"]:
         print(f"unit {p['unit'] + 1}: {p['runs'][1]} less {p['runs'][0]}: {p['difference_bar']:+.2f} bar "
               f"(their noise {p['noise_sd_bar']:.2f}; {p['ln_distance']:.2f} apart in ln|ÿ|)")

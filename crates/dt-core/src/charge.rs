@@ -1917,7 +1917,6 @@ struct Pending {
 
 /// The recursive charge observer of one run (see the module docs).
 #[derive(Debug, Clone, Serialize, Deserialize)]
-#[allow(clippy::struct_excessive_bools)] // independent flags of what the estimate holds
 pub struct ChargeObserver {
     p: ObserverParams,
     buf: VecDeque<AccPoint>,
