@@ -435,7 +435,7 @@ def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_cam
         obs_tool.baseline_of(with_b, [run12], 12.0, jobs=1)
 
 
-def test_a_units_transfer_spread_is_the_rms_of_its_errors_between_excitations(
+def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_excitations(
         calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
     """``observer transfer``: two other units, each at a known 12 bar at 1 and 2 Hz. Each pair
     of one unit's runs at different excitations gives the difference of their errors, the same

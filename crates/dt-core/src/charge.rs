@@ -869,6 +869,13 @@ impl UnitBaseline {
     }
 }
 
+/// The range `[lo, hi]` widened to hold `other` too (`other` alone when
+/// there is none yet).
+#[must_use]
+pub fn widen_range(range: Option<[f64; 2]>, other: [f64; 2]) -> [f64; 2] {
+    range.map_or(other, |[lo, hi]| [lo.min(other[0]), hi.max(other[1])])
+}
+
 /// A [`UnitBaseline`]'s posterior: `û = [u_f, u_s]` and `Σ'`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct UnitCorrection {
@@ -2563,10 +2570,7 @@ impl ChargeObserver {
             if let Some(u) = self.p.baseline {
                 self.away_ln = self.away_ln.max(u.ln_distance(a, self.p.shared_span()));
             }
-            self.used_accel_range = Some(
-                self.used_accel_range
-                    .map_or([a, a], |[lo, hi]| [lo.min(a), hi.max(a)]),
-            );
+            self.used_accel_range = Some(widen_range(self.used_accel_range, [a, a]));
             *rejected_run = 0;
         } else {
             self.counters.rejected += 1;

@@ -166,11 +166,8 @@ impl ServiceReading {
     /// Notes the range of `|ÿ_r|` the observer's used reversals span so far
     /// ([`crate::charge::ChargeObserver::used_accel_range`]), m/s²: the
     /// baseline records it ([`UnitBaseline::accel_range_mps2`]).
-    pub fn note_accel_range(&mut self, [lo, hi]: [f64; 2]) {
-        self.accel_range = Some(
-            self.accel_range
-                .map_or([lo, hi], |[a, b]| [a.min(lo), b.max(hi)]),
-        );
+    pub fn note_accel_range(&mut self, range: [f64; 2]) {
+        self.accel_range = Some(crate::charge::widen_range(self.accel_range, range));
     }
 
     /// Drains the estimator's completed ticks into `out`, reading each (the
