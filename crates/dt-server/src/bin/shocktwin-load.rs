@@ -77,6 +77,10 @@ struct Args {
     /// Do not record estimates (the started daemon records into a temporary directory by default).
     #[arg(long)]
     no_record: bool,
+    /// Chunk compression of the started daemon's recordings (`record.compression`:
+    /// zstd, lz4 or none; default: the daemon's, zstd).
+    #[arg(long)]
+    record_compression: Option<String>,
     /// Give the started daemon a fleet store (`--db`) in a temporary directory
     /// (default: `--no-db`).
     #[arg(long)]
@@ -284,8 +288,14 @@ struct SharedBuf {
 }
 
 impl SharedBuf {
-    fn take(&self) -> Vec<u8> {
-        std::mem::take(&mut *self.buf.lock().unwrap_or_else(PoisonError::into_inner))
+    /// Swaps what was written for `spare` (emptied first), so that both
+    /// buffers keep their capacity from one send to the next.
+    fn take_into(&self, spare: &mut Vec<u8>) {
+        spare.clear();
+        std::mem::swap(
+            &mut *self.buf.lock().unwrap_or_else(PoisonError::into_inner),
+            spare,
+        );
     }
 }
 
@@ -385,6 +395,7 @@ async fn stream_asset_inner(
         chunk_size: (chunk_bytes > 0).then_some(chunk_bytes),
     };
     let mut writer = LogWriter::new(out.clone(), &meta, options)?;
+    let mut bytes = Vec::with_capacity(64 << 10);
     let mut next = 0usize;
     let samples = &template.samples;
     let mut k: u32 = 0;
@@ -399,7 +410,7 @@ async fn stream_asset_inner(
             writer.write_sample(&retime(&s, start_wall_ns + dt))?;
             next += 1;
         }
-        let bytes = out.take();
+        out.take_into(&mut bytes);
         if !bytes.is_empty() {
             sock.write_all(&bytes).await.context("send")?;
         }
@@ -409,7 +420,8 @@ async fn stream_asset_inner(
             .min(LATE_BINS - 1)] += 1;
     }
     writer.finish()?;
-    sock.write_all(&out.take()).await.context("send")?;
+    out.take_into(&mut bytes);
+    sock.write_all(&bytes).await.context("send")?;
     sock.shutdown().await.context("shutdown")?;
     let mut reply = Vec::new();
     tokio::time::timeout(
@@ -749,6 +761,7 @@ impl LoadResult {
             "send_period_ms": args.send_period_ms,
             "chunk_bytes": args.chunk_bytes,
             "record": args.serve.is_some() && !args.no_record,
+            "record_compression": args.record_compression,
             "store": args.serve.is_some() && args.store,
             "nice": args.nice,
             "expected_ticks_per_asset": self.expected_ticks,
@@ -874,12 +887,20 @@ impl SpawnedDaemon {
         if let Some(d) = &record_dir {
             cmd.arg("--record-dir").arg(d);
         }
+        let mut config_text = String::new();
         if let Some(road) = &args.road {
+            config_text.push_str("[defaults]\nroad = true\n");
+            cmd.arg("--road").arg(road);
+        }
+        if let Some(c) = &args.record_compression {
+            config_text.push_str(&format!("[record]\ncompression = {c:?}\n"));
+        }
+        if !config_text.is_empty() {
             let config = std::env::temp_dir()
                 .join(format!("shocktwin-load-{}-{n}.toml", std::process::id()));
-            std::fs::write(&config, "[defaults]\nroad = true\n")
+            std::fs::write(&config, config_text)
                 .with_context(|| format!("writing {}", config.display()))?;
-            cmd.arg("--road").arg(road).arg("--config").arg(config);
+            cmd.arg("--config").arg(config);
         }
         if args.store {
             let db = std::env::temp_dir()

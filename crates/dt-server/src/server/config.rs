@@ -180,6 +180,21 @@ pub struct RecordConfig {
     pub max_file_bytes: u64,
     /// Rotate after this span of estimate time, s.
     pub max_file_s: f64,
+    /// Chunk compression of the recordings.
+    pub compression: RecordCompression,
+}
+
+/// `record.compression`: how a recording's chunks are compressed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RecordCompression {
+    /// zstd level 1: the smallest files.
+    #[default]
+    Zstd,
+    /// lz4: larger files, less CPU per estimate.
+    Lz4,
+    /// Uncompressed chunks.
+    None,
 }
 
 impl Default for RecordConfig {
@@ -187,6 +202,7 @@ impl Default for RecordConfig {
         Self {
             max_file_bytes: 64 << 20,
             max_file_s: 3600.0,
+            compression: RecordCompression::Zstd,
         }
     }
 }

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use dt_core::estimate::Estimate;
 use dt_core::estimator::Estimator;
 use dt_core::log::Sample;
-use dt_server::server::{self, EstimatorFactory, Listeners};
+use dt_server::server::{self, Config, EstimatorFactory, Listeners};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
@@ -40,9 +40,32 @@ fn assert_same(got: &[Estimate], want: &[Estimate]) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn daemon_output_equals_the_estimator_run_directly() {
+    // `record.compression` as an operator writes it; the file says which it got.
+    for (setting, chunks) in [(None, "zstd"), (Some("lz4"), "lz4"), (Some("none"), "")] {
+        let record = setting.map_or(String::new(), |c| {
+            format!("[record]\ncompression = {c:?}\n")
+        });
+        let recorded =
+            daemon_output_against_the_estimator(Config::from_toml(&record).unwrap()).await;
+        let summary = mcap::Summary::read(&recorded).unwrap().unwrap();
+        assert!(!summary.chunk_indexes.is_empty(), "{setting:?}: no chunk");
+        for c in &summary.chunk_indexes {
+            assert_eq!(c.compression, chunks, "{setting:?}");
+        }
+    }
+    assert!(Config::from_toml("[record]\ncompression = \"gzip\"\n")
+        .unwrap_err()
+        .contains("gzip"));
+}
+
+/// Streams a run to a daemon with `base`'s record settings, checks its
+/// reply and its recording against the estimator run directly; returns the
+/// recorded file's bytes.
+async fn daemon_output_against_the_estimator(base: Config) -> Vec<u8> {
     let factory = EstimatorFactory::load(&bundle_dir(), None).unwrap();
     let record = tempfile::tempdir().unwrap();
     let mut config = test_config();
+    config.record = base.record;
     config.server.record_dir = Some(record.path().to_owned());
     let asset_cfg = config.asset("unit-1");
 
@@ -84,6 +107,8 @@ async fn daemon_output_equals_the_estimator_run_directly() {
     stop.send(()).unwrap();
     daemon.await.unwrap().unwrap();
 
-    let got = read_estimates(&record.path().join("unit-1").join("est.0000.mcap"));
+    let path = record.path().join("unit-1").join("est.0000.mcap");
+    let got = read_estimates(&path);
     assert_same(&got, &want);
+    std::fs::read(path).unwrap()
 }
