@@ -34,9 +34,10 @@ use crate::server::store::{AssetBaseline, FleetStore, PendingService, StoredBase
 use crate::server::ServeError;
 
 /// One value of the bucket: an observer baseline (`read_bar`, `read_sd_bar`)
-/// or a road asset's (`offset_n`, `blocks`).
+/// or a road asset's (`offset_n`, `blocks`). Unknown fields are ignored, as in
+/// the run payloads: a later daemon's entry is read for what this one knows,
+/// so a group can be upgraded one daemon at a time.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct BaselineEntry {
     /// The charge the unit held, bar gauge at 20 °C.
     pub charge_bar: f64,
@@ -115,9 +116,8 @@ impl BaselineEntry {
     }
 }
 
-/// One value of the service bucket.
+/// One value of the service bucket (unknown fields ignored, as above).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct ServiceEntry {
     /// See [`PendingService`].
     pub charge_bar: f64,
@@ -508,5 +508,30 @@ mod tests {
         let empty = r#"{"charge_bar":12.0,"offset_n":1.0,"blocks":0,"set_ms":1}"#;
         let entry: BaselineEntry = serde_json::from_str(empty).unwrap();
         assert!(entry.stored().unwrap_err().contains("blocks"));
+    }
+
+    #[test]
+    fn a_later_daemons_entry_is_read_for_what_this_one_knows() {
+        let ranged = StoredBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 10.84,
+                read_sd_bar: 0.65,
+                accel_range_mps2: Some([1.45, 1.62]),
+            }),
+            set_ms: 1_700_000_000_000,
+        };
+        let later = r#"{"charge_bar":12.0,"read_bar":10.84,"read_sd_bar":0.65,"accel_range_mps2":[1.45,1.62],"excitation_hz":1.0,"set_ms":1700000000000}"#;
+        let entry: BaselineEntry = serde_json::from_str(later).unwrap();
+        assert_eq!(entry.stored().unwrap(), ranged);
+        let later = r#"{"charge_bar":12.0,"set_ms":5,"refusal":null,"read_by":"worker-2"}"#;
+        let entry: ServiceEntry = serde_json::from_str(later).unwrap();
+        assert_eq!(
+            (entry.charge_bar, entry.set_ms, entry.refusal),
+            (12.0, 5, None)
+        );
+        // a known field with a bad value is still refused
+        let bad = r#"{"charge_bar":"twelve","set_ms":5,"refusal":null}"#;
+        assert!(serde_json::from_str::<ServiceEntry>(bad).is_err());
     }
 }
