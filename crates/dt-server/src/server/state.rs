@@ -233,8 +233,18 @@ impl LiveState {
         let _ = self.events.send(Arc::new(event));
     }
 
+    /// Whether anyone reads the live events (an SSE client): without one, the
+    /// sink does not build them.
+    fn listened(&self) -> bool {
+        self.events.receiver_count() > 0
+    }
+
     fn with_asset<R>(&self, run: &RunInfo, f: impl FnOnce(&mut AssetView) -> R) -> R {
         let mut assets = self.assets.write().unwrap_or_else(PoisonError::into_inner);
+        // The asset is known after its first batch: no key to copy then.
+        if let Some(view) = assets.get_mut(run.meta.asset_id.as_str()) {
+            return f(view);
+        }
         let view = assets
             .entry(run.meta.asset_id.clone())
             .or_insert_with(|| AssetView {
@@ -321,6 +331,9 @@ impl Sink for LiveSink {
             s.last_update_unix_ms = unix_ms(SystemTime::now());
             s.ticks += batch.len() as u64;
         });
+        if !state.listened() {
+            return Ok(());
+        }
         // Events are published outside the lock, in order.
         let mut changes = changes.into_iter().peekable();
         for e in batch {
