@@ -465,6 +465,8 @@ struct LoadResult {
     late_ms: Vec<u64>,
     wall_s: f64,
     daemon_cpu_s: Option<f64>,
+    /// The daemon's peak resident memory, MiB (`VmHWM`), read before it stops.
+    daemon_peak_rss_mib: Option<f64>,
     generator_cpu_s: f64,
     loadavg_before: String,
     loadavg_after: String,
@@ -532,6 +534,7 @@ async fn load_once(
     r.lag_samples_s = lag_samples_s;
     r.wall_s = wall_s;
     r.daemon_cpu_s = daemon_cpu_s;
+    r.daemon_peak_rss_mib = daemon_pid.and_then(peak_rss_mib);
     r.generator_cpu_s = generator_cpu_s;
     r.loadavg_before = loadavg_before;
     Ok(r)
@@ -618,6 +621,7 @@ fn aggregate(
         late_ms,
         wall_s: f64::NAN,
         daemon_cpu_s: None,
+        daemon_peak_rss_mib: None,
         generator_cpu_s: f64::NAN,
         loadavg_before: String::new(),
         loadavg_after: loadavg(),
@@ -720,7 +724,7 @@ impl LoadResult {
         let mut s = format!(
             "N={:5} {}: runs complete with every tick {}/{}, ticks lost {}, delay p50 {:.2} ms p99 {:.2} ms (≤50 ms: {:.3}%, {} estimates), \
              e2e lag p50 {:.1} ms p99 {:.1} ms max {:.1} ms ({} samples), send lateness p99 {} ms max {} ms, \
-             CPU daemon {} generator {:.0}% over {:.0} s, load avg {} -> {}",
+             CPU daemon {} generator {:.0}% over {:.0} s, daemon peak RSS {}, load avg {} -> {}",
             self.assets,
             if held { "HELD" } else { "BROKE" },
             self.completed_exact,
@@ -740,6 +744,8 @@ impl LoadResult {
                 .map_or_else(|| "n/a".to_owned(), |c| format!("{:.0}%", 100.0 * c / self.wall_s)),
             100.0 * self.generator_cpu_s / self.wall_s,
             self.wall_s,
+            self.daemon_peak_rss_mib
+                .map_or_else(|| "n/a".to_owned(), |m| format!("{m:.0} MiB")),
             self.loadavg_before,
             self.loadavg_after,
         );
@@ -779,6 +785,7 @@ impl LoadResult {
             "send_late_max_ms": self.late_quantile_ms(1.0),
             "daemon_cpu_percent": self.daemon_cpu_s.map(|c| 100.0 * c / self.wall_s),
             "generator_cpu_percent": 100.0 * self.generator_cpu_s / self.wall_s,
+            "daemon_peak_rss_mib": self.daemon_peak_rss_mib,
             "wall_s": self.wall_s,
             "loadavg_before": self.loadavg_before,
             "loadavg_after": self.loadavg_after,
@@ -804,6 +811,19 @@ fn cpu_seconds(pid: u32) -> f64 {
         }
     }
     ns as f64 * 1e-9
+}
+
+/// Peak resident memory of `pid`, MiB (`VmHWM` of `/proc/PID/status`).
+fn peak_rss_mib(pid: u32) -> Option<f64> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let kib: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    Some(kib / 1024.0)
 }
 
 fn loadavg() -> String {
