@@ -913,7 +913,10 @@ impl SpawnedDaemon {
             cmd.arg("--road").arg(road);
         }
         if let Some(c) = &args.record_compression {
-            config_text.push_str(&format!("[record]\ncompression = {c:?}\n"));
+            let _ = std::fmt::Write::write_fmt(
+                &mut config_text,
+                format_args!("[record]\ncompression = {c:?}\n"),
+            );
         }
         if !config_text.is_empty() {
             let config = std::env::temp_dir()
@@ -936,9 +939,11 @@ impl SpawnedDaemon {
         let stderr = child.stderr.take().context("daemon stderr")?;
         let mut lines = BufReader::new(stderr).lines();
         let mut addrs = None;
+        let mut said = Vec::new();
         // Bounded: the daemon logs the line at start; give up after 200 lines.
         for _ in 0..200 {
             let Some(Ok(line)) = lines.next() else { break };
+            said.push(line.clone());
             let field = |key: &str| {
                 line.split_whitespace()
                     .find_map(|w| w.strip_prefix(key))
@@ -953,7 +958,11 @@ impl SpawnedDaemon {
         }
         let Some((ingest, http)) = addrs else {
             let _ = child.kill();
-            bail!("{} serve did not log its addresses", bin.display());
+            bail!(
+                "{} serve did not log its addresses; it said:\n{}",
+                bin.display(),
+                said.join("\n")
+            );
         };
         // Keep draining its log (warnings go to our stderr) so it never blocks.
         std::thread::spawn(move || {
