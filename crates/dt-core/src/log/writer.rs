@@ -7,13 +7,15 @@ use std::path::Path;
 
 use super::{json_schema, LogError, RunMetadata, Sample, RUN_METADATA_NAME, TOPICS};
 
-/// Chunk compression of a written log.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// Chunk compression of a written log (in configuration files: `"zstd"`,
+/// `"lz4"`, `"none"`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Compression {
-    /// zstd (the default): best size, fast enough.
+    /// zstd level 1 (the default): the smallest files, fast enough.
     #[default]
     Zstd,
-    /// lz4: faster, larger.
+    /// lz4: less CPU per message, larger files.
     Lz4,
     /// Uncompressed chunks.
     None,

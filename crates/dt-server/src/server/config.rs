@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use dt_core::charge::UnitBaseline;
+use dt_core::log::Compression;
 use dt_core::road::RoadBaseline;
 
 use super::ServeError;
@@ -180,21 +181,9 @@ pub struct RecordConfig {
     pub max_file_bytes: u64,
     /// Rotate after this span of estimate time, s.
     pub max_file_s: f64,
-    /// Chunk compression of the recordings.
-    pub compression: RecordCompression,
-}
-
-/// `record.compression`: how a recording's chunks are compressed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum RecordCompression {
-    /// zstd level 1: the smallest files.
-    #[default]
-    Zstd,
-    /// lz4: larger files, less CPU per estimate.
-    Lz4,
-    /// Uncompressed chunks.
-    None,
+    /// Chunk compression of the recordings: zstd (the smallest files), lz4
+    /// (less CPU per estimate) or none.
+    pub compression: Compression,
 }
 
 impl Default for RecordConfig {
@@ -202,7 +191,7 @@ impl Default for RecordConfig {
         Self {
             max_file_bytes: 64 << 20,
             max_file_s: 3600.0,
-            compression: RecordCompression::Zstd,
+            compression: Compression::Zstd,
         }
     }
 }

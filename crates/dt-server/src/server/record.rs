@@ -16,9 +16,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
-use dt_core::log::{topic, Compression, LogWriter, WriteOptions};
+use dt_core::log::{topic, LogWriter, WriteOptions};
 
-use super::config::{RecordCompression, RecordConfig};
+use super::config::RecordConfig;
 use super::sink::{RunEnd, RunInfo, Sink, SinkError};
 
 /// A writer that knows how far it has written (for rotation by size).
@@ -133,11 +133,7 @@ impl McapRecorder {
             .insert("shocktwin.source".into(), run.source.clone());
         // Chunks small enough that rotation by size sees the bytes soon.
         let options = WriteOptions {
-            compression: match self.config.compression {
-                RecordCompression::Zstd => Compression::Zstd,
-                RecordCompression::Lz4 => Compression::Lz4,
-                RecordCompression::None => Compression::None,
-            },
+            compression: self.config.compression,
             chunk_size: Some((self.config.max_file_bytes / 4).clamp(4096, 256 << 10)),
         };
         let writer = LogWriter::new(counting, &meta, options)
