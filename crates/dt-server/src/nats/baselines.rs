@@ -463,27 +463,24 @@ impl Source for NatsBaselines {
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_bucket_value_carries_either_kind_and_refuses_a_mix() {
-        let observer = StoredBaseline {
+    /// The observer baseline of these tests: 12 bar read as 10.84 ± 0.65,
+    /// with the excitation range given.
+    fn observer_baseline(accel_range_mps2: Option<[f64; 2]>) -> StoredBaseline {
+        StoredBaseline {
             baseline: AssetBaseline::Observer(UnitBaseline {
                 charge_bar: 12.0,
                 read_bar: 10.84,
                 read_sd_bar: 0.65,
-                accel_range_mps2: None,
+                accel_range_mps2,
             }),
             set_ms: 1_700_000_000_000,
-        };
-        let ranged = StoredBaseline {
-            baseline: AssetBaseline::Observer(UnitBaseline {
-                accel_range_mps2: Some([1.45, 1.62]),
-                ..match observer.baseline {
-                    AssetBaseline::Observer(u) => u,
-                    AssetBaseline::Road(_) => unreachable!(),
-                }
-            }),
-            ..observer
-        };
+        }
+    }
+
+    #[test]
+    fn a_bucket_value_carries_either_kind_and_refuses_a_mix() {
+        let observer = observer_baseline(None);
+        let ranged = observer_baseline(Some([1.45, 1.62]));
         let road = StoredBaseline {
             baseline: AssetBaseline::Road(RoadBaseline {
                 charge_bar: 12.0,
@@ -512,15 +509,7 @@ mod tests {
 
     #[test]
     fn a_later_daemons_entry_is_read_for_what_this_one_knows() {
-        let ranged = StoredBaseline {
-            baseline: AssetBaseline::Observer(UnitBaseline {
-                charge_bar: 12.0,
-                read_bar: 10.84,
-                read_sd_bar: 0.65,
-                accel_range_mps2: Some([1.45, 1.62]),
-            }),
-            set_ms: 1_700_000_000_000,
-        };
+        let ranged = observer_baseline(Some([1.45, 1.62]));
         let later = r#"{"charge_bar":12.0,"read_bar":10.84,"read_sd_bar":0.65,"accel_range_mps2":[1.45,1.62],"excitation_hz":1.0,"set_ms":1700000000000}"#;
         let entry: BaselineEntry = serde_json::from_str(later).unwrap();
         assert_eq!(entry.stored().unwrap(), ranged);
