@@ -2,10 +2,27 @@
 (the charge pressure in bar), trained with scikit-learn; exported to ONNX with
 skl2onnx in double precision, and written with its input normalisation and the
 physics into a model bundle (SPEC §5: ``twin.json`` + ``mlp.onnx``).
+
+**The residual of the charge observer.** A network given the charge observer's estimate
+(column ``observer_bar``, input group ``observer``) learns by default what the observer
+misses: 62 units per hidden layer are trained on ``y − observer_bar`` from the other input
+columns, and the observer's estimate is then carried through two more units per layer to
+the output, exactly (``z = relu(z) − relu(−z)``; weights 1 and the column's ``std`` and
+``mean``). The learned part reads neither of the observer's columns: from the estimate, or
+from its standard deviation (which grows with the charge), a network learns to pull the
+estimate onto the few charges the campaign was run at, which costs accuracy at every
+other charge (README, "Thirty-third session"). With the observer alone (permutation 17)
+there is nothing else to read and the learned part is zero: the network answers the
+observer's estimate. The bundle's network is still a plain 4 × 64 ReLU MLP from the
+normalised inputs to the charge in bar, so every reader of a bundle (the estimator,
+onnxruntime, tract) gets the sum without knowing; ``twin.json`` says what was learned in
+``provenance.network.target``. ``fit(..., residual=False)`` (``train.train
+--no-residual``) learns the charge itself, from every column.
 """
 
 from __future__ import annotations
 
+import copy
 import datetime as _dt
 import hashlib
 import json
@@ -20,6 +37,12 @@ from sklearn.neural_network import MLPRegressor
 
 BUNDLE_FORMAT = "shocktwin-bundle/1"
 HIDDEN = (64, 64, 64, 64)
+# The column whose residual a network reading it learns (see the module doc), and the
+# units per hidden layer that carry it through to the output.
+RESIDUAL_OF = "observer_bar"
+# The columns a residual network's learned part does not read (the observer's own).
+NOT_READ_BY_RESIDUAL = ("observer_bar", "observer_sd_bar")
+PASSTHROUGH_UNITS = 2
 ONNX_INPUT = "x"
 ONNX_OUTPUT = "pressure_bar"
 DEFAULT_HEALTH = {
@@ -39,20 +62,35 @@ class Trained:
     mean: np.ndarray
     std: np.ndarray
     columns: list[str]
+    # The input column whose residual the network learned (its value is added back inside
+    # ``mlp``), or None when it learned the charge itself.
+    residual_of: str | None = None
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         return self.mlp.predict((x - self.mean) / self.std)
 
 
 def fit(
-    x: np.ndarray, y: np.ndarray, columns: Sequence[str], *, seed: int, max_iter: int = 80
+    x: np.ndarray, y: np.ndarray, columns: Sequence[str], *, seed: int, max_iter: int = 80,
+    residual: bool = True,
 ) -> Trained:
-    """Standardise the inputs and fit the 4×64 MLP (Adam, early stopping on 10 %)."""
+    """Standardise the inputs and fit the 4×64 MLP (Adam, early stopping on 10 %).
+
+    With ``residual`` (the default) and the column ``RESIDUAL_OF`` among ``columns``, the
+    network learns ``y − x[:, RESIDUAL_OF]`` and carries that column to its output (module
+    doc); otherwise it learns ``y``."""
+    columns = list(columns)
     mean = x.mean(axis=0)
     std = x.std(axis=0)
     std[std < 1e-12] = 1.0
+    residual_of = RESIDUAL_OF if residual and RESIDUAL_OF in columns else None
+    hidden = HIDDEN
+    target = y
+    if residual_of is not None:
+        hidden = tuple(h - PASSTHROUGH_UNITS for h in HIDDEN)
+        target = y - x[:, columns.index(residual_of)]
     mlp = MLPRegressor(
-        hidden_layer_sizes=HIDDEN,
+        hidden_layer_sizes=hidden,
         activation="relu",
         solver="adam",
         alpha=1e-4,
@@ -64,12 +102,62 @@ def fit(
         n_iter_no_change=8,
         random_state=seed,
     )
+    z = (x - mean) / std
+    # A residual network reads none of the observer's columns (module doc). With nothing else
+    # to read there is nothing to learn: its learned part is zero (the layers' shapes come
+    # from one step on a single column of zeros).
+    reads = np.array([residual_of is None or c not in NOT_READ_BY_RESIDUAL for c in columns])
     with warnings.catch_warnings():
         # The epoch budget is capped on purpose (2-core time budget); scikit-learn's
         # "not converged" warning for it is expected, not a fault.
         warnings.simplefilter("ignore", ConvergenceWarning)
-        mlp.fit((x - mean) / std, y)
-    return Trained(mlp=mlp, mean=mean, std=std, columns=list(columns))
+        if reads.any():
+            mlp.fit(z[:, reads], target)
+        else:
+            mlp.set_params(max_iter=1, early_stopping=False).fit(np.zeros((mlp.batch_size, 1)), np.zeros(mlp.batch_size))
+            mlp.coefs_ = [np.zeros_like(c) for c in mlp.coefs_]
+            mlp.intercepts_ = [np.zeros_like(b) for b in mlp.intercepts_]
+    if residual_of is not None:
+        i = columns.index(residual_of)
+        first = np.zeros((len(columns), mlp.coefs_[0].shape[1]))
+        if reads.any():
+            first[reads] = mlp.coefs_[0]
+        mlp.coefs_[0] = first
+        mlp.n_features_in_ = len(columns)
+        mlp = with_passthrough(mlp, i, scale=float(std[i]), offset=float(mean[i]))
+    return Trained(mlp=mlp, mean=mean, std=std, columns=columns, residual_of=residual_of)
+
+
+def with_passthrough(mlp: MLPRegressor, column: int, *, scale: float, offset: float) -> MLPRegressor:
+    """A copy of ``mlp`` (ReLU hidden layers, one output) that adds ``scale · z + offset`` to
+    its output, ``z`` its normalised input ``column``: two more units per hidden layer carry
+    ``relu(z)`` and ``relu(−z)`` through (identity weights, zero bias) and the output adds
+    ``scale`` times their difference, which is ``z`` exactly."""
+
+    out = copy.deepcopy(mlp)
+    n = PASSTHROUGH_UNITS
+    coefs, intercepts = [], []
+    first = mlp.coefs_[0]
+    w = np.zeros((first.shape[0], first.shape[1] + n))
+    w[:, : first.shape[1]] = first
+    w[column, -2], w[column, -1] = 1.0, -1.0
+    coefs.append(w)
+    intercepts.append(np.concatenate([mlp.intercepts_[0], np.zeros(n)]))
+    for c, b in zip(mlp.coefs_[1:-1], mlp.intercepts_[1:-1]):
+        w = np.zeros((c.shape[0] + n, c.shape[1] + n))
+        w[: c.shape[0], : c.shape[1]] = c
+        w[-2, -2] = w[-1, -1] = 1.0
+        coefs.append(w)
+        intercepts.append(np.concatenate([b, np.zeros(n)]))
+    last = mlp.coefs_[-1]
+    w = np.zeros((last.shape[0] + n, last.shape[1]))
+    w[: last.shape[0]] = last
+    w[-2, :], w[-1, :] = scale, -scale
+    coefs.append(w)
+    intercepts.append(mlp.intercepts_[-1] + offset)
+    out.coefs_, out.intercepts_ = coefs, intercepts
+    out.hidden_layer_sizes = tuple(c.shape[1] for c in coefs[:-1])
+    return out
 
 
 def to_onnx(trained: Trained) -> bytes:
@@ -121,7 +209,14 @@ def write_bundle(
         },
         "provenance": {
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "network": {"hidden": list(HIDDEN), "activation": "relu", "library": "scikit-learn"},
+            "network": {
+                "hidden": [c.shape[1] for c in trained.mlp.coefs_[:-1]],
+                "activation": "relu",
+                "library": "scikit-learn",
+                "target": "charge_bar" if trained.residual_of is None else
+                f"charge_bar - {trained.residual_of} (learned by {HIDDEN[0] - PASSTHROUGH_UNITS} units "
+                f"per layer; {trained.residual_of} carried through {PASSTHROUGH_UNITS} more)",
+            },
             **provenance,
         },
     }

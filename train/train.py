@@ -113,6 +113,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     nominal.add_argument("--nominal", help='nominal charge with a unit, e.g. "150 psi" (see train.fit_physics)')
     p.add_argument("--no-augment", action="store_true",
                    help="train without the temperature-offset augmentation (see train.evaluate)")
+    p.add_argument("--no-residual", action="store_true",
+                   help="a network reading the charge observer learns the charge itself, not what the "
+                   "observer misses (see train.model)")
     args = p.parse_args(argv)
 
     campaign = load_campaign(args.campaign)
@@ -144,7 +147,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
         x, y = evaluate.training_set(tables, columns, excited, masks, args.per_run, seed=args.seed,
                                       augment=not args.no_augment)
-        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
+        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter,
+                            residual=not args.no_residual)
         preds = [evaluate.predict_run(trained, tables[i], columns, excited[i]) for i in sorted(test_idx)]
         scores = evaluate.score_runs(preds)
         metrics = {"test_runs": [tables[i].run.name for i in sorted(test_idx)], **scores.as_dict()}
@@ -152,12 +156,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         test = evaluate.paper_split(tables, args.seed)
         x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.per_run,
                                       seed=args.seed, augment=not args.no_augment)
-        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
+        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter,
+                            residual=not args.no_residual)
         metrics = evaluate.score_paper(trained, tables, columns, excited, test).as_dict()
     else:
         x, y = evaluate.training_set(tables, columns, excited, None, args.per_run, seed=args.seed,
                                       augment=not args.no_augment)
-        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter)
+        trained = model.fit(x, y, columns, seed=args.seed, max_iter=args.max_iter,
+                            residual=not args.no_residual)
 
     model.write_bundle(
         args.out,

@@ -317,6 +317,74 @@ def test_estimate_equals_predict_on_features(campaign, bundle_dir):
         assert (out["health"] != "unknown").any(), f"{path.name}: never excited?"
 
 
+def test_a_network_reading_the_observer_learns_its_residual_and_every_reader_adds_it_back(
+        calibrated_campaign, tmp_path):
+    """Permutation 18 (model 12 + the charge observer) on the quick campaign the observer was
+    calibrated on: the network learns ``charge − observer_bar`` with 62 units per layer from
+    every column but the observer's two, and carries ``observer_bar`` through two more,
+    exactly (the output less the learned part is the column to 1e-9 bar); the bundle is a
+    plain 4×64 MLP that onnxruntime, the bindings' float32 path and the estimator
+    (``shocktwin.estimate``) read as the charge, and ``twin.json`` says what it learned.
+    Permutation 17 (the observer alone) has nothing else to read: it answers the observer's
+    estimate. ``residual=False`` learns the charge itself, from every column."""
+    import copy
+
+    import onnxruntime as ort
+
+    campaign, physics_path = calibrated_campaign
+    physics = json.loads(physics_path.read_text())
+    extra = {p["id"]: p for p in shocktwin.extra_permutations()}
+    obs_data = dataset.CampaignData(load_campaign(campaign), physics)
+
+    def training(perm):
+        tables = obs_data.tables(perm["groups"])
+        columns = dataset.group_columns(perm["groups"])
+        return (*evaluate.training_set(tables, columns, obs_data.excited_for(tables), None, PER_RUN), columns)
+
+    x, y, columns = training(extra[18])
+    tr = model.fit(x, y, columns, seed=0, max_iter=MAX_ITER)
+    assert tr.residual_of == model.RESIDUAL_OF == "observer_bar"
+    assert [c.shape[1] for c in tr.mlp.coefs_[:-1]] == list(model.HIDDEN)
+    # the learned part alone: the two carrying units cut from the output
+    learned = copy.deepcopy(tr.mlp)
+    learned.coefs_[-1] = learned.coefs_[-1].copy()
+    learned.coefs_[-1][-model.PASSTHROUGH_UNITS:] = 0.0
+    i = columns.index("observer_bar")
+    learned.intercepts_[-1] = learned.intercepts_[-1] - tr.mean[i]
+    z = (x - tr.mean) / tr.std
+    np.testing.assert_allclose(tr.predict(x) - learned.predict(z), x[:, i], rtol=0, atol=1e-9)
+    # it reads every other column, and neither of the observer's
+    first = tr.mlp.coefs_[0][:, :-model.PASSTHROUGH_UNITS]
+    for c, row in zip(columns, first):
+        assert row.any() == (c not in model.NOT_READ_BY_RESIDUAL), c
+
+    out = model.write_bundle(tmp_path / "perm-18", tr, permutation=extra[18], physics=physics, nominal_bar=12.0,
+                             provenance={"campaign": "test", "split": "none", "seed": 0})
+    twin = json.loads((out / "twin.json").read_text())
+    assert twin["provenance"]["network"]["hidden"] == list(model.HIDDEN)
+    assert twin["provenance"]["network"]["target"].startswith("charge_bar - observer_bar")
+    session = ort.InferenceSession(str(out / "mlp.onnx"), providers=["CPUExecutionProvider"])
+    onnx_out = session.run([model.ONNX_OUTPUT], {model.ONNX_INPUT: z})[0][:, 0]
+    np.testing.assert_allclose(onnx_out, tr.predict(x), rtol=0, atol=1e-9)
+    bundle = shocktwin.Bundle(out)
+    assert bundle.backend == "dense" and bundle.precision == "float32"
+    bar = shocktwin.MLP_F32_PARITY_BAR
+    np.testing.assert_allclose(bundle.predict(x), tr.predict(x), rtol=bar, atol=bar)
+    log = shocktwin.read_log(sorted(campaign.glob("*.mcap"))[0])
+    est = shocktwin.estimate(log, bundle)
+    feats, _, _ = shocktwin.features(log, bundle)
+    finite = np.isfinite(feats).all(axis=1)
+    np.testing.assert_allclose(est["pressure_bar"][finite], bundle.predict(feats[finite]), rtol=0, atol=1e-12)
+
+    x17, y17, columns17 = training(extra[17])
+    alone = model.fit(x17, y17, columns17, seed=0, max_iter=MAX_ITER)
+    np.testing.assert_allclose(alone.predict(x17), x17[:, columns17.index("observer_bar")], rtol=0, atol=1e-9)
+    absolute = model.fit(x, y, columns, seed=0, max_iter=MAX_ITER, residual=False)
+    assert absolute.residual_of is None
+    assert [c.shape[1] for c in absolute.mlp.coefs_[:-1]] == list(model.HIDDEN)
+    assert absolute.mlp.coefs_[0][i].any()
+
+
 # --- the training CLIs: bad input -----------------------------------------------------------
 
 
