@@ -37,10 +37,10 @@ from sklearn.neural_network import MLPRegressor
 
 BUNDLE_FORMAT = "shocktwin-bundle/1"
 HIDDEN = (64, 64, 64, 64)
-# The column whose residual a network reading it learns (see the module doc), and the
-# units per hidden layer that carry it through to the output.
+# The column whose residual a network given it learns (module doc), the columns its learned
+# part does not read (the observer's own), and the units per hidden layer that carry the
+# column through to the output.
 RESIDUAL_OF = "observer_bar"
-# The columns a residual network's learned part does not read (the observer's own).
 NOT_READ_BY_RESIDUAL = ("observer_bar", "observer_sd_bar")
 PASSTHROUGH_UNITS = 2
 ONNX_INPUT = "x"
@@ -77,8 +77,9 @@ def fit(
     """Standardise the inputs and fit the 4×64 MLP (Adam, early stopping on 10 %).
 
     With ``residual`` (the default) and the column ``RESIDUAL_OF`` among ``columns``, the
-    network learns ``y − x[:, RESIDUAL_OF]`` and carries that column to its output (module
-    doc); otherwise it learns ``y``."""
+    network learns ``y − x[:, RESIDUAL_OF]`` from the columns not in ``NOT_READ_BY_RESIDUAL``
+    and carries ``RESIDUAL_OF`` to its output (module doc); otherwise it learns ``y`` from
+    every column."""
     columns = list(columns)
     mean = x.mean(axis=0)
     std = x.std(axis=0)
@@ -114,7 +115,8 @@ def fit(
         if reads.any():
             mlp.fit(z[:, reads], target)
         else:
-            mlp.set_params(max_iter=1, early_stopping=False).fit(np.zeros((mlp.batch_size, 1)), np.zeros(mlp.batch_size))
+            zeros = np.zeros((mlp.batch_size, 1))
+            mlp.set_params(max_iter=1, early_stopping=False).fit(zeros, zeros[:, 0])
             mlp.coefs_ = [np.zeros_like(c) for c in mlp.coefs_]
             mlp.intercepts_ = [np.zeros_like(b) for b in mlp.intercepts_]
     if residual_of is not None:
@@ -133,7 +135,6 @@ def with_passthrough(mlp: MLPRegressor, column: int, *, scale: float, offset: fl
     its output, ``z`` its normalised input ``column``: two more units per hidden layer carry
     ``relu(z)`` and ``relu(−z)`` through (identity weights, zero bias) and the output adds
     ``scale`` times their difference, which is ``z`` exactly."""
-
     out = copy.deepcopy(mlp)
     n = PASSTHROUGH_UNITS
     coefs, intercepts = [], []
