@@ -39,7 +39,7 @@ BUNDLE_FORMAT = "shocktwin-bundle/1"
 HIDDEN = (64, 64, 64, 64)
 # The column whose residual a network given it learns (module doc), the columns its learned
 # part does not read (the observer's own), and the units per hidden layer that carry the
-# column through to the output.
+# column through to the output: two, relu(z) and relu(−z) (``with_passthrough``).
 RESIDUAL_OF = "observer_bar"
 NOT_READ_BY_RESIDUAL = ("observer_bar", "observer_sd_bar")
 PASSTHROUGH_UNITS = 2

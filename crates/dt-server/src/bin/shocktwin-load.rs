@@ -43,6 +43,7 @@
 //! Loopback only. Exit status 0 when every asset count held.
 
 use std::collections::BTreeMap;
+use std::fmt::Write as _;
 use std::io::{BufRead, BufReader, Seek, SeekFrom, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -913,10 +914,7 @@ impl SpawnedDaemon {
             cmd.arg("--road").arg(road);
         }
         if let Some(c) = &args.record_compression {
-            let _ = std::fmt::Write::write_fmt(
-                &mut config_text,
-                format_args!("[record]\ncompression = {c:?}\n"),
-            );
+            let _ = write!(config_text, "[record]\ncompression = {c:?}\n");
         }
         if !config_text.is_empty() {
             let config = std::env::temp_dir()
