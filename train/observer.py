@@ -785,6 +785,15 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     return fit["law"]
 
 
+def law_min_span_k(damping: str, beta_per_k: float | None) -> float:
+    """The oil temperature span (K) the nominal runs' windows must cover for ``fit --damping
+    damping`` to fit the law: ``auto`` needs ``LAW_MIN_TEMP_SPAN_K`` to measure the viscosity
+    coefficient, unless the datasheet's oil gives it (``beta_per_k``); ``law`` fits it on any span.
+    (Before the thirty-fourth session the span was asked for either way, and the demo's quick
+    campaign fell back to linear slopes that read another unit 15 bar low at 2 Hz.)"""
+    return LAW_MIN_TEMP_SPAN_K if damping == "auto" and beta_per_k is None else 0.0
+
+
 def shared_calibration(revs: Sequence[dict[str, Any]], law_obs: dict[str, Any], unit_tol_pct: float,
                        leave_out: Sequence[float] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """``calibrate`` with the damping law, then again without the windows whose residual reads the
@@ -901,8 +910,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
     cal, law, law_cal = None, None, None
     if args.damping in ("law", "auto"):
-        law = damping_law_of(campaign, physics, obs, args.law_windows,
-                             LAW_MIN_TEMP_SPAN_K if args.damping == "auto" else 0.0, beta_per_k,
+        law = damping_law_of(campaign, physics, obs, args.law_windows, law_min_span_k(args.damping, beta_per_k),
+                             beta_per_k,
                              args.law_form, args.law_loadcell == "auto")
         if law is None and args.damping == "law":
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
@@ -1227,8 +1236,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--damping", choices=["auto", "law", "linear"], default="auto",
                    help="the window model's damping: a law fitted on the nominal runs' reversal windows, "
                         "linear slopes per window, or (auto) whichever calibrates more excitations, then the "
-                        "lower leave-one-run-out error (the law only when the nominal runs' windows span "
-                        f"{LAW_MIN_TEMP_SPAN_K:.0f} K of oil temperature)")
+                        "lower leave-one-run-out error (without the oil's viscosity from a TOML "
+                        f"--datasheet, the law only when the nominal runs' windows span {LAW_MIN_TEMP_SPAN_K:.0f} K "
+                        "of oil temperature: they measure it)")
     f.add_argument("--window-sd", action="store_true",
                    help="weigh each reversal by its window fit's own sd of the friction amplitude when "
                         "larger than the calibrated one (dt-core ObserverParams::window_sd)")

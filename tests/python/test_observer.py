@@ -690,3 +690,19 @@ def test_the_window_model_starts_without_a_transient(accel: float) -> None:
     early = np.concatenate([[times[0] - 0.1], times])
     long = np.asarray(shocktwin.reversal_window(params, accel, 60.0, theta, early))[1:]
     assert np.max(np.abs(short - long)) < 2e-3, np.max(np.abs(short - long))
+
+
+def test_the_datasheet_oils_viscosity_lets_a_short_campaign_fit_the_damping_law() -> None:
+    # `fit --damping auto` asks the nominal runs for 40 K of oil temperature only to measure the
+    # law's viscosity coefficient; with the datasheet's oil it is given, and a short (cold)
+    # campaign fits the law. The demo's quick campaign (21-41 °C) fell back to linear slopes that
+    # read another unit of the model 15 bar low at 2 Hz (README, thirty-fourth session).
+    from train.damping_law import LAW_MIN_TEMP_SPAN_K
+    from train.datasheet import load_datasheet
+    from train.observer import law_min_span_k
+
+    beta = load_datasheet(ROOT / "docs" / "datasheet.example.toml").viscosity_coefficient_per_k
+    assert beta is not None and 0.01 < beta < 0.06  # Walther's coefficient of the example oil, 1/K
+    assert law_min_span_k("auto", beta) == 0.0
+    assert law_min_span_k("auto", None) == LAW_MIN_TEMP_SPAN_K
+    assert law_min_span_k("law", None) == 0.0
