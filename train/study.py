@@ -431,7 +431,9 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
         L.append("## Charge observer alone (cheap suite) on the held-out sets\n")
         L.append("The recursive observer (`dt-core::charge`), calibrated by `python -m train.observer fit` on the "
                  "campaign, scored on the generalisation sets above (`unseen`: same rig; `unseen_rig`: another "
-                 "rig; `unit`: second unit). Health by the SPEC §6a interval rule. Also in `observer/observer.md`.\n")
+                 "rig; `unit`: second unit; `unit_baselined`: the second unit after one service, its baseline read "
+                 "from its nominal-charge run at the slowest excitation, which is then not scored). Health by the "
+                 "SPEC §6a interval rule. Also in `observer/observer.md`.\n")
         body = [line.replace("](observer_", "](observer/observer_") for line in ctx["observer"][1:]]
         L.extend(body)
         L.append("")
@@ -510,6 +512,29 @@ def findings(t2: list[dict[str, Any]]) -> list[str]:
     out.append(f"*The random split leaks*: held-out RMSE is {min(leaks):.1f}–{max(leaks):.1f}× the paper-split RMSE "
                "across the 13 permutations; the paper's protocol overstates what a deployed twin achieves.")
     return out
+
+
+UNIT_BASELINED = "unit_baselined"
+
+
+def service_baseline(physics: dict[str, Any], unit_dir: Path, jobs: int) -> dict[str, Any] | None:
+    """The second unit's baseline as a fleet gets it after one service: its run at the nominal
+    charge and the slowest excitation (the demo's service drive is 1 Hz), read by
+    ``train.observer.baseline_of``; None (said) when that run gives none."""
+    from train.observer import baseline_of
+
+    nominal = physics.get("nominal_bar", 12.0)
+    runs = [r for r in load_campaign(unit_dir).runs
+            if r.label_bar is not None and abs(r.label_bar - nominal) < 1e-9 and r.frequency_hz is not None]
+    if not runs:
+        print(f"observer: the second unit has no {nominal:g} bar run: no baselined row")
+        return None
+    slowest = min(runs, key=lambda r: float(r.frequency_hz or 0.0))
+    try:
+        return baseline_of(physics, [slowest.path], nominal, jobs)
+    except SystemExit as e:
+        print(f"observer: no baseline from the second unit's {slowest.path.name} ({e}): no baselined row")
+        return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -603,8 +628,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             if observer_ok and gen:
                 # the observer alone on the same held-out sets: coverage, maintenance metric, bound
                 held = {key: Path(work) / key for key in ("unseen", "unseen_rig", "unit")}
+                baselines = {}
+                service = service_baseline(physics, held["unit"], cfg.jobs)
+                if service is not None:
+                    held[UNIT_BASELINED] = held["unit"]
+                    baselines[UNIT_BASELINED] = service
                 observer_lines = observer_report.evaluate(physics, held, args.out / "observer",
-                                                          OBSERVER_SETTLE_S[args.quick], cfg.jobs)
+                                                          OBSERVER_SETTLE_S[args.quick], cfg.jobs, baselines)
 
     plots(args.out, table2, suites)
     ctx = {

@@ -454,6 +454,31 @@ def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_cam
         obs_tool.baseline_of(with_b, [run12], 12.0, jobs=1)
 
 
+def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    """The study's `unit_baselined` row: the second unit's baseline is read from its run at the
+    nominal charge and the slowest excitation (a service drive), and that run is not scored; a
+    set without a nominal-charge run gets no such row."""
+    from train import study
+    from train.observer_report import evaluate
+
+    _, physics_path = calibrated_campaign
+    physics = json.loads(physics_path.read_text())
+    unit = tmp_path / "unit"
+    simulate(unit, "--pressures", "4,12", "--frequencies", "1,2", "--unit", "2")
+    b = study.service_baseline(physics, unit, 2)
+    assert b is not None and [r["file"] for r in b["runs"]] == ["p12.0-f1.0-s1-u2.mcap"]
+    assert b["observer_baseline"]["charge_bar"] == physics.get("nominal_bar", 12.0)
+    lines = evaluate(physics, {"unit": unit, study.UNIT_BASELINED: unit}, tmp_path / "report", 30.0, 2,
+                     {study.UNIT_BASELINED: b})
+    rows = json.loads((tmp_path / "report" / "observer.json").read_text())["runs"]
+    scored = {r["run"] for r in rows if r["set"] == study.UNIT_BASELINED}
+    assert scored == {"p4.0-f1.0-s1-u2.mcap", "p4.0-f2.0-s1-u2.mcap", "p12.0-f2.0-s1-u2.mcap"}
+    assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in lines)
+    low = tmp_path / "low"
+    simulate(low, "--pressures", "4", "--frequencies", "1", "--unit", "2")
+    assert study.service_baseline(physics, low, 1) is None
+
+
 def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_excitations(
         calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
     """``observer transfer``: two other units, each at a known 12 bar at 1 and 2 Hz. Each pair
