@@ -2695,7 +2695,7 @@ struct ReversalModel {
     accel: f64,
     /// The RK4 step inside the friction's turn-over, s ([`TEMPLATE_STEP_S`],
     /// [`STEPS_PER_TURNOVER`]); away from it the step grows with the
-    /// stroke velocity (see [`ReversalModel::step_over`]).
+    /// stroke velocity (see [`ReversalModel::step_at`]).
     step_s: f64,
     /// The calibrated law at the window's oil temperature, tabulated;
     /// `None`: linear slopes.
@@ -2739,31 +2739,19 @@ impl ReversalModel {
         }
     }
 
-    /// The RK4 step from `s` to `target` (s), the body moving at `xb_dot`
+    /// The RK4 step at `s` (s from the reversal), the body moving at `xb_dot`
     /// (m/s): the friction `tanh(ẏ / v_s)` turns over while `|ẏ| ≲ v_s`, in
     /// `v_s / |ÿ_r|`, and the step there is [`Self::step_s`]; at a stroke
-    /// velocity `|ẏ| > v_s` it changes no faster than `ẏ` itself does, and the
-    /// step grows to `|ẏ| / (STEPS_PER_TURNOVER |ÿ_r|)`, up to
-    /// [`TEMPLATE_STEP_S`] (which resolves the mount and the accelerometer's
-    /// filter). `|ẏ|` is the least over the span of the rod end's ramp less
-    /// the body's velocity at its start (0 when it crosses), less the body's
-    /// change over the span at `|ÿ_r|` (a margin: the ringing after the
-    /// friction's flip is slower than the ramp at the fast excitations where
-    /// this matters). At 4 Hz on the simulated dyno the turn-over step
-    /// (52 µs) ran over the whole 55 ms window: ≈ 1060 steps a
-    /// simulation against ≈ 300 now.
-    fn step_over(&self, s: f64, target: f64, shift: f64, xb_dot: f64) -> f64 {
-        let (a, b) = (
-            self.accel * (s - shift) - xb_dot,
-            self.accel * (target - shift) - xb_dot,
-        );
-        let least = if a * b <= 0.0 {
-            0.0
-        } else {
-            a.abs().min(b.abs())
-        };
-        let clear = (least - self.accel.abs() * (target - s)).max(self.v_smooth);
-        (clear * self.step_s / self.v_smooth).min(TEMPLATE_STEP_S.max(self.step_s))
+    /// velocity `|ẏ| > v_s` (the rod end's ramp less the body's velocity) it
+    /// is `|ẏ| / (STEPS_PER_TURNOVER |ÿ_r|)`, so that the ramp takes at most a
+    /// quarter of `|ẏ|` in one step and the turn-over is approached, never
+    /// stepped over, up to [`TEMPLATE_STEP_S`] (which resolves the mount and
+    /// the accelerometer's filter). At 4 Hz on the simulated dyno the
+    /// turn-over step (52 µs) ran over the whole window and its 15 ms lead:
+    /// ≈ 1,060 steps a simulation.
+    fn step_at(&self, s: f64, shift: f64, xb_dot: f64) -> f64 {
+        let yd = (self.accel * (s - shift) - xb_dot).abs();
+        (yd.max(self.v_smooth) * self.step_s / self.v_smooth).min(TEMPLATE_STEP_S.max(self.step_s))
     }
 
     /// The modelled `a2` at `times` (s from the reversal) for the scaled
@@ -2815,11 +2803,14 @@ impl ReversalModel {
         for &target in times {
             let span = target - s;
             if span > 0.0 {
-                let n = (span / self.step_over(s, target, shift, st[1]))
-                    .ceil()
-                    .max(1.0);
-                let h = span / n;
-                for _ in 0..n as usize {
+                let mut left = span;
+                loop {
+                    // The rest of the span in equal steps of at most the local one
+                    // (a step of it exactly is not split by rounding).
+                    let n = (left / self.step_at(s, shift, st[1]) - 1e-9)
+                        .ceil()
+                        .max(1.0);
+                    let h = left / n;
                     let k1 = deriv(s, st);
                     let k2 = deriv(s + 0.5 * h, add(st, k1, 0.5 * h));
                     let k3 = deriv(s + 0.5 * h, add(st, k2, 0.5 * h));
@@ -2828,6 +2819,10 @@ impl ReversalModel {
                         st[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
                     }
                     s += h;
+                    left -= h;
+                    if n <= 1.0 {
+                        break;
+                    }
                 }
                 s = target;
             }
