@@ -42,7 +42,7 @@ from train.campaign import load_campaign
 from train.damping_law import law_calibrated
 from train.fit_physics import rest_end_s
 from train.progress import progress
-from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, WARN_BAR, Z95, excitation_end_s, warm_terms
+from train.observer import DWELL_S, FAULT_BAR, HYST_BAR, P_ATM_BAR, WARN_BAR, Z95, excitation_end_s, warm_terms
 
 log = logging.getLogger("shocktwin.observer")
 
@@ -66,7 +66,8 @@ def health_series(t: np.ndarray, avg: np.ndarray, lo: np.ndarray, hi: np.ndarray
     state, cand, since = "unknown", "unknown", -np.inf
     out = []
     for ti, a, l, h, e in zip(t, avg, lo, hi, excited):
-        if not (e and np.isfinite(a) and np.isfinite(l) and np.isfinite(h)):
+        if not (e and np.isfinite(a) and np.isfinite(l) and np.isfinite(h)) or h < -P_ATM_BAR:
+            # (wholly below vacuum: no charge a damper holds, the model does not read this unit)
             target = "unknown"
         else:
             fault_hi = FAULT_BAR + HYST_BAR if state == "leak" else FAULT_BAR

@@ -750,3 +750,20 @@ def test_the_datasheet_oils_viscosity_lets_a_short_campaign_fit_the_damping_law(
     assert law_min_span_k("auto", beta) == 0.0
     assert law_min_span_k("auto", None) == LAW_MIN_TEMP_SPAN_K
     assert law_min_span_k("law", None) == 0.0
+
+
+def test_an_interval_below_vacuum_is_no_verdict() -> None:
+    # SPEC §6a as the evaluation applies it (dt-core HealthMachine::level_interval alike): a steady
+    # reading whose interval lies wholly below vacuum is `unknown` (the model does not read this
+    # unit: −13.2 ± 2.1 bar for a true 2 was called `leak`), one reaching above it is `leak`.
+    t = np.arange(0.0, 30.0, 0.02)
+    ones, excited = np.ones(len(t)), np.ones(len(t), bool)
+
+    def health(read: float, sd: float) -> str:
+        return health_series(t, read * ones, (read - obs_tool.Z95 * sd) * ones, (read + obs_tool.Z95 * sd) * ones,
+                             excited)[-1]
+
+    assert health(-13.2, 2.1) == "unknown"
+    assert health(-1.5, 0.2) == "unknown"
+    assert health(-1.5, 0.5) == "leak"
+    assert health(2.0, 1.0) == "leak"

@@ -220,6 +220,10 @@ struct Queued {
     sample: Sample,
 }
 
+/// Vacuum as a gauge pressure, bar (SPEC §1: charges are bar gauge): no
+/// charge a damper holds reads below it.
+pub const VACUUM_GAUGE_BAR: f64 = -crate::params::P_ATM_PA / 1e5;
+
 /// The health state machine of SPEC §6 and §6a, fed one tick at a time.
 ///
 /// Without an interval (a bundle without the charge observer), the *level*
@@ -231,7 +235,8 @@ struct Queued {
 /// With the central 95 % interval `[lo, hi]` of the 1 s average (SPEC §6a)
 /// the level is `leak` when `hi < fault`, else `low` when `hi < warn`, else
 /// `ok` when `lo > warn`, else `unknown` (the interval straddles a
-/// threshold). Hysteresis: in state `leak` the fault threshold is
+/// threshold); an interval wholly below vacuum is `unknown` too
+/// ([`HealthMachine::level_interval`]). Hysteresis: in state `leak` the fault threshold is
 /// `fault_bar + hysteresis_bar`, in `leak` or `low` the warn threshold for
 /// `hi` is `warn_bar + hysteresis_bar`, and in `ok` the warn threshold for
 /// `lo` is `warn_bar − hysteresis_bar`.
@@ -284,9 +289,16 @@ impl HealthMachine {
     }
 
     /// The level the interval `[lo_bar, hi_bar]` points to, with hysteresis
-    /// around the reported state (SPEC §6a).
+    /// around the reported state (SPEC §6a). An interval wholly below
+    /// vacuum ([`VACUUM_GAUGE_BAR`]) reads no charge a damper can hold: the
+    /// model does not hold for this unit, and the verdict is `unknown`, not
+    /// `leak` (thirty-fourth session: another unit read −13.2 ± 2.1 bar for a
+    /// true 2 by a quick calibration's linear damping slopes).
     #[must_use]
     pub fn level_interval(&self, lo_bar: f64, hi_bar: f64) -> Health {
+        if hi_bar < VACUUM_GAUGE_BAR {
+            return Health::Unknown;
+        }
         let h = self.cfg.hysteresis_bar;
         let (warn, fault) = (self.cfg.warn_bar, self.cfg.fault_bar);
         let fault_hi = if self.state == Health::Leak {
@@ -850,4 +862,20 @@ pub fn estimate_log(
     est.finish()?;
     out.extend(est.drain());
     Ok((out, est.counters()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_interval_below_vacuum_is_no_verdict() {
+        let m = HealthMachine::new(HealthConfig::default());
+        assert_eq!(m.level_interval(-16.6, -8.6), Health::Unknown);
+        assert_eq!(m.level_interval(-1.5, -1.1), Health::Unknown);
+        // reaching above vacuum it is a reading of an empty damper
+        assert_eq!(m.level_interval(-3.0, -0.5), Health::Leak);
+        assert_eq!(m.level_interval(-1.2, 4.9), Health::Leak);
+        assert_eq!(m.level_interval(9.5, 14.0), Health::Ok);
+    }
 }
