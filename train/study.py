@@ -524,17 +524,23 @@ def service_baseline(physics: dict[str, Any], unit_dir: Path, jobs: int) -> dict
     from train.observer import baseline_of
 
     nominal = physics.get("nominal_bar", 12.0)
-    runs = [r for r in load_campaign(unit_dir).runs
-            if r.label_bar is not None and abs(r.label_bar - nominal) < 1e-9 and r.frequency_hz is not None]
+    runs = [r for r in load_campaign(unit_dir).runs   # (Campaign.nominal's tolerance)
+            if r.label_bar is not None and abs(r.label_bar - nominal) < 0.05 and r.frequency_hz is not None]
     if not runs:
         print(f"observer: the second unit has no {nominal:g} bar run: no baselined row")
         return None
     slowest = min(runs, key=lambda r: float(r.frequency_hz or 0.0))
     try:
-        return baseline_of(physics, [slowest.path], nominal, jobs)
-    except SystemExit as e:
+        b = baseline_of(physics, [slowest.path], float(slowest.label_bar or nominal), jobs)
+    except (Exception, SystemExit) as e:  # an optional row: the study goes on without it, saying why
         print(f"observer: no baseline from the second unit's {slowest.path.name} ({e}): no baselined row")
         return None
+    ob = b["observer_baseline"]
+    if not (np.isfinite(ob["read_bar"]) and np.isfinite(ob["read_sd_bar"])):
+        print(f"observer: the second unit's {slowest.path.name} read {ob['read_bar']} ± {ob['read_sd_bar']}: "
+              "no baselined row")
+        return None
+    return b
 
 
 def main(argv: Sequence[str] | None = None) -> int:

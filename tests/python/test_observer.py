@@ -115,7 +115,7 @@ def test_window_fit_matches_scipy(run_4bar: Path, law: dict | None) -> None:
 
 
 @pytest.mark.parametrize("law", [None, A_VALVE_LAW], ids=["linear", "valve"])
-def test_window_model_matches_scipy_from_1_to_4_hz(law: dict | None) -> None:
+def test_window_model_matches_scipy_at_2_3_and_4_hz(law: dict | None) -> None:
     # The window model alone (no fit) against scipy's RK45 at rtol 1e-9: at the campaign's 2, 3 and
     # 4 Hz slopes. dt-core's RK4 step grows away from the friction's turn-over (its
     # `ReversalModel::step_at`; 4x faster at 4 Hz): it stays within 6.6e-4 m/s² (3.7e-4 at 2 Hz,
