@@ -117,10 +117,9 @@ def test_window_fit_matches_scipy(run_4bar: Path, law: dict | None) -> None:
 @pytest.mark.parametrize("law", [None, A_VALVE_LAW], ids=["linear", "valve"])
 def test_window_model_matches_scipy_at_2_3_and_4_hz(law: dict | None) -> None:
     # The window model alone (no fit) against scipy's RK45 at rtol 1e-9: at the campaign's 2, 3 and
-    # 4 Hz slopes. dt-core's RK4 step grows away from the friction's turn-over (its
-    # `ReversalModel::step_at`; 4x faster at 4 Hz): it stays within 6.6e-4 m/s² (3.7e-4 at 2 Hz,
-    # far below a fitted window's residual, ≈ 0.1 m/s²), where the largest step (2e-4 s) taken
-    # everywhere misses by 1.0-1.25e-3 at 3-4 Hz and fails.
+    # 4 Hz slopes. dt-core's RK4 step (a quarter of the friction's turn-over `v_s / |ÿ_r|` at most)
+    # stays within 3.7e-4 m/s² (far below a fitted window's residual, ≈ 0.1 m/s²); the largest step
+    # (2e-4 s) taken at 3-4 Hz too misses by 1.0-1.25e-3 and fails (README, thirty-fourth session).
     params = observer_physics(**({"damping_law": law} if law is not None else {}))
     o = params["observer"]
     times = np.arange(-o["window_pre_s"], o["window_post_s"] + 1e-9, 1e-3)

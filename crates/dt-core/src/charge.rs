@@ -46,10 +46,8 @@
 //! the body-end mount obeys `m ẍ_b = F − k x_b − c_m ẋ_b`
 //! (`ω_n = √(k/m)`, `ζ = c_m / (2 m ω_n)`), and the accelerometer reads its
 //! first-order-filtered (`accel_bw_hz`) acceleration plus a constant `c0`;
-//! classical RK4 on a sub-grid of at most [`TEMPLATE_STEP_S`] and, while the
-//! stroke velocity is within reach of the friction's turn-over, a quarter of
-//! its time `v_s / |ÿ_r|` ([`STEPS_PER_TURNOVER`]; the step grows with `|ẏ|`
-//! away from it), started
+//! classical RK4 on a sub-grid of at most [`TEMPLATE_STEP_S`] and a quarter
+//! of the friction's turn-over time `v_s / |ÿ_r|` ([`STEPS_PER_TURNOVER`]), started
 //! quasi-statically 15 ms before the window (the body on the mount's particular
 //! solution under the force's ramp, with the mount's damping and the damper's
 //! own). Free parameters:
@@ -215,9 +213,7 @@ fn truncated_above(mean: f64, sd: f64, bound: f64) -> (f64, f64) {
 /// per-reversal spread of 2.4 N) at twice the cost.
 pub const TEMPLATE_STEP_S: f64 = 2.0e-4;
 /// The friction turns over in `v_s / |ÿ_r|` (0.8 ms at 2 Hz, 0.2 ms at
-/// 4 Hz on the simulated dyno): the RK4 step takes at most this fraction of it
-/// while the stroke velocity is near `v_s`, and this fraction of `|ẏ| / |ÿ_r|`
-/// beyond.
+/// 4 Hz on the simulated dyno): the RK4 step takes at most this fraction of it.
 pub const STEPS_PER_TURNOVER: f64 = 4.0;
 /// Largest gap between accelerometer samples inside a window, s.
 pub const MAX_SAMPLE_GAP_S: f64 = 3.0e-3;
@@ -2685,18 +2681,6 @@ impl ChargeObserver {
 /// `F = κ(ẏ) L(ẏ) + α tanh(ẏ / v_s)`, `κ` the extension or compression
 /// scale), the body obeys `m ẍ_b = F − k x_b − c_m ẋ_b`, and the
 /// accelerometer reads its first-order-filtered acceleration plus a constant.
-/// The window fit's last model: its parameters, the modelled `a2` and the
-/// RK4 steps it took.
-type CachedModel = (Vector5<f64>, Vec<f64>, StepPlan);
-
-/// The RK4 steps of one [`ReversalModel`] simulation: every step (s) in
-/// order and how many of them end at each output time.
-#[derive(Debug, Clone, Default, PartialEq)]
-struct StepPlan {
-    steps: Vec<f64>,
-    per_span: Vec<u32>,
-}
-
 #[derive(Debug, Clone)]
 struct ReversalModel {
     mass: f64,
@@ -2705,9 +2689,7 @@ struct ReversalModel {
     filter_rad_s: f64,
     v_smooth: f64,
     accel: f64,
-    /// The RK4 step inside the friction's turn-over, s ([`TEMPLATE_STEP_S`],
-    /// [`STEPS_PER_TURNOVER`]); away from it the step grows with the
-    /// stroke velocity (see [`ReversalModel::step_at`]).
+    /// Largest RK4 step, s ([`TEMPLATE_STEP_S`], [`STEPS_PER_TURNOVER`]).
     step_s: f64,
     /// The calibrated law at the window's oil temperature, tabulated;
     /// `None`: linear slopes.
@@ -2751,47 +2733,10 @@ impl ReversalModel {
         }
     }
 
-    /// The RK4 step at `s` (s from the reversal), the body moving at `xb_dot`
-    /// (m/s): the friction `tanh(ẏ / v_s)` turns over while `|ẏ| ≲ v_s`, in
-    /// `v_s / |ÿ_r|`, and the step there is [`Self::step_s`]; at a stroke
-    /// velocity `|ẏ| > v_s` (the rod end's ramp less the body's velocity) it
-    /// is `|ẏ| / (STEPS_PER_TURNOVER |ÿ_r|)`, so that the ramp takes at most a
-    /// quarter of `|ẏ|` in one step and the turn-over is approached, never
-    /// stepped over, up to [`TEMPLATE_STEP_S`] (which resolves the mount and
-    /// the accelerometer's filter). At 4 Hz on the simulated dyno the
-    /// turn-over step (52 µs) ran over the whole window and its 15 ms lead:
-    /// ≈ 1,060 steps a simulation.
-    fn step_at(&self, s: f64, shift: f64, xb_dot: f64) -> f64 {
-        let yd = (self.accel * (s - shift) - xb_dot).abs();
-        let h = (yd.max(self.v_smooth) * self.step_s / self.v_smooth).min(TEMPLATE_STEP_S);
-        // (a non-finite slope or state: the largest step, as a NaN window fails anyway)
-        if h.is_finite() && h > 0.0 {
-            h
-        } else {
-            TEMPLATE_STEP_S
-        }
-    }
-
     /// The modelled `a2` at `times` (s from the reversal) for the scaled
     /// parameters `θ = [α N, c_ext kN·s/m, c_comp kN·s/m, δ ms, c0 m/s²]`
     /// (with a calibrated law, `c_ext` and `c_comp` are its scales).
     fn simulate(&self, theta: &Vector5<f64>, times: &[f64]) -> Vec<f64> {
-        self.simulate_on(theta, times, None).0
-    }
-
-    /// [`Self::simulate`], on the RK4 steps of `plan` when given (a
-    /// [`StepPlan`] of the same `times`), else on steps it chooses, which it
-    /// returns. The
-    /// window fit's Jacobian takes its perturbed models on the base model's
-    /// plan: the steps [`Self::step_at`] chooses depend on the shift and the
-    /// body's motion, and a difference quotient across a change of step count
-    /// jumped by up to 11 % of the shift's column at 4 Hz.
-    fn simulate_on(
-        &self,
-        theta: &Vector5<f64>,
-        times: &[f64],
-        plan: Option<&StepPlan>,
-    ) -> (Vec<f64>, Option<StepPlan>) {
         let unit = if self.law.is_some() { 1.0 } else { 1e3 };
         let (alpha, c_ext, c_comp) = (theta[0], theta[1] * unit, theta[2] * unit);
         let shift = theta[3] * 1e-3;
@@ -2833,53 +2778,27 @@ impl ReversalModel {
             g_dot / self.stiffness,
             0.0,
         ];
-        let rk4 = |s: f64, st: &mut [f64; 3], h: f64| {
-            let k1 = deriv(s, *st);
-            let k2 = deriv(s + 0.5 * h, add(*st, k1, 0.5 * h));
-            let k3 = deriv(s + 0.5 * h, add(*st, k2, 0.5 * h));
-            let k4 = deriv(s + h, add(*st, k3, h));
-            for i in 0..3 {
-                st[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
-            }
-        };
         let mut out = Vec::with_capacity(times.len());
-        let mut taken = StepPlan::default();
-        let mut planned = plan.map(|p| p.steps.iter().copied());
-        for (k, &target) in times.iter().enumerate() {
+        for &target in times {
             let span = target - s;
             if span > 0.0 {
-                let mut count = 0;
-                if let (Some(steps), Some(p)) = (&mut planned, plan) {
-                    for h in steps.by_ref().take(p.per_span[k] as usize) {
-                        rk4(s, &mut st, h);
-                        s += h;
+                let n = (span / self.step_s).ceil().max(1.0);
+                let h = span / n;
+                for _ in 0..n as usize {
+                    let k1 = deriv(s, st);
+                    let k2 = deriv(s + 0.5 * h, add(st, k1, 0.5 * h));
+                    let k3 = deriv(s + 0.5 * h, add(st, k2, 0.5 * h));
+                    let k4 = deriv(s + h, add(st, k3, h));
+                    for i in 0..3 {
+                        st[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
                     }
-                } else {
-                    let mut left = span;
-                    loop {
-                        // The rest of the span in equal steps of at most the local
-                        // one (a step of it exactly is not split by rounding).
-                        let local = self.step_at(s, shift, st[1]);
-                        let n = (left / local - 1e-9).ceil().max(1.0);
-                        let h = left / n;
-                        rk4(s, &mut st, h);
-                        taken.steps.push(h);
-                        count += 1;
-                        s += h;
-                        left -= h;
-                        if n <= 1.0 {
-                            break;
-                        }
-                    }
+                    s += h;
                 }
-                taken.per_span.push(count);
                 s = target;
-            } else {
-                taken.per_span.push(0);
             }
             out.push(st[2] + theta[4]);
         }
-        (out, plan.is_none().then_some(taken))
+        out
     }
 }
 
@@ -2943,7 +2862,7 @@ struct WindowFit<'a> {
     /// Levenberg–Marquardt asks for the Jacobian where it last took the
     /// residuals after every accepted step, and the Jacobian's base point
     /// is then that same model (one window simulation of six saved).
-    last: std::cell::RefCell<Option<CachedModel>>,
+    last: std::cell::RefCell<Option<(Vector5<f64>, Vec<f64>)>>,
 }
 
 impl WindowFit<'_> {
@@ -2967,16 +2886,15 @@ impl WindowFit<'_> {
         .take(self.prior_len())
     }
 
-    /// The model at the current parameters (from the cache when it holds
-    /// them; the cache keeps the RK4 steps it took too).
+    /// The model at the current parameters (from the cache when it holds them).
     fn model_now(&self) -> Vec<f64> {
-        if let Some((theta, model, _)) = self.last.borrow().as_ref() {
+        if let Some((theta, model)) = self.last.borrow().as_ref() {
             if *theta == self.theta {
                 return model.clone();
             }
         }
-        let (model, plan) = self.model.simulate_on(&self.theta, &self.times, None);
-        *self.last.borrow_mut() = Some((self.theta, model.clone(), plan.unwrap_or_default()));
+        let model = self.model.simulate(&self.theta, &self.times);
+        *self.last.borrow_mut() = Some((self.theta, model.clone()));
         model
     }
 }
@@ -3011,8 +2929,6 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
 
     fn jacobian(&self) -> Option<OMatrix<f64, Dyn, U5>> {
         let base = self.model_now();
-        let cache = self.last.borrow();
-        let plan = cache.as_ref().map(|(_, _, plan)| plan);
         let n = base.len();
         let mut jac = OMatrix::<f64, Dyn, U5>::zeros(n + self.prior_len());
         if self.prior > 0.0 {
@@ -3024,8 +2940,7 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
         for (j, step) in JACOBIAN_STEP.iter().enumerate() {
             let mut th = self.theta;
             th[j] += step;
-            // on the base model's steps: the difference is the parameter's alone
-            let (moved, _) = self.model.simulate_on(&th, &self.times, plan);
+            let moved = self.model.simulate(&th, &self.times);
             for (i, (m, b)) in moved.iter().zip(&base).enumerate() {
                 jac[(i, j)] = (m - b) / step;
             }
@@ -3046,61 +2961,6 @@ mod tests {
             systematic_sd_bar: 0.5,
             ..ObserverParams::default()
         }
-    }
-
-    /// The Jacobian's shift column at 4 Hz, scanned over the shift in steps
-    /// of 0.01 ms: on the base model's RK4 steps its second difference stays
-    /// under 0.5 % of its largest value (0.19 %); taken with steps chosen
-    /// afresh for the perturbed model (a difference across a change of step
-    /// count) it reached 1.05 %, and one window's column ≈ 11 % (review).
-    #[test]
-    fn the_shift_column_is_smooth_on_the_base_models_steps() {
-        let p = ObserverParams {
-            damping_law: a_law(),
-            ..params()
-        };
-        let model = ReversalModel::new(&p, 24.2, 60.0);
-        let times: Vec<f64> = (0..=40).map(|i| -0.01 + f64::from(i) * 1e-3).collect();
-        let eps = JACOBIAN_STEP[3];
-        let column = |shift_ms: f64, planned: bool| -> Vec<f64> {
-            let th = Vector5::new(40.0, 1.0, 1.0, shift_ms, 0.0);
-            let (base, plan) = model.simulate_on(&th, &times, None);
-            let mut moved_th = th;
-            moved_th[3] += eps;
-            let moved = if planned {
-                model.simulate_on(&moved_th, &times, plan.as_ref()).0
-            } else {
-                model.simulate(&moved_th, &times)
-            };
-            moved
-                .iter()
-                .zip(&base)
-                .map(|(m, b)| (m - b) / eps)
-                .collect()
-        };
-        let jumps = |planned: bool| {
-            let cols: Vec<Vec<f64>> = (0..200)
-                .map(|k| column(-6.0 + 0.01 * f64::from(k), planned))
-                .collect();
-            let largest = cols.iter().flatten().fold(0.0_f64, |m, x| m.max(x.abs()));
-            // the second difference: a smooth column's is small, a jump's is not
-            let jump = cols
-                .windows(3)
-                .flat_map(|w| {
-                    w[0].iter()
-                        .zip(&w[1])
-                        .zip(&w[2])
-                        .map(|((a, b), c)| (a - 2.0 * b + c).abs())
-                })
-                .fold(0.0_f64, f64::max);
-            jump / largest
-        };
-        let (on_plan, afresh) = (jumps(true), jumps(false));
-        assert!(on_plan < 0.005, "on the base steps: {on_plan}");
-        assert!(
-            afresh > 2.0 * on_plan,
-            "afresh {afresh}, on the base steps {on_plan}"
-        );
     }
 
     /// A stream of one reversal every 0.25 s, |ÿ| = 6 m/s², whose `a2` is
