@@ -524,8 +524,10 @@ def service_baseline(physics: dict[str, Any], unit_dir: Path, jobs: int) -> dict
     from train.observer import baseline_of
 
     nominal = physics.get("nominal_bar", 12.0)
-    runs = [r for r in load_campaign(unit_dir).runs   # (Campaign.nominal's tolerance)
-            if r.label_bar is not None and abs(r.label_bar - nominal) < 0.05 and r.frequency_hz is not None]
+    try:
+        runs = [r for r in load_campaign(unit_dir).nominal(nominal) if r.frequency_hz is not None]
+    except CampaignError:
+        runs = []
     if not runs:
         print(f"observer: the second unit has no {nominal:g} bar run: no baselined row")
         return None
