@@ -423,6 +423,26 @@ def test_a_damping_law_of_the_wrong_shape_is_named() -> None:
         shocktwin.reversal_window(params, 6.0, 40.0, [40.0, 1.0, 1.0, 0.0, 0.0], [0.0, 1e-3])
 
 
+def test_many_windows_at_once_are_each_window_alone() -> None:
+    """``reversal_windows`` (every core, the parameters read once) gives the same bits as one
+    ``reversal_window`` per window, end to end in their order; arguments of different lengths
+    are refused by name."""
+    params = observer_physics(damping_law=A_LAW)
+    rng = np.random.default_rng(3)
+    n = 9
+    accels = rng.choice([-1.0, 1.0], n) * rng.uniform(1.5, 25.0, n)
+    oils = rng.uniform(20.0, 90.0, n)
+    theta = np.column_stack([rng.uniform(20.0, 60.0, n), rng.uniform(0.8, 1.2, n), rng.uniform(0.8, 1.2, n),
+                             rng.uniform(-3.0, 3.0, n), rng.normal(0.0, 0.2, n)])
+    times = [np.arange(-0.03, 0.06 + 1e-9, 1e-3)[: 40 + 7 * i] for i in range(n)]
+    one = np.concatenate([np.asarray(shocktwin.reversal_window(params, a, o, list(th), t))
+                          for a, o, th, t in zip(accels, oils, theta, times)])
+    many = np.asarray(shocktwin.reversal_windows(params, list(accels), list(oils), theta, times))
+    assert many.shape == one.shape and np.array_equal(many, one)
+    with pytest.raises(shocktwin.InputError, match="`times` has 8 windows, `accel_mps2` 9"):
+        shocktwin.reversal_windows(params, list(accels), list(oils), theta, times[:-1])
+
+
 def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_campaign: tuple[Path, Path],
                                                                   tmp_path: Path) -> None:
     """Another unit (its seal scattered), read once at a known 12 bar: at 3 bar the interval

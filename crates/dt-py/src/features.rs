@@ -17,7 +17,7 @@ use pyo3::types::{PyDict, PyString};
 
 use crate::bundle::PyBundle;
 use crate::convert::{ns_to_seconds, to_numpy};
-use crate::exceptions::CoreError;
+use crate::exceptions::{input_error, CoreError};
 use crate::gil::without_gil;
 use crate::log::{read_log, PyLog};
 use crate::params::{physics_from_dict, physics_from_file};
@@ -203,6 +203,57 @@ pub(crate) fn reversal_window<'py>(
     let obs = params.observer.unwrap_or_default();
     let a2 = without_gil(py, move || {
         dt_core::charge::reversal_window_a2(&obs, accel_mps2, oil_c, theta, &times)
+    });
+    Ok(to_numpy(py, a2))
+}
+
+/// The window model of many reversals at once: ``reversal_window`` for
+/// window `i` of ``accel_mps2[i]``, ``oil_c[i]``, ``theta[i]`` and
+/// ``times[i]``, the windows' modelled ``a2`` end to end in their order (one
+/// float64 array, ``sum(len(t) for t in times)`` long). The parameters are
+/// read once, and the windows are simulated on every core with the GIL
+/// released (rayon); each is the same computation as ``reversal_window``'s,
+/// so the result is the same bits. For the damping law's fit, which asks for
+/// every window at every step of its finite-difference Jacobian.
+#[pyfunction]
+pub(crate) fn reversal_windows<'py>(
+    py: Python<'py>,
+    bundle_or_params: &Bound<'py, PyAny>,
+    accel_mps2: Vec<f64>,
+    oil_c: Vec<f64>,
+    theta: Vec<[f64; 5]>,
+    times: Vec<Vec<f64>>,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    use rayon::prelude::*;
+
+    let n = accel_mps2.len();
+    for (name, len) in [
+        ("oil_c", oil_c.len()),
+        ("theta", theta.len()),
+        ("times", times.len()),
+    ] {
+        if len != n {
+            return Err(input_error(format!(
+                "reversal_windows: `{name}` has {len} windows, `accel_mps2` {n}"
+            )));
+        }
+    }
+    let (params, _) = physics_from(bundle_or_params)?;
+    let obs = params.observer.unwrap_or_default();
+    let a2 = without_gil(py, move || {
+        let per: Vec<Vec<f64>> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                dt_core::charge::reversal_window_a2(
+                    &obs,
+                    accel_mps2[i],
+                    oil_c[i],
+                    theta[i],
+                    &times[i],
+                )
+            })
+            .collect();
+        per.concat()
     });
     Ok(to_numpy(py, a2))
 }

@@ -38,6 +38,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(features::charge_reversals, m)?)?;
     m.add_function(wrap_pyfunction!(features::road_blocks, m)?)?;
     m.add_function(wrap_pyfunction!(features::reversal_window, m)?)?;
+    m.add_function(wrap_pyfunction!(features::reversal_windows, m)?)?;
     m.add_function(wrap_pyfunction!(features::twin_trace, m)?)?;
     m.add_function(wrap_pyfunction!(features::group_columns, m)?)?;
     m.add_function(wrap_pyfunction!(features::group_topics, m)?)?;

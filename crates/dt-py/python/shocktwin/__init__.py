@@ -15,7 +15,9 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
   observer (dt-core ``road``) over a run: each block's reading and the estimate,
   interval and health after it.
 - ``reversal_window(bundle_or_params, accel_mps2, oil_c, theta, times)``: the
-  observer's window model of one reversal (calibrating its damping law).
+  observer's window model of one reversal (calibrating its damping law);
+  ``reversal_windows(bundle_or_params, accel_mps2, oil_c, theta, times)``: many
+  of them end to end, on every core.
 - ``twin_trace(log, bundle_or_params)``: the twin's state per 50 Hz tick from
   whatever sensors the log has (the reduced models without accelerometers or
   ambient thermocouple; calibration on a reduced campaign).
@@ -60,6 +62,7 @@ from shocktwin._native import (
     charge_reversals,
     road_blocks,
     reversal_window,
+    reversal_windows,
     twin_trace,
     default_params,
     default_observer_params,
@@ -106,6 +109,7 @@ __all__ = [
     "charge_reversals",
     "road_blocks",
     "reversal_window",
+    "reversal_windows",
     "twin_trace",
     "GROUPS",
     "COLUMNS",

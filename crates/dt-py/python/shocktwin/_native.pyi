@@ -23,6 +23,7 @@ __all__ = [
     "charge_reversals",
     "road_blocks",
     "reversal_window",
+    "reversal_windows",
     "twin_trace",
     "default_observer_params",
     "Bundle",
@@ -159,6 +160,13 @@ def reversal_window(
     oil_c: float,
     theta: Sequence[float],
     times: Sequence[float] | _F64,
+) -> _F64: ...
+def reversal_windows(
+    bundle_or_params: dict[str, Any] | Bundle | _Path,
+    accel_mps2: Sequence[float],
+    oil_c: Sequence[float],
+    theta: Sequence[Sequence[float]] | npt.NDArray[np.float64],
+    times: Sequence[Sequence[float] | _F64],
 ) -> _F64: ...
 def twin_trace(
     log: Log | _Path,
