@@ -588,16 +588,15 @@ const FIELDS: [&str; 13] = [
     "label_bar",
 ];
 
-/// `,x` (empty when not finite), written in place: no `String` per field.
-/// `,` and `x` in the layout of Rust's `Display` (the shortest digits that
-/// read back to `x` exactly, no exponent), or nothing for a value that is not
-/// finite. The digits come from `zmij` (Schubfach, as `serde_json` prints
+/// `,x`, written in place (no `String` per field): `x` in the layout of
+/// Rust's `Display` (the shortest digits that read back to `x` exactly, no
+/// exponent), or nothing for a value that is not finite. The digits come from `zmij` (Schubfach, as `serde_json` prints
 /// them; several times faster than `Display`). Where the shortest needs 16
 /// or 17 significant digits and more than one last digit reads back to `x`,
 /// the two may take different ones (261 of the test's two million numbers):
 /// the text then differs from `Display`'s in that digit, the number read
-/// back does not. An integer's trailing `.0` is dropped and very large or small
-/// magnitudes (an exponent) are left to `Display`. Test:
+/// back does not. An integer's trailing `.0` is dropped and very large or
+/// small magnitudes (an exponent) are left to `Display`. Test:
 /// `csv_numbers_read_back_exactly_in_displays_layout`.
 fn push_num(line: &mut String, x: f64) {
     line.push(',');
@@ -767,10 +766,10 @@ mod tests {
     use dt_core::log::{Compression, Sample};
 
     /// The CSV's numbers read back to the same bits, in `Display`'s layout
-    /// and length, and differ from `Display`'s text in a few last digits only
-    /// (each at 16 or more significant digits): a million random bit patterns (every magnitude), a
-    /// million values at the scales the columns hold, and the edges
-    /// (integers, ±0, tiny, huge).
+    /// and length, and differ from `Display`'s text in a few last digits
+    /// only (each at 16 or more significant digits): a million random bit
+    /// patterns (every magnitude), a million values at the scales the
+    /// columns hold, and the edges (integers, ±0, tiny, huge).
     #[test]
     fn csv_numbers_read_back_exactly_in_displays_layout() {
         let mut state = 0x9e37_79b9_7f4a_7c15_u64;
