@@ -18,7 +18,7 @@
 
 use std::fmt::Write as _;
 use std::fs::File;
-use std::io::{BufWriter, Read, Seek, Write};
+use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -255,26 +255,47 @@ enum Decoded {
 
 /// The events of `input` as [`LogDecoder`] reads them, 1 MiB at a time,
 /// ending with [`Decoded::End`] (or at the first [`Decoded::GiveWay`] or
-/// [`Decoded::Failed`]).
+/// [`Decoded::Failed`]). The samples are decoded [`SAMPLES_AT_ONCE`] at a
+/// time into a buffer kept here ([`LogDecoder::next_samples`]), then handed
+/// out one by one: the same events in the same order as `next_event` gives.
 fn decoded(mut input: File, name: String) -> impl Iterator<Item = Decoded> {
     // `None` once the end, a give-way or a failure was passed on.
     let mut decoder = Some(LogDecoder::new(&name));
-    let mut buf = vec![0u8; 1 << 20];
+    let mut samples: Vec<Sample> = Vec::with_capacity(SAMPLES_AT_ONCE);
+    let mut handed = 0;
+    // The event that ended the last run of samples, handed out after them.
+    let mut after: Option<Decoded> = None;
     std::iter::from_fn(move || loop {
-        if let Some(event) = decoder.as_mut()?.next_event() {
-            return Some(match event {
-                Ok(LogEvent::Sample(s)) => Decoded::Sample(s),
-                Ok(LogEvent::Metadata(m)) => Decoded::Metadata(Box::new(m)),
-                Ok(LogEvent::End) => continue,
+        if let Some(&sample) = samples.get(handed) {
+            handed += 1;
+            return Some(Decoded::Sample(sample));
+        }
+        if let Some(event) = after.take() {
+            return Some(event);
+        }
+        samples.clear();
+        handed = 0;
+        if let Some(event) = decoder
+            .as_mut()?
+            .next_samples(&mut samples, SAMPLES_AT_ONCE)
+        {
+            after = match event {
+                Ok(LogEvent::Sample(s)) => Some(Decoded::Sample(s)),
+                Ok(LogEvent::Metadata(m)) => Some(Decoded::Metadata(Box::new(m))),
+                Ok(LogEvent::End) => None,
                 Ok(LogEvent::Unknown { .. }) | Err(_) => {
                     decoder = None;
-                    Decoded::GiveWay
+                    Some(Decoded::GiveWay)
                 }
-            });
+            };
+            continue;
         }
-        match input.read(&mut buf) {
+        if !samples.is_empty() {
+            continue;
+        }
+        match decoder.as_mut()?.feed_from(&mut input, 1 << 20) {
             Ok(0) => return Some(Decoded::End(decoder.take()?.finish().is_ok())),
-            Ok(n) => decoder.as_mut()?.feed(&buf[..n]),
+            Ok(_) => {}
             Err(e) => {
                 decoder = None;
                 return Some(Decoded::Failed(
@@ -284,6 +305,9 @@ fn decoded(mut input: File, name: String) -> impl Iterator<Item = Decoded> {
         }
     })
 }
+
+/// Samples [`decoded`] decodes at a time: 32 kB, well inside the L1 cache.
+const SAMPLES_AT_ONCE: usize = 1024;
 
 /// Events a reading thread hands over at a time.
 const DECODED_BATCH: usize = 4096;
@@ -342,7 +366,6 @@ impl Batch {
 /// left to the receiving thread, so that the two threads share the work.
 fn read_batches(mut input: File, name: &str, tx: &std::sync::mpsc::SyncSender<Batch>) {
     let mut decoder = LogDecoder::new(name);
-    let mut buf = vec![0u8; 1 << 20];
     let mut batch = Batch::new();
     loop {
         while let Some(event) = decoder.next_undecoded(&mut batch.text) {
@@ -368,12 +391,9 @@ fn read_batches(mut input: File, name: &str, tx: &std::sync::mpsc::SyncSender<Ba
                 return; // the replay gave way: stop reading
             }
         }
-        let last = match input.read(&mut buf) {
+        let last = match decoder.feed_from(&mut input, 1 << 20) {
             Ok(0) => Decoded::End(decoder.finish().is_ok()),
-            Ok(n) => {
-                decoder.feed(&buf[..n]);
-                continue;
-            }
+            Ok(_) => continue,
             Err(e) => Decoded::Failed(anyhow::Error::new(e).context(format!("reading {name}"))),
         };
         batch.items.push(Handed::Event(last));

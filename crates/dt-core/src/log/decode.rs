@@ -2,7 +2,6 @@
 //! shared by the whole-file reader, the incremental decoder and `inspect`.
 
 use std::borrow::Cow;
-use std::collections::BTreeMap;
 
 use super::raw::RawChannel;
 use super::{topic_spec, LogError, Sample, TopicSpec};
@@ -19,8 +18,10 @@ pub(crate) enum ChannelKind {
 /// Classifies channels and decodes their messages.
 #[derive(Debug, Default)]
 pub(crate) struct SampleDecoder {
-    /// By channel id (a channel id re-used by a later record is re-checked).
-    kinds: BTreeMap<u16, ChannelKind>,
+    /// By channel id (a channel id re-used by a later record is re-checked);
+    /// ids past the end, like `Unknown`, are not sensor topics. A vector,
+    /// not a map: it is looked up once per message.
+    kinds: Vec<ChannelKind>,
 }
 
 impl SampleDecoder {
@@ -31,19 +32,27 @@ impl SampleDecoder {
             None => ChannelKind::Unknown,
             Some((rank, spec)) => {
                 // Mark unknown until checked, so a bad channel's messages are not decoded.
-                self.kinds.insert(channel.id, ChannelKind::Unknown);
+                self.set_kind(channel.id, ChannelKind::Unknown);
                 check_channel(file, channel, spec)?;
                 ChannelKind::Sample(rank)
             }
         };
-        self.kinds.insert(channel.id, kind);
+        self.set_kind(channel.id, kind);
         Ok(())
+    }
+
+    fn set_kind(&mut self, id: u16, kind: ChannelKind) {
+        let i = usize::from(id);
+        if self.kinds.len() <= i {
+            self.kinds.resize(i + 1, ChannelKind::Unknown);
+        }
+        self.kinds[i] = kind;
     }
 
     /// The topic rank of a channel's messages, `None` for a topic this
     /// format does not know (or a channel that failed its check).
     pub(crate) fn rank(&self, channel: &RawChannel) -> Option<u8> {
-        match self.kinds.get(&channel.id) {
+        match self.kinds.get(usize::from(channel.id)) {
             Some(ChannelKind::Sample(rank)) => Some(*rank),
             _ => None,
         }

@@ -177,7 +177,7 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
                     c.message_count += 1;
                     c.log_time_range_ns = Some(widen(c.log_time_range_ns, log_time));
                 }
-                if let Err(err) = decoder.decode(source_name, &channel, log_time, data) {
+                if let Err(err) = decoder.decode(source_name, channel, log_time, data) {
                     problems.message(&err);
                 }
             }

@@ -87,7 +87,7 @@ pub enum RawEvent<'a> {
     /// A message, on a channel seen before it.
     Message {
         /// The message's channel.
-        channel: Arc<RawChannel>,
+        channel: &'a RawChannel,
         /// Sequence number.
         sequence: u32,
         /// Log time, ns.
@@ -408,7 +408,7 @@ impl RawDecoder {
                     }));
                 };
                 RawEvent::Message {
-                    channel: Arc::clone(channel),
+                    channel,
                     sequence,
                     log_time,
                     publish_time,

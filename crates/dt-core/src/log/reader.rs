@@ -18,6 +18,7 @@
 //! writes the last three) is read as NaN: a missing sample, kept in its place.
 
 use std::borrow::Cow;
+use std::io::Read;
 use std::path::Path;
 
 use super::decode::{decode_sample, SampleDecoder};
@@ -72,7 +73,7 @@ pub fn read_log_bytes(source_name: &str, bytes: &[u8]) -> Result<RunLog, LogErro
                 ..
             } => {
                 seen_message = true;
-                match decoder.decode(source_name, &channel, log_time, data) {
+                match decoder.decode(source_name, channel, log_time, data) {
                     Ok(Some(sample)) => log.push(sample),
                     Ok(None) => *log.unknown_topics.entry(channel.topic.clone()).or_default() += 1,
                     Err(err) => problems.message(&err),
@@ -344,6 +345,25 @@ impl LogDecoder {
         self.pending.extend_from_slice(bytes);
     }
 
+    /// Reads from `source` straight into the decoder's buffer until `max`
+    /// bytes or the end of `source` (what [`LogDecoder::feed`] does with
+    /// bytes read elsewhere, without the copy); `Ok(0)` at the end. For
+    /// files: on a socket or pipe it waits for all `max` bytes.
+    ///
+    /// # Errors
+    /// The read's error (bytes read before it are kept).
+    pub fn feed_from(&mut self, source: &mut impl Read, max: usize) -> std::io::Result<usize> {
+        if self.pos > 0 && self.pos * 2 >= self.pending.len() {
+            self.pending.drain(..self.pos);
+            self.pos = 0;
+        }
+        // `read_to_end` reads into the vector's spare capacity without
+        // zeroing it first; `take` bounds it to one read's worth.
+        self.pending.reserve(max);
+        let max = u64::try_from(max).unwrap_or(u64::MAX);
+        source.take(max).read_to_end(&mut self.pending)
+    }
+
     /// The next event, or `None` when more bytes are needed (or after the
     /// end of the file, or a fatal error).
     pub fn next_event(&mut self) -> Option<Result<LogEvent, LogError>> {
@@ -366,6 +386,34 @@ impl LogDecoder {
             data.extend_from_slice(text);
             Ok(Undecoded::Sample(SampleMessage { rank, log_time }))
         })
+    }
+
+    /// As [`LogDecoder::next_event`] for a run of sensor samples: appends
+    /// the samples that come next to `samples` until it holds `max`, and
+    /// returns the first event that is not a sample (an error included), or
+    /// `None` once `samples` is full or more bytes are needed. The events
+    /// and their order are those `next_event` yields; the samples are
+    /// written where the caller keeps them instead of being returned one by
+    /// one (`shocktwin replay`'s one-core path).
+    pub fn next_samples(
+        &mut self,
+        samples: &mut Vec<Sample>,
+        max: usize,
+    ) -> Option<Result<LogEvent, LogError>> {
+        while samples.len() < max {
+            let next = self.next_checked(Some, |file, rank, log_time, data| {
+                decode_sample(file, rank, log_time, data).map(|s| {
+                    samples.push(s);
+                    None
+                })
+            })?;
+            match next {
+                Ok(None) => {}
+                Ok(Some(event)) => return Some(Ok(event)),
+                Err(err) => return Some(Err(err)),
+            }
+        }
+        None
     }
 
     /// The next item: `wrap` wraps what is not a sensor message, `sample`
@@ -431,7 +479,7 @@ impl LogDecoder {
                             ),
                         }));
                     }
-                    let Some(rank) = self.samples.rank(&channel) else {
+                    let Some(rank) = self.samples.rank(channel) else {
                         return Some(Ok(wrap(LogEvent::Unknown {
                             topic: channel.topic.clone(),
                             t_ns: i64::try_from(log_time).unwrap_or(i64::MAX),

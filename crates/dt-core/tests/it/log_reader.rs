@@ -281,6 +281,109 @@ fn a_bad_message_is_skipped_and_named_and_its_neighbours_kept() {
     );
 }
 
+/// What the decoder makes of `bytes` fed in pieces of `piece` bytes, one
+/// event at a time: the events, errors as text, then `finish()`'s result.
+fn one_by_one(bytes: &[u8], piece: usize) -> Vec<Result<LogEvent, String>> {
+    let mut decoder = LogDecoder::new("stream");
+    let mut out = Vec::new();
+    for chunk in bytes.chunks(piece) {
+        decoder.feed(chunk);
+        while let Some(event) = decoder.next_event() {
+            out.push(event.map_err(|e| e.to_string()));
+        }
+    }
+    out.push(
+        decoder
+            .finish()
+            .map(|()| LogEvent::End)
+            .map_err(|e| e.to_string()),
+    );
+    out
+}
+
+/// The same, read from a reader `piece` bytes at a time
+/// (`LogDecoder::feed_from`) and decoded in runs of at most `max` samples
+/// (`LogDecoder::next_samples`).
+fn in_runs(bytes: &[u8], piece: usize, max: usize) -> Vec<Result<LogEvent, String>> {
+    let mut decoder = LogDecoder::new("stream");
+    let mut source = Cursor::new(bytes);
+    let mut samples = Vec::new();
+    let mut out = Vec::new();
+    loop {
+        loop {
+            let next = decoder.next_samples(&mut samples, max);
+            assert!(samples.len() <= max);
+            let full = samples.len() == max;
+            out.extend(samples.drain(..).map(|s| Ok(LogEvent::Sample(s))));
+            match next {
+                Some(event) => out.push(event.map_err(|e| e.to_string())),
+                None if full => {}
+                None => break,
+            }
+        }
+        if decoder.feed_from(&mut source, piece).unwrap() == 0 {
+            break;
+        }
+    }
+    out.push(
+        decoder
+            .finish()
+            .map(|()| LogEvent::End)
+            .map_err(|e| e.to_string()),
+    );
+    out
+}
+
+#[test]
+fn samples_decoded_in_runs_are_the_events_one_by_one() {
+    // good and bad messages, an unknown topic, a file that ends cleanly
+    let mut raw = Raw::new(mcap::WriteOptions::new().chunk_size(Some(200)));
+    raw.metadata(&IDS);
+    let force = raw.channel("/force", "json", None);
+    let est = raw.channel("/estimate", "json", None);
+    let position = raw.channel("/position", "json", None);
+    for t in 0..40_u64 {
+        raw.message(force, t, &format!(r#"{{"force_n": {t}.5}}"#));
+        raw.message(position, t, r#"{"position_m": 0.01}"#);
+        if t % 7 == 3 {
+            raw.message(force, t, r#"{"force": 2.0}"#); // wrong field name
+            raw.message(est, t, r#"{"pressure_bar": 5.0}"#);
+        }
+    }
+    let mixed = raw.finish();
+    // a fatal error after some samples: a known topic in another encoding
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    raw.metadata(&IDS);
+    let force = raw.channel("/force", "json", None);
+    raw.message(force, 1, r#"{"force_n": 1.0}"#);
+    raw.channel("/position", "cbor", None);
+    raw.message(force, 2, r#"{"force_n": 2.0}"#);
+    let fatal = raw.finish();
+    let written = write_bytes(
+        &samples(),
+        WriteOptions {
+            compression: Compression::Zstd,
+            chunk_size: Some(300),
+        },
+    );
+    for (name, bytes) in [("mixed", &mixed), ("fatal", &fatal), ("written", &written)] {
+        for piece in [1, 5, 64, 4096, bytes.len()] {
+            let want = one_by_one(bytes, piece);
+            assert!(want.len() > 3, "{name}: {want:?}");
+            for max in [1, 2, 3, 1000] {
+                assert_eq!(
+                    in_runs(bytes, piece, max),
+                    want,
+                    "{name}, piece {piece}, max {max}"
+                );
+            }
+        }
+    }
+    let errors = |events: &[Result<LogEvent, String>]| events.iter().filter(|e| e.is_err()).count();
+    assert_eq!(errors(&one_by_one(&mixed, 64)), 6);
+    assert!(one_by_one(&fatal, 64).last().unwrap().is_err());
+}
+
 #[test]
 fn fatal_validation_errors_name_file_topic_and_field() {
     // no metadata
