@@ -29,6 +29,7 @@ import argparse
 import json
 import logging
 from concurrent.futures import ProcessPoolExecutor
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -82,9 +83,16 @@ def health_series(t: np.ndarray, avg: np.ndarray, lo: np.ndarray, hi: np.ndarray
     return out
 
 
+@lru_cache(maxsize=1)
+def _campaign_runs(directory: str) -> dict[str, Any]:
+    """A held-out set's runs by path, read once per worker process while its runs come one after
+    another (the tasks are in set order), not once per run."""
+    return {str(r.path): r for r in load_campaign(Path(directory)).runs}
+
+
 def score_run(args: tuple[str, str, dict[str, Any], float]) -> dict[str, Any]:
     path, set_name, physics, settle_s = args
-    run = next(r for r in load_campaign(Path(path).parent).runs if str(r.path) == path)
+    run = _campaign_runs(str(Path(path).parent))[path]
     x, cols, t = shocktwin.features(path, physics, ["observer"])
     mean, sd = x[:, cols.index("observer_bar")], x[:, cols.index("observer_sd_bar")]
     label = np.full(len(t), float(run.label_bar))

@@ -201,8 +201,11 @@ def generalisation(
         "unseen_rig": (f"unseen {UNSEEN_PRESSURES} bar × {UNSEEN_FREQUENCIES} Hz, another rig", unseen, rig + 101),
         "oracle_train": ("", [*unseen, "--repeat", "1"], rig),
     }
+    t0 = time.perf_counter()
     sim = {key: dataset.CampaignData(load_campaign(simulate(binary, out / key, extra, quick, s)), data.physics)
            for key, (_, extra, s) in sets.items()}
+    log.info("generalisation sets simulated: %.0f s", time.perf_counter() - t0)
+    t0 = time.perf_counter()
     rows = []
     for key, (name, _, _) in sets.items():
         if key == "oracle_train":
@@ -217,6 +220,8 @@ def generalisation(
             rows.append({"set": name, "key": key, "perm": perm, **evaluate.score_runs(preds).as_dict(),
                          "runs": evaluate.per_run(preds)})
 
+    log.info("generalisation sets scored: %.0f s", time.perf_counter() - t0)
+    t0 = time.perf_counter()
     tasks, chosen = [], [p for p in perms if p["key"] in models]
     for perm in chosen:
         cols = dataset.group_columns(perm["groups"])
@@ -241,6 +246,7 @@ def generalisation(
         oracle.append({"perm": perm, **best[0].as_dict(), "runs": evaluate.per_run(best[1]),
                        "train_runs": [t.run.name for t in data.tables(perm["groups"])]
                        + [f"oracle/{t.run.name}" for t in sim["oracle_train"].tables(perm["groups"])]})
+    log.info("%d oracle fits: %.0f s", len(tasks), time.perf_counter() - t0)
     return rows, oracle
 
 
@@ -635,14 +641,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             gen, oracle = generalisation(args.shocktwin, Path(work), perms, models, data, cfg, args.quick)
             if observer_ok and gen:
                 # the observer alone on the same held-out sets: coverage, maintenance metric, bound
+                t0 = time.perf_counter()
                 held = {key: Path(work) / key for key in ("unseen", "unseen_rig", "unit")}
                 baselines = {}
                 service = service_baseline(physics, held["unit"], cfg.jobs)
                 if service is not None:
                     held[UNIT_BASELINED] = held["unit"]
                     baselines[UNIT_BASELINED] = service
+                log.info("the second unit's service baseline: %.0f s", time.perf_counter() - t0)
+                t0 = time.perf_counter()
                 observer_lines = observer_report.evaluate(physics, held, args.out / "observer",
                                                           OBSERVER_SETTLE_S[args.quick], cfg.jobs, baselines)
+                log.info("the observer's report: %.0f s", time.perf_counter() - t0)
 
     plots(args.out, table2, suites)
     ctx = {
