@@ -281,6 +281,15 @@ fn a_bad_message_is_skipped_and_named_and_its_neighbours_kept() {
     );
 }
 
+/// `finish()`'s result as an item of [`one_by_one`]'s list: `End` when the
+/// stream ended well.
+fn finished(decoder: LogDecoder) -> Result<LogEvent, String> {
+    decoder
+        .finish()
+        .map(|()| LogEvent::End)
+        .map_err(|e| e.to_string())
+}
+
 /// What the decoder makes of `bytes` fed in pieces of `piece` bytes, one
 /// event at a time: the events, errors as text, then `finish()`'s result.
 fn one_by_one(bytes: &[u8], piece: usize) -> Vec<Result<LogEvent, String>> {
@@ -292,12 +301,7 @@ fn one_by_one(bytes: &[u8], piece: usize) -> Vec<Result<LogEvent, String>> {
             out.push(event.map_err(|e| e.to_string()));
         }
     }
-    out.push(
-        decoder
-            .finish()
-            .map(|()| LogEvent::End)
-            .map_err(|e| e.to_string()),
-    );
+    out.push(finished(decoder));
     out
 }
 
@@ -325,12 +329,7 @@ fn in_runs(bytes: &[u8], piece: usize, max: usize) -> Vec<Result<LogEvent, Strin
             break;
         }
     }
-    out.push(
-        decoder
-            .finish()
-            .map(|()| LogEvent::End)
-            .map_err(|e| e.to_string()),
-    );
+    out.push(finished(decoder));
     out
 }
 
