@@ -74,6 +74,21 @@ def group_columns(groups: Sequence[str]) -> list[str]:
     return [c for g in groups for c in shocktwin.group_columns(g)]
 
 
+def with_observer(
+    within: Sequence[str], computed: tuple[np.ndarray, list[str], Any], shared: RunTable
+) -> tuple[np.ndarray, list[str], Any]:
+    """``shocktwin.features``' result for ``within`` from the run's table without the observer
+    (``computed``) and the observer columns of another suite's table of the same run
+    (``shared``), in ``within``'s column order (each group's columns together, in group order)."""
+    x, columns, t_s = computed
+    if not np.array_equal(np.asarray(t_s), shared.t_s):
+        raise RuntimeError(f"{shared.run.name}: the tables' ticks differ: the observer's columns cannot be shared")
+    cut = len(group_columns(within[: list(within).index("observer")]))
+    names = shocktwin.group_columns("observer")
+    obs = shared.x[:, [shared.columns.index(c) for c in names]]
+    return np.hstack([x[:, :cut], obs, x[:, cut:]]), [*columns[:cut], *names, *columns[cut:]], t_s
+
+
 @dataclass
 class CampaignData:
     """A labelled campaign's feature tables, computed lazily per sensor suite."""
@@ -100,16 +115,35 @@ class CampaignData:
             if lacking:
                 raise CampaignError(f"input groups {'+'.join(groups)}: " + "; ".join(lacking))
             within = [g for g in groups_within(topics) if g != "observer" or key[1]]
+            shared = self._observer_from_suite_without_loadcell(topics, within) if key[1] else None
             # the bindings release the GIL: the runs' pipelines (the observer's window fits
             # above all) run side by side on every core, each run's table the same as alone
             runs = self.campaign.runs
+            computing = [g for g in within if g != "observer"] if shared is not None else within
             with ThreadPoolExecutor(max_workers=max(1, min(len(runs), os.cpu_count() or 1))) as pool:
-                computed = list(pool.map(lambda run: shocktwin.features(run.log, self.physics, within), runs))
+                computed = list(pool.map(lambda run: shocktwin.features(run.log, self.physics, computing), runs))
+            if shared is not None:
+                computed = [with_observer(within, c, s) for c, s in zip(computed, shared)]
             self._tables[key] = [
                 RunTable(run, np.asarray(t_s), list(columns), x, float(run.label_bar))  # type: ignore[arg-type]
                 for run, (x, columns, t_s) in zip(runs, computed)
             ]
         return self._tables[key]
+
+    def _observer_from_suite_without_loadcell(
+        self, topics: frozenset[str], within: Sequence[str]
+    ) -> list[RunTable] | None:
+        """For a suite with the loadcell and the observer: the same suite's tables without the
+        loadcell, whose observer columns are this suite's (the observer reads the accelerometers,
+        the potentiometer and the thermal model, never the loadcell: the window fits, the
+        costliest part of a table, are then done once for both suites;
+        ``test_the_observer_reads_no_loadcell``). None when there is nothing to share."""
+        if "/force" not in topics:
+            return None
+        lean = [g for g in within if "/force" not in shocktwin.group_topics(g)]
+        if "observer" not in lean or suite_topics(lean) != topics - {"/force"}:
+            return None
+        return self.tables(lean)
 
     def excited(self) -> list[np.ndarray]:
         """Per run, the excited ticks (full-suite Kalman velocity; see the module doc)."""

@@ -473,6 +473,30 @@ def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_cam
         obs_tool.baseline_of(with_b, [run12], 12.0, jobs=1)
 
 
+def test_the_observer_reads_no_loadcell(calibrated_campaign: tuple[Path, Path]) -> None:
+    """A suite with the loadcell takes its observer columns from the same suite without it
+    (`train.dataset`: the window fits are done once for both). That holds only while the
+    observer reads no loadcell: the campaign's tables made so must be, bit for bit, those
+    `shocktwin.features` computes whole."""
+    from train import dataset
+    from train.campaign import load_campaign
+
+    campaign_dir, physics_path = calibrated_campaign
+    physics = json.loads(physics_path.read_text())
+    data = dataset.CampaignData(load_campaign(campaign_dir), physics)
+    groups = ["force", "thermal", "observer"]
+    tabs = data.tables(groups)
+    lean = dataset.suite_topics(groups) - {"/force"}
+    assert (lean, True) in data._tables, "the observer columns were not shared"
+    within = dataset.groups_within(dataset.suite_topics(groups))
+    for tab in tabs[:3]:
+        x, columns, t_s = shocktwin.features(tab.run.log, physics, within)
+        assert list(columns) == tab.columns
+        assert np.array_equal(np.asarray(t_s), tab.t_s)
+        assert np.array_equal(x, tab.x, equal_nan=True), tab.run.name
+        assert np.isfinite(tab.select(["observer_bar"])).any()
+
+
 def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
     """The study's `unit_baselined` row: the second unit's baseline is read from its run at the
     nominal charge and the slowest excitation (a service drive), and that run is not scored; a
