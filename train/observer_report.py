@@ -83,6 +83,11 @@ def health_series(t: np.ndarray, avg: np.ndarray, lo: np.ndarray, hi: np.ndarray
     return out
 
 
+# A run's observer columns as ``shocktwin.features(run, physics, ["observer"])`` gives them:
+# tick times (s), ``observer_bar``, ``observer_sd_bar``.
+Observed = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
 @lru_cache(maxsize=1)
 def _campaign_runs(directory: str) -> dict[str, Any]:
     """A held-out set's runs by path, read once per worker process while its runs come one after
@@ -90,11 +95,13 @@ def _campaign_runs(directory: str) -> dict[str, Any]:
     return {str(r.path): r for r in load_campaign(Path(directory)).runs}
 
 
-def score_run(args: tuple[str, str, dict[str, Any], float]) -> dict[str, Any]:
-    path, set_name, physics, settle_s = args
+def score_run(args: tuple[str, str, dict[str, Any], float, Observed | None]) -> dict[str, Any]:
+    path, set_name, physics, settle_s, observed = args
     run = _campaign_runs(str(Path(path).parent))[path]
-    x, cols, t = shocktwin.features(path, physics, ["observer"])
-    mean, sd = x[:, cols.index("observer_bar")], x[:, cols.index("observer_sd_bar")]
+    if observed is None:
+        x, cols, t = shocktwin.features(path, physics, ["observer"])
+        observed = (np.asarray(t), x[:, cols.index("observer_bar")], x[:, cols.index("observer_sd_bar")])
+    t, mean, sd = observed
     label = np.full(len(t), float(run.label_bar))
     onset = rest_end_s(run)
     end = excitation_end_s(run.log, float(t[-1]))
@@ -280,12 +287,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, settle_s: float,
-             jobs: int, baselines: dict[str, dict[str, Any]] | None = None) -> list[str]:
+             jobs: int, baselines: dict[str, dict[str, Any]] | None = None,
+             observed: dict[str, Observed] | None = None) -> list[str]:
     """Scores the observer of ``physics`` on every run of the held-out campaigns ``set_dirs``
     (name → directory), draws ``observer_bound.png`` and ``observer_runs.png`` into ``out`` and
     writes ``observer.md`` / ``observer.json`` there; returns the Markdown lines. A set named
     in ``baselines`` is scored with that unit baseline (``train.observer baseline``'s output),
-    without the runs it was made from."""
+    without the runs it was made from. ``observed`` (run path → its observer columns with
+    ``physics``, computed already) spares recomputing them for the sets without a baseline."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -302,7 +311,7 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
             if run.path.name in own:
                 log.info("%s: %s made the unit baseline: not scored", name, run.path.name)
                 continue
-            tasks.append((str(run.path), name, set_physics, settle))
+            tasks.append((str(run.path), name, set_physics, settle, None if b else (observed or {}).get(str(run.path))))
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         rows = list(progress(pool.map(score_run, tasks), total=len(tasks), desc="scoring", unit="run"))
     out.mkdir(parents=True, exist_ok=True)

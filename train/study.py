@@ -177,7 +177,7 @@ def campaign_seed(campaign: Any) -> int | None:
 def generalisation(
     binary: str | None, out: Path, perms: Sequence[dict[str, Any]], models: dict[Any, model.Trained],
     data: dataset.CampaignData, cfg: Settings, quick: bool,
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, dataset.CampaignData]]:
     """Scores of the whole-campaign networks on new simulated sets, and the oracle bound.
 
     Sets (``shocktwin simulate``): a second unit and unseen conditions on the campaign's own
@@ -188,9 +188,10 @@ def generalisation(
     same rig and unit, independent noise and room), then scored on the same-rig unseen set:
     it has seen every test condition, never the test runs, so it cannot memorise them; what it misses, these inputs do not carry across
     realisations (an estimate of the bound, with this network and budget). It is the best
-    of ``ORACLE_ATTEMPTS`` training seeds, scored on the test runs: optimistic on purpose."""
+    of ``ORACLE_ATTEMPTS`` training seeds, scored on the test runs: optimistic on purpose.
+    Also returns the simulated sets by name, with the feature tables computed for them."""
     if binary is None:
-        return [], []
+        return [], [], {}
     seed = campaign_seed(data.campaign)
     rig = seed if seed is not None else cfg.seed + 100
     unseen = ["--pressures", UNSEEN_PRESSURES, "--frequencies", UNSEEN_FREQUENCIES]
@@ -247,7 +248,7 @@ def generalisation(
                        "train_runs": [t.run.name for t in data.tables(perm["groups"])]
                        + [f"oracle/{t.run.name}" for t in sim["oracle_train"].tables(perm["groups"])]})
     log.info("%d oracle fits: %.0f s", len(tasks), time.perf_counter() - t0)
-    return rows, oracle
+    return rows, oracle, sim
 
 
 # ---------------------------------------------------------------------------------------
@@ -638,7 +639,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         import tempfile
 
         with tempfile.TemporaryDirectory(prefix="shocktwin-gen-") as work:
-            gen, oracle = generalisation(args.shocktwin, Path(work), perms, models, data, cfg, args.quick)
+            gen, oracle, sim = generalisation(args.shocktwin, Path(work), perms, models, data, cfg, args.quick)
             if observer_ok and gen:
                 # the observer alone on the same held-out sets: coverage, maintenance metric, bound
                 t0 = time.perf_counter()
@@ -650,8 +651,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                     baselines[UNIT_BASELINED] = service
                 log.info("the second unit's service baseline: %.0f s", time.perf_counter() - t0)
                 t0 = time.perf_counter()
+                # the observer alone is the tables of the observer's suite (permutation 17's),
+                # which the scoring above made already
+                observed = {str(tab.run.path): (tab.t_s, *tab.select(["observer_bar", "observer_sd_bar"]).T)
+                            for key in held if key in sim for tab in sim[key].tables(["observer"])}
                 observer_lines = observer_report.evaluate(physics, held, args.out / "observer",
-                                                          OBSERVER_SETTLE_S[args.quick], cfg.jobs, baselines)
+                                                          OBSERVER_SETTLE_S[args.quick], cfg.jobs, baselines, observed)
                 log.info("the observer's report: %.0f s", time.perf_counter() - t0)
 
     plots(args.out, table2, suites)

@@ -497,6 +497,31 @@ def test_the_observer_reads_no_loadcell(calibrated_campaign: tuple[Path, Path]) 
         assert np.isfinite(tab.select(["observer_bar"])).any()
 
 
+def test_the_report_reads_the_observer_columns_the_study_has(calibrated_campaign: tuple[Path, Path],
+                                                             tmp_path: Path) -> None:
+    """The study hands the observer's report the observer columns its scoring computed (the
+    observer suite's tables): the report is then the one it makes computing them itself, and it
+    does read what it is handed."""
+    from train import dataset
+    from train.campaign import load_campaign
+    from train.observer_report import evaluate
+
+    _, physics_path = calibrated_campaign
+    physics = json.loads(physics_path.read_text())
+    held = tmp_path / "held"
+    simulate(held, "--pressures", "3,12", "--frequencies", "2")
+    tabs = dataset.CampaignData(load_campaign(held), physics).tables(["observer"])
+    observed = {str(t.run.path): (t.t_s, *t.select(["observer_bar", "observer_sd_bar"]).T) for t in tabs}
+    report = {}
+    for name, given in (("own", None), ("given", observed),
+                        ("shifted", {p: (t, bar + 1.0, sd) for p, (t, bar, sd) in observed.items()})):
+        evaluate(physics, {"held": held}, tmp_path / name, 30.0, 2, None, given)
+        report[name] = json.loads((tmp_path / name / "observer.json").read_text())["runs"]
+    assert len(report["own"]) == 2
+    assert report["given"] == report["own"]
+    assert report["shifted"] != report["own"]
+
+
 def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
     """The study's `unit_baselined` row: the second unit's baseline is read from its run at the
     nominal charge and the slowest excitation (a service drive), and that run is not scored; a
