@@ -338,11 +338,16 @@ impl LogDecoder {
 
     /// Hands over the next bytes of the stream.
     pub fn feed(&mut self, bytes: &[u8]) {
+        self.compact();
+        self.pending.extend_from_slice(bytes);
+    }
+
+    /// Drops the bytes already decoded once they are half the buffer.
+    fn compact(&mut self) {
         if self.pos > 0 && self.pos * 2 >= self.pending.len() {
             self.pending.drain(..self.pos);
             self.pos = 0;
         }
-        self.pending.extend_from_slice(bytes);
     }
 
     /// Reads from `source` straight into the decoder's buffer until `max`
@@ -353,10 +358,7 @@ impl LogDecoder {
     /// # Errors
     /// The read's error (bytes read before it are kept).
     pub fn feed_from(&mut self, source: &mut impl Read, max: usize) -> std::io::Result<usize> {
-        if self.pos > 0 && self.pos * 2 >= self.pending.len() {
-            self.pending.drain(..self.pos);
-            self.pos = 0;
-        }
+        self.compact();
         // `read_to_end` reads into the vector's spare capacity without
         // zeroing it first; `take` bounds it to one read's worth.
         self.pending.reserve(max);
