@@ -60,9 +60,12 @@ The data are simulated (``shocktwin simulate``); the report and figures say so.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import logging
-from concurrent.futures import ProcessPoolExecutor
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing.context import BaseContext
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -119,9 +122,11 @@ def _reversals(args: tuple[str, dict[str, Any]]) -> dict[str, Any]:
     return {k: (np.asarray(v) if isinstance(v, np.ndarray) else v) for k, v in rev.items()}
 
 
-def reversals(runs: Sequence[Run], params: dict[str, Any], jobs: int) -> list[dict[str, Any]]:
-    """Per-run reversal fits, with each reversal's label and the run's excitation onset."""
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+def reversals(runs: Sequence[Run], params: dict[str, Any], jobs: int,
+              mp_context: BaseContext | None = None) -> list[dict[str, Any]]:
+    """Per-run reversal fits, with each reversal's label and the run's excitation onset
+    (``mp_context``: the worker processes' start method, the platform's default if None)."""
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp_context) as pool:
         revs = list(progress(pool.map(_reversals, [(str(r.path), params) for r in runs]), total=len(runs),
                              desc="reversal fits", unit="run"))
     out = []
@@ -889,6 +894,13 @@ def held_sd(cal: dict[str, Any], revs: Sequence[dict[str, Any]], law_obs: dict[s
             "reach_accel_mps2": a1 * a1 / a0, "rows": rows}
 
 
+def linear_calibration(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any], jobs: int,
+                       unit_tol_pct: float, mp_context: BaseContext | None = None) -> dict[str, Any]:
+    """``calibrate`` on the reversals fitted with linear damping slopes (no law)."""
+    log.info("fitting reversals of %d runs with linear damping slopes", len(runs))
+    return calibrate(reversals(runs, {**physics, "observer": obs}, jobs, mp_context), obs, unit_tol_pct)
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     physics = json.loads(args.physics.read_text())
     campaign = load_campaign(args.campaign)
@@ -909,6 +921,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
     obs["window_sd"] = bool(args.window_sd)
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
     cal, law, law_cal = None, None, None
+    linear = None
+    if args.damping == "auto":
+        # The linear slopes' calibration does not depend on the law's: it runs beside the law's
+        # path (whose serial parts leave a core idle about a third of its time) on one worker
+        # process of its own, started from a fresh interpreter (forkserver): this process has
+        # threads now, which a fork would copy mid-work.
+        background = ThreadPoolExecutor(max_workers=1)
+        linear = background.submit(linear_calibration, campaign.runs, copy.deepcopy(physics), copy.deepcopy(obs), 1,
+                                   args.unit_tolerance_pct, multiprocessing.get_context("forkserver"))
+        background.shutdown(wait=False)
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows, law_min_span_k(args.damping, beta_per_k),
                              beta_per_k,
@@ -932,9 +954,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 cal = fastest_on_its_own(cal, campaign, physics, revs, law_obs, args)
         law_cal = cal
     if args.damping in ("linear", "auto"):
-        log.info("fitting reversals of %d runs with linear damping slopes", len(campaign.runs))
-        lin = calibrate(reversals(campaign.runs, {**physics, "observer": obs}, args.jobs), obs,
-                        args.unit_tolerance_pct)
+        lin = (linear.result() if linear is not None
+               else linear_calibration(campaign.runs, physics, obs, args.jobs, args.unit_tolerance_pct))
         if cal is not None:
             # Keep the window model that calibrates more excitations, then the lower
             # leave-one-run-out error (the calibration campaign's own runs only).
