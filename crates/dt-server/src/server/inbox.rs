@@ -11,17 +11,19 @@
 //! the move) is moved to `done/` without being processed again.
 //!
 //! Only `*.mcap` files not starting with `.` are taken: write a file under
-//! another name (e.g. `run.mcap.part`) and rename it when complete. A file
-//! written in place (a plain `scp`, an upload that stalls) is taken only once
-//! it has settled: unchanged in size and modification time for
-//! `inbox_settle_s` seconds (default 10), so that a copy in progress is not
-//! processed half-written and lost to `failed/`. The directory is rescanned
-//! on every file-system event (`notify`) and every `inbox_rescan_s` seconds,
-//! in case an event is missed.
+//! another name (e.g. `run.mcap.part`) and rename it when complete; a file
+//! renamed into the inbox is taken at once (the file-system event of the
+//! rename says it is complete). A file written in place (a plain `scp`, an
+//! upload that stalls) is taken only once it has settled: unchanged in size
+//! and modification time for `inbox_settle_s` seconds (default 10), so that a
+//! copy in progress is not processed half-written and lost to `failed/`; so is
+//! a renamed file whose event was missed. The directory is rescanned on every
+//! file-system event (`notify`) and every `inbox_rescan_s` seconds, in case an
+//! event is missed.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant, SystemTime};
 
 use futures_util::future::BoxFuture;
@@ -93,12 +95,25 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
     // wake-up, so the watcher's thread can never queue without bound.
     let wake = Arc::new(Notify::new());
     let waker = Arc::clone(&wake);
+    // Paths renamed into the inbox (complete by the convention above), until
+    // the loop takes them; bounded, beyond it a file settles as any other.
+    let renamed: Arc<Mutex<HashSet<PathBuf>>> = Arc::default();
+    let renamed_in = Arc::clone(&renamed);
     let watcher = notify::recommended_watcher(move |event: notify::Result<notify::Event>| {
         // Listing the directory opens it, which inotify reports as an access:
         // waking on those made the loop rescan forever (a core busy while idle).
-        if !matches!(&event, Ok(e) if e.kind.is_access()) {
-            waker.notify_one();
+        if let Ok(e) = &event {
+            if e.kind.is_access() {
+                return;
+            }
+            if let Some(to) = rename_target(e) {
+                let mut set = renamed_in.lock().unwrap_or_else(PoisonError::into_inner);
+                if set.len() < MAX_RENAMED {
+                    set.insert(to.to_owned());
+                }
+            }
         }
+        waker.notify_one();
     })
     .and_then(|mut w| {
         notify::Watcher::watch(&mut w, &src.dir, notify::RecursiveMode::NonRecursive)?;
@@ -128,13 +143,25 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
                 Vec::new()
             }
         };
+        let complete = {
+            let mut set = renamed.lock().unwrap_or_else(PoisonError::into_inner);
+            set.retain(|p| files.binary_search(p).is_ok());
+            set.clone()
+        };
         for path in files {
             if ctx.cancel.is_cancelled() {
                 return Ok(());
             }
-            if stuck.contains(&path) || !settled(&path, src.settle, &mut unsettled) {
+            if stuck.contains(&path)
+                || !(complete.contains(&path) || settled(&path, src.settle, &mut unsettled))
+            {
                 continue;
             }
+            unsettled.remove(&path);
+            renamed
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .remove(&path);
             if !process_file(&ctx, &src.dir, &path).await {
                 stuck.insert(path);
             }
@@ -153,6 +180,22 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             () = tokio::time::sleep(next) => {}
         }
     }
+}
+
+/// Paths renamed into the inbox remembered at most (a directory flooded with
+/// renames falls back to the settle rule).
+const MAX_RENAMED: usize = 4096;
+
+/// The destination of a rename the event reports (`mv` within the file
+/// system, the documented way to drop a complete file), if it is one.
+fn rename_target(event: &notify::Event) -> Option<&Path> {
+    use notify::event::{EventKind, ModifyKind, RenameMode};
+    match event.kind {
+        EventKind::Modify(ModifyKind::Name(RenameMode::To)) => event.paths.first(),
+        EventKind::Modify(ModifyKind::Name(RenameMode::Both)) => event.paths.get(1),
+        _ => None,
+    }
+    .map(PathBuf::as_path)
 }
 
 /// Whether `path` has settled: last modified at least `settle` ago, or

@@ -188,3 +188,31 @@ async fn a_file_still_being_copied_waits_until_it_settles() {
     assert!(files_in(&inbox.join("failed")).is_empty());
     d.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_file_renamed_into_the_inbox_is_taken_at_once() {
+    // Renamed when complete (as documented), a file need not settle: with a
+    // settle time far longer than the wait, it is processed, while a file
+    // written in place beside it is still waiting.
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.clone());
+    config.server.inbox_settle_s = 600.0;
+    let d = Daemon::start(config).await;
+    let in_place = good_stream("inb-place", "rplace", 0, 1500);
+    std::fs::write(inbox.join("in-place.mcap"), &in_place.bytes).unwrap();
+    let renamed = good_stream("inb-renamed", "rrenamed", 0, 1500);
+    drop_file(&inbox, "renamed.mcap", &renamed.bytes);
+    wait_until("the renamed file", || async {
+        names(&inbox.join("done")) == ["renamed.mcap"]
+    })
+    .await;
+    assert!(
+        inbox.join("in-place.mcap").exists(),
+        "a file written in place was taken before it settled"
+    );
+    assert!(files_in(&inbox.join("failed")).is_empty());
+    d.stop().await;
+}
