@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import socket
@@ -186,17 +187,31 @@ def print_convergence(record_dir: Path, t0_ns: int | None, every_s: float = 10.0
               f"      {e.get('health')}")
 
 
-def simulate_fleet(binary: str, inbox: Path) -> int:
-    """Writes the demo fleet's past runs into ``inbox``; returns how many."""
-    inbox.mkdir(parents=True, exist_ok=True)
+def simulate_fleet(binary: str, staging: Path) -> list[Path]:
+    """Writes the demo fleet's past runs into ``staging`` (for :func:`drop_into`); returns them."""
+    staging.mkdir(parents=True, exist_ok=True)
     for asset, leak in FLEET:
         subprocess.run([binary, "simulate", "--quick", "--days", str(FLEET_DAYS), "--leak-rate", f"{leak:g}",
-                        "--frequencies", "1", "--asset-id", asset, "--out", str(inbox / asset)],
+                        "--frequencies", "1", "--asset-id", asset, "--out", str(staging / asset)],
                        check=True, stdout=subprocess.DEVNULL)
-        for f in (inbox / asset).glob("*.mcap"):  # the inbox is not recursive
-            f.rename(inbox / f"{asset}-{f.name}")
-        (inbox / asset).rmdir()
-    return len(FLEET) * FLEET_DAYS
+        for f in (staging / asset).glob("*.mcap"):
+            f.rename(staging / f"{asset}-{f.name}")
+        (staging / asset).rmdir()
+    return sorted(staging.glob("*.mcap"))
+
+
+def drop_into(inbox: Path, src: Path, name: str | None = None, move: bool = False) -> None:
+    """``src`` into the daemon's inbox as its documentation asks of an uploader: written under
+    another name, then renamed (``move``: renamed from where it is, on the same file system). A
+    file renamed into the inbox is taken at once; one written in place waits until it has
+    settled (``inbox_settle_s``, 10 s)."""
+    dest = inbox / (name or src.name)
+    if move:
+        os.replace(src, dest)
+        return
+    part = dest.with_name(dest.name + ".part")
+    shutil.copyfile(src, part)
+    os.replace(part, dest)
 
 
 ROAD_VEHICLE = "car-21"
@@ -241,7 +256,7 @@ def road_service(http: str, asset: str, drive: Path, charge_bar: float, inbox: P
     r = httpx.put(f"{url}/service", json={"charge_bar": charge_bar, "at": f"{first_s - 600.0:.3f}"}, timeout=30)
     r.raise_for_status()
     print(f"service of {asset} reported at {charge_bar:g} bar; its next drive ({drive.name}) goes through the inbox ...")
-    shutil.copy(drive, inbox / drive.name)
+    drop_into(inbox, drive)
     base = read_baseline(url, drive)
     also = f"; `shocktwin road --baseline` read {expected}" if expected else ""
     print(f"road baseline of {asset}, read by the daemon from that drive (simulated): the seal "
@@ -261,7 +276,7 @@ def road_history(binary: str, http: str, inbox: Path, out: Path) -> None:
     files = sorted(out.glob("d*.mcap"))
     road_service(http, asset, files[0], start_bar, inbox)
     for f in files[1:]:
-        shutil.copy(f, inbox / f"{asset}-{f.name}")
+        drop_into(inbox, f, f"{asset}-{f.name}")
     deadline = time.monotonic() + SERVICE_TIMEOUT_S
     url = f"http://{http}/v1/assets/{asset}"
     while sum(r["status"] == "completed" for r in httpx.get(f"{url}/runs", timeout=10).json()["runs"]) < days:
@@ -287,7 +302,7 @@ def wait_road(http: str, asset: str, run: Path, inbox: Path, timeout_s: float = 
     """Drops the road run into the inbox; the daemon's view of the vehicle once that run is read."""
     with open(run, "rb") as fh:
         run_id = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}["shocktwin.run"]["run_id"]
-    shutil.copy(run, inbox / run.name)
+    drop_into(inbox, run)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         r = httpx.get(f"http://{http}/v1/assets/{asset}/runs", timeout=10)
@@ -392,7 +407,7 @@ def service_baseline(binary: str, bundle: Path, unit: int, http: str, asset_id: 
     print(f"service reported: PUT /v1/assets/{asset_id}/service {{\"charge_bar\": {SERVICE_CHARGE_BAR:g}, \"at\": "
           f"\"{r.json()['set_at']}\"}} -> {r.status_code} ({r.json()['state']}); the unit's next drive goes through "
           "the inbox ...")
-    (inbox / drive.name).write_bytes(drive.read_bytes())
+    drop_into(inbox, drive)
     return read_baseline(url, drive)
 
 
@@ -441,15 +456,18 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{meta['excitation']}) into shocktwin serve with {args.bundle}")
 
     inbox = args.out / "inbox"
-    n_fleet = simulate_fleet(args.bin, inbox)
+    inbox.mkdir(parents=True, exist_ok=True)
+    fleet = simulate_fleet(args.bin, args.out / "fleet")
     config = road_run = road_drive = None
     if args.road:
         config, road_run, road_drive, road_line = road_config(args.bin, args.road, args.road_run, args.road_baseline,
                                                               args.out / "road")
     proc, listen, http = start_daemon(args.bin, args.bundle, args.out / "records", inbox, config)
     try:
-        print(f"the fleet's past: {n_fleet} runs of {len(FLEET)} vans through the inbox into the store ...")
-        wait_fleet(http, n_fleet)
+        print(f"the fleet's past: {len(fleet)} runs of {len(FLEET)} vans through the inbox into the store ...")
+        for f in fleet:
+            drop_into(inbox, f, move=True)
+        wait_fleet(http, len(fleet))
         print_fleet(http)
         if road_run is not None and road_drive is not None:
             road_service(http, ROAD_VEHICLE, road_drive, float(args.road_baseline.rsplit("@", 1)[1]), inbox, road_line)
