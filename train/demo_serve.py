@@ -98,6 +98,13 @@ def start_daemon(binary: str, bundle: Path, record_dir: Path,
         if m:
             # Keep draining the daemon's log so that it never blocks on a full pipe.
             threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()  # type: ignore[union-attr]
+            # Ready: its sources are running (a file renamed into the inbox before its watcher
+            # starts is only taken once it has settled, 10 s).
+            while httpx.get(f"http://{m.group(2)}/readyz", timeout=10).status_code != 200:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    proc.kill()
+                    raise RuntimeError("shocktwin serve did not become ready")
+                time.sleep(0.1)
             return proc, m.group(1), m.group(2)
     proc.kill()
     raise RuntimeError("shocktwin serve did not report its addresses")
