@@ -922,11 +922,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
     cal, law, law_cal = None, None, None
     linear = None
-    if args.damping == "auto":
+    if args.damping == "auto" and args.jobs > 1:
         # The linear slopes' calibration does not depend on the law's: it runs beside the law's
         # path (whose serial parts leave a core idle about a third of its time) on one worker
         # process of its own, started from a fresh interpreter (forkserver): this process has
-        # threads now, which a fork would copy mid-work.
+        # threads now, which a fork would copy mid-work. With one job, after the law's path.
         background = ThreadPoolExecutor(max_workers=1)
         linear = background.submit(linear_calibration, campaign.runs, copy.deepcopy(physics), copy.deepcopy(obs), 1,
                                    args.unit_tolerance_pct, multiprocessing.get_context("forkserver"))
