@@ -22,6 +22,7 @@
 //! event is missed.
 
 use std::collections::{HashMap, HashSet};
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant, SystemTime};
@@ -95,9 +96,11 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
     // wake-up, so the watcher's thread can never queue without bound.
     let wake = Arc::new(Notify::new());
     let waker = Arc::clone(&wake);
-    // Paths renamed into the inbox (complete by the convention above), until
-    // the loop takes them; bounded, beyond it a file settles as any other.
-    let renamed: Arc<Mutex<HashSet<PathBuf>>> = Arc::default();
+    // Names of the files renamed into the inbox (complete by the convention
+    // above), until the loop takes them; bounded, beyond it a file settles as
+    // any other. By name: the watcher may report the directory's path in
+    // another form (absolute) than the one it was given.
+    let renamed: Arc<Mutex<HashSet<OsString>>> = Arc::default();
     let renamed_in = Arc::clone(&renamed);
     let watcher = notify::recommended_watcher(move |event: notify::Result<notify::Event>| {
         // Listing the directory opens it, which inotify reports as an access:
@@ -106,10 +109,10 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             if e.kind.is_access() {
                 return;
             }
-            if let Some(to) = rename_target(e) {
+            if let Some(name) = rename_target(e).and_then(Path::file_name) {
                 let mut set = renamed_in.lock().unwrap_or_else(PoisonError::into_inner);
                 if set.len() < MAX_RENAMED {
-                    set.insert(to.to_owned());
+                    set.insert(name.to_owned());
                 }
             }
         }
@@ -145,15 +148,18 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
         };
         let complete = {
             let mut set = renamed.lock().unwrap_or_else(PoisonError::into_inner);
-            set.retain(|p| files.binary_search(p).is_ok());
+            let present: HashSet<&std::ffi::OsStr> =
+                files.iter().filter_map(|p| p.file_name()).collect();
+            set.retain(|n| present.contains(n.as_os_str()));
             set.clone()
         };
         for path in files {
             if ctx.cancel.is_cancelled() {
                 return Ok(());
             }
+            let name = path.file_name().unwrap_or_default();
             if stuck.contains(&path)
-                || !(complete.contains(&path) || settled(&path, src.settle, &mut unsettled))
+                || !(complete.contains(name) || settled(&path, src.settle, &mut unsettled))
             {
                 continue;
             }
@@ -161,7 +167,7 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             renamed
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
-                .remove(&path);
+                .remove(name);
             if !process_file(&ctx, &src.dir, &path).await {
                 stuck.insert(path);
             }

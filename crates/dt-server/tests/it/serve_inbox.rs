@@ -193,9 +193,15 @@ async fn a_file_still_being_copied_waits_until_it_settles() {
 async fn a_file_renamed_into_the_inbox_is_taken_at_once() {
     // Renamed when complete (as documented), a file need not settle: with a
     // settle time far longer than the wait, it is processed, while a file
-    // written in place beside it is still waiting.
-    let root = tempfile::tempdir().unwrap();
-    let inbox = root.path().join("inbox");
+    // written in place beside it is still waiting. The inbox is given as a
+    // relative path (as `--inbox out/inbox` is): the watcher reports its
+    // events under the absolute one.
+    let root = tempfile::Builder::new()
+        .prefix(".inbox-test-")
+        .tempdir_in(".")
+        .unwrap();
+    let inbox = Path::new(root.path().file_name().unwrap()).join("inbox");
+    assert!(inbox.is_relative());
     std::fs::create_dir_all(&inbox).unwrap();
     let mut config = test_config();
     config.server.inbox = Some(inbox.clone());
