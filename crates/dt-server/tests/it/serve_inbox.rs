@@ -16,6 +16,16 @@ fn drop_file(inbox: &Path, name: &str, bytes: &[u8]) {
     std::fs::rename(&tmp, inbox.join(name)).unwrap();
 }
 
+/// A daemon watching `inbox` (created) that takes a file written in place
+/// once it has not changed for `settle_s`.
+async fn daemon_on_inbox(inbox: &Path, settle_s: f64) -> Daemon {
+    std::fs::create_dir_all(inbox).unwrap();
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.to_owned());
+    config.server.inbox_settle_s = settle_s;
+    Daemon::start(config).await
+}
+
 fn names(dir: &Path) -> Vec<String> {
     files_in(dir)
         .iter()
@@ -162,11 +172,7 @@ async fn a_file_still_being_copied_waits_until_it_settles() {
     // later; both halves used to end in failed/.
     let root = tempfile::tempdir().unwrap();
     let inbox = root.path().join("inbox");
-    std::fs::create_dir_all(&inbox).unwrap();
-    let mut config = test_config();
-    config.server.inbox = Some(inbox.clone());
-    config.server.inbox_settle_s = 2.0;
-    let d = Daemon::start(config).await;
+    let d = daemon_on_inbox(&inbox, 2.0).await;
     let run = good_stream("inb-slow", "rslow", 0, 1500);
     let (head, tail) = run.bytes.split_at(run.bytes.len() / 2);
     let path = inbox.join("slow.mcap");
@@ -202,11 +208,7 @@ async fn a_file_renamed_into_the_inbox_is_taken_at_once() {
         .unwrap();
     let inbox = Path::new(root.path().file_name().unwrap()).join("inbox");
     assert!(inbox.is_relative());
-    std::fs::create_dir_all(&inbox).unwrap();
-    let mut config = test_config();
-    config.server.inbox = Some(inbox.clone());
-    config.server.inbox_settle_s = 600.0;
-    let d = Daemon::start(config).await;
+    let d = daemon_on_inbox(&inbox, 600.0).await;
     let in_place = good_stream("inb-place", "rplace", 0, 1500);
     std::fs::write(inbox.join("in-place.mcap"), &in_place.bytes).unwrap();
     let renamed = good_stream("inb-renamed", "rrenamed", 0, 1500);
