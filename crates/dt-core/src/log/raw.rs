@@ -318,7 +318,19 @@ impl RawDecoder {
         }
         let parsed = loop {
             match self.reader.next_event() {
-                None => return None,
+                None => {
+                    // The reader has read the end magic. Whatever follows is
+                    // not read, only counted (as the scanner does past the
+                    // end): taken here, so that it does not depend on how
+                    // much of it came with the bytes the reader last asked
+                    // for (up to `FEED_STEP` more than it needed).
+                    if !input.is_empty()
+                        && self.scanner.scan(&self.file, input, &self.limits).is_ok()
+                    {
+                        *input = &[];
+                    }
+                    return None;
+                }
                 Some(Err(err)) => {
                     self.failed = true;
                     return Some(Err(map_mcap_error(&self.file, &err, &self.limits)));

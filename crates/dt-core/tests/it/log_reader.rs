@@ -648,3 +648,24 @@ fn inspect_reports_counts_rates_and_a_complete_log() {
     // the simulator-truth topics are optional: their absence is no problem
     assert!(!problems.contains("/truth/"), "{problems}");
 }
+
+/// Bytes after the end magic are not read, whatever pieces they come in: the
+/// whole file and the file fed byte by byte give the same events and the same
+/// end (the fuzzer found a file whose split changed `finish` from `Ok` to
+/// "truncated": the whole input fed the reader past the magic, the pieces
+/// did not).
+#[test]
+fn bytes_after_the_end_magic_do_not_depend_on_the_pieces() {
+    let clean = write_bytes(&samples(), WriteOptions::default());
+    for tail in [&b"x"[..], b"xyz", &[0u8; 100]] {
+        let mut bytes = clean.clone();
+        bytes.extend_from_slice(tail);
+        let (whole, whole_errors, whole_end) = decode_pieces(&bytes, bytes.len());
+        for piece in [1, 7, 4096] {
+            let (events, errors, end) = decode_pieces(&bytes, piece);
+            assert_eq!(events.len(), whole.len(), "tail {} B, pieces of {piece}", tail.len());
+            assert_eq!(errors.len(), whole_errors.len());
+            assert_eq!(end.is_ok(), whole_end.is_ok(), "tail {} B, pieces of {piece}: {end:?}", tail.len());
+        }
+    }
+}
