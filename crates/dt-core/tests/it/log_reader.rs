@@ -663,9 +663,19 @@ fn bytes_after_the_end_magic_do_not_depend_on_the_pieces() {
         let (whole, whole_errors, whole_end) = decode_pieces(&bytes, bytes.len());
         for piece in [1, 7, 4096] {
             let (events, errors, end) = decode_pieces(&bytes, piece);
-            assert_eq!(events.len(), whole.len(), "tail {} B, pieces of {piece}", tail.len());
+            assert_eq!(
+                events.len(),
+                whole.len(),
+                "tail {} B, pieces of {piece}",
+                tail.len()
+            );
             assert_eq!(errors.len(), whole_errors.len());
-            assert_eq!(end.is_ok(), whole_end.is_ok(), "tail {} B, pieces of {piece}: {end:?}", tail.len());
+            assert_eq!(
+                end.is_ok(),
+                whole_end.is_ok(),
+                "tail {} B, pieces of {piece}: {end:?}",
+                tail.len()
+            );
         }
     }
 }
