@@ -98,9 +98,8 @@ def start_daemon(binary: str, bundle: Path, record_dir: Path,
         if m:
             # Keep draining the daemon's log so that it never blocks on a full pipe.
             threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()  # type: ignore[union-attr]
-            # Ready before dropping files: a file renamed into the inbox before its watcher starts
-            # is only taken once it has settled (10 s). `/readyz` usually comes after the watcher,
-            # but does not promise it (a miss costs time, not correctness).
+            # Ready before dropping files: `/readyz` is 200 once the inbox is watched, so that a
+            # file renamed into it is taken at once (one renamed before would settle first, 10 s).
             while httpx.get(f"http://{m.group(2)}/readyz", timeout=10).status_code != 200:
                 if time.monotonic() > deadline or proc.poll() is not None:
                     proc.kill()

@@ -152,6 +152,7 @@ fn fleet(c: &mut Criterion) {
         config,
         metrics,
         ready: Arc::new(AtomicBool::new(true)),
+        starting: dt_server::server::source::Starting::default(),
         stop: CancellationToken::new(),
         tokens: Arc::new(dt_server::server::security::Tokens::default()),
         uploads: dt_server::server::http::Uploads::disabled(),

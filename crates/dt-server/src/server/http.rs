@@ -4,7 +4,7 @@
 //! | --- | --- |
 //! | `GET /` | the dashboard (HTML; its script, styles and the vendored uPlot under `/assets/`, compiled into the binary) |
 //! | `GET /healthz` | `200 ok` while the process serves |
-//! | `GET /readyz` | `200 ready`, or `503` while starting or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
+//! | `GET /readyz` | `200 ready` once every source takes work (the inbox: once its directory is watched), or `503` while starting (`not ready: starting <source>`) or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
 //! | `GET /metrics` | Prometheus metrics (`OpenMetrics` text) |
 //! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update |
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
@@ -74,6 +74,8 @@ pub struct AppState {
     pub metrics: Arc<Metrics>,
     /// Ready to take work (false while starting and draining).
     pub ready: Arc<AtomicBool>,
+    /// The sources not yet taking work (`/readyz` waits for them).
+    pub starting: super::source::Starting,
     /// Cancelled when the HTTP server stops: ends the event streams.
     pub stop: CancellationToken,
     /// Bearer tokens (none configured: the API is open).
@@ -306,6 +308,14 @@ async fn require_token(
 async fn readyz(State(app): State<AppState>) -> Response {
     if !app.ready.load(Ordering::Relaxed) {
         return (StatusCode::SERVICE_UNAVAILABLE, "not ready\n").into_response();
+    }
+    let starting = app.starting.pending();
+    if !starting.is_empty() {
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("not ready: starting {}\n", starting.join(", ")),
+        )
+            .into_response();
     }
     match app.trends.store_problem() {
         Some(problem) => (

@@ -19,7 +19,8 @@
 //! copy in progress is not processed half-written and lost to `failed/`; so is
 //! a renamed file whose event was missed. The directory is rescanned on every
 //! file-system event (`notify`) and every `inbox_rescan_s` seconds, in case an
-//! event is missed.
+//! event is missed. The source counts as started (`/readyz`) once the
+//! directory is watched.
 
 use std::collections::{HashMap, HashSet};
 use std::ffi::OsString;
@@ -66,6 +67,10 @@ impl InboxSource {
 impl Source for InboxSource {
     fn name(&self) -> String {
         format!("inbox {}", self.dir.display())
+    }
+
+    fn says_started(&self) -> bool {
+        true
     }
 
     fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
@@ -133,6 +138,8 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             None
         }
     };
+    // Watched (or rescanned): a file renamed in from now on is seen at once.
+    ctx.started.signal();
     // Files that could not be moved are not retried until restart.
     let mut stuck: HashSet<PathBuf> = HashSet::new();
     // Files still changing: (size, modification time) when first seen so, and when.

@@ -55,7 +55,7 @@ use self::ingest::Ingest;
 use self::metrics::Metrics;
 use self::record::McapRecorder;
 use self::sink::Sink;
-use self::source::{Source, SourceContext};
+use self::source::{Source, SourceContext, Starting};
 use self::state::{LiveSink, LiveState};
 use self::store::{FleetStore, SqliteStore, StoreSink, Trends};
 
@@ -312,6 +312,38 @@ fn spawn_sinks(
     Ok(done)
 }
 
+/// Spawns every source on `tracker`; what they have not yet said they take
+/// work is in the returned [`Starting`] (for `/readyz`).
+fn spawn_sources(
+    sources: Vec<Box<dyn Source>>,
+    ingest: &Ingest,
+    cancel: &CancellationToken,
+    tracker: &TaskTracker,
+) -> Starting {
+    let starting = Starting::default();
+    for source in sources {
+        let name = source.name();
+        tracing::info!(source = %name, "source started");
+        let started = starting.enter(&name);
+        if !source.says_started() {
+            started.signal();
+        }
+        let ctx = SourceContext {
+            ingest: ingest.clone(),
+            cancel: cancel.clone(),
+            tracker: tracker.clone(),
+            started: started.clone(),
+        };
+        tracker.spawn(async move {
+            if let Err(e) = source.run(ctx).await {
+                tracing::error!(source = %name, "source stopped: {e}");
+            }
+            started.signal();
+        });
+    }
+    starting
+}
+
 /// Runs the daemon until `shutdown` resolves, then drains and flushes.
 /// `twins` makes the estimator of each run.
 pub async fn run(
@@ -349,20 +381,7 @@ pub async fn run(
 
     let cancel = CancellationToken::new();
     let tracker = TaskTracker::new();
-    for source in sources {
-        let name = source.name();
-        tracing::info!(source = %name, "source started");
-        let ctx = SourceContext {
-            ingest: ingest.clone(),
-            cancel: cancel.clone(),
-            tracker: tracker.clone(),
-        };
-        tracker.spawn(async move {
-            if let Err(e) = source.run(ctx).await {
-                tracing::error!(source = %name, "source stopped: {e}");
-            }
-        });
-    }
+    let starting = spawn_sources(sources, &ingest, &cancel, &tracker);
 
     let ready = Arc::new(AtomicBool::new(false));
     let http_stop = CancellationToken::new();
@@ -374,6 +393,7 @@ pub async fn run(
         config: Arc::clone(&config),
         metrics,
         ready: Arc::clone(&ready),
+        starting,
         stop: http_stop.clone(),
         tokens,
         uploads: app_uploads.clone(),
