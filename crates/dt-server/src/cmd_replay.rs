@@ -633,7 +633,7 @@ fn push_num(line: &mut String, x: f64) {
 
 fn write_table(out: &Path, format: Format, runs: &[Replayed]) -> Result<()> {
     let file = File::create(out).with_context(|| format!("creating {}", out.display()))?;
-    let mut w = BufWriter::new(file);
+    let mut w = BufWriter::with_capacity(1 << 20, file);
     if format == Format::Csv {
         writeln!(w, "{}", FIELDS.join(","))?;
     }
