@@ -15,10 +15,15 @@
 //! the instantaneous and 1 s average pressure against it is printed, over the
 //! ticks where the 1 s average exists (the damper excited).
 //! An unreadable input is reported and skipped; the exit status is then 1.
+//!
+//! The rows are written as the estimates come, not kept: a replay's memory
+//! does not grow with the length of its runs. With several inputs replayed
+//! side by side, each run's rows go to an unnamed file beside the output
+//! first and are copied into it in input order at the end.
 
 use std::fmt::Write as _;
 use std::fs::File;
-use std::io::{BufWriter, Seek, Write};
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -61,10 +66,8 @@ fn format_of(out: &Path) -> Result<Format> {
 struct Replayed {
     file: PathBuf,
     run_id: String,
-    asset_id: String,
     label_bar: Option<f64>,
-    t0_ns: i64,
-    estimates: Vec<Estimate>,
+    tally: Tally,
     counters: EstimatorCounters,
     samples: usize,
     seconds: f64,
@@ -124,7 +127,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     // a thread of its own beside its estimator.
     let pipelined = 2 * workers <= cores;
     let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<(usize, Result<Replayed>)>> = Mutex::new(Vec::new());
+    let results: Mutex<Vec<Done>> = Mutex::new(Vec::new());
     let started = Instant::now();
     let bar = crate::progress::bar(args.files.len() as u64, "replay");
     std::thread::scope(|scope| {
@@ -132,12 +135,22 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(file) = args.files.get(i) else { break };
-                let res = replay_file(file, &model, cfg, format, &mcap_out, pipelined);
+                let (res, table) = match table_part(&args.out, format, several) {
+                    Ok(mut table) => {
+                        let mut out = Output {
+                            format,
+                            mcap_out: &mcap_out,
+                            table: table.as_mut(),
+                        };
+                        (replay_file(file, &model, cfg, &mut out, pipelined), table)
+                    }
+                    Err(e) => (Err(e), None),
+                };
                 bar.inc(1);
                 results
                     .lock()
                     .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .push((i, res));
+                    .push(Done { i, res, table });
             });
         }
     });
@@ -146,22 +159,24 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     let mut results = results
         .into_inner()
         .unwrap_or_else(std::sync::PoisonError::into_inner);
-    results.sort_by_key(|(i, _)| *i);
+    results.sort_by_key(|d| d.i);
 
     let mut failed = 0usize;
     let mut ok = Vec::new();
-    for (_, res) in results {
-        match res {
+    let mut parts = Vec::new();
+    for done in results {
+        match done.res {
             Ok(r) => ok.push(r),
             Err(err) => {
                 failed += 1;
                 eprintln!("shocktwin replay: {err:#}");
             }
         }
+        // A run that failed left no rows (dropped), and one input's header.
+        parts.extend(done.table);
     }
-    match format {
-        Format::Jsonl | Format::Csv => write_table(&args.out, format, &ok)?,
-        Format::Mcap => {}
+    if format != Format::Mcap {
+        write_table(&args.out, format, several, parts)?;
     }
     print_summary(&ok, wall_s, &args.out, several && format == Format::Mcap);
     Ok(if failed > 0 {
@@ -225,17 +240,142 @@ fn replay_file(
     file: &Path,
     model: &Model,
     cfg: EstimatorConfig,
-    format: Format,
-    mcap_out: &dyn Fn(&str) -> PathBuf,
+    out: &mut Output,
     pipelined: bool,
 ) -> Result<Replayed> {
     let started = Instant::now();
-    if let Some(replayed) =
-        replay_streaming(file, model, cfg, format, mcap_out, started, pipelined)?
-    {
-        return Ok(replayed);
+    let mut replay = || {
+        if let Some(replayed) = replay_streaming(file, model, cfg, out, started, pipelined)? {
+            return Ok(replayed);
+        }
+        out.rewind()?;
+        replay_whole(file, model, cfg, out, started)
+    };
+    let res = replay();
+    if res.is_err() {
+        out.rewind()?;
     }
-    replay_whole(file, model, cfg, format, mcap_out, started)
+    res
+}
+
+/// One input replayed (its index among the inputs): its run or why not,
+/// and its table rows.
+struct Done {
+    i: usize,
+    res: Result<Replayed>,
+    table: Option<Part>,
+}
+
+/// Where an input's table rows (CSV, JSONL) go: one input's straight into
+/// the output, several inputs' into a part each ([`write_table`]).
+fn table_part(out: &Path, format: Format, several: bool) -> Result<Option<Part>> {
+    Ok(match format {
+        Format::Mcap => None,
+        _ if several => Some(Part::new(
+            tempfile::tempfile_in(dir_of(out))
+                .with_context(|| format!("a part of {} beside it", out.display()))?,
+        )?),
+        _ => Some(Part::new(create_table(out, format)?)?),
+    })
+}
+
+/// The table's rows written out: one input's are in the output already,
+/// several inputs' parts are copied into it in input order.
+fn write_table(out: &Path, format: Format, several: bool, parts: Vec<Part>) -> Result<()> {
+    let writing = || format!("writing {}", out.display());
+    if !several {
+        for part in parts {
+            part.finish().with_context(writing)?;
+        }
+        return Ok(());
+    }
+    let mut w = BufWriter::with_capacity(TABLE_BUFFER, create_table(out, format)?);
+    for part in parts {
+        part.copy_to(&mut w).with_context(writing)?;
+    }
+    w.flush().with_context(writing)
+}
+
+/// Where a replay's estimates go.
+struct Output<'a> {
+    format: Format,
+    /// A run's MCAP output, by its run id (`.mcap`).
+    mcap_out: &'a dyn Fn(&str) -> PathBuf,
+    /// The run's table rows (`.csv`, `.jsonl`).
+    table: Option<&'a mut Part>,
+}
+
+impl Output<'_> {
+    /// Drops the table rows written so far (a replay that gave way or failed).
+    fn rewind(&mut self) -> Result<()> {
+        match self.table.as_deref_mut() {
+            Some(part) => part.rewind().context("dropping the rows of a replay"),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Where one run's table rows are written as they come: the output itself
+/// (one input; after its header) or an unnamed file beside it (several).
+struct Part {
+    w: BufWriter<File>,
+    /// Where the run's rows start.
+    start: u64,
+}
+
+/// The table's write buffer: with 1 MiB writes most new page-cache pages are
+/// written whole (ext4 zeroes a page first written in part; with 8 KiB
+/// writes that was 4 % of a one-core replay).
+const TABLE_BUFFER: usize = 1 << 20;
+
+impl Part {
+    fn new(mut file: File) -> Result<Self> {
+        let start = file.stream_position()?;
+        Ok(Part {
+            w: BufWriter::with_capacity(TABLE_BUFFER, file),
+            start,
+        })
+    }
+
+    fn rewind(&mut self) -> std::io::Result<()> {
+        self.w.flush()?;
+        let file = self.w.get_mut();
+        file.set_len(self.start)?;
+        file.seek(SeekFrom::Start(self.start)).map(|_| ())
+    }
+
+    /// The rows, appended to `out`.
+    fn copy_to(self, out: &mut impl Write) -> std::io::Result<()> {
+        let mut file = self
+            .w
+            .into_inner()
+            .map_err(std::io::IntoInnerError::into_error)?;
+        file.seek(SeekFrom::Start(self.start))?;
+        std::io::copy(&mut file, out).map(|_| ())
+    }
+
+    /// The rows written out.
+    fn finish(mut self) -> std::io::Result<()> {
+        self.w.flush()
+    }
+}
+
+/// The directory `out` is in.
+fn dir_of(out: &Path) -> &Path {
+    match out.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir,
+        _ => Path::new("."),
+    }
+}
+
+/// The table `out` (CSV, JSONL), created with its header.
+fn create_table(out: &Path, format: Format) -> Result<File> {
+    let mut file = File::create(out).with_context(|| format!("creating {}", out.display()))?;
+    if format == Format::Csv {
+        writeln!(file, "{}", FIELDS.join(","))
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    Ok(file)
 }
 
 /// What the reader of a streamed file passes on: the events of the file in
@@ -418,8 +558,7 @@ fn replay_streaming(
     file: &Path,
     model: &Model,
     cfg: EstimatorConfig,
-    format: Format,
-    mcap_out: &dyn Fn(&str) -> PathBuf,
+    out: &mut Output,
     started: Instant,
     pipelined: bool,
 ) -> Result<Option<Replayed>> {
@@ -428,7 +567,7 @@ fn replay_streaming(
     let est = model.estimator(cfg, &name)?;
     if !pipelined {
         let events = decoded(input, name);
-        return replay_events(file, est, events, format, mcap_out, started);
+        return replay_events(file, est, events, out, started);
     }
     std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<Batch>(4);
@@ -438,7 +577,7 @@ fn replay_streaming(
         spawned.with_context(|| format!("{}: starting its reader thread", file.display()))?;
         // Dropping the receiver (on return) stops the reader at its next batch.
         let events = rx.into_iter().flat_map(|batch| batch.decoded(&name));
-        replay_events(file, est, events, format, mcap_out, started)
+        replay_events(file, est, events, out, started)
     })
 }
 
@@ -447,28 +586,27 @@ fn replay_events(
     file: &Path,
     mut est: Estimator,
     events: impl Iterator<Item = Decoded>,
-    format: Format,
-    mcap_out: &dyn Fn(&str) -> PathBuf,
+    out: &mut Output,
     started: Instant,
 ) -> Result<Option<Replayed>> {
-    let mut metadata: Option<RunMetadata> = None;
     let mut writer = None;
-    let mut estimates = Vec::new();
+    // Once the metadata came (before any sample).
+    let mut rows: Option<Rows> = None;
     let mut last: Option<(i64, u8)> = None;
-    let (mut t0_ns, mut samples) = (0i64, 0usize);
+    let mut samples = 0usize;
     let mut complete = false;
     for item in events {
         let s = match item {
             Decoded::Sample(s) => s,
             Decoded::Metadata(m) => {
-                if format == Format::Mcap {
+                if out.format == Format::Mcap {
                     writer = Some(LogWriter::create(
-                        mcap_out(&m.run_id),
+                        (out.mcap_out)(&m.run_id),
                         &m,
                         WriteOptions::default(),
                     )?);
                 }
-                metadata = Some(*m);
+                rows = Some(Rows::new(out.format, out.table.as_deref_mut(), &m, 0));
                 continue;
             }
             Decoded::GiveWay => return Ok(None),
@@ -482,37 +620,30 @@ fn replay_events(
         if last.is_some_and(|l| key < l) {
             return Ok(None);
         }
+        let Some(rows) = rows.as_mut() else {
+            return Ok(None); // the decoder passes the metadata first
+        };
         if last.is_none() {
-            t0_ns = key.0;
+            rows.t0_ns = key.0;
         }
         last = Some(key);
         samples += 1;
         if est.push(s).is_err() {
             return Ok(None);
         }
-        take_estimates(&mut est, writer.as_mut(), Some(&s), &mut estimates)?;
+        take_estimates(&mut est, writer.as_mut(), Some(&s), rows)?;
     }
-    let Some(metadata) = metadata else {
+    let Some(mut rows) = rows else {
         return Ok(None);
     };
     if !complete || est.finish().is_err() {
         return Ok(None);
     }
-    take_estimates(&mut est, writer.as_mut(), None, &mut estimates)?;
+    take_estimates(&mut est, writer.as_mut(), None, &mut rows)?;
     if let Some(w) = writer {
         w.finish()?;
     }
-    Ok(Some(Replayed {
-        file: file.to_path_buf(),
-        run_id: metadata.run_id,
-        asset_id: metadata.asset_id,
-        label_bar: metadata.charge_pressure_bar,
-        t0_ns,
-        counters: est.counters(),
-        samples,
-        estimates,
-        seconds: started.elapsed().as_secs_f64(),
-    }))
+    Ok(Some(rows.replayed(file, est.counters(), samples, started)))
 }
 
 /// Replays `file` read whole: the samples sorted by `(t_ns, topic rank)`,
@@ -521,8 +652,7 @@ fn replay_whole(
     file: &Path,
     model: &Model,
     cfg: EstimatorConfig,
-    format: Format,
-    mcap_out: &dyn Fn(&str) -> PathBuf,
+    out: &mut Output,
     started: Instant,
 ) -> Result<Replayed> {
     let log = read_log(file)?;
@@ -530,10 +660,15 @@ fn replay_whole(
         tracing::warn!(file = %file.display(), "{problem}");
     }
     let mut est = model.estimator(cfg, &file.display().to_string())?;
-    let mut estimates = Vec::new();
-    let mut writer = match format {
+    let mut rows = Rows::new(
+        out.format,
+        out.table.as_deref_mut(),
+        &log.metadata,
+        t0(&log),
+    );
+    let mut writer = match out.format {
         Format::Mcap => {
-            let path = mcap_out(&log.metadata.run_id);
+            let path = (out.mcap_out)(&log.metadata.run_id);
             Some(LogWriter::create(
                 &path,
                 &log.metadata,
@@ -544,38 +679,30 @@ fn replay_whole(
     };
     for s in log.samples_in_order() {
         est.push(s).with_context(|| format!("{}", file.display()))?;
-        take_estimates(&mut est, writer.as_mut(), Some(&s), &mut estimates)?;
+        take_estimates(&mut est, writer.as_mut(), Some(&s), &mut rows)?;
     }
     est.finish()
         .with_context(|| format!("{}", file.display()))?;
-    take_estimates(&mut est, writer.as_mut(), None, &mut estimates)?;
+    take_estimates(&mut est, writer.as_mut(), None, &mut rows)?;
     if let Some(w) = writer {
         w.finish()?;
     }
-    Ok(Replayed {
-        file: file.to_path_buf(),
-        run_id: log.metadata.run_id.clone(),
-        asset_id: log.metadata.asset_id.clone(),
-        label_bar: log.metadata.charge_pressure_bar,
-        t0_ns: t0(&log),
-        counters: est.counters(),
-        samples: log.sample_count(),
-        estimates,
-        seconds: started.elapsed().as_secs_f64(),
-    })
+    Ok(rows.replayed(file, est.counters(), log.sample_count(), started))
 }
 
 /// After a sample (`Some`, written to the MCAP output first) or at the end
-/// (`None`): moves the estimator's new estimates into `estimates` and, with an
+/// (`None`): passes the estimator's new estimates to `rows` and, with an
 /// MCAP output, into the log after the sample.
 fn take_estimates<W: Write + Seek>(
     est: &mut Estimator,
     writer: Option<&mut LogWriter<W>>,
     sample: Option<&Sample>,
-    estimates: &mut Vec<Estimate>,
+    rows: &mut Rows,
 ) -> Result<()> {
     let Some(w) = writer else {
-        estimates.extend(est.drain());
+        for e in est.drain() {
+            rows.push(e)?;
+        }
         return Ok(());
     };
     if let Some(s) = sample {
@@ -583,9 +710,114 @@ fn take_estimates<W: Write + Seek>(
     }
     for e in est.drain() {
         w.write_json(topic::ESTIMATE, ESTIMATE_SCHEMA_JSON, e.t_ns, &e)?;
-        estimates.push(e);
+        rows.push(e)?;
     }
     Ok(())
+}
+
+/// What the summary keeps of a run's estimates (their rows are written as
+/// they come): their count, the last one, and the sums of the RMSE against
+/// the label over the ticks with a finite 1 s average.
+#[derive(Debug, Clone, Copy, Default)]
+struct Tally {
+    ticks: usize,
+    last: Option<Estimate>,
+    sq_inst: f64,
+    sq_avg: f64,
+    scored: usize,
+}
+
+/// A run's estimates on their way out: a table row each (CSV, JSONL, into
+/// `part`) and a [`Tally`].
+struct Rows<'p> {
+    format: Format,
+    part: Option<&'p mut Part>,
+    run_id: String,
+    asset_id: String,
+    label_bar: Option<f64>,
+    /// The run's first sample, ns (`t_s` counts from it).
+    t0_ns: i64,
+    tally: Tally,
+    line: String,
+}
+
+impl<'p> Rows<'p> {
+    fn new(format: Format, part: Option<&'p mut Part>, m: &RunMetadata, t0_ns: i64) -> Self {
+        Rows {
+            format,
+            part,
+            run_id: m.run_id.clone(),
+            asset_id: m.asset_id.clone(),
+            label_bar: m.charge_pressure_bar,
+            t0_ns,
+            tally: Tally::default(),
+            line: String::new(),
+        }
+    }
+
+    fn push(&mut self, e: Estimate) -> Result<()> {
+        let t = &mut self.tally;
+        t.ticks += 1;
+        t.last = Some(e);
+        if let Some(label) = self.label_bar {
+            if e.pressure_avg_bar.is_finite() && e.pressure_bar.is_finite() {
+                t.sq_inst += (e.pressure_bar - label).powi(2);
+                t.sq_avg += (e.pressure_avg_bar - label).powi(2);
+                t.scored += 1;
+            }
+        }
+        let Some(part) = self.part.as_deref_mut() else {
+            return Ok(());
+        };
+        let line = &mut self.line;
+        line.clear();
+        let t_s = (e.t_ns - self.t0_ns) as f64 * 1e-9;
+        if self.format == Format::Csv {
+            let _ = write!(line, "{},{},{t_s:.3}", self.run_id, self.asset_id);
+            push_num(line, e.pressure_bar);
+            push_num(line, e.pressure_avg_bar);
+            push_num(line, e.pressure_lo_bar);
+            push_num(line, e.pressure_hi_bar);
+            push_num(line, e.expected_bar);
+            let _ = write!(line, ",{}", e.health);
+            push_num(line, e.velocity_mps);
+            push_num(line, e.force_model_n);
+            push_num(line, e.oil_temp_c);
+            push_num(line, self.label_bar.unwrap_or(f64::NAN));
+        } else {
+            let mut v = serde_json::to_value(e)?;
+            let obj = v.as_object_mut().expect("an Estimate is an object");
+            obj.remove("t_ns");
+            obj.insert("run_id".into(), self.run_id.clone().into());
+            obj.insert("asset_id".into(), self.asset_id.clone().into());
+            obj.insert("t_s".into(), ((t_s * 1e3).round() / 1e3).into());
+            if let Some(label) = self.label_bar {
+                obj.insert("label_bar".into(), label.into());
+            }
+            *line = serde_json::to_string(&v)?;
+        }
+        line.push('\n');
+        part.w.write_all(line.as_bytes())?;
+        Ok(())
+    }
+
+    fn replayed(
+        self,
+        file: &Path,
+        counters: EstimatorCounters,
+        samples: usize,
+        started: Instant,
+    ) -> Replayed {
+        Replayed {
+            file: file.to_path_buf(),
+            run_id: self.run_id,
+            label_bar: self.label_bar,
+            tally: self.tally,
+            counters,
+            samples,
+            seconds: started.elapsed().as_secs_f64(),
+        }
+    }
 }
 
 fn t0(log: &RunLog) -> i64 {
@@ -631,62 +863,17 @@ fn push_num(line: &mut String, x: f64) {
     }
 }
 
-fn write_table(out: &Path, format: Format, runs: &[Replayed]) -> Result<()> {
-    let file = File::create(out).with_context(|| format!("creating {}", out.display()))?;
-    let mut w = BufWriter::with_capacity(1 << 20, file);
-    if format == Format::Csv {
-        writeln!(w, "{}", FIELDS.join(","))?;
-    }
-    let mut line = String::new();
-    for r in runs {
-        for e in &r.estimates {
-            let t_s = (e.t_ns - r.t0_ns) as f64 * 1e-9;
-            line.clear();
-            if format == Format::Csv {
-                let _ = write!(line, "{},{},{t_s:.3}", r.run_id, r.asset_id);
-                push_num(&mut line, e.pressure_bar);
-                push_num(&mut line, e.pressure_avg_bar);
-                push_num(&mut line, e.pressure_lo_bar);
-                push_num(&mut line, e.pressure_hi_bar);
-                push_num(&mut line, e.expected_bar);
-                let _ = write!(line, ",{}", e.health);
-                push_num(&mut line, e.velocity_mps);
-                push_num(&mut line, e.force_model_n);
-                push_num(&mut line, e.oil_temp_c);
-                push_num(&mut line, r.label_bar.unwrap_or(f64::NAN));
-            } else {
-                let mut v = serde_json::to_value(e)?;
-                let obj = v.as_object_mut().expect("an Estimate is an object");
-                obj.remove("t_ns");
-                obj.insert("run_id".into(), r.run_id.clone().into());
-                obj.insert("asset_id".into(), r.asset_id.clone().into());
-                obj.insert("t_s".into(), ((t_s * 1e3).round() / 1e3).into());
-                if let Some(label) = r.label_bar {
-                    obj.insert("label_bar".into(), label.into());
-                }
-                line = serde_json::to_string(&v)?;
-            }
-            writeln!(w, "{line}")?;
-        }
-    }
-    w.flush()
-        .with_context(|| format!("writing {}", out.display()))?;
-    Ok(())
-}
-
 /// RMSE of the instantaneous and the 1 s average pressure against the label,
 /// over ticks with a finite 1 s average; `None` without a label or ticks.
 fn rmse(r: &Replayed) -> Option<(f64, f64, usize)> {
-    let label = r.label_bar?;
-    let (mut s_inst, mut s_avg, mut n) = (0.0, 0.0, 0usize);
-    for e in &r.estimates {
-        if e.pressure_avg_bar.is_finite() && e.pressure_bar.is_finite() {
-            s_inst += (e.pressure_bar - label).powi(2);
-            s_avg += (e.pressure_avg_bar - label).powi(2);
-            n += 1;
-        }
-    }
-    (n > 0).then(|| ((s_inst / n as f64).sqrt(), (s_avg / n as f64).sqrt(), n))
+    r.label_bar?;
+    let Tally {
+        sq_inst,
+        sq_avg,
+        scored: n,
+        ..
+    } = r.tally;
+    (n > 0).then(|| ((sq_inst / n as f64).sqrt(), (sq_avg / n as f64).sqrt(), n))
 }
 
 /// What the charge observer made of a run's velocity reversals, when it
@@ -717,8 +904,8 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
     );
     let mut data_s = 0.0;
     for r in runs {
-        let last = r.estimates.last();
-        let dur_s = r.estimates.len() as f64 * 0.02;
+        let last = r.tally.last;
+        let dur_s = r.tally.ticks as f64 * 0.02;
         data_s += dur_s;
         let (inst, avg) = rmse(r).map_or(("n/a".into(), "n/a".into()), |(i, a, _)| {
             (format!("{i:.3}"), format!("{a:.3}"))
@@ -727,7 +914,7 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
             "{:<28} {:>9} {:>8} {:>8} {:>11} {:>11} {:>8} {:>8.0}x",
             r.run_id,
             r.label_bar.map_or("-".into(), |l| format!("{l:.2}")),
-            r.estimates.len(),
+            r.tally.ticks,
             last.map_or("-".into(), |e| format!("{:.2}", e.pressure_avg_bar)),
             inst,
             avg,
@@ -921,11 +1108,20 @@ mod tests {
         w.finish().unwrap();
     }
 
-    fn rows(r: &Replayed) -> Vec<String> {
-        r.estimates
-            .iter()
-            .map(|e| serde_json::to_string(e).unwrap())
-            .collect()
+    /// Runs `replay` with the CSV rows going to a part of their own; what
+    /// it returned, and the part's rows.
+    fn with_rows<T>(replay: impl FnOnce(&mut Output) -> T) -> (T, Vec<String>) {
+        let mut part = Part::new(tempfile::tempfile().unwrap()).unwrap();
+        let no_mcap = |_: &str| PathBuf::new();
+        let res = replay(&mut Output {
+            format: Format::Csv,
+            mcap_out: &no_mcap,
+            table: Some(&mut part),
+        });
+        let mut text = Vec::new();
+        part.copy_to(&mut text).unwrap();
+        let rows = String::from_utf8(text).unwrap();
+        (res, rows.lines().map(str::to_owned).collect())
     }
 
     #[test]
@@ -953,44 +1149,53 @@ mod tests {
             },
             EstimatorConfig::from_bundle(&bundle()),
         );
-        let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
-        let streamed = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t, false)
-            .unwrap()
-            .expect("a clean file in order streams");
+        let (streamed, streamed_rows) = with_rows(|out| {
+            replay_streaming(&in_order, &b, cfg, out, t, false)
+                .unwrap()
+                .expect("a clean file in order streams")
+        });
         for pipelined in [false, true] {
             assert!(
-                replay_streaming(&shuffled, &b, cfg, Format::Csv, &no_mcap, t, pipelined)
-                    .unwrap()
-                    .is_none(),
+                with_rows(
+                    |out| replay_streaming(&shuffled, &b, cfg, out, t, pipelined)
+                        .unwrap()
+                        .is_none()
+                )
+                .0,
                 "a file out of order must not stream"
             );
         }
         // Read and decoded on a second thread: the same rows.
-        let pipelined = replay_streaming(&in_order, &b, cfg, Format::Csv, &no_mcap, t, true)
-            .unwrap()
-            .expect("a clean file in order streams, pipelined too");
-        assert_eq!(rows(&pipelined), rows(&streamed));
+        let (pipelined, pipelined_rows) = with_rows(|out| {
+            replay_streaming(&in_order, &b, cfg, out, t, true)
+                .unwrap()
+                .expect("a clean file in order streams, pipelined too")
+        });
+        assert_eq!(pipelined_rows, streamed_rows);
         assert_eq!(pipelined.samples, streamed.samples);
         assert_eq!(pipelined.counters, streamed.counters);
-        let whole = replay_file(&shuffled, &b, cfg, Format::Csv, &no_mcap, true).unwrap();
-        let whole_in_order = replay_whole(&in_order, &b, cfg, Format::Csv, &no_mcap, t).unwrap();
+        let (whole, whole_rows) =
+            with_rows(|out| replay_file(&shuffled, &b, cfg, out, true).unwrap());
+        let (whole_in_order, whole_in_order_rows) =
+            with_rows(|out| replay_whole(&in_order, &b, cfg, out, t).unwrap());
 
-        assert!(
-            streamed.estimates.len() > 1000,
-            "{}",
-            streamed.estimates.len()
-        );
-        assert_eq!(rows(&streamed), rows(&whole));
-        assert_eq!(rows(&streamed), rows(&whole_in_order));
+        assert!(streamed.tally.ticks > 1000, "{}", streamed.tally.ticks);
+        assert_eq!(streamed_rows.len(), streamed.tally.ticks);
+        assert_eq!(streamed_rows, whole_rows);
+        assert_eq!(streamed_rows, whole_in_order_rows);
+        assert_eq!(whole_in_order.tally.ticks, streamed.tally.ticks);
         assert_eq!(streamed.samples, samples.len());
         assert_eq!(whole.samples, samples.len());
-        assert_eq!(streamed.t0_ns, whole.t0_ns);
         assert_eq!(streamed.label_bar, Some(7.0));
-        assert_eq!(
-            (streamed.run_id.as_str(), streamed.asset_id.as_str()),
-            ("r1", "unit-a")
+        assert_eq!(streamed.run_id, "r1");
+        // run, asset, t_s from the first sample (the first tick ends 20 ms in), …, the label
+        assert!(
+            streamed_rows[0].starts_with("r1,unit-a,0.020,"),
+            "{}",
+            streamed_rows[0]
         );
+        assert!(streamed_rows[0].ends_with(",7"), "{}", streamed_rows[0]);
     }
 
     #[test]
@@ -1022,22 +1227,32 @@ mod tests {
             },
             EstimatorConfig::from_bundle(&bundle()),
         );
-        let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
         let mut replayed = Vec::new();
         for pipelined in [false, true] {
-            assert!(
-                replay_streaming(&path, &b, cfg, Format::Csv, &no_mcap, t, pipelined)
+            let (gave_way, rows_before) = with_rows(|out| {
+                replay_streaming(&path, &b, cfg, out, t, pipelined)
                     .unwrap()
-                    .is_none(),
+                    .is_none()
+            });
+            assert!(
+                gave_way,
                 "a message that does not parse must give way (pipelined: {pipelined})"
             );
-            replayed.push(replay_file(&path, &b, cfg, Format::Csv, &no_mcap, pipelined).unwrap());
+            assert!(rows_before.len() > 100, "it gives way half-way");
+            replayed.push(with_rows(|out| {
+                replay_file(&path, &b, cfg, out, pipelined).unwrap()
+            }));
         }
-        // The whole-file path skips the one message and keeps every other.
-        assert_eq!(replayed[0].samples, samples.len());
-        assert_eq!(rows(&replayed[0]), rows(&replayed[1]));
-        assert!(replayed[0].estimates.len() > 1000);
+        // The whole-file path skips the one message and keeps every other;
+        // the rows the streaming path wrote before it gave way are dropped.
+        let (whole, whole_rows) = with_rows(|out| replay_whole(&path, &b, cfg, out, t).unwrap());
+        assert_eq!(replayed[0].0.samples, samples.len());
+        assert!(whole.tally.ticks > 1000);
+        for (r, rows) in &replayed {
+            assert_eq!(rows, &whole_rows);
+            assert_eq!(r.tally.ticks, rows.len());
+        }
     }
 
     #[test]
@@ -1055,18 +1270,18 @@ mod tests {
             },
             EstimatorConfig::from_bundle(&bundle()),
         );
-        let no_mcap = |_: &str| PathBuf::new();
         let t = Instant::now();
         for pipelined in [false, true] {
             assert!(
-                replay_streaming(&cut, &b, cfg, Format::Csv, &no_mcap, t, pipelined)
+                with_rows(|out| replay_streaming(&cut, &b, cfg, out, t, pipelined)
                     .unwrap()
-                    .is_none()
+                    .is_none())
+                .0
             );
-            let err = replay_file(&cut, &b, cfg, Format::Csv, &no_mcap, pipelined)
-                .err()
-                .expect("a truncated file is an error, as before");
+            let (res, rows) = with_rows(|out| replay_file(&cut, &b, cfg, out, pipelined));
+            let err = res.err().expect("a truncated file is an error, as before");
             assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}");
+            assert!(rows.is_empty(), "a run that failed leaves no rows");
         }
     }
 }
