@@ -40,6 +40,7 @@ use dt_core::log::{
     Undecoded, WriteOptions,
 };
 use dt_core::road::RoadCalibration;
+use tempfile::TempPath;
 
 use crate::cli::ReplayArgs;
 
@@ -128,6 +129,13 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     let pipelined = 2 * workers <= cores;
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<Done>> = Mutex::new(Vec::new());
+    // The table (CSV, JSONL), created before any work: one input's rows go
+    // straight into it, several inputs' into a part each ([`write_table`]).
+    let mut table = match format {
+        Format::Jsonl | Format::Csv => Some(Part::output(&args.out, format)?),
+        Format::Mcap => None,
+    };
+    let direct = Mutex::new(if several { None } else { table.take() });
     let started = Instant::now();
     let bar = crate::progress::bar(args.files.len() as u64, "replay");
     std::thread::scope(|scope| {
@@ -135,14 +143,14 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(file) = args.files.get(i) else { break };
-                let (res, table) = match table_part(&args.out, format, several) {
-                    Ok(mut table) => {
-                        let mut out = Output {
-                            format,
-                            mcap_out: &mcap_out,
-                            table: table.as_mut(),
-                        };
-                        (replay_file(file, &model, cfg, &mut out, pipelined), table)
+                let table = match direct.lock().map(|mut d| d.take()) {
+                    Ok(Some(part)) => Ok(Some(part)),
+                    _ if several && format != Format::Mcap => Part::beside(&args.out).map(Some),
+                    _ => Ok(None),
+                };
+                let (res, part) = match table {
+                    Ok(table) => {
+                        replay_rows(file, &model, cfg, format, &mcap_out, pipelined, table)
                     }
                     Err(e) => (Err(e), None),
                 };
@@ -150,7 +158,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
                 results
                     .lock()
                     .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .push(Done { i, res, table });
+                    .push(Done { i, res, part });
             });
         }
     });
@@ -172,11 +180,10 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
                 eprintln!("shocktwin replay: {err:#}");
             }
         }
-        // A run that failed left no rows (dropped), and one input's header.
-        parts.extend(done.table);
+        parts.extend(done.part);
     }
-    if format != Format::Mcap {
-        write_table(&args.out, format, several, parts)?;
+    if let Some(table) = table {
+        write_table(table, &parts)?;
     }
     print_summary(&ok, wall_s, &args.out, several && format == Format::Mcap);
     Ok(if failed > 0 {
@@ -244,56 +251,54 @@ fn replay_file(
     pipelined: bool,
 ) -> Result<Replayed> {
     let started = Instant::now();
-    let mut replay = || {
-        if let Some(replayed) = replay_streaming(file, model, cfg, out, started, pipelined)? {
-            return Ok(replayed);
-        }
-        out.rewind()?;
-        replay_whole(file, model, cfg, out, started)
-    };
-    let res = replay();
-    if res.is_err() {
-        out.rewind()?;
+    if let Some(replayed) = replay_streaming(file, model, cfg, out, started, pipelined)? {
+        return Ok(replayed);
     }
-    res
+    out.rewind()
+        .with_context(|| format!("{}: read whole", file.display()))?;
+    replay_whole(file, model, cfg, out, started)
+}
+
+/// Replays `file` with its rows into `table`, then keeps them or drops them
+/// (a run that failed); an error there does not hide the run's own.
+fn replay_rows(
+    file: &Path,
+    model: &Model,
+    cfg: EstimatorConfig,
+    format: Format,
+    mcap_out: &dyn Fn(&str) -> PathBuf,
+    pipelined: bool,
+    mut table: Option<Part>,
+) -> (Result<Replayed>, Option<TempPath>) {
+    let mut out = Output {
+        format,
+        mcap_out,
+        table: table.as_mut(),
+    };
+    let res = replay_file(file, model, cfg, &mut out, pipelined);
+    match table.map(|t| t.done(res.is_ok())).transpose() {
+        Ok(part) => (res, part.flatten()),
+        Err(e) => (res.and(Err(e)), None),
+    }
 }
 
 /// One input replayed (its index among the inputs): its run or why not,
-/// and its table rows.
+/// and the part its rows wait in (several inputs).
 struct Done {
     i: usize,
     res: Result<Replayed>,
-    table: Option<Part>,
+    part: Option<TempPath>,
 }
 
-/// Where an input's table rows (CSV, JSONL) go: one input's straight into
-/// the output, several inputs' into a part each ([`write_table`]).
-fn table_part(out: &Path, format: Format, several: bool) -> Result<Option<Part>> {
-    Ok(match format {
-        Format::Mcap => None,
-        _ if several => Some(Part::new(
-            tempfile::tempfile_in(dir_of(out))
-                .with_context(|| format!("a part of {} beside it", out.display()))?,
-        )?),
-        _ => Some(Part::new(create_table(out, format)?)?),
-    })
-}
-
-/// The table's rows written out: one input's are in the output already,
-/// several inputs' parts are copied into it in input order.
-fn write_table(out: &Path, format: Format, several: bool, parts: Vec<Part>) -> Result<()> {
-    let writing = || format!("writing {}", out.display());
-    if !several {
-        for part in parts {
-            part.finish().with_context(writing)?;
-        }
-        return Ok(());
+/// Several inputs' table: after its header, each kept part's rows in input
+/// order (each part's file is deleted when `parts` is dropped).
+fn write_table(mut table: Part, parts: &[TempPath]) -> Result<()> {
+    for path in parts {
+        let mut part = File::open(path).with_context(|| format!("a part of {}", table.what))?;
+        std::io::copy(&mut part, &mut table.w)
+            .with_context(|| format!("writing {}", table.what))?;
     }
-    let mut w = BufWriter::with_capacity(TABLE_BUFFER, create_table(out, format)?);
-    for part in parts {
-        part.copy_to(&mut w).with_context(writing)?;
-    }
-    w.flush().with_context(writing)
+    table.done(true).map(|_| ())
 }
 
 /// Where a replay's estimates go.
@@ -306,21 +311,23 @@ struct Output<'a> {
 }
 
 impl Output<'_> {
-    /// Drops the table rows written so far (a replay that gave way or failed).
+    /// Drops the table rows written so far (a replay that gave way).
     fn rewind(&mut self) -> Result<()> {
-        match self.table.as_deref_mut() {
-            Some(part) => part.rewind().context("dropping the rows of a replay"),
-            None => Ok(()),
-        }
+        self.table.as_deref_mut().map_or(Ok(()), Part::rewind)
     }
 }
 
 /// Where one run's table rows are written as they come: the output itself
-/// (one input; after its header) or an unnamed file beside it (several).
+/// (one input; after its header) or a file of its own beside it (several;
+/// deleted when dropped), so that no file stays open once the run is done.
 struct Part {
     w: BufWriter<File>,
     /// Where the run's rows start.
     start: u64,
+    /// What it is, for errors: the output, or a part of it.
+    what: String,
+    /// A part's own file.
+    path: Option<TempPath>,
 }
 
 /// The table's write buffer: with 1 MiB writes most new page-cache pages are
@@ -329,34 +336,62 @@ struct Part {
 const TABLE_BUFFER: usize = 1 << 20;
 
 impl Part {
-    fn new(mut file: File) -> Result<Self> {
-        let start = file.stream_position()?;
+    /// The output `out` itself, created with its header.
+    fn output(out: &Path, format: Format) -> Result<Self> {
+        let what = out.display().to_string();
+        let mut file = create_table(out, format)?;
+        let start = file
+            .stream_position()
+            .with_context(|| format!("writing {what}"))?;
         Ok(Part {
             w: BufWriter::with_capacity(TABLE_BUFFER, file),
             start,
+            what,
+            path: None,
         })
     }
 
-    fn rewind(&mut self) -> std::io::Result<()> {
-        self.w.flush()?;
-        let file = self.w.get_mut();
-        file.set_len(self.start)?;
-        file.seek(SeekFrom::Start(self.start)).map(|_| ())
+    /// A part of the output `out`, in a file of its own beside it.
+    fn beside(out: &Path) -> Result<Self> {
+        let what = format!("a part of {}", out.display());
+        let (file, path) = tempfile::NamedTempFile::new_in(dir_of(out))
+            .with_context(|| format!("creating {what} beside it"))?
+            .into_parts();
+        Ok(Part {
+            w: BufWriter::with_capacity(TABLE_BUFFER, file),
+            start: 0,
+            what,
+            path: Some(path),
+        })
     }
 
-    /// The rows, appended to `out`.
-    fn copy_to(self, out: &mut impl Write) -> std::io::Result<()> {
-        let mut file = self
-            .w
-            .into_inner()
-            .map_err(std::io::IntoInnerError::into_error)?;
-        file.seek(SeekFrom::Start(self.start))?;
-        std::io::copy(&mut file, out).map(|_| ())
+    /// Drops the rows written so far.
+    fn rewind(&mut self) -> Result<()> {
+        let (w, start) = (&mut self.w, self.start);
+        let mut drop_rows = || {
+            w.flush()?;
+            w.get_mut().set_len(start)?;
+            w.get_mut().seek(SeekFrom::Start(start)).map(|_| ())
+        };
+        drop_rows().with_context(|| format!("dropping the rows written to {}", self.what))
     }
 
-    /// The rows written out.
-    fn finish(mut self) -> std::io::Result<()> {
-        self.w.flush()
+    /// The run is over: its rows written out (`ok`) or dropped. The file is
+    /// closed; a part's path is kept while its rows are.
+    fn done(mut self, ok: bool) -> Result<Option<TempPath>> {
+        match (ok, self.path.take()) {
+            (false, Some(_)) => Ok(None),
+            (false, None) => {
+                self.rewind()?;
+                Ok(None)
+            }
+            (true, path) => {
+                self.w
+                    .flush()
+                    .with_context(|| format!("writing {}", self.what))?;
+                Ok(path)
+            }
+        }
     }
 }
 
@@ -797,8 +832,9 @@ impl<'p> Rows<'p> {
             *line = serde_json::to_string(&v)?;
         }
         line.push('\n');
-        part.w.write_all(line.as_bytes())?;
-        Ok(())
+        part.w
+            .write_all(line.as_bytes())
+            .with_context(|| format!("writing {}", part.what))
     }
 
     fn replayed(
@@ -1111,17 +1147,46 @@ mod tests {
     /// Runs `replay` with the CSV rows going to a part of their own; what
     /// it returned, and the part's rows.
     fn with_rows<T>(replay: impl FnOnce(&mut Output) -> T) -> (T, Vec<String>) {
-        let mut part = Part::new(tempfile::tempfile().unwrap()).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let mut part = Part::beside(&dir.path().join("rows.csv")).unwrap();
         let no_mcap = |_: &str| PathBuf::new();
         let res = replay(&mut Output {
             format: Format::Csv,
             mcap_out: &no_mcap,
             table: Some(&mut part),
         });
-        let mut text = Vec::new();
-        part.copy_to(&mut text).unwrap();
-        let rows = String::from_utf8(text).unwrap();
+        let path = part.done(true).unwrap().expect("a part keeps its file");
+        let rows = std::fs::read_to_string(&path).unwrap();
         (res, rows.lines().map(str::to_owned).collect())
+    }
+
+    #[test]
+    fn a_failed_runs_rows_are_dropped_from_the_output_and_from_a_part() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("est.csv");
+        let row = b"r1,unit-a,0.020,12\n";
+        for ok in [true, false] {
+            let mut part = Part::output(&out, Format::Csv).unwrap();
+            part.w.write_all(row).unwrap();
+            assert!(part.done(ok).unwrap().is_none());
+            let text = std::fs::read_to_string(&out).unwrap();
+            let header = format!("{}\n", FIELDS.join(","));
+            let rows = if ok {
+                std::str::from_utf8(row).unwrap()
+            } else {
+                ""
+            };
+            assert_eq!(text, header + rows, "ok: {ok}");
+            let mut part = Part::beside(&out).unwrap();
+            part.w.write_all(row).unwrap();
+            match part.done(ok).unwrap() {
+                Some(path) => assert_eq!(std::fs::read(&path).unwrap(), row),
+                None => assert!(!ok, "a run that succeeded keeps its rows"),
+            }
+        }
+        // The parts are gone once dropped: only the output is left.
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(left.len(), 1);
     }
 
     #[test]
@@ -1278,10 +1343,9 @@ mod tests {
                     .is_none())
                 .0
             );
-            let (res, rows) = with_rows(|out| replay_file(&cut, &b, cfg, out, pipelined));
+            let (res, _) = with_rows(|out| replay_file(&cut, &b, cfg, out, pipelined));
             let err = res.err().expect("a truncated file is an error, as before");
             assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}");
-            assert!(rows.is_empty(), "a run that failed leaves no rows");
         }
     }
 }

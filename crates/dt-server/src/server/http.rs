@@ -4,7 +4,7 @@
 //! | --- | --- |
 //! | `GET /` | the dashboard (HTML; its script, styles and the vendored uPlot under `/assets/`, compiled into the binary) |
 //! | `GET /healthz` | `200 ok` while the process serves |
-//! | `GET /readyz` | `200 ready` once every source takes work (the inbox: once its directory is watched), or `503` while starting (`not ready: starting <source>`) or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
+//! | `GET /readyz` | `200 ready` once every source takes work (the inbox: once its directory is watched, or rescanned when it cannot be), or `503` while starting (`not ready: starting <source>`) or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
 //! | `GET /metrics` | Prometheus metrics (`OpenMetrics` text) |
 //! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update |
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |

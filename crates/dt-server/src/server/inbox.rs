@@ -138,7 +138,8 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             None
         }
     };
-    // Watched (or rescanned): a file renamed in from now on is seen at once.
+    // Watched: a file renamed in from now on is seen at once (without
+    // events, at the next rescan, where it settles first).
     ctx.started.signal();
     // Files that could not be moved are not retried until restart.
     let mut stuck: HashSet<PathBuf> = HashSet::new();

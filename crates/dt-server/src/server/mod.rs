@@ -55,7 +55,7 @@ use self::ingest::Ingest;
 use self::metrics::Metrics;
 use self::record::McapRecorder;
 use self::sink::Sink;
-use self::source::{Source, SourceContext, Starting};
+use self::source::{Source, SourceContext, Started, Starting};
 use self::state::{LiveSink, LiveState};
 use self::store::{FleetStore, SqliteStore, StoreSink, Trends};
 
@@ -312,8 +312,8 @@ fn spawn_sinks(
     Ok(done)
 }
 
-/// Spawns every source on `tracker`; what they have not yet said they take
-/// work is in the returned [`Starting`] (for `/readyz`).
+/// Spawns every source on `tracker`; the sources that say when they take
+/// work and have not yet are in the returned [`Starting`] (for `/readyz`).
 fn spawn_sources(
     sources: Vec<Box<dyn Source>>,
     ingest: &Ingest,
@@ -324,21 +324,23 @@ fn spawn_sources(
     for source in sources {
         let name = source.name();
         tracing::info!(source = %name, "source started");
-        let started = starting.enter(&name);
-        if !source.says_started() {
-            started.signal();
-        }
+        let started = if source.says_started() {
+            starting.enter(&name)
+        } else {
+            Started::default()
+        };
         let ctx = SourceContext {
             ingest: ingest.clone(),
             cancel: cancel.clone(),
             tracker: tracker.clone(),
-            started: started.clone(),
+            started,
         };
+        // The context goes with the source: when it ends (or panics), a
+        // start it did not signal is signalled.
         tracker.spawn(async move {
             if let Err(e) = source.run(ctx).await {
                 tracing::error!(source = %name, "source stopped: {e}");
             }
-            started.signal();
         });
     }
     starting

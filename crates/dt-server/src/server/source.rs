@@ -5,7 +5,7 @@
 //! [`super::ingest::RunHandle`]. The estimator and the sinks do not know
 //! which source fed them.
 
-use std::collections::BTreeSet;
+use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, PoisonError};
 
 use futures_util::future::BoxFuture;
@@ -29,47 +29,70 @@ pub struct SourceContext {
     pub started: Started,
 }
 
-/// The sources still starting, by name: `/readyz` is `503` until there is
-/// none, so that a client who waits for it knows every source takes work
-/// (e.g. a file renamed into the inbox is seen at once).
+/// The sources still starting: `/readyz` is `503` until there is none, so
+/// that a client who waits for it knows every source takes work (e.g. a file
+/// renamed into the inbox is seen at once).
 #[derive(Debug, Clone, Default)]
-pub struct Starting(Arc<Mutex<BTreeSet<String>>>);
+pub struct Starting(Arc<Mutex<Pending>>);
+
+#[derive(Debug, Default)]
+struct Pending {
+    next_id: u64,
+    names: BTreeMap<u64, String>,
+}
 
 impl Starting {
-    /// A source named `name` is starting until the handle's
-    /// [`Started::signal`].
+    /// A source named `name` is starting until its handle is signalled.
     pub fn enter(&self, name: &str) -> Started {
-        self.0
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(name.to_owned());
-        Started {
+        let mut pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        let id = pending.next_id;
+        pending.next_id += 1;
+        pending.names.insert(id, name.to_owned());
+        Started(Some(Arc::new(Handle {
             starting: Arc::clone(&self.0),
-            name: Arc::from(name),
-        }
+            id,
+        })))
     }
 
-    /// The names of the sources still starting (empty: all take work).
+    /// The names of the sources still starting (none: all take work).
     pub fn pending(&self) -> Vec<String> {
-        let set = self.0.lock().unwrap_or_else(PoisonError::into_inner);
-        set.iter().cloned().collect()
+        let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        pending.names.values().cloned().collect()
     }
 }
 
-/// One source's "I take work now"; signalled once (again is a no-op).
-#[derive(Debug, Clone)]
-pub struct Started {
-    starting: Arc<Mutex<BTreeSet<String>>>,
-    name: Arc<str>,
+/// A source's "I take work now": signalled once (again is a no-op), and at
+/// the latest when its last clone is dropped (the source returned, failed
+/// or panicked). The default has nothing to signal (a source that does not
+/// say, [`Source::says_started`]).
+#[derive(Debug, Clone, Default)]
+pub struct Started(Option<Arc<Handle>>);
+
+#[derive(Debug)]
+struct Handle {
+    starting: Arc<Mutex<Pending>>,
+    id: u64,
+}
+
+impl Handle {
+    fn signal(&self) {
+        let mut pending = self.starting.lock().unwrap_or_else(PoisonError::into_inner);
+        pending.names.remove(&self.id);
+    }
+}
+
+impl Drop for Handle {
+    fn drop(&mut self) {
+        self.signal();
+    }
 }
 
 impl Started {
     /// The source takes work from now on.
     pub fn signal(&self) {
-        self.starting
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .remove(self.name.as_ref());
+        if let Some(handle) = &self.0 {
+            handle.signal();
+        }
     }
 }
 
@@ -78,9 +101,9 @@ pub trait Source: Send + 'static {
     /// Name for logs (`tcp 127.0.0.1:7410`, `inbox DIR`).
     fn name(&self) -> String;
     /// Whether the source signals [`SourceContext::started`] itself, once
-    /// it takes work (the inbox, when its directory is watched). Otherwise
-    /// (the default) it counts as started when spawned; either way the
-    /// daemon signals it when `run` returns.
+    /// it takes work (the inbox, once its directory is watched or, failing
+    /// that, rescanned). Otherwise (the default) `/readyz` does not wait for
+    /// it.
     fn says_started(&self) -> bool {
         false
     }
@@ -91,19 +114,30 @@ pub trait Source: Send + 'static {
 
 #[cfg(test)]
 mod tests {
-    use super::Starting;
+    use super::{Started, Starting};
 
     #[test]
-    fn a_source_is_pending_until_its_handle_signals() {
+    fn a_source_is_pending_until_its_handle_signals_or_goes() {
         let starting = Starting::default();
         let inbox = starting.enter("inbox in");
+        let other = starting.enter("inbox in");
         let tcp = starting.enter("tcp 127.0.0.1:7410");
-        assert_eq!(starting.pending(), ["inbox in", "tcp 127.0.0.1:7410"]);
+        assert_eq!(
+            starting.pending(),
+            ["inbox in", "inbox in", "tcp 127.0.0.1:7410"]
+        );
         tcp.signal();
+        tcp.signal();
+        assert_eq!(starting.pending(), ["inbox in", "inbox in"]);
+        // A source with the same name is another source.
+        other.signal();
         assert_eq!(starting.pending(), ["inbox in"]);
-        let again = inbox.clone();
-        inbox.signal();
-        again.signal();
+        // Its clones go with the source's context: the last one signals.
+        let clone = inbox.clone();
+        drop(inbox);
+        assert_eq!(starting.pending(), ["inbox in"]);
+        drop(clone);
         assert!(starting.pending().is_empty());
+        Started::default().signal();
     }
 }
