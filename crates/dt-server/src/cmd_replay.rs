@@ -18,8 +18,9 @@
 //!
 //! The rows are written as the estimates come, not kept: a replay's memory
 //! does not grow with the length of its runs. With several inputs replayed
-//! side by side, each run's rows go to an unnamed file beside the output
-//! first and are copied into it in input order at the end.
+//! side by side, each run's rows go to a temporary file of its own beside
+//! the output first (closed when the run ends, deleted once copied) and are
+//! copied into it in input order at the end.
 
 use std::fmt::Write as _;
 use std::fs::File;
