@@ -337,17 +337,14 @@ struct Part {
 const TABLE_BUFFER: usize = 1 << 20;
 
 impl Part {
-    /// The output `out` itself, created with its header.
+    /// The output `out` itself, created with its header. Not sought: `out`
+    /// may be a pipe (rows dropped there are an error).
     fn output(out: &Path, format: Format) -> Result<Self> {
-        let what = out.display().to_string();
-        let mut file = create_table(out, format)?;
-        let start = file
-            .stream_position()
-            .with_context(|| format!("writing {what}"))?;
+        let (file, start) = create_table(out, format)?;
         Ok(Part {
             w: BufWriter::with_capacity(TABLE_BUFFER, file),
             start,
-            what,
+            what: out.display().to_string(),
             path: None,
         })
     }
@@ -404,14 +401,17 @@ fn dir_of(out: &Path) -> &Path {
     }
 }
 
-/// The table `out` (CSV, JSONL), created with its header.
-fn create_table(out: &Path, format: Format) -> Result<File> {
+/// The table `out` (CSV, JSONL), created with its header; the header's
+/// length.
+fn create_table(out: &Path, format: Format) -> Result<(File, u64)> {
     let mut file = File::create(out).with_context(|| format!("creating {}", out.display()))?;
-    if format == Format::Csv {
-        writeln!(file, "{}", FIELDS.join(","))
-            .with_context(|| format!("writing {}", out.display()))?;
-    }
-    Ok(file)
+    let header = match format {
+        Format::Csv => format!("{}\n", FIELDS.join(",")),
+        _ => String::new(),
+    };
+    file.write_all(header.as_bytes())
+        .with_context(|| format!("writing {}", out.display()))?;
+    Ok((file, header.len() as u64))
 }
 
 /// What the reader of a streamed file passes on: the events of the file in
@@ -1159,6 +1159,26 @@ mod tests {
         let path = part.done(true).unwrap().expect("a part keeps its file");
         let rows = std::fs::read_to_string(&path).unwrap();
         (res, rows.lines().map(str::to_owned).collect())
+    }
+
+    #[test]
+    fn the_output_may_be_a_pipe() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("est.csv");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        assert!(made.unwrap().success(), "mkfifo");
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read_to_string(fifo).unwrap())
+        };
+        let mut part = Part::output(&fifo, Format::Csv).unwrap();
+        part.w.write_all(b"r1,unit-a,0.020,12\n").unwrap();
+        assert!(part.done(true).unwrap().is_none());
+        let header = FIELDS.join(",");
+        assert_eq!(
+            reader.join().unwrap(),
+            format!("{header}\nr1,unit-a,0.020,12\n")
+        );
     }
 
     #[test]
