@@ -20,7 +20,7 @@
 //! a renamed file whose event was missed. The directory is rescanned on every
 //! file-system event (`notify`) and every `inbox_rescan_s` seconds, in case an
 //! event is missed. The source counts as started (`/readyz`) once the
-//! directory is watched.
+//! directory is watched, or once it falls back to rescanning.
 
 use std::collections::{HashMap, HashSet};
 use std::ffi::OsString;
