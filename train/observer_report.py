@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
+from scipy.stats import chi2
 
 import shocktwin
 
@@ -95,6 +96,25 @@ def _campaign_runs(directory: str) -> dict[str, Any]:
     return {str(r.path): r for r in load_campaign(Path(directory)).runs}
 
 
+def unit_calibration(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """How the runs' final errors compare with their intervals, unit by unit.
+
+    Most of an unbaselined reading's error is its unit's (the seal's tolerance): the runs of one
+    unit share it, so a set's ticks are as many independent draws as it has units, not ticks. The
+    per-tick coverage of a set of one or two units says little (at a 95 % interval, 12 units all
+    cover more often than not: 0.95¹² = 0.54). What a handful of units can test is the size of the
+    interval: ``z = (final − truth) / final sd`` has RMS 1 when the interval is honest, and over K
+    units its RMS lies within ``√(χ²_K(2.5 %, 97.5 %) / K)`` 95 % of the time (K degrees of
+    freedom, one a unit: its runs' errors, alike, count once)."""
+    zs = np.array([r["final_z"] for r in rows if r.get("final_z") is not None], float)
+    units = len({r["unit"] for r in rows})
+    lo, hi = (np.sqrt(chi2.ppf([0.025, 0.975], units) / units) if units else (np.nan, np.nan))
+    return {"units": units,
+            "final_z_rms": float(np.sqrt(np.mean(zs ** 2))) if len(zs) else None,
+            "final_z_rms_calibrated": [float(lo), float(hi)],
+            "final_covered_runs": int(np.sum(np.abs(zs) <= Z95))}
+
+
 def score_run(args: tuple[str, str, dict[str, Any], float, Observed | None]) -> dict[str, Any]:
     path, set_name, physics, settle_s, observed = args
     run = _campaign_runs(str(Path(path).parent))[path]
@@ -136,6 +156,9 @@ def score_run(args: tuple[str, str, dict[str, Any], float, Observed | None]) -> 
         "coverage": float(cover.mean()) if scored.any() else None,
         "final_bar": float(mean[idx[-1]]) if len(idx) else None,
         "final_sd_bar": float(sd[idx[-1]]) if len(idx) else None,
+        "final_z": (float((mean[idx[-1]] - truth) / sd[idx[-1]])
+                    if len(idx) and np.isfinite(mean[idx[-1]]) and sd[idx[-1]] > 0 else None),
+        "unit": str(run.log.metadata.get("asset_id", run.name)),
         "expected_health": want, "final_health": health[idx[-1]] if len(idx) else "unknown",
         "time_to_right_s": t_right, "false_alarm_ticks": int(alarms),
         "trace": {"t_s": (t - onset)[::25].tolist(), "mean": mean[::25].tolist(), "sd": sd[::25].tolist(),
@@ -331,6 +354,7 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
             "leak_within_120s": sum(1 for r in leak if r["time_to_right_s"] is not None and r["time_to_right_s"] <= 120),
             "nominal_runs": len(nominal),
             "nominal_false_alarm_runs": sum(1 for r in nominal if r["false_alarm_ticks"] > 0),
+            **unit_calibration(rs),
         }
 
     # the information bound
@@ -410,15 +434,21 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
     (out / "observer.json").write_text(json.dumps(result, indent=2) + "\n")
     reach = bound["verdict_reach_without_baseline"]
     lines = [f"# Charge observer, cheap suite (potentiometer, accelerometers, thermocouples) — SIMULATED DATA\n",
-             f"Scored ticks: excited, from {settle:g} s after excitation onset. Interval: central 95 %.\n",
-             "| set | runs | RMSE (bar) | RMSE 1 s avg (bar) | coverage | ≤3 bar & ≥2 Hz runs at `leak` ≤ 120 s | nominal runs with a false alarm |",
-             "|---|---|---|---|---|---|---|"]
+             f"Scored ticks: excited, from {settle:g} s after excitation onset. Interval: central 95 %. "
+             "A unit's runs share most of its error (its seal's tolerance), so the coverage of ticks counts "
+             "units, not ticks: *final error ÷ sd* (the run's last estimate against the truth, in its own "
+             "sd) has RMS 1 for an honest interval, and over that many units it lands in the range beside it "
+             "95 % of the time (χ², one degree of freedom a unit).\n",
+             "| set | runs | RMSE (bar) | RMSE 1 s avg (bar) | coverage | ≤3 bar & ≥2 Hz runs at `leak` ≤ 120 s | nominal runs with a false alarm | units | final error ÷ sd, RMS (honest interval: range) | runs whose final interval covers |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in sets.items():
         f2 = lambda v: "–" if v is None else f"{v:.2f}"  # noqa: E731
         cov = "–" if s["coverage"] is None else f"{100 * s['coverage']:.1f} %"
         lines.append(f"| {name} | {s['runs']} | {f2(s['rmse_bar'])} | {f2(s['rmse_avg_bar'])} | {cov} | "
                      f"{s['leak_within_120s']}/{s['leak_runs_le3bar_ge2hz']} | "
-                     f"{s['nominal_false_alarm_runs']}/{s['nominal_runs']} |")
+                     f"{s['nominal_false_alarm_runs']}/{s['nominal_runs']} | {s['units']} | "
+                     f"{f2(s['final_z_rms'])} ({s['final_z_rms_calibrated'][0]:.2f}–{s['final_z_rms_calibrated'][1]:.2f}) | "
+                     f"{s['final_covered_runs']}/{s['runs']} |")
     lines += ["", "| set | run | truth (bar) | final (bar) | final sd (bar) | RMSE (bar) | coverage | expected | final health | verdict right from (s) |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

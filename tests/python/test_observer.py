@@ -542,6 +542,9 @@ def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Pat
     scored = {r["run"] for r in rows if r["set"] == study.UNIT_BASELINED}
     assert scored == {"p4.0-f1.0-s1-u2.mcap", "p4.0-f2.0-s1-u2.mcap", "p12.0-f2.0-s1-u2.mcap"}
     assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in lines)
+    # every run of the set is the second unit's: one unit, whatever the number of runs
+    sets = json.loads((tmp_path / "report" / "observer.json").read_text())["sets"]
+    assert sets["unit"]["runs"] == 4 and sets["unit"]["units"] == 1
     low = tmp_path / "low"
     simulate(low, "--pressures", "4", "--frequencies", "1", "--unit", "2")
     assert study.service_baseline(physics, low, 1) is None
@@ -818,6 +821,33 @@ def test_the_datasheet_oils_viscosity_lets_a_short_campaign_fit_the_damping_law(
     assert law_min_span_k("auto", beta) == 0.0
     assert law_min_span_k("auto", None) == LAW_MIN_TEMP_SPAN_K
     assert law_min_span_k("law", None) == 0.0
+
+
+def test_an_honest_intervals_errors_land_in_the_range_the_report_gives_for_its_units() -> None:
+    """The report's unit calibration: runs of one asset count as one unit; when every unit's
+    error is its own draw of ``N(0, sd²)`` and its runs share it (the seal's tolerance), the RMS
+    of ``error / sd`` lands in the χ² range for that many units 95 % of the time (checked by
+    drawing 4,000 sets of 12 units), and an interval twice as wide as the errors falls below it."""
+    from train.observer_report import unit_calibration
+
+    rng = np.random.default_rng(7)
+
+    def rows(units: int, scale: float) -> list[dict]:
+        out = []
+        for u in range(units):
+            z = scale * rng.standard_normal()
+            out += [{"unit": f"U{u}", "final_z": z}, {"unit": f"U{u}", "final_z": z}]
+        return out + [{"unit": "U0", "final_z": None}]
+
+    one = unit_calibration(rows(12, 1.0))
+    assert one["units"] == 12
+    lo, hi = one["final_z_rms_calibrated"]
+    assert 0.55 < lo < 0.65 and 1.3 < hi < 1.45
+    inside = np.mean([lo <= unit_calibration(rows(12, 1.0))["final_z_rms"] <= hi for _ in range(4000)])
+    assert 0.94 <= inside <= 0.96
+    wide = unit_calibration(rows(100, 0.5))
+    assert wide["final_z_rms"] < wide["final_z_rms_calibrated"][0]
+    assert wide["final_covered_runs"] == 200
 
 
 def test_an_interval_below_vacuum_is_no_verdict() -> None:
