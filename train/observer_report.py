@@ -404,7 +404,8 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
     def most_said(r: dict[str, Any]) -> tuple[float, float, str]:
         sd = r["final_sd_bar"]
         return (round(sd, 1) if sd is not None else np.inf, -r["frequency_hz"], r["set"])
-    plain = [r for r in rows if r["set"] not in (baselines or {})]
+    # (every set baselined: its runs, rather than no plot)
+    plain = [r for r in rows if r["set"] not in (baselines or {})] or rows
     leak_rows = sorted([r for r in plain if r["truth_bar"] <= 3.0], key=most_said)
     nom_rows = sorted([r for r in plain if r["truth_bar"] >= 9.0], key=most_said)
     picks = [r for r in (leak_rows[:1] + nom_rows[:1])]

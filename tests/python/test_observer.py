@@ -542,6 +542,10 @@ def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Pat
     scored = {r["run"] for r in rows if r["set"] == study.UNIT_BASELINED}
     assert scored == {"p4.0-f1.0-s1-u2.mcap", "p4.0-f2.0-s1-u2.mcap", "p12.0-f2.0-s1-u2.mcap"}
     assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in lines)
+    # only baselined sets: still a report (with their runs plotted)
+    only = evaluate(physics, {study.UNIT_BASELINED: unit}, tmp_path / "only", 30.0, 2, {study.UNIT_BASELINED: b})
+    assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in only)
+    assert (tmp_path / "only" / "observer_runs.png").stat().st_size > 0
     # every run of the set is the second unit's: one unit, whatever the number of runs
     sets = json.loads((tmp_path / "report" / "observer.json").read_text())["sets"]
     assert sets["unit"]["runs"] == 4 and sets["unit"]["units"] == 1
