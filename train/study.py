@@ -54,6 +54,14 @@ RMSE_GOAL_BAR = 1.5
 # Observer scoring starts this long after excitation onset: the issue's 60 s; quick runs
 # excite for 60 s only, so the quick study scores from 30 s (and says so).
 OBSERVER_SETTLE_S = {False: 60.0, True: 30.0}
+# The observer's `units` set: other units of the same model (unit seeds from UNITS_FIRST_SEED),
+# one 2 Hz run each at these charges in turn, so many in the full study and so many in the quick
+# one. A unit's runs share most of its error, so a set of one unit is one draw of the interval's
+# widest part; these are as many draws (README, "Thirty-ninth session").
+UNITS_CHARGES_BAR = (2.0, 4.0, 7.0, 10.0, 12.0)
+UNITS_COUNT = {False: 20, True: 5}
+UNITS_FIRST_SEED = 300
+UNITS = "units"
 
 
 @dataclass
@@ -163,6 +171,22 @@ def simulate(binary: str, out: Path, extra: Sequence[str], quick: bool, seed: in
         cmd.append("--quick")
     log.info("simulating: %s", " ".join(cmd))
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return out
+
+
+def simulate_units(binary: str, out: Path, quick: bool, seed: int, count: int) -> Path:
+    """``count`` other units of the damper (unit seeds ``UNITS_FIRST_SEED`` on), one 2 Hz run each
+    at the charges of ``UNITS_CHARGES_BAR`` in turn, on the rig ``seed``, in one directory."""
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for k in range(count):
+        one = simulate(binary, out.with_name(f"{out.name}-{k}"),
+                       ["--unit", str(UNITS_FIRST_SEED + k), "--frequencies", "2",
+                        "--pressures", f"{UNITS_CHARGES_BAR[k % len(UNITS_CHARGES_BAR)]:g}"], quick, seed)
+        for run in one.glob("*.mcap"):
+            run.rename(out / run.name)
+        shutil.rmtree(one)
     return out
 
 
@@ -439,8 +463,11 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
         L.append("The recursive observer (`dt-core::charge`), calibrated by `python -m train.observer fit` on the "
                  "campaign, scored on the generalisation sets above (`unseen`: same rig; `unseen_rig`: another "
                  "rig; `unit`: second unit; `unit_baselined`: the second unit after one service, its baseline read "
-                 "from its nominal-charge run at the slowest excitation, which is then not scored). Health by the "
-                 "SPEC §6a interval rule. Also in `observer/observer.md`.\n")
+                 "from its nominal-charge run at the slowest excitation, which is then not scored; `units`: "
+                 f"{UNITS_COUNT[bool(ctx.get('quick'))]} other units, unit seeds {UNITS_FIRST_SEED} on, one 2 Hz run "
+                 f"each at {', '.join(f'{p:g}' for p in UNITS_CHARGES_BAR)} bar in turn, same rig: the interval's "
+                 "unit-to-unit part drawn that many times). Health by the SPEC §6a interval rule. Also in "
+                 "`observer/observer.md`.\n")
         body = [line.replace("](observer_", "](observer/observer_") for line in ctx["observer"][1:]]
         L.extend(body)
         L.append("")
@@ -644,6 +671,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # the observer alone on the same held-out sets: coverage, maintenance metric, bound
                 t0 = time.perf_counter()
                 held = {key: Path(work) / key for key in ("unseen", "unseen_rig", "unit")}
+                seed = campaign_seed(data.campaign)
+                held[UNITS] = simulate_units(args.shocktwin, Path(work) / UNITS, args.quick,
+                                             seed if seed is not None else cfg.seed + 100, UNITS_COUNT[args.quick])
                 baselines = {}
                 service = service_baseline(physics, held["unit"], cfg.jobs)
                 if service is not None:

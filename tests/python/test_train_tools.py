@@ -587,3 +587,17 @@ def test_quick_study_reports_both_protocols_and_an_oracle_that_never_sees_test_r
         repeats = {name.removeprefix("oracle/") for name in trained if name.startswith("oracle/")}
         assert {t.replace(".mcap", "-r1.mcap") for t in tested} == repeats
     assert shocktwin.Bundle(out / "bundles" / "perm-13").permutation["id"] == 13
+
+
+def test_the_studys_units_are_other_units_one_run_each_at_the_charges_in_turn(shocktwin_bin, tmp_path):
+    """The observer's `units` set: one 2 Hz run per unit, each another unit of the damper (its own
+    asset and unit seed), the charges taken in turn, all in one directory and nothing else left."""
+    from train import study
+
+    out = study.simulate_units(str(shocktwin_bin), tmp_path / "units", True, 1, 6)
+    runs = load_campaign(out).runs
+    assert len(runs) == 6 and sorted(p.name for p in tmp_path.iterdir()) == ["units"]
+    meta = sorted((int(r.log.metadata["unit_seed"]), float(r.label_bar), float(r.frequency_hz)) for r in runs)
+    charges = study.UNITS_CHARGES_BAR
+    assert meta == [(study.UNITS_FIRST_SEED + k, charges[k % len(charges)], 2.0) for k in range(6)]
+    assert len({r.log.metadata["asset_id"] for r in runs}) == 6
