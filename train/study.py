@@ -465,7 +465,7 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
                  "rig; `unit`: second unit; `unit_baselined`: the second unit after one service, its baseline read "
                  "from its nominal-charge run at the slowest excitation, which is then not scored; `units`: "
                  f"{UNITS_COUNT[bool(ctx.get('quick'))]} other units, unit seeds {UNITS_FIRST_SEED} on, one 2 Hz run "
-                 f"each at {', '.join(f'{p:g}' for p in UNITS_CHARGES_BAR)} bar in turn, same rig: the interval's "
+                 f"each at {', '.join(f'{p:g}' for p in UNITS_CHARGES_BAR)} bar in turn, on the second unit's rig: the interval's "
                  "unit-to-unit part drawn that many times). Health by the SPEC §6a interval rule. Also in "
                  "`observer/observer.md`.\n")
         body = [line.replace("](observer_", "](observer/observer_") for line in ctx["observer"][1:]]
@@ -674,6 +674,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 seed = campaign_seed(data.campaign)
                 held[UNITS] = simulate_units(args.shocktwin, Path(work) / UNITS, args.quick,
                                              seed if seed is not None else cfg.seed + 100, UNITS_COUNT[args.quick])
+                log.info("%d other units simulated: %.0f s", UNITS_COUNT[args.quick], time.perf_counter() - t0)
+                t0 = time.perf_counter()
                 baselines = {}
                 service = service_baseline(physics, held["unit"], cfg.jobs)
                 if service is not None:

@@ -552,6 +552,9 @@ def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Pat
     low = tmp_path / "low"
     simulate(low, "--pressures", "4", "--frequencies", "1", "--unit", "2")
     assert study.service_baseline(physics, low, 1) is None
+    # no run low or high enough to show a verdict: the one the observer says most of is plotted
+    evaluate(physics, {"low": low}, tmp_path / "mid", 30.0, 2)
+    assert (tmp_path / "mid" / "observer_runs.png").stat().st_size > 0
 
 
 def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_excitations(
@@ -836,22 +839,26 @@ def test_an_honest_intervals_errors_land_in_the_range_the_report_gives_for_its_u
 
     rng = np.random.default_rng(7)
 
-    def rows(units: int, scale: float) -> list[dict]:
+    def rows(units: int, scale: float, first_runs: int = 2) -> list[dict]:
         out = []
         for u in range(units):
             z = scale * rng.standard_normal()
-            out += [{"unit": f"U{u}", "final_z": z}, {"unit": f"U{u}", "final_z": z}]
-        return out + [{"unit": "U0", "final_z": None}]
+            out += [{"unit": f"U{u}", "final_z": z}] * (first_runs if u == 0 else 2)
+        # a run without a final estimate, and a unit with none: neither counts
+        return out + [{"unit": "U0", "final_z": None}, {"unit": "silent", "final_z": None}]
 
     one = unit_calibration(rows(12, 1.0))
-    assert one["units"] == 12
+    assert one["units"] == 12 and one["final_z_runs"] == 24
     lo, hi = one["final_z_rms_calibrated"]
     assert 0.55 < lo < 0.65 and 1.3 < hi < 1.45
     inside = np.mean([lo <= unit_calibration(rows(12, 1.0))["final_z_rms"] <= hi for _ in range(4000)])
     assert 0.94 <= inside <= 0.96
+    # one unit with ten runs among units with two: still one draw (weighted by runs: 91 % inside)
+    inside = np.mean([lo <= unit_calibration(rows(12, 1.0, 10))["final_z_rms"] <= hi for _ in range(4000)])
+    assert 0.94 <= inside <= 0.96
     wide = unit_calibration(rows(100, 0.5))
     assert wide["final_z_rms"] < wide["final_z_rms_calibrated"][0]
-    assert wide["final_covered_runs"] == 200
+    assert wide["final_covered_runs"] == wide["final_z_runs"] == 200
 
 
 def test_an_interval_below_vacuum_is_no_verdict() -> None:
