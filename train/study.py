@@ -190,6 +190,12 @@ def simulate_units(binary: str, out: Path, quick: bool, seed: int, count: int) -
     return out
 
 
+def rig_seed(data: dataset.CampaignData, cfg: Settings) -> int:
+    """The simulator seed of the campaign's rig, or another rig's when its runs do not say one."""
+    seed = campaign_seed(data.campaign)
+    return seed if seed is not None else cfg.seed + 100
+
+
 def campaign_seed(campaign: Any) -> int | None:
     """The simulator seed the campaign was made with (its runs' metadata), if it says one."""
     seeds = {str(r.log.metadata.get("seed")) for r in campaign.runs}
@@ -217,7 +223,7 @@ def generalisation(
     if binary is None:
         return [], [], {}
     seed = campaign_seed(data.campaign)
-    rig = seed if seed is not None else cfg.seed + 100
+    rig = rig_seed(data, cfg)
     unseen = ["--pressures", UNSEEN_PRESSURES, "--frequencies", UNSEEN_FREQUENCIES]
     same = "" if seed is not None else " (campaign seed unknown: another rig)"
     sets = {
@@ -671,9 +677,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # the observer alone on the same held-out sets: coverage, maintenance metric, bound
                 t0 = time.perf_counter()
                 held = {key: Path(work) / key for key in ("unseen", "unseen_rig", "unit")}
-                seed = campaign_seed(data.campaign)
-                held[UNITS] = simulate_units(args.shocktwin, Path(work) / UNITS, args.quick,
-                                             seed if seed is not None else cfg.seed + 100, UNITS_COUNT[args.quick])
+                held[UNITS] = simulate_units(args.shocktwin, Path(work) / UNITS, args.quick, rig_seed(data, cfg),
+                                             UNITS_COUNT[args.quick])
                 log.info("%d other units simulated: %.0f s", UNITS_COUNT[args.quick], time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 baselines = {}
