@@ -93,6 +93,14 @@ def _meta_float(meta: dict[str, Any], key: str) -> float | None:
     return float(value)
 
 
+def read_run(path: Path) -> Run:
+    """One run log with its metadata's labels (raises ``shocktwin.LogError``/``OSError``)."""
+    lg = shocktwin.read_log(str(path))
+    meta = lg.metadata
+    return Run(path=path, log=lg, run_id=str(meta.get("run_id", path.stem)), asset_id=str(meta.get("asset_id", "")),
+               label_bar=_meta_float(meta, "charge_pressure_bar"), frequency_hz=_meta_float(meta, "frequency_hz"))
+
+
 def load_campaign(root: str | Path) -> Campaign:
     """Read every ``*.mcap`` in ``root``; unreadable runs are reported and skipped."""
     root = Path(root)
@@ -105,22 +113,10 @@ def load_campaign(root: str | Path) -> Campaign:
     skipped: list[tuple[Path, str]] = []
     for path in files:
         try:
-            lg = shocktwin.read_log(str(path))
+            runs.append(read_run(path))
         except (shocktwin.LogError, OSError) as err:
             log.warning("skipping unreadable run %s: %s", path.name, err)
             skipped.append((path, str(err)))
-            continue
-        meta = lg.metadata
-        runs.append(
-            Run(
-                path=path,
-                log=lg,
-                run_id=str(meta.get("run_id", path.stem)),
-                asset_id=str(meta.get("asset_id", "")),
-                label_bar=_meta_float(meta, "charge_pressure_bar"),
-                frequency_hz=_meta_float(meta, "frequency_hz"),
-            )
-        )
     if not runs:
         raise CampaignError(f"{root}: none of the {len(files)} run files could be read")
     return Campaign(root=root, runs=runs, skipped=skipped)

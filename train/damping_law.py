@@ -186,13 +186,18 @@ def pick_by_time(t_s: np.ndarray, n: int) -> np.ndarray:
 
 
 def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any],
-                     per_run: int = WINDOWS_PER_RUN) -> list[dict[str, Any]]:
+                     per_run: int = WINDOWS_PER_RUN, law: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """The observer's reversal windows of ``runs`` (every detected reversal the window fit
     accepts with any residual), ``per_run`` of them per run spread evenly over its time
-    (``pick_by_time``): times (s from the reversal), raw ``a2``, the velocity slope and the
-    twin's oil temperature."""
-    linear = shocktwin.default_observer_params()["damping_law"]  # uncalibrated: linear slopes
-    loose = {**obs, "max_residual_mps2": 1e3, "damping_law": linear}
+    (``pick_by_time``): times (s from the reversal), raw ``a2``, the velocity slope, the
+    twin's oil temperature and what the window fit read there (amplitude, shift, residual).
+    The windows are found with ``law`` (a ``DampingLaw``'s fields), by default the linear
+    slopes of an uncalibrated observer."""
+    loose = {**obs, "max_residual_mps2": 1e3,
+             "damping_law": law or shocktwin.default_observer_params()["damping_law"]}  # default: linear slopes
+    if law is not None and obs.get("excitations"):  # a calibration's own cut per excitation too (0: none there)
+        x = obs["excitations"]
+        loose["excitations"] = {**x, "max_residual_mps2": [1e3 if c else 0.0 for c in x["max_residual_mps2"]]}
     out = []
     # the runs' reversals side by side (dt-core releases the GIL while it reads a run)
     with ThreadPoolExecutor(max_workers=max(1, min(len(runs), os.cpu_count() or 1))) as pool:
@@ -215,7 +220,7 @@ def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str
                         "a2": acc["a2_mps2"][m], "accel": float(rev["accel_mps2"][i]),
                         "oil_c": float(rev["gas_temp_c"][i]), "alpha0": float(rev["alpha_n"][i]),
                         "slope_nspm": 0.5 * float(rev["damping_ext_nspm"][i] + rev["damping_comp_nspm"][i]),
-                        "residual0": float(rev["residual_mps2"][i])})
+                        "shift_ms": 1e3 * float(rev["shift_s"][i]), "residual0": float(rev["residual_mps2"][i])})
     return out
 
 
@@ -523,6 +528,65 @@ def fit_twin_law_windows(windows: Sequence[dict[str, Any]], physics: dict[str, A
                        (lower, np.full(len(z_law), np.inf)), rows, per0, max_nfev)
     if loadcell is not None:
         fit["loadcell_rms_n"] = float(np.sqrt(np.mean(np.concatenate(loadcell.residuals_n(fit["law"])) ** 2)))
+    return fit
+
+
+# ---------------------------------------------------------------------------------------
+# a unit's own law: the calibration's law refitted on one unit's windows
+# ---------------------------------------------------------------------------------------
+
+UNIT_LAW_WINDOWS_PER_RUN = 80  # a service drive's windows the unit's law is refitted on
+
+
+def law_form(law: dict[str, Any]) -> str:
+    """The form of a ``DampingLaw``'s fields: ``twin-tube``, ``valves``, ``valve``, ``hinges``
+    or ``linear`` (uncalibrated)."""
+    vs = law.get("valves")
+    if vs:
+        return "twin-tube" if vs.get("compression_piston") else "valves" if vs.get("compression") else "valve"
+    return "hinges" if any(law.get("knots_mps", [])) or any(law.get("viscous_nspm", [])) else "linear"
+
+
+def unit_law(runs: Sequence[Run], physics: dict[str, Any],
+             per_run: int = UNIT_LAW_WINDOWS_PER_RUN) -> dict[str, Any]:
+    """The calibration's damping law (``physics["observer"]["damping_law"]``) refitted on one
+    unit's reversal windows (``runs``: that unit's, e.g. its service drive): the law's form and
+    viscosity coefficient kept, its valves (or hinges) free, from the calibration's; per window
+    the friction amplitude, shift and offset, started where the calibration's window fit put
+    them. No charge is needed: the amplitudes are free. The windows are found with the
+    calibration's law and every residual cut lifted, so that an end of the stroke whose windows
+    the calibration's law does not fit (another unit's valves: the README, "Fortieth session")
+    is in the fit too.
+
+    Returns ``fit_twin_law_windows``'s (or ``fit_law_windows``'s) fit with ``residual_before``,
+    the windows' median residual with the calibration's law per end of the stroke
+    (``"+"``: ``ÿ_r > 0``), and ``residual_after`` likewise. Raises ``ValueError`` when the
+    calibration has no law, a form this refit does not take, or no window."""
+    obs = physics["observer"]
+    law0 = obs.get("damping_law") or {}
+    form = law_form(law0)
+    if form not in ("twin-tube", "hinges"):
+        raise ValueError(f"observer.damping_law: a unit's own law refits the twin-tube or hinges form, "
+                         f"not the calibration's {form!r} (`python -m train.observer fit --law-form`)")
+    wins = [w for w in reversal_windows(runs, physics, obs, per_run, law=law0)
+            if w["residual0"] <= LAW_WINDOW_MAX_RESIDUAL_MPS2]
+    if not wins:
+        raise ValueError("no reversal window the calibration's law reaches in these runs: no unit law")
+    start = {"law": law0, "per_window": [{"alpha_n": max(w["alpha0"], 5.0), "shift_ms": w["shift_ms"]}
+                                         for w in wins]}
+    if form == "twin-tube":
+        fit = fit_twin_law_windows(wins, physics, obs, start=start)
+    else:
+        fit = fit_law_windows(wins, physics, obs, start=law0,
+                              per0=[(q["alpha_n"], q["shift_ms"]) for q in start["per_window"]])
+    ends = np.sign([w["accel"] for w in wins])
+
+    def by_end(r: Sequence[float]) -> dict[str, float | None]:
+        r = np.asarray(r, float)
+        return {k: (float(np.median(r[ends == e])) if np.any(ends == e) else None) for k, e in (("+", 1), ("-", -1))}
+
+    fit["residual_before"] = by_end([w["residual0"] for w in wins])
+    fit["residual_after"] = by_end([q["residual_mps2"] for q in fit["per_window"]])
     return fit
 
 

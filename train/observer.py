@@ -1044,7 +1044,7 @@ BASELINE_SETTLE_S = 60.0  # as `evaluate --settle-s`
 
 
 def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: float,
-                jobs: int = 2) -> dict[str, Any]:
+                jobs: int = 2, unit_law: bool = False) -> dict[str, Any]:
     """The unit's ``observer_baseline`` from ``paths`` (runs of one unit at ``charge_bar``):
     each run's reading at its last excited tick, combined by inverse variance. The sd is
     what stays uncertain once the unit's offset is known: the filter's own variance, the
@@ -1052,10 +1052,27 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     the ticks from ``BASELINE_SETTLE_S`` after onset: the error changes as the unit heats —
     on the simulated second unit it read 7.7 bar for 10 at the cold start and 10.2 hot —
     and a constant correction cannot follow it) and, over several runs, their spread
-    about the mean."""
+    about the mean.
+
+    ``unit_law``: first refit the calibration's damping law on these runs' reversal windows
+    (``train.damping_law.unit_law``), read the baseline with it and return it in the baseline
+    as the unit's ``damping_law`` (beside it, ``unit_law``: the fit's windows and residuals):
+    the law the unit is read with from then on (dt-core ``UnitBaseline::damping_law``:
+    ``shocktwin replay --observer-baseline``, ``evaluate --baseline``, the daemon)."""
     obs = physics["observer"]
     if obs.get("baseline"):
         raise SystemExit("the physics already carries a unit baseline: give the model's own")
+    fit = None
+    if unit_law:
+        from train.campaign import read_run
+        from train.damping_law import unit_law as refit
+
+        try:
+            fit = refit([read_run(p) for p in paths], physics)
+        except ValueError as err:
+            raise SystemExit(f"{', '.join(str(p) for p in paths)}: {err}") from None
+        obs = {**obs, "damping_law": fit["law"]}
+        physics = {**physics, "observer": obs}
     # A unit's reading takes every reversal (as the daemon's service reading does): its sd
     # is what the baseline will condition the unit on.
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
@@ -1088,10 +1105,15 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     if ranges:
         # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
         ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
-    return {"observer_baseline": ob,
-            "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
-                     for (p, x, v), (_, _, d) in zip(rows, reads)],
-            "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
+    out = {"observer_baseline": ob,
+           "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
+                    for (p, x, v), (_, _, d) in zip(rows, reads)],
+           "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
+    if fit is not None:
+        ob["damping_law"] = fit["law"]  # dt-core UnitBaseline::damping_law
+        out["unit_law"] = {"windows": fit["windows"], "residual_rms_mps2": fit["residual_rms_mps2"],
+                           "residual_before_mps2": fit["residual_before"], "residual_after_mps2": fit["residual_after"]}
+    return out
 
 
 def own_reversals(rev: dict[str, np.ndarray], obs: dict[str, Any]) -> int:
@@ -1235,9 +1257,15 @@ def cmd_baseline(args: argparse.Namespace) -> int:
     for p in args.runs:
         if not p.is_file():
             raise SystemExit(f"{p}: no such run log")
-    b = baseline_of(physics, args.runs, args.charge_bar, args.jobs)
+    b = baseline_of(physics, args.runs, args.charge_bar, args.jobs, unit_law=args.unit_law)
     args.out.write_text(json.dumps(b, indent=2) + "\n")
     ob = b["observer_baseline"]
+    if "unit_law" in b:
+        u = b["unit_law"]
+        fmt = lambda d: " / ".join("unread" if d[k] is None else f"{d[k]:.3f}" for k in ("+", "-"))
+        print(f"the unit's own damping law from {u['windows']} reversal windows: median residual at the two ends "
+              f"of the stroke (ÿ > 0 / ÿ < 0) {fmt(u['residual_before_mps2'])} m/s² with the calibration's law, "
+              f"{fmt(u['residual_after_mps2'])} with the unit's")
     print(f"unit baseline: read {ob['read_bar']:.2f} ± {ob['read_sd_bar']:.2f} bar at a known "
           f"{ob['charge_bar']:g} bar ({len(args.runs)} run(s)); wrote {args.out}")
     return 0
@@ -1328,6 +1356,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--charge-bar", required=True, type=float, help="the charge the unit held, bar gauge at 20 °C")
     b.add_argument("--out", required=True, type=Path)
     b.add_argument("--jobs", type=int, default=2)
+    b.add_argument("--unit-law", action="store_true",
+                   help="refit the calibration's damping law on these runs' reversal windows first and read the "
+                        "unit with it from then on (written beside the baseline as its `damping_law`)")
     b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
     t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
                                         "the calibration's (ObserverParams::transfer_bar_per_ln_accel)")

@@ -223,6 +223,12 @@ def assert_history_is(d: Daemon, asset: str, binned: dict[int, float]) -> None:
         assert p["pressure_bar"] == pytest.approx(binned[int(unix_s(p["t"]))], abs=1e-9)
 
 
+# A damping law of the simulated dyno's shape (dt-core's test law `a_law`), as a unit's own.
+UNIT_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "width_mps": 0.008,
+            "viscous_nspm": [2500.0, 0, 0, 0, 0, 5000.0, 0, 0, 0],
+            "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
+
+
 def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path], tmp_path: Path,
                                                           daemons: list[Daemon]) -> None:
     """`[assets.<id>] observer_baseline` in the daemon's config: that asset's estimates are
@@ -297,6 +303,19 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     assert trend["since"] is None and len(trend["points"]) == 1, trend
     assert httpx.get(url).status_code == 404
     assert httpx.delete(url).status_code == 404
+    # A unit read with its own damping law (`train.observer baseline --unit-law` writes it in
+    # the baseline): the daemon estimates with it, as replay does, and says so.
+    own = {**doc, "observer_baseline": {**doc["observer_baseline"], "damping_law": UNIT_LAW}}
+    (tmp_path / "own.json").write_text(json.dumps(own))
+    run2 = sorted(world["runs"].glob("*.mcap"))[1]
+    with_own = replay_binned(world["bundle"], run2, tmp_path / "o.csv", "--observer-baseline", str(tmp_path / "own.json"))
+    plain = replay_binned(world["bundle"], run2, tmp_path / "p.csv", "--observer-baseline", str(tmp_path / "unit.json"))
+    assert max(abs(with_own[s] - plain[s]) for s in plain) > 0.01, "the unit's own law changed nothing"
+    r = httpx.put(url, json=own)
+    assert r.status_code == 200 and r.json()["own_damping_law"] is True, r.text
+    shutil.copy(run2, inbox / run2.name)
+    d2.wait_runs("dyno-unit-A", 2)
+    assert_history_is(d2, "dyno-unit-A", with_own)
     d2.stop()
 
 

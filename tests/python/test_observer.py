@@ -522,6 +522,41 @@ def test_the_report_reads_the_observer_columns_the_study_has(calibrated_campaign
     assert report["shifted"] != report["own"]
 
 
+def test_a_units_own_damping_law_reads_the_end_of_the_stroke_the_calibrations_cannot(tmp_path: Path) -> None:
+    """Unit 33 of the simulated model (dt-sim's scatter of the valves): at 2 Hz the full
+    study's calibration (``docs/study/physics.json``) fits none of its windows at the ``ÿ > 0``
+    end of the stroke, so its service drive gives no baseline. ``baseline --unit-law`` refits
+    the calibration's law on that drive: both ends then fit to the noise, and the unit's later
+    run at 10 bar is read within its interval. The law rides in the baseline: reading with it
+    is reading with the calibration's law swapped for it (dt-core ``ChargeObserver::new``)."""
+    physics = ROOT / "docs" / "study" / "physics.json"
+    params = json.loads(physics.read_text())
+    cut = params["observer"]["max_residual_mps2"]
+    drive = simulate(tmp_path / "drive", "--pressures", "12", "--frequencies", "2", "--seed", "6", "--unit", "33")[0]
+    later = simulate(tmp_path / "later", "--pressures", "10", "--frequencies", "2", "--seed", "5", "--unit", "33")[0]
+    with pytest.raises(SystemExit, match=r"\(almost\) no reversals"):
+        obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(drive),
+                       "--out", str(tmp_path / "plain.json"), "--jobs", "1"])
+    out = tmp_path / "own.json"
+    assert obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", "--unit-law", str(drive),
+                          "--out", str(out), "--jobs", "1"]) == 0
+    b = json.loads(out.read_text())
+    before, after = b["unit_law"]["residual_before_mps2"], b["unit_law"]["residual_after_mps2"]
+    assert before["+"] > 1.3 * cut and before["-"] < cut, before
+    assert max(after.values()) < 0.5 * cut, after
+    ob = b["observer_baseline"]
+    assert ob["damping_law"]["valves"]["compression_piston"], "not the calibration's (twin-tube) form"
+    with_b = {**params, "observer": {**params["observer"], "baseline": ob}}
+    x, cols, _ = shocktwin.features(later, with_b, ["observer"])
+    m, sd = x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]
+    print(f"unit 33 at 10 bar (simulated), with its own law and 12 bar baseline: {m:.2f} ± {sd:.2f} bar")
+    assert abs(m - 10.0) <= 1.96 * sd and sd < 1.5, (m, sd)
+    swapped = {**params, "observer": {**params["observer"], "damping_law": ob["damping_law"],
+                                      "baseline": {k: v for k, v in ob.items() if k != "damping_law"}}}
+    x2, _, _ = shocktwin.features(later, swapped, ["observer"])
+    assert np.array_equal(x, x2, equal_nan=True)
+
+
 def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
     """The study's `unit_baselined` row: the second unit's baseline is read from its run at the
     nominal charge and the slowest excitation (a service drive), and that run is not scored; a

@@ -784,6 +784,16 @@ pub struct UnitBaseline {
     /// before this field): unknown.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub accel_range_mps2: Option<[f64; 2]>,
+    /// The unit's own damping law: the calibration's
+    /// [`ObserverParams::damping_law`] refitted on the windows of the run the
+    /// baseline was read from (`python -m train.observer baseline
+    /// --unit-law`), read with it, and so to be read with it on every later
+    /// run: [`ChargeObserver::new`] puts it in the calibration's place.
+    /// Another unit's valves can leave one end of the stroke unread by the
+    /// calibration's law (README, "Fortieth session"). None: the
+    /// calibration's law.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub damping_law: Option<DampingLaw>,
 }
 
 impl UnitBaseline {
@@ -801,7 +811,8 @@ impl UnitBaseline {
         let b: Self = serde_json::from_value(inner).map_err(|e| {
             format!(
                 "need charge_bar, read_bar and read_sd_bar (numbers, bar), \
-                 and optionally accel_range_mps2 ([lo, hi], m/s²): {e}"
+                 and optionally accel_range_mps2 ([lo, hi], m/s²) and damping_law \
+                 (the unit's own, as `observer.damping_law`): {e}"
             )
         })?;
         b.validate().map_err(|e| e.to_string())?;
@@ -848,6 +859,16 @@ impl UnitBaseline {
                     });
                 }
             }
+        }
+        if let Some(law) = &self.damping_law {
+            if !law.is_calibrated() {
+                return Err(PhysicsError::InvalidParameter {
+                    name: "observer.baseline.damping_law.width_mps",
+                    value: law.width_mps,
+                    reason: "a unit's own law must be a calibrated one (no linear slopes)",
+                });
+            }
+            law.validate()?;
         }
         Ok(())
     }
@@ -1991,9 +2012,14 @@ pub struct ChargeObserver {
 }
 
 impl ChargeObserver {
-    /// An observer with the given parameters.
-    pub fn new(params: ObserverParams) -> Result<Self, PhysicsError> {
+    /// An observer with the given parameters; a [`UnitBaseline`] that
+    /// carries the unit's own [`damping_law`](UnitBaseline::damping_law)
+    /// puts it in place of the calibration's.
+    pub fn new(mut params: ObserverParams) -> Result<Self, PhysicsError> {
         params.validate()?;
+        if let Some(law) = params.baseline.and_then(|b| b.damping_law) {
+            params.damping_law = law;
+        }
         // The window before the reversal, plus the time the velocity can
         // spend inside the band after it (detection lags the crossing).
         let keep_s = params.window_pre_s.max(SLOPE_HALF_S)
@@ -3341,6 +3367,7 @@ mod tests {
             read_bar: raw.mean_bar,
             read_sd_bar: sd_b,
             accel_range_mps2: None,
+            damping_law: None,
         };
         let est = read(Some(b));
         let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
@@ -3370,12 +3397,68 @@ mod tests {
                 read_bar: -60.0,
                 read_sd_bar: 0.1,
                 accel_range_mps2: None,
+                damping_law: None,
             }),
             ..base
         })
         .unwrap_err();
         assert!(
             err.to_string().contains("observer.baseline.read_bar"),
+            "{err}"
+        );
+    }
+
+    /// A baseline that carries the unit's own damping law (`python -m
+    /// train.observer baseline --unit-law`) reads the unit with it in the
+    /// calibration's place; without one, the calibration's; a document as
+    /// the tool writes it parses to it; linear slopes are no unit's law.
+    #[test]
+    fn a_baselines_own_law_takes_the_calibrations_place() {
+        let own = a_valve_law();
+        let b = UnitBaseline {
+            charge_bar: 12.0,
+            read_bar: 11.0,
+            read_sd_bar: 0.2,
+            accel_range_mps2: Some([5.5, 6.5]),
+            damping_law: Some(own),
+        };
+        let base = ObserverParams {
+            damping_law: a_law(),
+            ..params()
+        };
+        let with = |baseline| ChargeObserver::new(ObserverParams { baseline, ..base }).unwrap();
+        assert_eq!(with(Some(b)).params().damping_law, own);
+        let plain = UnitBaseline {
+            damping_law: None,
+            ..b
+        };
+        assert_eq!(with(Some(plain)).params().damping_law, a_law());
+        assert_eq!(with(None).params().damping_law, a_law());
+        let doc = serde_json::json!({
+            "observer_baseline": {
+                "charge_bar": 12.0, "read_bar": 11.0, "read_sd_bar": 0.2,
+                "accel_range_mps2": [5.5, 6.5],
+                "damping_law": serde_json::to_value(own).unwrap(),
+            },
+            "unit_law": {"windows": 80},
+        });
+        assert_eq!(UnitBaseline::from_document(doc).unwrap(), b);
+        let linear = UnitBaseline {
+            damping_law: Some(DampingLaw::default()),
+            ..b
+        };
+        let err = linear.validate().unwrap_err();
+        assert!(
+            err.to_string().contains("observer.baseline.damping_law"),
+            "{err}"
+        );
+        let err = ChargeObserver::new(ObserverParams {
+            baseline: Some(linear),
+            ..base
+        })
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("observer.baseline.damping_law"),
             "{err}"
         );
     }
@@ -3413,6 +3496,7 @@ mod tests {
                 read_bar: 8.0,
                 read_sd_bar: 0.1,
                 accel_range_mps2: None,
+                damping_law: None,
             }),
             ..p
         };
@@ -3454,6 +3538,7 @@ mod tests {
             read_bar: 8.3,
             read_sd_bar: 0.1,
             accel_range_mps2: Some([1.4, 1.6]),
+            damping_law: None,
         };
         let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {

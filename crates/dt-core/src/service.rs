@@ -216,6 +216,9 @@ impl ServiceReading {
                 read_bar: m,
                 read_sd_bar: sd_read,
                 accel_range_mps2: self.accel_range,
+                // the daemon reads with the calibration's law (a unit's own is
+                // refitted by `python -m train.observer baseline --unit-law`)
+                damping_law: None,
             },
             drift_sd_bar: drift,
         })

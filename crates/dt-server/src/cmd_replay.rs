@@ -151,7 +151,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
                 };
                 let (res, part) = match table {
                     Ok(table) => {
-                        replay_rows(file, &model, cfg, format, &mcap_out, pipelined, table)
+                        replay_rows(file, &model, &cfg, format, &mcap_out, pipelined, table)
                     }
                     Err(e) => (Err(e), None),
                 };
@@ -229,8 +229,8 @@ struct Model {
 }
 
 impl Model {
-    fn estimator(&self, cfg: EstimatorConfig, name: &str) -> Result<Estimator> {
-        let est = Estimator::new(Arc::clone(&self.bundle), cfg)
+    fn estimator(&self, cfg: &EstimatorConfig, name: &str) -> Result<Estimator> {
+        let est = Estimator::new(Arc::clone(&self.bundle), *cfg)
             .with_context(|| format!("{name}: estimator"))?;
         match &self.road {
             Some(cal) => est
@@ -247,7 +247,7 @@ impl Model {
 fn replay_file(
     file: &Path,
     model: &Model,
-    cfg: EstimatorConfig,
+    cfg: &EstimatorConfig,
     out: &mut Output,
     pipelined: bool,
 ) -> Result<Replayed> {
@@ -265,7 +265,7 @@ fn replay_file(
 fn replay_rows(
     file: &Path,
     model: &Model,
-    cfg: EstimatorConfig,
+    cfg: &EstimatorConfig,
     format: Format,
     mcap_out: &dyn Fn(&str) -> PathBuf,
     pipelined: bool,
@@ -593,7 +593,7 @@ fn read_batches(mut input: File, name: &str, tx: &std::sync::mpsc::SyncSender<Ba
 fn replay_streaming(
     file: &Path,
     model: &Model,
-    cfg: EstimatorConfig,
+    cfg: &EstimatorConfig,
     out: &mut Output,
     started: Instant,
     pipelined: bool,
@@ -687,7 +687,7 @@ fn replay_events(
 fn replay_whole(
     file: &Path,
     model: &Model,
-    cfg: EstimatorConfig,
+    cfg: &EstimatorConfig,
     out: &mut Output,
     started: Instant,
 ) -> Result<Replayed> {
@@ -1237,14 +1237,14 @@ mod tests {
         );
         let t = Instant::now();
         let (streamed, streamed_rows) = with_rows(|out| {
-            replay_streaming(&in_order, &b, cfg, out, t, false)
+            replay_streaming(&in_order, &b, &cfg, out, t, false)
                 .unwrap()
                 .expect("a clean file in order streams")
         });
         for pipelined in [false, true] {
             assert!(
                 with_rows(
-                    |out| replay_streaming(&shuffled, &b, cfg, out, t, pipelined)
+                    |out| replay_streaming(&shuffled, &b, &cfg, out, t, pipelined)
                         .unwrap()
                         .is_none()
                 )
@@ -1254,7 +1254,7 @@ mod tests {
         }
         // Read and decoded on a second thread: the same rows.
         let (pipelined, pipelined_rows) = with_rows(|out| {
-            replay_streaming(&in_order, &b, cfg, out, t, true)
+            replay_streaming(&in_order, &b, &cfg, out, t, true)
                 .unwrap()
                 .expect("a clean file in order streams, pipelined too")
         });
@@ -1262,9 +1262,9 @@ mod tests {
         assert_eq!(pipelined.samples, streamed.samples);
         assert_eq!(pipelined.counters, streamed.counters);
         let (whole, whole_rows) =
-            with_rows(|out| replay_file(&shuffled, &b, cfg, out, true).unwrap());
+            with_rows(|out| replay_file(&shuffled, &b, &cfg, out, true).unwrap());
         let (whole_in_order, whole_in_order_rows) =
-            with_rows(|out| replay_whole(&in_order, &b, cfg, out, t).unwrap());
+            with_rows(|out| replay_whole(&in_order, &b, &cfg, out, t).unwrap());
 
         assert!(streamed.tally.ticks > 1000, "{}", streamed.tally.ticks);
         assert_eq!(streamed_rows.len(), streamed.tally.ticks);
@@ -1317,7 +1317,7 @@ mod tests {
         let mut replayed = Vec::new();
         for pipelined in [false, true] {
             let (gave_way, rows_before) = with_rows(|out| {
-                replay_streaming(&path, &b, cfg, out, t, pipelined)
+                replay_streaming(&path, &b, &cfg, out, t, pipelined)
                     .unwrap()
                     .is_none()
             });
@@ -1327,12 +1327,12 @@ mod tests {
             );
             assert!(rows_before.len() > 100, "it gives way half-way");
             replayed.push(with_rows(|out| {
-                replay_file(&path, &b, cfg, out, pipelined).unwrap()
+                replay_file(&path, &b, &cfg, out, pipelined).unwrap()
             }));
         }
         // The whole-file path skips the one message and keeps every other;
         // the rows the streaming path wrote before it gave way are dropped.
-        let (whole, whole_rows) = with_rows(|out| replay_whole(&path, &b, cfg, out, t).unwrap());
+        let (whole, whole_rows) = with_rows(|out| replay_whole(&path, &b, &cfg, out, t).unwrap());
         assert_eq!(replayed[0].0.samples, samples.len());
         assert!(whole.tally.ticks > 1000);
         for (r, rows) in &replayed {
@@ -1359,12 +1359,12 @@ mod tests {
         let t = Instant::now();
         for pipelined in [false, true] {
             assert!(
-                with_rows(|out| replay_streaming(&cut, &b, cfg, out, t, pipelined)
+                with_rows(|out| replay_streaming(&cut, &b, &cfg, out, t, pipelined)
                     .unwrap()
                     .is_none())
                 .0
             );
-            let (res, _) = with_rows(|out| replay_file(&cut, &b, cfg, out, pipelined));
+            let (res, _) = with_rows(|out| replay_file(&cut, &b, &cfg, out, pipelined));
             let err = res.err().expect("a truncated file is an error, as before");
             assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}");
         }

@@ -50,6 +50,9 @@ pub struct BaselineEntry {
     /// See [`UnitBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub accel_range_mps2: Option<[f64; 2]>,
+    /// See [`UnitBaseline`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub damping_law: Option<dt_core::charge::DampingLaw>,
     /// See [`RoadBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -71,6 +74,7 @@ impl From<StoredBaseline> for BaselineEntry {
             read_bar: read.map(|u| u.read_bar),
             read_sd_bar: read.map(|u| u.read_sd_bar),
             accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
+            damping_law: read.and_then(|u| u.damping_law),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
@@ -88,6 +92,7 @@ impl BaselineEntry {
                     read_bar,
                     read_sd_bar,
                     accel_range_mps2: self.accel_range_mps2,
+                    damping_law: self.damping_law,
                 };
                 b.validate().map_err(|e| e.to_string())?;
                 AssetBaseline::Observer(b)
@@ -279,6 +284,9 @@ pub async fn complete_service(
 }
 
 /// One value of either bucket, parsed.
+// A unit's own damping law makes an observer baseline ≈ 0.4 kB; one is made per
+// change of an asset's baseline, never per sample, and stays `Copy`.
+#[allow(clippy::large_enum_variant)]
 enum UnitChange {
     Baseline(Option<StoredBaseline>),
     Service(Option<PendingService>),
@@ -472,6 +480,7 @@ mod tests {
                 read_bar: 10.84,
                 read_sd_bar: 0.65,
                 accel_range_mps2,
+                damping_law: None,
             }),
             set_ms: 1_700_000_000_000,
         }

@@ -69,6 +69,11 @@ pub struct BaselineView {
     /// (`null`: unknown).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub accel_range_mps2: Option<[f64; 2]>,
+    /// Whether the unit is read with its own damping law
+    /// ([`dt_core::charge::UnitBaseline::damping_law`]) instead of the
+    /// calibration's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub own_damping_law: Option<bool>,
     /// The unit's seal friction offset from the road calibration's, N.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -85,17 +90,17 @@ impl BaselineView {
     /// A baseline set over the API (or read after a service) at `set_ms`.
     #[must_use]
     pub fn api(b: AssetBaseline, set_ms: i64) -> Self {
-        Self::of(b, BaselineSource::Api, Some(rfc3339_ms(set_ms)))
+        Self::of(&b, BaselineSource::Api, Some(rfc3339_ms(set_ms)))
     }
 
     /// A baseline from the configuration.
     #[must_use]
     pub fn config(b: AssetBaseline) -> Self {
-        Self::of(b, BaselineSource::Config, None)
+        Self::of(&b, BaselineSource::Config, None)
     }
 
-    fn of(b: AssetBaseline, source: BaselineSource, set_at: Option<String>) -> Self {
-        let (read, road) = match b {
+    fn of(b: &AssetBaseline, source: BaselineSource, set_at: Option<String>) -> Self {
+        let (read, road) = match *b {
             AssetBaseline::Observer(u) => (Some(u), None),
             AssetBaseline::Road(r) => (None, Some(r)),
         };
@@ -105,6 +110,7 @@ impl BaselineView {
             read_bar: read.map(|u| u.read_bar),
             read_sd_bar: read.map(|u| u.read_sd_bar),
             accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
+            own_damping_law: read.map(|u| u.damping_law.is_some()),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             source,
@@ -399,6 +405,7 @@ mod tests {
                 read_bar: 10.0,
                 read_sd_bar: 0.5,
                 accel_range_mps2: None,
+                damping_law: None,
             }),
             set_ms: 1_000,
         };
@@ -407,7 +414,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             baselines.asset_config(&config, "van").observer_baseline,
-            Some(read_of(old))
+            Some(read_of(&old))
         );
         let service = PendingService {
             charge_bar: 11.0,
@@ -439,6 +446,7 @@ mod tests {
             read_bar: 9.4,
             read_sd_bar: 0.3,
             accel_range_mps2: Some([1.4, 1.6]),
+            damping_law: None,
         };
         assert_eq!(
             baselines
@@ -481,7 +489,7 @@ mod tests {
         );
     }
 
-    fn read_of(b: StoredBaseline) -> UnitBaseline {
+    fn read_of(b: &StoredBaseline) -> UnitBaseline {
         match b.baseline {
             AssetBaseline::Observer(u) => u,
             AssetBaseline::Road(_) => panic!("not an observer baseline"),

@@ -466,7 +466,7 @@ fn bad_asset_id(id: &str) -> Option<Response> {
 
 /// `409` when this daemon's model cannot take `baseline` for `id`. A fleet
 /// view of a NATS group runs no model: the workers check it when they use it.
-fn refuse_here(app: &AppState, id: &str, baseline: AssetBaseline) -> Option<Response> {
+fn refuse_here(app: &AppState, id: &str, baseline: &AssetBaseline) -> Option<Response> {
     let checkable = app.model.is_some() || app.group.is_none();
     checkable
         .then(|| refuse_baseline(app.model.as_ref(), &app.config, id, baseline))
@@ -481,7 +481,7 @@ fn refuse_baseline(
     model: Option<&EstimatorFactory>,
     config: &Config,
     id: &str,
-    baseline: AssetBaseline,
+    baseline: &AssetBaseline,
 ) -> Option<String> {
     let Some(model) = model else {
         return Some(
@@ -490,7 +490,7 @@ fn refuse_baseline(
         );
     };
     let mut asset = config.asset(id);
-    match baseline {
+    match *baseline {
         AssetBaseline::Road(r) if asset.road => asset.road_baseline = Some(r),
         AssetBaseline::Road(_) => {
             return Some(format!(
@@ -566,7 +566,7 @@ async fn put_baseline(
         Ok(b) => b,
         Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
     };
-    if let Some(r) = refuse_here(&app, &id, baseline) {
+    if let Some(r) = refuse_here(&app, &id, &baseline) {
         return r;
     }
     let set_ms = now_ms();
@@ -664,9 +664,10 @@ async fn put_service(
             read_bar: charge_bar,
             read_sd_bar: 1.0,
             accel_range_mps2: None,
+            damping_law: None,
         })
     };
-    if let Some(r) = refuse_here(&app, &id, probe) {
+    if let Some(r) = refuse_here(&app, &id, &probe) {
         return r;
     }
     let service = PendingService {
@@ -697,6 +698,9 @@ async fn delete_service(State(app): State<AppState>, Path(id): Path<String>) -> 
 }
 
 /// A change to an asset's unit baseline or pending service over the API.
+// A unit's own damping law makes an observer baseline ≈ 0.4 kB; one is made per
+// change of an asset's baseline, never per sample, and stays `Copy`.
+#[allow(clippy::large_enum_variant)]
 enum UnitChange {
     /// Keep (`Some`) or forget (`None`) the API baseline; one given outright
     /// supersedes a service still to be read.

@@ -193,7 +193,7 @@ impl Ingest {
                     meta.asset_id, meta.run_id
                 ),
             })?;
-        let handle = self.start(kind, source, meta, asset, twin).await?;
+        let handle = self.start(kind, source, meta, &asset, twin).await?;
         tracing::info!(
             source = %handle.info.source,
             asset = %handle.info.meta.asset_id,
@@ -209,7 +209,7 @@ impl Ingest {
         kind: SourceKind,
         source: String,
         meta: RunMetadata,
-        asset: super::config::AssetConfig,
+        asset: &super::config::AssetConfig,
         twin: Box<dyn AssetTwin>,
     ) -> Result<RunHandle, RunOutcome> {
         let info = Arc::new(RunInfo {
@@ -217,7 +217,7 @@ impl Ingest {
             kind,
             source,
             meta,
-            asset,
+            asset: *asset,
             started: SystemTime::now(),
         });
         self.inner
@@ -257,7 +257,7 @@ impl Ingest {
             .inner
             .baselines
             .asset_config(&self.inner.config, &meta.asset_id);
-        self.start(kind, source, meta, asset, Box::new(RelayTwin))
+        self.start(kind, source, meta, &asset, Box::new(RelayTwin))
             .await
     }
 

@@ -45,8 +45,10 @@ async fn daemon_output_equals_the_estimator_run_directly() {
         let record = setting.map_or(String::new(), |c| {
             format!("[record]\ncompression = {c:?}\n")
         });
-        let recorded =
-            daemon_output_against_the_estimator(Config::from_toml(&record).unwrap()).await;
+        let recorded = Box::pin(daemon_output_against_the_estimator(
+            Config::from_toml(&record).unwrap(),
+        ))
+        .await;
         let summary = mcap::Summary::read(&recorded).unwrap().unwrap();
         assert!(!summary.chunk_indexes.is_empty(), "{setting:?}: no chunk");
         for c in &summary.chunk_indexes {

@@ -112,6 +112,9 @@ pub struct RunRecord {
 /// A unit's baseline: what the dyno observer read of the unit at a known
 /// charge, or what the road observer read of its seal (a road asset).
 #[derive(Debug, Clone, Copy, PartialEq)]
+// A unit's own damping law makes an observer baseline ≈ 0.4 kB; one is made per
+// change of an asset's baseline, never per sample, and stays `Copy`.
+#[allow(clippy::large_enum_variant)]
 pub enum AssetBaseline {
     /// [`dt_core::charge::UnitBaseline`] (`observer_baseline`).
     Observer(dt_core::charge::UnitBaseline),
@@ -144,8 +147,15 @@ impl std::fmt::Display for AssetBaseline {
         match self {
             Self::Observer(b) => write!(
                 f,
-                "observer read {:.2} ± {:.2} bar at a known {:.2} bar",
-                b.read_bar, b.read_sd_bar, b.charge_bar
+                "observer read {:.2} ± {:.2} bar at a known {:.2} bar{}",
+                b.read_bar,
+                b.read_sd_bar,
+                b.charge_bar,
+                if b.damping_law.is_some() {
+                    ", with the unit's own damping law"
+                } else {
+                    ""
+                }
             ),
             Self::Road(b) => write!(
                 f,

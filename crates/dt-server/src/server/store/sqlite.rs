@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
-use dt_core::charge::{ObserverCounters, UnitBaseline};
+use dt_core::charge::{DampingLaw, ObserverCounters, UnitBaseline};
 use dt_core::road::{RoadBaseline, RoadCounters};
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
@@ -25,10 +25,10 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 7;
+pub const SCHEMA_VERSION: i64 = 8;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
-const MIGRATIONS: [&str; 7] = [
+const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
     r"
 CREATE TABLE assets (
     id       INTEGER PRIMARY KEY,
@@ -112,9 +112,30 @@ ALTER TABLE runs ADD COLUMN road TEXT;
 ALTER TABLE baselines ADD COLUMN accel_lo_mps2 REAL;
 ALTER TABLE baselines ADD COLUMN accel_hi_mps2 REAL;
 ",
+    // A unit's own damping law (`dt_core::charge::UnitBaseline::damping_law`)
+    // as JSON, NULL: the calibration's.
+    r"
+ALTER TABLE baselines ADD COLUMN damping_law TEXT;
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
+
+/// A baseline's `damping_law` column (JSON, NULL: none); a value this daemon
+/// cannot read is an error naming the column.
+fn law_column(r: &rusqlite::Row<'_>, i: usize) -> rusqlite::Result<Option<DampingLaw>> {
+    r.get::<_, Option<String>>(i)?
+        .map(|text| {
+            serde_json::from_str(&text).map_err(|e| {
+                rusqlite::Error::FromSqlConversionFailure(
+                    i,
+                    rusqlite::types::Type::Text,
+                    format!("baselines.damping_law: {e}").into(),
+                )
+            })
+        })
+        .transpose()
+}
 
 /// The embedded fleet store.
 #[derive(Debug)]
@@ -156,7 +177,8 @@ fn put_baseline(
         AssetBaseline::Observer(u) => tx.execute(
             &format!(
                 "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms, \
-                 accel_lo_mps2, accel_hi_mps2) VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7)"
+                 accel_lo_mps2, accel_hi_mps2, damping_law) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8)"
             ),
             params![
                 asset_id,
@@ -166,6 +188,8 @@ fn put_baseline(
                 b.set_ms,
                 u.accel_range_mps2.map(|r| r[0]),
                 u.accel_range_mps2.map(|r| r[1]),
+                u.damping_law
+                    .map(|l| serde_json::to_string(&l).expect("a law is plain numbers")),
             ],
         )?,
         AssetBaseline::Road(r) => tx.execute(
@@ -607,7 +631,7 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms, \
-                 b.accel_lo_mps2, b.accel_hi_mps2 \
+                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law \
                  FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
             let mut all = stmt
@@ -623,6 +647,7 @@ impl FleetStore for SqliteStore {
                                     (Some(lo), Some(hi)) => Some([lo, hi]),
                                     _ => None,
                                 },
+                                damping_law: law_column(r, 7)?,
                             }),
                             set_ms: r.get(4)?,
                         },
@@ -882,16 +907,42 @@ mod tests {
                 read_bar: 10.84,
                 read_sd_bar: 0.7,
                 accel_range_mps2: Some([1.45, 1.61]),
+                damping_law: None,
             }),
             set_ms: 1_700_000_000_000,
         };
+        // A unit read with its own damping law keeps it, to the bit.
+        let mut law = DampingLaw {
+            knots_mps: [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15],
+            width_mps: 0.008,
+            beta_per_k: 0.030_255_147_720_118_9,
+            ..DampingLaw::default()
+        };
+        law.viscous_nspm[0] = 2_512.123_456_789;
+        law.dry_nspm[3] = -1.0e-7 / 3.0;
+        let own = StoredBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 11.33,
+                read_sd_bar: 0.09,
+                accel_range_mps2: Some([5.8, 6.4]),
+                damping_law: Some(law),
+            }),
+            ..b
+        };
         // An asset the store has never seen a run of can be given one too.
         store.set_baseline("new-van", Some(&b)).unwrap();
+        store.set_baseline("own-law", Some(&own)).unwrap();
         store.set_baseline("a1", Some(&b)).unwrap();
         store.set_baseline("a1", None).unwrap();
         drop(store);
         let again = SqliteStore::open(&path).unwrap();
-        assert_eq!(again.baselines().unwrap(), vec![("new-van".to_owned(), b)]);
+        let mut kept = again.baselines().unwrap();
+        kept.sort_by(|x, y| x.0.cmp(&y.0));
+        assert_eq!(
+            kept,
+            vec![("new-van".to_owned(), b), ("own-law".to_owned(), own)]
+        );
         let version: i64 = Connection::open(&path)
             .unwrap()
             .query_row("PRAGMA user_version", [], |r| r.get(0))
@@ -924,6 +975,7 @@ mod tests {
                 read_bar: 10.6,
                 read_sd_bar: 0.4,
                 accel_range_mps2: None,
+                damping_law: None,
             }),
             set_ms: 1_700_000_000_000,
         };
