@@ -195,7 +195,9 @@ def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str
     slopes of an uncalibrated observer."""
     loose = {**obs, "max_residual_mps2": 1e3,
              "damping_law": law or shocktwin.default_observer_params()["damping_law"]}  # default: linear slopes
-    if law is not None and obs.get("excitations"):  # a calibration's own cut per excitation too (0: none there)
+    if law is not None:  # a calibration's: every reversal fitted, its own cut per excitation lifted too
+        loose["fit_gain_floor"] = 0.0
+    if law is not None and obs.get("excitations"):
         x = obs["excitations"]
         loose["excitations"] = {**x, "max_residual_mps2": [1e3 if c else 0.0 for c in x["max_residual_mps2"]]}
     out = []

@@ -1069,7 +1069,7 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
 
         try:
             fit = refit([read_run(p) for p in paths], physics)
-        except ValueError as err:
+        except (ValueError, OSError) as err:  # shocktwin's log errors are either
             raise SystemExit(f"{', '.join(str(p) for p in paths)}: {err}") from None
         obs = {**obs, "damping_law": fit["law"]}
         physics = {**physics, "observer": obs}

@@ -223,7 +223,7 @@ def assert_history_is(d: Daemon, asset: str, binned: dict[int, float]) -> None:
         assert p["pressure_bar"] == pytest.approx(binned[int(unix_s(p["t"]))], abs=1e-9)
 
 
-# A damping law of the simulated dyno's shape (dt-core's test law `a_law`), as a unit's own.
+# A damping law of the simulated dyno's shape (dt-core's test law `a_law`): hinges.
 UNIT_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "width_mps": 0.008,
             "viscous_nspm": [2500.0, 0, 0, 0, 0, 5000.0, 0, 0, 0],
             "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
@@ -303,20 +303,40 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     assert trend["since"] is None and len(trend["points"]) == 1, trend
     assert httpx.get(url).status_code == 404
     assert httpx.delete(url).status_code == 404
-    # A unit read with its own damping law (`train.observer baseline --unit-law` writes it in
-    # the baseline): the daemon estimates with it, as replay does, and says so.
+    # A unit's own damping law (`train.observer baseline --unit-law` writes it in the
+    # baseline) is the calibration's refitted: over this model's linear slopes it is refused.
     own = {**doc, "observer_baseline": {**doc["observer_baseline"], "damping_law": UNIT_LAW}}
+    r = httpx.put(url, json=own)
+    assert r.status_code == 409 and "calibration's damping law's form" in r.json()["error"], r.text
+    d2.stop()
+    # With a model whose calibration has a law (the full study's, committed), the daemon
+    # estimates with the unit's own, as replay does, keeps it across a restart and says so.
+    bundle = ROOT / "docs" / "study" / "bundles" / "perm-18"
+    cal = json.loads((bundle / "twin.json").read_text())["physics"]["observer"]["damping_law"]
+    ext = cal["valves"]["extension"]
+    law = {**cal, "valves": {**cal["valves"], "extension": {**ext, "laminar_nspm": 1.1 * ext["laminar_nspm"],
+                                                            "crack_n": 0.95 * ext["crack_n"]}}}
+    own = {**doc, "observer_baseline": {**doc["observer_baseline"], "damping_law": law}}
     (tmp_path / "own.json").write_text(json.dumps(own))
     run2 = sorted(world["runs"].glob("*.mcap"))[1]
-    with_own = replay_binned(world["bundle"], run2, tmp_path / "o.csv", "--observer-baseline", str(tmp_path / "own.json"))
-    plain = replay_binned(world["bundle"], run2, tmp_path / "p.csv", "--observer-baseline", str(tmp_path / "unit.json"))
+    with_own = replay_binned(bundle, run2, tmp_path / "o.csv", "--observer-baseline", str(tmp_path / "own.json"))
+    plain = replay_binned(bundle, run2, tmp_path / "p.csv", "--observer-baseline", str(tmp_path / "unit.json"))
     assert max(abs(with_own[s] - plain[s]) for s in plain) > 0.01, "the unit's own law changed nothing"
+    inbox3, db3 = tmp_path / "inbox3", tmp_path / "fleet3.sqlite"
+    inbox3.mkdir()
+    d3 = Daemon(bundle, db3, inbox3)
+    daemons.append(d3)
+    url = f"http://{d3.http}/v1/assets/dyno-unit-A/baseline"
     r = httpx.put(url, json=own)
     assert r.status_code == 200 and r.json()["own_damping_law"] is True, r.text
-    shutil.copy(run2, inbox / run2.name)
-    d2.wait_runs("dyno-unit-A", 2)
-    assert_history_is(d2, "dyno-unit-A", with_own)
-    d2.stop()
+    shutil.copy(run2, inbox3 / run2.name)
+    d3.wait_runs("dyno-unit-A", 1)
+    assert_history_is(d3, "dyno-unit-A", with_own)
+    d3.stop()
+    d4 = Daemon(bundle, db3, inbox3)
+    daemons.append(d4)
+    assert d4.get("/v1/assets/dyno-unit-A/baseline")["own_damping_law"] is True
+    d4.stop()
 
 
 def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(

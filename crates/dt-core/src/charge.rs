@@ -1271,6 +1271,28 @@ impl DampingLaw {
             || (self.width_mps > 0.0 && self.viscous_nspm[0] + self.dry_nspm[0] != 0.0)
     }
 
+    /// Which valves the law has (extension, compression, compression
+    /// piston; all `false`: hinges or linear slopes alone), and whether it
+    /// has hinges: two laws of one form differ only in their numbers.
+    #[must_use]
+    pub fn form(&self) -> ([bool; 3], bool) {
+        let valves = self.valves.map_or([false; 3], |v| {
+            [
+                v.extension.is_some(),
+                v.compression.is_some(),
+                v.compression_piston.is_some(),
+            ]
+        });
+        let hinges = self.width_mps > 0.0
+            && self.knots_mps.iter().any(|k| *k != 0.0)
+            && self
+                .viscous_nspm
+                .iter()
+                .chain(&self.dry_nspm)
+                .any(|c| *c != 0.0);
+        (valves, hinges)
+    }
+
     /// The viscosity ratio `r(T)` at oil temperature `temp_c`.
     #[must_use]
     pub fn viscosity_ratio(&self, temp_c: f64) -> f64 {
@@ -1426,6 +1448,16 @@ impl Default for ObserverParams {
 }
 
 impl ObserverParams {
+    /// The damping law the window model runs: the unit's own, when its
+    /// [`baseline`](Self::baseline) carries one
+    /// ([`UnitBaseline::damping_law`]), else the calibration's.
+    #[must_use]
+    pub fn window_law(&self) -> DampingLaw {
+        self.baseline
+            .and_then(|b| b.damping_law)
+            .unwrap_or(self.damping_law)
+    }
+
     /// `x(T) |ÿ_r|`: the viscosity excess of oil at `temp_c` over oil at
     /// [`cold_ref_c`](Self::cold_ref_c), `max(0, r(T)/r(T_c) − 1)`, times the
     /// reversal's `|ÿ_r|` (m/s²); 0 without a calibrated [`DampingLaw`].
@@ -1671,6 +1703,36 @@ impl ObserverParams {
         })
     }
 
+    /// The unit baseline's numbers, its gain and its own damping law
+    /// against the calibration (part of [`validate`](Self::validate)).
+    fn check_baseline(&self) -> Result<(), PhysicsError> {
+        if let Some(b) = &self.baseline {
+            b.validate()?;
+            if let Some(own) = &b.damping_law {
+                // A unit's law stands in for the calibration's: the measurement
+                // model was calibrated on amplitudes fitted with a law of that form.
+                if !self.damping_law.is_calibrated() || own.form() != self.damping_law.form() {
+                    return Err(PhysicsError::InvalidParameter {
+                        name: "observer.baseline.damping_law",
+                        value: f64::NAN,
+                        reason: "is not of the calibration's damping law's form (a unit's own law \
+                             is the calibration's refitted: `python -m train.observer \
+                             baseline --unit-law` with this calibration)",
+                    });
+                }
+            }
+            if UnitCorrection::of(self).gain_rel <= -0.5 {
+                return Err(PhysicsError::InvalidParameter {
+                    name: "observer.baseline.read_bar",
+                    value: b.read_bar,
+                    reason: "is further below charge_bar than the systematic spread allows \
+                         (the unit's seal gain would halve): a wrong charge or another unit?",
+                });
+            }
+        }
+        Ok(())
+    }
+
     /// `fit_gain_floor` below 1 (its sign is checked with the others).
     fn check_fit_gain_floor(&self) -> Result<(), PhysicsError> {
         if self.fit_gain_floor >= 1.0 {
@@ -1772,17 +1834,7 @@ impl ObserverParams {
         if let Some(x) = &self.excitations {
             x.validate(&self.accel_clusters_mps2)?;
         }
-        if let Some(b) = &self.baseline {
-            b.validate()?;
-            if UnitCorrection::of(self).gain_rel <= -0.5 {
-                return Err(PhysicsError::InvalidParameter {
-                    name: "observer.baseline.read_bar",
-                    value: b.read_bar,
-                    reason: "is further below charge_bar than the systematic spread allows \
-                             (the unit's seal gain would halve): a wrong charge or another unit?",
-                });
-            }
-        }
+        self.check_baseline()?;
         self.damping_law.validate()
     }
 }
@@ -2017,9 +2069,7 @@ impl ChargeObserver {
     /// puts it in place of the calibration's.
     pub fn new(mut params: ObserverParams) -> Result<Self, PhysicsError> {
         params.validate()?;
-        if let Some(law) = params.baseline.and_then(|b| b.damping_law) {
-            params.damping_law = law;
-        }
+        params.damping_law = params.window_law();
         // The window before the reversal, plus the time the velocity can
         // spend inside the band after it (detection lags the crossing).
         let keep_s = params.window_pre_s.max(SLOPE_HALF_S)
@@ -2857,7 +2907,11 @@ pub fn reversal_window_a2(
     theta: [f64; 5],
     times: &[f64],
 ) -> Vec<f64> {
-    ReversalModel::new(params, accel_mps2, oil_c).simulate(&Vector5::from(theta), times)
+    let params = ObserverParams {
+        damping_law: params.window_law(),
+        ..*params
+    };
+    ReversalModel::new(&params, accel_mps2, oil_c).simulate(&Vector5::from(theta), times)
 }
 
 /// `tanh(x)`, and its exact value `±1` where it is (`|x| ≥ 20`: `1 − tanh`
@@ -3414,7 +3468,9 @@ mod tests {
     /// the tool writes it parses to it; linear slopes are no unit's law.
     #[test]
     fn a_baselines_own_law_takes_the_calibrations_place() {
-        let own = a_valve_law();
+        let mut own = a_law();
+        own.viscous_nspm[0] *= 1.2;
+        own.dry_nspm[3] *= 0.9;
         let b = UnitBaseline {
             charge_bar: 12.0,
             read_bar: 11.0,
@@ -3434,6 +3490,38 @@ mod tests {
         };
         assert_eq!(with(Some(plain)).params().damping_law, a_law());
         assert_eq!(with(None).params().damping_law, a_law());
+        // the window model alone, as the law's fit runs it, runs the unit's too
+        let theta = [40.0, 1.0, 1.0, 0.0, -9.8];
+        let times: Vec<f64> = (0..40).map(|i| -0.01 + f64::from(i) * 1e-3).collect();
+        let unit = ObserverParams {
+            baseline: Some(b),
+            ..base
+        };
+        let swapped = ObserverParams {
+            damping_law: own,
+            ..base
+        };
+        let calibration = reversal_window_a2(&base, 6.0, 60.0, theta, &times);
+        let read = reversal_window_a2(&unit, 6.0, 60.0, theta, &times);
+        assert_eq!(read, reversal_window_a2(&swapped, 6.0, 60.0, theta, &times));
+        assert_ne!(read, calibration);
+        // a law of another form than the calibration's, or over linear slopes:
+        // the measurement model was not calibrated on it
+        for (cal, unit_law) in [(a_law(), a_valve_law()), (DampingLaw::default(), own)] {
+            let err = ChargeObserver::new(ObserverParams {
+                damping_law: cal,
+                baseline: Some(UnitBaseline {
+                    damping_law: Some(unit_law),
+                    ..b
+                }),
+                ..base
+            })
+            .unwrap_err();
+            assert!(
+                err.to_string().contains("calibration's damping law's form"),
+                "{err}"
+            );
+        }
         let doc = serde_json::json!({
             "observer_baseline": {
                 "charge_bar": 12.0, "read_bar": 11.0, "read_sd_bar": 0.2,

@@ -263,9 +263,10 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// path to a bundle directory. The estimator is configured from the bundle
 /// (its nominal pressure and health thresholds, a 100 ms re-order window, a
 /// new segment after a 2 s gap). ``observer_baseline`` (a dict with
-/// ``charge_bar``, ``read_bar``, ``read_sd_bar``, as
-/// ``python -m train.observer baseline`` writes under that key) is this
-/// unit's charge-observer baseline, for a bundle that reads the observer.
+/// ``charge_bar``, ``read_bar``, ``read_sd_bar`` and optionally the unit's
+/// own ``damping_law``, as ``python -m train.observer baseline [--unit-law]``
+/// writes under that key) is this unit's charge-observer baseline, for a
+/// bundle that reads the observer.
 ///
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
