@@ -197,9 +197,8 @@ def reversal_windows(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str
              "damping_law": law or shocktwin.default_observer_params()["damping_law"]}  # default: linear slopes
     if law is not None:  # a calibration's: every reversal fitted, its own cut per excitation lifted too
         loose["fit_gain_floor"] = 0.0
-    if law is not None and obs.get("excitations"):
-        x = obs["excitations"]
-        loose["excitations"] = {**x, "max_residual_mps2": [1e3 if c else 0.0 for c in x["max_residual_mps2"]]}
+        if x := obs.get("excitations"):
+            loose["excitations"] = {**x, "max_residual_mps2": [1e3 if c else 0.0 for c in x["max_residual_mps2"]]}
     out = []
     # the runs' reversals side by side (dt-core releases the GIL while it reads a run)
     with ThreadPoolExecutor(max_workers=max(1, min(len(runs), os.cpu_count() or 1))) as pool:

@@ -1358,7 +1358,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--jobs", type=int, default=2)
     b.add_argument("--unit-law", action="store_true",
                    help="refit the calibration's damping law on these runs' reversal windows first and read the "
-                        "unit with it from then on (written beside the baseline as its `damping_law`)")
+                        "unit with it from then on (written in the baseline as its `damping_law`)")
     b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
     t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
                                         "the calibration's (ObserverParams::transfer_bar_per_ln_accel)")
