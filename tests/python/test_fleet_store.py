@@ -336,6 +336,30 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     d4 = Daemon(bundle, db3, inbox3)
     daemons.append(d4)
     assert d4.get("/v1/assets/dyno-unit-A/baseline")["own_damping_law"] is True
+    # A service (a recharge) does not change the valves: the daemon reads the unit with its
+    # own law and the baseline it reads keeps it, as `train.observer baseline` reads the run
+    # with that law in the calibration's place.
+    from train import observer as observer_tool
+    from train.campaign import load_campaign
+
+    day = load_campaign(world["runs"]).runs[0]
+    assert day.label_bar is not None
+    physics = json.loads((bundle / "twin.json").read_text())["physics"]
+    physics["observer"]["damping_law"] = law
+    ref = observer_tool.baseline_of(physics, [day.path], day.label_bar, jobs=1)["observer_baseline"]
+    url = f"http://{d4.http}/v1/assets/dyno-unit-A"
+    r = httpx.put(f"{url}/service", json={"charge_bar": day.label_bar, "at": "2023-11-01T00:00:00Z"})
+    assert r.status_code == 202, r.text
+    shutil.copy(day.path, inbox3 / day.path.name)
+    d4.wait_runs("dyno-unit-A", 2)
+    deadline = time.monotonic() + 20
+    while (b := httpx.get(f"{url}/baseline")).status_code != 200 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert b.status_code == 200, (b.text, httpx.get(f"{url}/service").text)
+    got = b.json()
+    assert got["own_damping_law"] is True and got["charge_bar"] == day.label_bar, got
+    assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
+    assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
     d4.stop()
 
 

@@ -1448,6 +1448,26 @@ impl Default for ObserverParams {
 }
 
 impl ObserverParams {
+    /// These parameters with a unit's own damping law in the calibration's
+    /// place, for a run read without a baseline: a service reading of a unit
+    /// whose baseline before the service carried its own law (a recharge
+    /// does not change the valves; [`UnitBaseline::damping_law`]). Refused,
+    /// as in a baseline, when the law is not of the calibration's form.
+    pub fn with_unit_law(mut self, law: DampingLaw) -> Result<Self, PhysicsError> {
+        if !self.damping_law.is_calibrated() || law.form() != self.damping_law.form() {
+            return Err(PhysicsError::InvalidParameter {
+                name: "observer.damping_law",
+                value: f64::NAN,
+                reason: "a unit's own law is not of the calibration's damping law's form (a \
+                         unit's own law is the calibration's refitted: `python -m \
+                         train.observer baseline --unit-law` with this calibration)",
+            });
+        }
+        law.validate()?;
+        self.damping_law = law;
+        Ok(self)
+    }
+
     /// The damping law the window model runs: the unit's own, when its
     /// [`baseline`](Self::baseline) carries one
     /// ([`UnitBaseline::damping_law`]), else the calibration's.
@@ -3505,9 +3525,24 @@ mod tests {
         let read = reversal_window_a2(&unit, 6.0, 60.0, theta, &times);
         assert_eq!(read, reversal_window_a2(&swapped, 6.0, 60.0, theta, &times));
         assert_ne!(read, calibration);
+        // without a baseline (a service reading), the unit's law put in place
+        // reads the windows as the baseline's does
+        let service = base.with_unit_law(own).unwrap();
+        assert_eq!(service.damping_law, own);
+        assert_eq!(reversal_window_a2(&service, 6.0, 60.0, theta, &times), read);
         // a law of another form than the calibration's, or over linear slopes:
         // the measurement model was not calibrated on it
         for (cal, unit_law) in [(a_law(), a_valve_law()), (DampingLaw::default(), own)] {
+            let err = ObserverParams {
+                damping_law: cal,
+                ..base
+            }
+            .with_unit_law(unit_law)
+            .unwrap_err();
+            assert!(
+                err.to_string().contains("calibration's damping law's form"),
+                "{err}"
+            );
             let err = ChargeObserver::new(ObserverParams {
                 damping_law: cal,
                 baseline: Some(UnitBaseline {

@@ -150,6 +150,13 @@ pub struct EstimatorConfig {
     /// is what the unit will be conditioned on.
     #[serde(default)]
     pub observer_fit_all: bool,
+    /// The unit's own damping law for a run read without a baseline
+    /// ([`ObserverParams::with_unit_law`](crate::charge::ObserverParams::with_unit_law)):
+    /// a service reading takes the law of the unit's baseline before the
+    /// service. Not used when [`observer_baseline`](Self::observer_baseline)
+    /// is set (a baseline carries its own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observer_damping_law: Option<crate::charge::DampingLaw>,
 }
 
 impl EstimatorConfig {
@@ -164,6 +171,7 @@ impl EstimatorConfig {
             max_gap_ns: 2_000_000_000,
             observer_baseline: None,
             observer_fit_all: false,
+            observer_damping_law: None,
         }
     }
 }
@@ -440,25 +448,27 @@ impl std::fmt::Debug for Estimator {
 
 /// The bundle's physics for its pipeline: the charge observer runs only when
 /// the bundle reads it.
-fn pipeline_params(bundle: &Bundle, cfg: &EstimatorConfig) -> PhysicsParams {
+fn pipeline_params(bundle: &Bundle, cfg: &EstimatorConfig) -> Result<PhysicsParams, PhysicsError> {
     let mut params = *bundle.physics();
     if !bundle.groups.contains(&Group::Observer) {
         params.observer = None;
     }
     if let (Some(o), Some(b)) = (params.observer.as_mut(), cfg.observer_baseline) {
         o.baseline = Some(b);
+    } else if let (Some(o), Some(law)) = (params.observer.as_mut(), cfg.observer_damping_law) {
+        *o = o.with_unit_law(law)?;
     }
     if let (Some(o), true) = (params.observer.as_mut(), cfg.observer_fit_all) {
         o.fit_gain_floor = 0.0;
     }
-    params
+    Ok(params)
 }
 
 impl Estimator {
     /// An estimator for one asset with the bundle's model.
     pub fn new(bundle: Arc<Bundle>, cfg: EstimatorConfig) -> Result<Self, EstimatorError> {
         let topics = TopicSet::for_groups(&bundle.groups);
-        let pipe = FeaturePipeline::new(&pipeline_params(&bundle, &cfg), topics)?;
+        let pipe = FeaturePipeline::new(&pipeline_params(&bundle, &cfg)?, topics)?;
         let columns = column_indices(&bundle.groups);
         let uses_observer = bundle.groups.contains(&Group::Observer) && pipe.observer().is_some();
         Ok(Self {
@@ -740,7 +750,7 @@ impl Estimator {
             self.s.counters.observer += o.counters();
         }
         self.s.pipe =
-            FeaturePipeline::new(&pipeline_params(&self.bundle, &self.s.cfg), self.s.topics)?;
+            FeaturePipeline::new(&pipeline_params(&self.bundle, &self.s.cfg)?, self.s.topics)?;
         self.s.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
         self.s.avg_idx = 0;
         self.s.health = HealthMachine::new(self.s.cfg.health);

@@ -42,6 +42,7 @@ use std::sync::Arc;
 
 use async_nats::jetstream::{self, consumer, kv, message::PublishMessage as Publish};
 use bytes::Bytes;
+use dt_core::charge::UnitBaseline;
 use dt_core::estimate::{Estimate, Health};
 use dt_core::estimator::Estimator;
 use dt_core::service::ServiceReading;
@@ -780,7 +781,12 @@ impl Partition {
             None => match open.est.bundle().physics().observer {
                 Some(params) => reading
                     .finish(service.charge_bar, &params)
-                    .map(|r| AssetBaseline::Observer(r.baseline))
+                    .map(|r| {
+                        AssetBaseline::Observer(UnitBaseline {
+                            damping_law: open.est.config().observer_damping_law,
+                            ..r.baseline
+                        })
+                    })
                     .map_err(|e| e.to_string()),
                 None => return,
             },

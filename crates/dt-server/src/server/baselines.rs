@@ -349,11 +349,17 @@ impl Baselines {
     pub fn asset_config(&self, config: &Config, asset_id: &str) -> AssetConfig {
         let mut asset = config.asset(asset_id);
         if let Some(s) = self.service(asset_id) {
+            // the unit's own law, if the baseline it had before carried one
+            let before = match self.get(asset_id).map(|b| b.baseline) {
+                Some(AssetBaseline::Observer(u)) => Some(u),
+                _ => asset.observer_baseline,
+            };
             asset.observer_baseline = None;
             asset.road_baseline = None;
             asset.read_service = Some(ServiceToRead {
                 charge_bar: s.charge_bar,
                 set_ms: s.set_ms,
+                damping_law: before.and_then(|u| u.damping_law).filter(|_| !asset.road),
             });
         } else if let Some(b) = self.get(asset_id) {
             match b.baseline {
@@ -387,9 +393,10 @@ impl Baselines {
 
 #[cfg(test)]
 mod tests {
-    use dt_core::charge::UnitBaseline;
+    use dt_core::charge::{DampingLaw, UnitBaseline};
 
     use super::*;
+    use crate::server::config::AssetOverrides;
     use crate::server::store::SqliteStore;
 
     #[test]
@@ -405,7 +412,7 @@ mod tests {
                 read_bar: 10.0,
                 read_sd_bar: 0.5,
                 accel_range_mps2: None,
-                damping_law: None,
+                damping_law: Some(unit_law()),
             }),
             set_ms: 1_000,
         };
@@ -432,7 +439,10 @@ mod tests {
             to_read,
             ServiceToRead {
                 charge_bar: 11.0,
-                set_ms: 5_000
+                set_ms: 5_000,
+                // the unit is read with the law its baseline had: a recharge
+                // does not change its valves
+                damping_law: Some(unit_law()),
             }
         );
         assert_eq!(baselines.view(&config, "van"), None);
@@ -487,6 +497,71 @@ mod tests {
                 .unwrap(),
             ServiceOutcome::Superseded
         );
+    }
+
+    /// A unit's own damping law (its numbers do not matter here).
+    fn unit_law() -> DampingLaw {
+        DampingLaw {
+            width_mps: 0.008,
+            beta_per_k: 0.03,
+            ..DampingLaw::default()
+        }
+    }
+
+    #[test]
+    fn a_service_reads_the_unit_with_the_law_of_the_baseline_in_effect_before_it() {
+        let (baselines, trends) = (Baselines::default(), Trends::default());
+        let from_config = UnitBaseline {
+            charge_bar: 12.0,
+            read_bar: 11.0,
+            read_sd_bar: 0.2,
+            accel_range_mps2: None,
+            damping_law: Some(unit_law()),
+        };
+        let mut config = Config::default();
+        for (id, road) in [("van", false), ("car", true)] {
+            config.assets.insert(
+                id.into(),
+                AssetOverrides {
+                    observer_baseline: Some(from_config),
+                    road: Some(road),
+                    ..AssetOverrides::default()
+                },
+            );
+        }
+        let service = PendingService {
+            charge_bar: 12.0,
+            set_ms: 5_000,
+            refusal: None,
+        };
+        for id in ["van", "car", "bus"] {
+            baselines
+                .set_service(None, &trends, id, Some(service.clone()))
+                .unwrap();
+        }
+        let law_of = |id: &str| {
+            baselines
+                .asset_config(&config, id)
+                .read_service
+                .unwrap()
+                .damping_law
+        };
+        // the configuration's baseline, when none was set over the API; none
+        // for a road asset (the road observer has no damping law) or a unit
+        // without a law
+        assert_eq!(law_of("van"), Some(unit_law()));
+        assert_eq!(law_of("car"), None);
+        assert_eq!(law_of("bus"), None);
+        // an API baseline takes the configuration's place, law or none
+        let api = StoredBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
+                damping_law: None,
+                ..from_config
+            }),
+            set_ms: 1_000,
+        };
+        baselines.set(None, &trends, "van", Some(api)).unwrap();
+        assert_eq!(law_of("van"), None);
     }
 
     fn read_of(b: &StoredBaseline) -> UnitBaseline {

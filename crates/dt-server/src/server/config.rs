@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use dt_core::charge::UnitBaseline;
+use dt_core::charge::{DampingLaw, UnitBaseline};
 use dt_core::log::Compression;
 use dt_core::road::RoadBaseline;
 
@@ -268,6 +268,12 @@ pub struct ServiceToRead {
     /// When the service was reported, ms since the Unix epoch (the run
     /// completes that service only, not one reported after it started).
     pub set_ms: i64,
+    /// The unit's own damping law, from its baseline before the service
+    /// ([`UnitBaseline::damping_law`]): a recharge does not change the
+    /// valves, so the unit is read with it and the baseline read keeps it.
+    /// None: the calibration's law.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub damping_law: Option<DampingLaw>,
 }
 
 /// `[assets.<id>]`: any key left out comes from `[defaults]`.

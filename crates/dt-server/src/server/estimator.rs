@@ -10,6 +10,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use dt_core::bundle::Bundle;
+use dt_core::charge::UnitBaseline;
 use dt_core::estimate::Estimate;
 use dt_core::estimator::{Estimator, EstimatorConfig};
 use dt_core::log::{RunMetadata, Sample};
@@ -93,6 +94,25 @@ impl EstimatorFactory {
         // A service reading takes every reversal: its sd conditions the unit
         // (a road asset's is read by the road observer instead).
         cfg.observer_fit_all = asset.read_service.is_some() && !asset.road;
+        // A service reading runs the unit's own law, when its baseline before
+        // the service had one that this model's calibration takes.
+        cfg.observer_damping_law = asset
+            .read_service
+            .and_then(|s| s.damping_law)
+            .filter(|law| {
+                let ok = self
+                    .bundle
+                    .physics()
+                    .observer
+                    .is_some_and(|o| o.with_unit_law(*law).is_ok());
+                if !ok {
+                    tracing::warn!(
+                        "the unit's own damping law is not of this model's calibration's form: \
+                     the service is read with the calibration's law"
+                    );
+                }
+                ok
+            });
         cfg
     }
 }
@@ -170,10 +190,16 @@ impl AssetTwin for EstimatorTwin {
         }
         let (charge_bar, reading) = self.service.as_ref()?;
         let params = self.est.bundle().physics().observer?;
+        let law = self.est.config().observer_damping_law;
         Some(
             reading
                 .finish(*charge_bar, &params)
-                .map(|r| AssetBaseline::Observer(r.baseline))
+                .map(|r| {
+                    AssetBaseline::Observer(UnitBaseline {
+                        damping_law: law,
+                        ..r.baseline
+                    })
+                })
                 .map_err(|e| e.to_string()),
         )
     }
