@@ -1044,7 +1044,8 @@ BASELINE_SETTLE_S = 60.0  # as `evaluate --settle-s`
 
 
 def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: float,
-                jobs: int = 2, unit_law: bool = False) -> dict[str, Any]:
+                jobs: int = 2, unit_law: bool = False,
+                second: tuple[float, Sequence[Path]] | None = None) -> dict[str, Any]:
     """The unit's ``observer_baseline`` from ``paths`` (runs of one unit at ``charge_bar``):
     each run's reading at its last excited tick, combined by inverse variance. The sd is
     what stays uncertain once the unit's offset is known: the filter's own variance, the
@@ -1058,24 +1059,57 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     (``train.damping_law.unit_law``), read the baseline with it and return it in the baseline
     as the unit's ``damping_law`` (beside it, ``unit_law``: the fit's windows and residuals):
     the law the unit is read with from then on (dt-core ``UnitBaseline::damping_law``:
-    ``shocktwin replay --observer-baseline``, ``evaluate --baseline``, the daemon)."""
+    ``shocktwin replay --observer-baseline``, ``evaluate --baseline``, the daemon).
+
+    ``second``: ``(charge, runs)``, the same unit's runs at another known charge (an
+    end-of-line test at two charges), read the same way into the baseline's ``second``
+    reading (dt-core ``UnitBaseline::second``); with ``unit_law`` the law is refitted on the
+    runs at both charges."""
     obs = physics["observer"]
     if obs.get("baseline"):
         raise SystemExit("the physics already carries a unit baseline: give the model's own")
     fit = None
+    all_paths = list(paths) + (list(second[1]) if second else [])
     if unit_law:
         from train.campaign import read_run
         from train.damping_law import unit_law as refit
 
         try:
-            fit = refit([read_run(p) for p in paths], physics)
+            fit = refit([read_run(p) for p in all_paths], physics)
         except (ValueError, OSError) as err:  # shocktwin's log errors are either
-            raise SystemExit(f"{', '.join(str(p) for p in paths)}: {err}") from None
+            raise SystemExit(f"{', '.join(str(p) for p in all_paths)}: {err}") from None
         obs = {**obs, "damping_law": fit["law"]}
         physics = {**physics, "observer": obs}
     # A unit's reading takes every reversal (as the daemon's service reading does): its sd
     # is what the baseline will condition the unit on.
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
+    first = _reading(physics, paths, jobs)
+    ob = {"charge_bar": float(charge_bar), "read_bar": first["read_bar"], "read_sd_bar": first["read_sd_bar"]}
+    ranges = first["ranges"]
+    runs = [{**r, "charge_bar": float(charge_bar)} for r in first["runs"]]
+    if second is not None:
+        other = _reading(physics, second[1], jobs)
+        # dt-core UnitBaseline::second
+        ob["second"] = {"charge_bar": float(second[0]), "read_bar": other["read_bar"],
+                        "read_sd_bar": other["read_sd_bar"]}
+        ranges = ranges + other["ranges"]
+        runs += [{**r, "charge_bar": float(second[0])} for r in other["runs"]]
+    if ranges:
+        # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
+        ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
+    out = {"observer_baseline": ob, "runs": runs,
+           "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
+    if fit is not None:
+        ob["damping_law"] = fit["law"]  # dt-core UnitBaseline::damping_law
+        out["unit_law"] = {"windows": fit["windows"], "residual_rms_mps2": fit["residual_rms_mps2"],
+                           "residual_before_mps2": fit["residual_before"], "residual_after_mps2": fit["residual_after"]}
+    return out
+
+
+def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int) -> dict[str, Any]:
+    """One reading of a unit at one known charge for ``baseline_of``: each run's reading,
+    combined by inverse variance; the runs, and the ``|ÿ_r|`` range of each run's reversals."""
+    obs = physics["observer"]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
     for path, (*_, own, _) in zip(paths, reads):
@@ -1100,20 +1134,9 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     m = np.array([x for _, x, _ in rows])
     mean = float(np.sum(w * m) / np.sum(w))
     spread = float(np.sum(w * (m - mean) ** 2) / np.sum(w)) if len(rows) > 1 else 0.0
-    sd = float(np.sqrt(1.0 / np.sum(w) + spread))
-    ob = {"charge_bar": float(charge_bar), "read_bar": mean, "read_sd_bar": sd}
-    if ranges:
-        # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
-        ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
-    out = {"observer_baseline": ob,
-           "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
-                    for (p, x, v), (_, _, d) in zip(rows, reads)],
-           "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
-    if fit is not None:
-        ob["damping_law"] = fit["law"]  # dt-core UnitBaseline::damping_law
-        out["unit_law"] = {"windows": fit["windows"], "residual_rms_mps2": fit["residual_rms_mps2"],
-                           "residual_before_mps2": fit["residual_before"], "residual_after_mps2": fit["residual_after"]}
-    return out
+    return {"read_bar": mean, "read_sd_bar": float(np.sqrt(1.0 / np.sum(w) + spread)), "ranges": ranges,
+            "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
+                     for (p, x, v), (_, _, d) in zip(rows, reads)]}
 
 
 def own_reversals(rev: dict[str, np.ndarray], obs: dict[str, Any]) -> int:
@@ -1257,7 +1280,13 @@ def cmd_baseline(args: argparse.Namespace) -> int:
     for p in args.runs:
         if not p.is_file():
             raise SystemExit(f"{p}: no such run log")
-    b = baseline_of(physics, args.runs, args.charge_bar, args.jobs, unit_law=args.unit_law)
+    if (args.second_charge_bar is None) != (not args.second_runs):
+        raise SystemExit("--second-charge-bar and --second-runs go together: the unit's runs at a second known charge")
+    for p in args.second_runs:
+        if not p.is_file():
+            raise SystemExit(f"{p}: no such run log")
+    second = (args.second_charge_bar, args.second_runs) if args.second_runs else None
+    b = baseline_of(physics, args.runs, args.charge_bar, args.jobs, unit_law=args.unit_law, second=second)
     args.out.write_text(json.dumps(b, indent=2) + "\n")
     ob = b["observer_baseline"]
     if "unit_law" in b:
@@ -1266,8 +1295,13 @@ def cmd_baseline(args: argparse.Namespace) -> int:
         print(f"the unit's own damping law from {u['windows']} reversal windows: median residual at the two ends "
               f"of the stroke (ÿ > 0 / ÿ < 0) {fmt(u['residual_before_mps2'])} m/s² with the calibration's law, "
               f"{fmt(u['residual_after_mps2'])} with the unit's")
+    also = ""
+    if "second" in ob:
+        s2 = ob["second"]
+        also = (f", and {s2['read_bar']:.2f} ± {s2['read_sd_bar']:.2f} bar at a known {s2['charge_bar']:g} bar "
+                f"({len(args.second_runs)} run(s))")
     print(f"unit baseline: read {ob['read_bar']:.2f} ± {ob['read_sd_bar']:.2f} bar at a known "
-          f"{ob['charge_bar']:g} bar ({len(args.runs)} run(s)); wrote {args.out}")
+          f"{ob['charge_bar']:g} bar ({len(args.runs)} run(s)){also}; wrote {args.out}")
     return 0
 
 
@@ -1359,6 +1393,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--unit-law", action="store_true",
                    help="refit the calibration's damping law on these runs' reversal windows first and read the "
                         "unit with it from then on (written in the baseline as its `damping_law`)")
+    b.add_argument("--second-charge-bar", type=float,
+                   help="a second known charge the unit was read at (an end-of-line test at two charges), bar gauge "
+                        "at 20 °C: one charge cannot tell the unit's friction offset from its seal gain, two can")
+    b.add_argument("--second-runs", nargs="+", type=Path, default=[], metavar="RUN",
+                   help="run logs of that unit at --second-charge-bar")
     b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
     t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
                                         "the calibration's (ObserverParams::transfer_bar_per_ln_accel)")

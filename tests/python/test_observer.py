@@ -446,11 +446,12 @@ def test_many_windows_at_once_are_each_window_alone() -> None:
 def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_campaign: tuple[Path, Path],
                                                                   tmp_path: Path) -> None:
     """Another unit (its seal scattered), read once at a known 12 bar: at 3 bar the interval
-    narrows and still covers the truth; the reading it was made from says how sure it is."""
+    narrows and still covers the truth; the reading it was made from says how sure it is.
+    Read at a second known charge too (`--second-charge-bar`, an end-of-line test at two
+    charges), the interval at 3 bar narrows further and still covers."""
     _, physics = calibrated_campaign
-    runs = simulate(tmp_path / "unit", "--pressures", "3,12", "--frequencies", "1", "--unit", "3")
-    run3, run12 = (r for r in runs if r.name.startswith("p3.0")), (r for r in runs if r.name.startswith("p12.0"))
-    run3, run12 = next(run3), next(run12)
+    runs = simulate(tmp_path / "unit", "--pressures", "3,6,12", "--frequencies", "1", "--unit", "3")
+    run3, run6, run12 = (next(r for r in runs if r.name.startswith(f"p{p}.0")) for p in (3, 6, 12))
     out = tmp_path / "unit3.json"
     assert obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(run12),
                           "--out", str(out)]) == 0
@@ -468,6 +469,23 @@ def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_cam
           f"{m1:.2f} ± {s1:.2f} bar")
     assert s1 < 0.8 * s0, f"baseline did not narrow the interval: {s0:.2f} -> {s1:.2f} bar"
     assert abs(m1 - 3.0) <= 1.96 * s1, f"3 bar read {m1:.2f} ± {s1:.2f} with the baseline"
+    # the same unit read at a second known charge as well
+    two = tmp_path / "unit3-two.json"
+    with pytest.raises(SystemExit, match="go together"):
+        obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(run12),
+                       "--second-charge-bar", "6", "--out", str(two)])
+    assert obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", "--second-charge-bar", "6",
+                          "--second-runs", str(run6), "--out", str(two), "--", str(run12)]) == 0
+    b2 = json.loads(two.read_text())["observer_baseline"]
+    at6 = obs_tool.baseline_of(params, [run6], 6.0, jobs=1)["observer_baseline"]
+    assert b2["second"] == {k: at6[k] for k in ("charge_bar", "read_bar", "read_sd_bar")}
+    assert {k: b2[k] for k in ("charge_bar", "read_bar", "read_sd_bar")} == \
+        {k: b["observer_baseline"][k] for k in ("charge_bar", "read_bar", "read_sd_bar")}
+    x, cols, t = shocktwin.features(run3, {**params, "observer": {**params["observer"], "baseline": b2}}, ["observer"])
+    m2, s2 = x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]
+    print(f"  with readings at 12 and 6 bar: {m2:.2f} ± {s2:.2f} bar")
+    assert s2 < s1, f"a second reading did not narrow the interval: {s1:.2f} -> {s2:.2f} bar"
+    assert abs(m2 - 3.0) <= 1.96 * s2, f"3 bar read {m2:.2f} ± {s2:.2f} with two readings"
     # a baseline is one unit's reading of a calibrated model: another model's is refused
     with pytest.raises(SystemExit, match="already carries a unit baseline"):
         obs_tool.baseline_of(with_b, [run12], 12.0, jobs=1)

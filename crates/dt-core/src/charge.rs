@@ -761,7 +761,11 @@ struct MeasurementTerms {
 /// `S² + (ρ p)²`. One known charge cannot tell the offset from the gain, so
 /// the update splits `e` between them in proportion to their prior
 /// variances: near `p₀` the interval shrinks to about `σ_b`, far from it
-/// only by what the offset explained.
+/// only by what the offset explained. On the simulated units what it leaves
+/// far from `p₀` is mostly the seal's gain (README, "Forty-first
+/// session"). A [`second`](Self::second) reading at another charge `p₁`
+/// is a second update of the same kind (`h = [1, p₁]`, the innovation
+/// `e₁ − h û`), which separates the two.
 ///
 /// The error it conditions is the shared measurement model's: once the
 /// estimate holds a reversal from an excitation with a model of its own
@@ -794,9 +798,38 @@ pub struct UnitBaseline {
     /// calibration's law.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub damping_law: Option<DampingLaw>,
+    /// A second reading of the unit at another known charge (an end-of-line
+    /// test on a dyno at two charges: `python -m train.observer baseline
+    /// --second-charge-bar`). One charge cannot tell the unit's offset from
+    /// its gain; two can: the update takes both readings. None: one reading.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub second: Option<BaselineReading>,
+}
+
+/// One reading of a unit at a known charge: the second one of a
+/// [`UnitBaseline`] (its first is the baseline's own three numbers).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BaselineReading {
+    /// The charge the unit was known to hold, bar gauge at 20 °C.
+    pub charge_bar: f64,
+    /// What the observer read meanwhile (no baseline applied), bar.
+    pub read_bar: f64,
+    /// Standard deviation of that reading from its reversals alone, bar.
+    pub read_sd_bar: f64,
 }
 
 impl UnitBaseline {
+    /// The baseline's readings: its own, then the second one if any.
+    fn readings(&self) -> impl Iterator<Item = BaselineReading> {
+        let first = BaselineReading {
+            charge_bar: self.charge_bar,
+            read_bar: self.read_bar,
+            read_sd_bar: self.read_sd_bar,
+        };
+        std::iter::once(first).chain(self.second)
+    }
+
     /// A baseline from a JSON document: the three numbers bare, or under
     /// `observer_baseline` with provenance beside them (what
     /// `python -m train.observer baseline` writes); checked. The error says
@@ -819,34 +852,35 @@ impl UnitBaseline {
         Ok(b)
     }
 
-    /// Checks the three numbers; the error names the first bad one.
+    /// Checks the numbers; the error names the first bad one.
     pub fn validate(&self) -> Result<(), PhysicsError> {
-        for (name, value, ok, reason) in [
-            (
-                "observer.baseline.charge_bar",
-                self.charge_bar,
-                true,
-                "must be finite",
-            ),
-            (
-                "observer.baseline.read_bar",
-                self.read_bar,
-                true,
-                "must be finite",
-            ),
-            (
-                "observer.baseline.read_sd_bar",
-                self.read_sd_bar,
-                self.read_sd_bar > 0.0,
-                "must be finite and positive",
-            ),
-        ] {
-            if !(value.is_finite() && ok) {
-                return Err(PhysicsError::InvalidParameter {
-                    name,
-                    value,
-                    reason,
-                });
+        const FIRST: [&str; 3] = [
+            "observer.baseline.charge_bar",
+            "observer.baseline.read_bar",
+            "observer.baseline.read_sd_bar",
+        ];
+        const SECOND: [&str; 3] = [
+            "observer.baseline.second.charge_bar",
+            "observer.baseline.second.read_bar",
+            "observer.baseline.second.read_sd_bar",
+        ];
+        for (r, names) in self.readings().zip([FIRST, SECOND]) {
+            for (i, value) in [r.charge_bar, r.read_bar, r.read_sd_bar]
+                .into_iter()
+                .enumerate()
+            {
+                let positive = i == 2;
+                if !value.is_finite() || (positive && value <= 0.0) {
+                    return Err(PhysicsError::InvalidParameter {
+                        name: names[i],
+                        value,
+                        reason: if positive {
+                            "must be finite and positive"
+                        } else {
+                            "must be finite"
+                        },
+                    });
+                }
             }
         }
         if let Some([lo, hi]) = self.accel_range_mps2 {
@@ -917,17 +951,21 @@ impl UnitCorrection {
         let Some(b) = p.baseline else {
             return prior;
         };
-        let p0 = b.charge_bar;
-        // Σ hᵀ and h Σ hᵀ + σ_b² for h = [1, p₀].
-        let (sh_f, sh_s) = (sff, sss * p0);
-        let s2 = sh_f + sh_s * p0 + b.read_sd_bar.powi(2);
-        let (k_f, k_s) = (sh_f / s2, sh_s / s2);
-        let e = b.read_bar - b.charge_bar;
-        Self {
-            offset_bar: k_f * e,
-            gain_rel: k_s * e,
-            cov: [sff - k_f * sh_f, -k_f * sh_s, sss - k_s * sh_s],
-        }
+        b.readings().fold(prior, |u, r| {
+            // One reading, `e = read − charge` of `h û` with `h = [1, p₀]`:
+            // Σ hᵀ, h Σ hᵀ + σ_b², the gain and the updated state.
+            let p0 = r.charge_bar;
+            let [sff, sfs, sss] = u.cov;
+            let (sh_f, sh_s) = (sff + sfs * p0, sfs + sss * p0);
+            let s2 = sh_f + sh_s * p0 + r.read_sd_bar.powi(2);
+            let (k_f, k_s) = (sh_f / s2, sh_s / s2);
+            let innovation = (r.read_bar - r.charge_bar) - (u.offset_bar + u.gain_rel * p0);
+            Self {
+                offset_bar: u.offset_bar + k_f * innovation,
+                gain_rel: u.gain_rel + k_s * innovation,
+                cov: [sff - k_f * sh_f, sfs - k_f * sh_s, sss - k_s * sh_s],
+            }
+        })
     }
 
     /// The corrected mean and the systematic variance at it.
@@ -3442,6 +3480,7 @@ mod tests {
             read_sd_bar: sd_b,
             accel_range_mps2: None,
             damping_law: None,
+            second: None,
         };
         let est = read(Some(b));
         let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
@@ -3472,6 +3511,7 @@ mod tests {
                 read_sd_bar: 0.1,
                 accel_range_mps2: None,
                 damping_law: None,
+                second: None,
             }),
             ..base
         })
@@ -3480,6 +3520,98 @@ mod tests {
             err.to_string().contains("observer.baseline.read_bar"),
             "{err}"
         );
+    }
+
+    /// A baseline with a second reading at another charge: the sequential
+    /// update equals the batch Gaussian posterior of both readings (the
+    /// information form); a unit whose error is all gain, read at 12 and
+    /// 4 bar, is read right at 2 bar with a narrower interval than one
+    /// reading at 12 gives; a bad second reading is refused by name; the
+    /// document parses.
+    #[test]
+    fn a_second_reading_at_another_charge_separates_offset_and_gain() {
+        use nalgebra::{Matrix2, Vector2};
+        let (sys, rel) = (1.99, 0.1);
+        let base = ObserverParams {
+            systematic_sd_bar: sys,
+            systematic_rel: rel,
+            ..params()
+        };
+        let read = |baseline: Option<UnitBaseline>| {
+            let mut obs = ChargeObserver::new(ObserverParams { baseline, ..base }).unwrap();
+            feed_ends(&mut obs, [40.0, 40.0], 400);
+            obs.estimate(obs.updated_ns.unwrap())
+        };
+        let raw = read(None);
+        // A unit that reads 20 % high, all of it gain: at 12 and 4 bar it
+        // reads 14.4 and 4.8; the raw reading `raw.mean_bar` is then taken as
+        // its reading at a true `raw.mean_bar / 1.2`.
+        let (first, second) = ((12.0, 14.4, 0.25), (4.0, 4.8, 0.3));
+        let one = UnitBaseline {
+            charge_bar: first.0,
+            read_bar: first.1,
+            read_sd_bar: first.2,
+            accel_range_mps2: None,
+            damping_law: None,
+            second: None,
+        };
+        let two = UnitBaseline {
+            second: Some(BaselineReading {
+                charge_bar: second.0,
+                read_bar: second.1,
+                read_sd_bar: second.2,
+            }),
+            ..one
+        };
+        let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
+        let mut info = prior.try_inverse().unwrap();
+        let mut score = Vector2::zeros();
+        for (p0, r, sd) in [first, second] {
+            let h = Vector2::new(1.0, p0);
+            info += h * h.transpose() / (sd * sd);
+            score += h * ((r - p0) / (sd * sd));
+        }
+        let post = info.try_inverse().unwrap();
+        let u = post * score;
+        let got = read(Some(two));
+        let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
+        assert!((got.mean_bar - mean).abs() < 1e-9, "{got:?} {mean}");
+        let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
+        let x = Vector2::new(1.0, mean);
+        let sd = (read_var / (1.0 + u[1]).powi(2) + (x.transpose() * post * x)[0]).sqrt();
+        assert!((got.sd_bar - sd).abs() < 1e-9, "{got:?} {sd}");
+        // right where one reading is not: the truth is raw / 1.2
+        let truth = raw.mean_bar / 1.2;
+        let single = read(Some(one));
+        assert!((got.mean_bar - truth).abs() < 0.3, "{got:?} {truth}");
+        assert!(
+            (got.mean_bar - truth).abs() < 0.5 * (single.mean_bar - truth).abs(),
+            "{got:?} {single:?} {truth}"
+        );
+        assert!(got.sd_bar < single.sd_bar, "{got:?} {single:?}");
+        // a bad second reading is named
+        let bad = UnitBaseline {
+            second: Some(BaselineReading {
+                read_sd_bar: 0.0,
+                ..two.second.unwrap()
+            }),
+            ..two
+        };
+        let err = ChargeObserver::new(ObserverParams {
+            baseline: Some(bad),
+            ..base
+        })
+        .unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("observer.baseline.second.read_sd_bar"),
+            "{err}"
+        );
+        let doc = serde_json::json!({"observer_baseline": {
+            "charge_bar": 12.0, "read_bar": 14.4, "read_sd_bar": 0.25,
+            "second": {"charge_bar": 4.0, "read_bar": 4.8, "read_sd_bar": 0.3},
+        }});
+        assert_eq!(UnitBaseline::from_document(doc).unwrap(), two);
     }
 
     /// A baseline that carries the unit's own damping law (`python -m
@@ -3497,6 +3629,7 @@ mod tests {
             read_sd_bar: 0.2,
             accel_range_mps2: Some([5.5, 6.5]),
             damping_law: Some(own),
+            second: None,
         };
         let base = ObserverParams {
             damping_law: a_law(),
@@ -3620,6 +3753,7 @@ mod tests {
                 read_sd_bar: 0.1,
                 accel_range_mps2: None,
                 damping_law: None,
+                second: None,
             }),
             ..p
         };
@@ -3662,6 +3796,7 @@ mod tests {
             read_sd_bar: 0.1,
             accel_range_mps2: Some([1.4, 1.6]),
             damping_law: None,
+            second: None,
         };
         let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {

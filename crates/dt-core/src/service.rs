@@ -216,9 +216,10 @@ impl ServiceReading {
                 read_bar: m,
                 read_sd_bar: sd_read,
                 accel_range_mps2: self.accel_range,
-                // the daemon reads with the calibration's law (a unit's own is
-                // refitted by `python -m train.observer baseline --unit-law`)
+                // the law the run was read with is the caller's to add (the
+                // daemon carries a unit's own through a service)
                 damping_law: None,
+                second: None,
             },
             drift_sd_bar: drift,
         })

@@ -317,6 +317,17 @@ impl PlantParams {
         out
     }
 
+    /// This unit with the one parameter `name` multiplied by `factor` (a
+    /// sensitivity study: `examples/unit_sensitivity.rs`); `None` for a name
+    /// not in [`Self::TABLE`].
+    #[must_use]
+    pub fn scaled(&self, name: &str, factor: f64) -> Option<Self> {
+        let i = Self::TABLE.iter().position(|p| p.name == name)?;
+        let mut out = self.clone();
+        *out.values_mut()[i] *= factor;
+        Some(out)
+    }
+
     /// Piston (bore) area, m².
     #[must_use]
     pub fn piston_area_m2(&self) -> f64 {

@@ -53,6 +53,9 @@ pub struct BaselineEntry {
     /// See [`UnitBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub damping_law: Option<dt_core::charge::DampingLaw>,
+    /// See [`UnitBaseline`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub second: Option<dt_core::charge::BaselineReading>,
     /// See [`RoadBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -75,6 +78,7 @@ impl From<StoredBaseline> for BaselineEntry {
             read_sd_bar: read.map(|u| u.read_sd_bar),
             accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
             damping_law: read.and_then(|u| u.damping_law),
+            second: read.and_then(|u| u.second),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
@@ -93,6 +97,7 @@ impl BaselineEntry {
                     read_sd_bar,
                     accel_range_mps2: self.accel_range_mps2,
                     damping_law: self.damping_law,
+                    second: self.second,
                 };
                 b.validate().map_err(|e| e.to_string())?;
                 AssetBaseline::Observer(b)
@@ -481,6 +486,7 @@ mod tests {
                 read_sd_bar: 0.65,
                 accel_range_mps2,
                 damping_law: None,
+                second: None,
             }),
             set_ms: 1_700_000_000_000,
         }
@@ -498,7 +504,16 @@ mod tests {
             }),
             set_ms: 1_700_000_000_001,
         };
-        for b in [observer, ranged, road] {
+        // with a second reading at another charge
+        let mut two = ranged;
+        if let AssetBaseline::Observer(u) = &mut two.baseline {
+            u.second = Some(dt_core::charge::BaselineReading {
+                charge_bar: 4.0,
+                read_bar: 3.4,
+                read_sd_bar: 0.3,
+            });
+        }
+        for b in [observer, ranged, two, road] {
             let json = serde_json::to_string(&BaselineEntry::from(b)).unwrap();
             let back: BaselineEntry = serde_json::from_str(&json).unwrap();
             assert_eq!(back.stored().unwrap(), b, "{json}");

@@ -74,6 +74,10 @@ pub struct BaselineView {
     /// calibration's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub own_damping_law: Option<bool>,
+    /// A second reading at another known charge
+    /// ([`dt_core::charge::UnitBaseline::second`]), when the baseline has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub second: Option<dt_core::charge::BaselineReading>,
     /// The unit's seal friction offset from the road calibration's, N.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -111,6 +115,7 @@ impl BaselineView {
             read_sd_bar: read.map(|u| u.read_sd_bar),
             accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
             own_damping_law: read.map(|u| u.damping_law.is_some()),
+            second: read.and_then(|u| u.second),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             source,
@@ -413,6 +418,7 @@ mod tests {
                 read_sd_bar: 0.5,
                 accel_range_mps2: None,
                 damping_law: Some(unit_law()),
+                second: None,
             }),
             set_ms: 1_000,
         };
@@ -457,6 +463,7 @@ mod tests {
             read_sd_bar: 0.3,
             accel_range_mps2: Some([1.4, 1.6]),
             damping_law: None,
+            second: None,
         };
         assert_eq!(
             baselines
@@ -517,6 +524,7 @@ mod tests {
             read_sd_bar: 0.2,
             accel_range_mps2: None,
             damping_law: Some(unit_law()),
+            second: None,
         };
         let mut config = Config::default();
         for (id, road) in [("van", false), ("car", true)] {

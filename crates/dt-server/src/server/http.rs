@@ -665,6 +665,7 @@ async fn put_service(
             read_sd_bar: 1.0,
             accel_range_mps2: None,
             damping_law: None,
+            second: None,
         })
     };
     if let Some(r) = refuse_here(&app, &id, &probe) {

@@ -145,18 +145,24 @@ impl AssetBaseline {
 impl std::fmt::Display for AssetBaseline {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Self::Observer(b) => write!(
-                f,
-                "observer read {:.2} ± {:.2} bar at a known {:.2} bar{}",
-                b.read_bar,
-                b.read_sd_bar,
-                b.charge_bar,
-                if b.damping_law.is_some() {
-                    ", with the unit's own damping law"
-                } else {
-                    ""
+            Self::Observer(b) => {
+                write!(
+                    f,
+                    "observer read {:.2} ± {:.2} bar at a known {:.2} bar",
+                    b.read_bar, b.read_sd_bar, b.charge_bar
+                )?;
+                if let Some(r) = b.second {
+                    write!(
+                        f,
+                        " and {:.2} ± {:.2} bar at a known {:.2} bar",
+                        r.read_bar, r.read_sd_bar, r.charge_bar
+                    )?;
                 }
-            ),
+                if b.damping_law.is_some() {
+                    write!(f, ", with the unit's own damping law")?;
+                }
+                Ok(())
+            }
             Self::Road(b) => write!(
                 f,
                 "road: seal offset {:+.2} N over {} blocks at a known {:.2} bar",

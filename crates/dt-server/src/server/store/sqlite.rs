@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
-use dt_core::charge::{DampingLaw, ObserverCounters, UnitBaseline};
+use dt_core::charge::{ObserverCounters, UnitBaseline};
 use dt_core::road::{RoadBaseline, RoadCounters};
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
@@ -25,7 +25,7 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 8;
+pub const SCHEMA_VERSION: i64 = 9;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
 const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
@@ -117,20 +117,29 @@ ALTER TABLE baselines ADD COLUMN accel_hi_mps2 REAL;
     r"
 ALTER TABLE baselines ADD COLUMN damping_law TEXT;
 ",
+    // A second reading at another known charge
+    // (`dt_core::charge::UnitBaseline::second`) as JSON, NULL: none.
+    r"
+ALTER TABLE baselines ADD COLUMN second TEXT;
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
 
-/// A baseline's `damping_law` column (JSON, NULL: none); a value this daemon
-/// cannot read is an error naming the column.
-fn law_column(r: &rusqlite::Row<'_>, i: usize) -> rusqlite::Result<Option<DampingLaw>> {
+/// A baseline's JSON column `name` (`damping_law`, `second`; NULL: none); a
+/// value this daemon cannot read is an error naming the column.
+fn json_column<T: serde::de::DeserializeOwned>(
+    r: &rusqlite::Row<'_>,
+    i: usize,
+    name: &str,
+) -> rusqlite::Result<Option<T>> {
     r.get::<_, Option<String>>(i)?
         .map(|text| {
             serde_json::from_str(&text).map_err(|e| {
                 rusqlite::Error::FromSqlConversionFailure(
                     i,
                     rusqlite::types::Type::Text,
-                    format!("baselines.damping_law: {e}").into(),
+                    format!("baselines.{name}: {e}").into(),
                 )
             })
         })
@@ -177,8 +186,8 @@ fn put_baseline(
         AssetBaseline::Observer(u) => tx.execute(
             &format!(
                 "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms, \
-                 accel_lo_mps2, accel_hi_mps2, damping_law) \
-                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8)"
+                 accel_lo_mps2, accel_hi_mps2, damping_law, second) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)"
             ),
             params![
                 asset_id,
@@ -190,6 +199,8 @@ fn put_baseline(
                 u.accel_range_mps2.map(|r| r[1]),
                 u.damping_law
                     .map(|l| serde_json::to_string(&l).expect("a law is plain numbers")),
+                u.second
+                    .map(|r| serde_json::to_string(&r).expect("a reading is plain numbers")),
             ],
         )?,
         AssetBaseline::Road(r) => tx.execute(
@@ -631,7 +642,7 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms, \
-                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law \
+                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law, b.second \
                  FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
             let mut all = stmt
@@ -647,7 +658,8 @@ impl FleetStore for SqliteStore {
                                     (Some(lo), Some(hi)) => Some([lo, hi]),
                                     _ => None,
                                 },
-                                damping_law: law_column(r, 7)?,
+                                damping_law: json_column(r, 7, "damping_law")?,
+                                second: json_column(r, 8, "second")?,
                             }),
                             set_ms: r.get(4)?,
                         },
@@ -744,6 +756,7 @@ impl FleetStore for SqliteStore {
 
 #[cfg(test)]
 mod tests {
+    use dt_core::charge::{BaselineReading, DampingLaw};
     use dt_core::estimate::Health;
 
     use super::*;
@@ -908,6 +921,7 @@ mod tests {
                 read_sd_bar: 0.7,
                 accel_range_mps2: Some([1.45, 1.61]),
                 damping_law: None,
+                second: None,
             }),
             set_ms: 1_700_000_000_000,
         };
@@ -927,6 +941,12 @@ mod tests {
                 read_sd_bar: 0.09,
                 accel_range_mps2: Some([5.8, 6.4]),
                 damping_law: Some(law),
+                // and a second reading at another charge, to the bit
+                second: Some(BaselineReading {
+                    charge_bar: 4.0,
+                    read_bar: 3.1 / 0.7,
+                    read_sd_bar: 0.123_456_789,
+                }),
             }),
             ..b
         };
@@ -976,6 +996,7 @@ mod tests {
                 read_sd_bar: 0.4,
                 accel_range_mps2: None,
                 damping_law: None,
+                second: None,
             }),
             set_ms: 1_700_000_000_000,
         };
