@@ -1282,6 +1282,13 @@ def cmd_baseline(args: argparse.Namespace) -> int:
             raise SystemExit(f"{p}: no such run log")
     if (args.second_charge_bar is None) != (not args.second_runs):
         raise SystemExit("--second-charge-bar and --second-runs go together: the unit's runs at a second known charge")
+    if args.second_runs and args.second_charge_bar == args.charge_bar:
+        raise SystemExit(f"--second-charge-bar {args.second_charge_bar:g} is --charge-bar: a second reading is at "
+                         "another charge (give runs at the same charge as more runs)")
+    both = {p.resolve() for p in args.runs} & {p.resolve() for p in args.second_runs}
+    if both:
+        raise SystemExit(f"{', '.join(sorted(str(p) for p in both))}: given at both charges (put --second-runs last, "
+                         "or end its list with `--`)")
     for p in args.second_runs:
         if not p.is_file():
             raise SystemExit(f"{p}: no such run log")
@@ -1397,7 +1404,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="a second known charge the unit was read at (an end-of-line test at two charges), bar gauge "
                         "at 20 °C: one charge cannot tell the unit's friction offset from its seal gain, two can")
     b.add_argument("--second-runs", nargs="+", type=Path, default=[], metavar="RUN",
-                   help="run logs of that unit at --second-charge-bar")
+                   help="run logs of that unit at --second-charge-bar (it takes every path after it: give it "
+                        "after the runs, or end its list with `--`)")
     b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
     t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
                                         "the calibration's (ObserverParams::transfer_bar_per_ln_accel)")

@@ -474,6 +474,13 @@ def test_a_unit_baseline_narrows_the_interval_and_it_still_covers(calibrated_cam
     with pytest.raises(SystemExit, match="go together"):
         obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(run12),
                        "--second-charge-bar", "6", "--out", str(two)])
+    # `--second-runs` takes every path after it: a run of the first charge swallowed is refused
+    with pytest.raises(SystemExit, match="given at both charges"):
+        obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(run12), "--out", str(two),
+                       "--second-charge-bar", "6", "--second-runs", str(run6), str(run12)])
+    with pytest.raises(SystemExit, match="at another charge"):
+        obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(run12), "--out", str(two),
+                       "--second-charge-bar", "12", "--second-runs", str(run6)])
     assert obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", "--second-charge-bar", "6",
                           "--second-runs", str(run6), "--out", str(two), "--", str(run12)]) == 0
     b2 = json.loads(two.read_text())["observer_baseline"]

@@ -844,8 +844,9 @@ impl UnitBaseline {
         let b: Self = serde_json::from_value(inner).map_err(|e| {
             format!(
                 "need charge_bar, read_bar and read_sd_bar (numbers, bar), \
-                 and optionally accel_range_mps2 ([lo, hi], m/s²) and damping_law \
-                 (the unit's own, as `observer.damping_law`): {e}"
+                 and optionally accel_range_mps2 ([lo, hi], m/s²), damping_law \
+                 (the unit's own, as `observer.damping_law`) and second (a reading at \
+                 another known charge: charge_bar, read_bar, read_sd_bar): {e}"
             )
         })?;
         b.validate().map_err(|e| e.to_string())?;
@@ -1492,7 +1493,10 @@ impl ObserverParams {
     /// does not change the valves; [`UnitBaseline::damping_law`]). Refused,
     /// as in a baseline, when the law is not of the calibration's form.
     pub fn with_unit_law(mut self, law: DampingLaw) -> Result<Self, PhysicsError> {
-        if !self.damping_law.is_calibrated() || law.form() != self.damping_law.form() {
+        if !self.damping_law.is_calibrated()
+            || !law.is_calibrated()
+            || law.form() != self.damping_law.form()
+        {
             return Err(PhysicsError::InvalidParameter {
                 name: "observer.damping_law",
                 value: f64::NAN,
@@ -1780,11 +1784,20 @@ impl ObserverParams {
                 }
             }
             if UnitCorrection::of(self).gain_rel <= -0.5 {
-                return Err(PhysicsError::InvalidParameter {
-                    name: "observer.baseline.read_bar",
-                    value: b.read_bar,
-                    reason: "is further below charge_bar than the systematic spread allows \
-                         (the unit's seal gain would halve): a wrong charge or another unit?",
+                return Err(match b.second {
+                    None => PhysicsError::InvalidParameter {
+                        name: "observer.baseline.read_bar",
+                        value: b.read_bar,
+                        reason: "is further below charge_bar than the systematic spread allows \
+                             (the unit's seal gain would halve): a wrong charge or another unit?",
+                    },
+                    Some(r) => PhysicsError::InvalidParameter {
+                        name: "observer.baseline.second.read_bar",
+                        value: r.read_bar,
+                        reason: "and the first reading together make the unit's seal gain \
+                             halve (the readings further below their charges than the \
+                             systematic spread allows): a wrong charge, or two units?",
+                    },
                 });
             }
         }
