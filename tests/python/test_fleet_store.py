@@ -257,6 +257,15 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     d.stop()
 
 
+def service_baseline(url: str) -> dict[str, Any]:
+    """The baseline a daemon read after a service (``url``: ``…/v1/assets/{id}``), once there."""
+    deadline = time.monotonic() + 20
+    while (b := httpx.get(f"{url}/baseline")).status_code != 200 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert b.status_code == 200, (b.text, httpx.get(f"{url}/service").text)
+    return dict(b.json())
+
+
 def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tmp_path: Path,
                                                       daemons: list[Daemon]) -> None:
     """A maintainer baselines an asset after a service with `PUT /v1/assets/{id}/baseline`
@@ -358,11 +367,7 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     assert r.status_code == 202, r.text
     shutil.copy(day.path, inbox3 / day.path.name)
     d4.wait_runs("dyno-unit-A", 2)
-    deadline = time.monotonic() + 20
-    while (b := httpx.get(f"{url}/baseline")).status_code != 200 and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert b.status_code == 200, (b.text, httpx.get(f"{url}/service").text)
-    got = b.json()
+    got = service_baseline(url)
     # (a service's reading is one reading: it replaces both)
     assert got["own_damping_law"] is True and got["charge_bar"] == day.label_bar and "second" not in got, got
     assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
@@ -437,11 +442,7 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     assert row["service"]["last_refusal"] == why and row["baseline"] is None, row
     shutil.copy(run, inbox / run.name)
     d2.wait_runs("dyno-unit-A", 3)
-    deadline = time.monotonic() + 20
-    while (b := httpx.get(f"{url}/baseline")).status_code != 200 and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert b.status_code == 200, (b.text, httpx.get(f"{url}/service").text)
-    got = b.json()
+    got = service_baseline(url)
     assert got["source"] == "api" and got["set_at"] == set_at and got["charge_bar"] == charge, got
     # the daemon takes onset and end from the excitation flag, the tool from the position (on
     # this run: the same reading, sd 0.1722 against 0.1722)

@@ -3466,6 +3466,29 @@ mod tests {
         );
     }
 
+    /// Test parameters with systematic spreads `sys` (bar) and `rel`, and a
+    /// reader of a unit's estimate under them with a baseline (400 reversals
+    /// each end at 40 N).
+    fn baseline_reader(
+        sys: f64,
+        rel: f64,
+    ) -> (
+        ObserverParams,
+        impl Fn(Option<UnitBaseline>) -> ChargeEstimate,
+    ) {
+        let base = ObserverParams {
+            systematic_sd_bar: sys,
+            systematic_rel: rel,
+            ..params()
+        };
+        let read = move |baseline: Option<UnitBaseline>| {
+            let mut obs = ChargeObserver::new(ObserverParams { baseline, ..base }).unwrap();
+            feed_ends(&mut obs, [40.0, 40.0], 400);
+            obs.estimate(obs.updated_ns.unwrap())
+        };
+        (base, read)
+    }
+
     /// A baseline at a known charge: the corrected mean and the interval are
     /// the Gaussian posterior of the unit's offset and gain, checked against
     /// the information form of the same update (a different formula), and
@@ -3475,16 +3498,7 @@ mod tests {
     fn a_baseline_conditions_the_units_offset_and_gain() {
         use nalgebra::{Matrix2, RowVector2, Vector2};
         let (sys, rel, sd_b) = (1.9, 0.1, 0.1);
-        let base = ObserverParams {
-            systematic_sd_bar: sys,
-            systematic_rel: rel,
-            ..params()
-        };
-        let read = |baseline: Option<UnitBaseline>| {
-            let mut obs = ChargeObserver::new(ObserverParams { baseline, ..base }).unwrap();
-            feed_ends(&mut obs, [40.0, 40.0], 400);
-            obs.estimate(obs.updated_ns.unwrap())
-        };
+        let (base, read) = baseline_reader(sys, rel);
         let raw = read(None);
         // Gauged at installation 2 bar below what this unit reads.
         let b = UnitBaseline {
@@ -3545,16 +3559,7 @@ mod tests {
     fn a_second_reading_at_another_charge_separates_offset_and_gain() {
         use nalgebra::{Matrix2, Vector2};
         let (sys, rel) = (1.99, 0.1);
-        let base = ObserverParams {
-            systematic_sd_bar: sys,
-            systematic_rel: rel,
-            ..params()
-        };
-        let read = |baseline: Option<UnitBaseline>| {
-            let mut obs = ChargeObserver::new(ObserverParams { baseline, ..base }).unwrap();
-            feed_ends(&mut obs, [40.0, 40.0], 400);
-            obs.estimate(obs.updated_ns.unwrap())
-        };
+        let (base, read) = baseline_reader(sys, rel);
         let raw = read(None);
         // A unit that reads 20 % high, all of it gain: at 12 and 4 bar it
         // reads 14.4 and 4.8; the raw reading `raw.mean_bar` is then taken as
