@@ -1493,10 +1493,7 @@ impl ObserverParams {
     /// does not change the valves; [`UnitBaseline::damping_law`]). Refused,
     /// as in a baseline, when the law is not of the calibration's form.
     pub fn with_unit_law(mut self, law: DampingLaw) -> Result<Self, PhysicsError> {
-        if !self.damping_law.is_calibrated()
-            || !law.is_calibrated()
-            || law.form() != self.damping_law.form()
-        {
+        if !self.takes_unit_law(&law) {
             return Err(PhysicsError::InvalidParameter {
                 name: "observer.damping_law",
                 value: f64::NAN,
@@ -1508,6 +1505,15 @@ impl ObserverParams {
         law.validate()?;
         self.damping_law = law;
         Ok(self)
+    }
+
+    /// Whether `law` can stand in for the calibration's: both calibrated, of
+    /// one form (the measurement model was calibrated on amplitudes fitted
+    /// with a law of that form).
+    fn takes_unit_law(&self, law: &DampingLaw) -> bool {
+        self.damping_law.is_calibrated()
+            && law.is_calibrated()
+            && law.form() == self.damping_law.form()
     }
 
     /// The damping law the window model runs: the unit's own, when its
@@ -1771,9 +1777,8 @@ impl ObserverParams {
         if let Some(b) = &self.baseline {
             b.validate()?;
             if let Some(own) = &b.damping_law {
-                // A unit's law stands in for the calibration's: the measurement
-                // model was calibrated on amplitudes fitted with a law of that form.
-                if !self.damping_law.is_calibrated() || own.form() != self.damping_law.form() {
+                // (its calibration was checked by `b.validate()` above)
+                if !self.takes_unit_law(own) {
                     return Err(PhysicsError::InvalidParameter {
                         name: "observer.baseline.damping_law",
                         value: f64::NAN,
