@@ -70,7 +70,7 @@ from pathlib import Path
 from typing import Any, Iterator, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import least_squares, minimize, minimize_scalar
 
 import shocktwin
 
@@ -1195,12 +1195,14 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
     and for every pair of one unit's runs whose excitations lie apart (either run's ``|ÿ_r|`` range
     outside the other's band), the difference of their errors. A baseline read on one and used on
     the other is off by that difference, which no interval held before. Each difference is
-    modelled as ``d_i ~ N(0, (κ L_i)² + n_i²)``: ``L_i`` the runs' distance in ``ln |ÿ_r|`` (as the
+    modelled as ``d_i ~ N(0, (κ L_i)² + n_i² + 2R²)``: ``L_i`` the runs' distance in ``ln |ÿ_r|`` (as the
     observer measures it, averaged over the two ways round), ``n_i`` the two readings' own noise
     (their variance from the reversals and the held model's, less the unit's systematic part: already
     in the baseline's and the reading's intervals); ``κ`` is its maximum-likelihood value (zero mean: a shift shared by the
     units is part of what a baseline misses). A run the observer barely read (a large ``n_i``) then
-    weighs little, where the plain RMS (reported beside it) takes its difference in full. Needs
+    weighs little, where the plain RMS (reported beside it) takes its difference in full. ``R`` is
+    each run's own error at ``charge_bar`` (``run_sd_bar``, ``run_rel``: measure it with
+    ``run_spread`` first; 0 without), which the interval carries apart. Needs
     units other than the calibration's: its one unit cannot say how units differ."""
     obs = physics["observer"]
     if obs.get("baseline"):
@@ -1237,9 +1239,11 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
     d = np.array([p["difference_bar"] for p in pairs])
     n = np.array([p["noise_sd_bar"] for p in pairs])
     ln_d = np.array([p["ln_distance"] for p in pairs])
+    # each run's own error (`run-spread`), when measured: not the excitation's
+    run2 = 2.0 * (obs.get("run_sd_bar", 0.0) ** 2 + (obs.get("run_rel", 0.0) * charge_bar) ** 2)
 
     def nll(log_kappa: float) -> float:
-        v = (np.exp(log_kappa) * ln_d) ** 2 + n ** 2
+        v = (np.exp(log_kappa) * ln_d) ** 2 + n ** 2 + run2
         return float(0.5 * np.sum(np.log(v) + d ** 2 / v))
 
     best = minimize_scalar(nll, bounds=(np.log(1e-3), np.log(50.0)), method="bounded", options={"xatol": 1e-6})
@@ -1247,6 +1251,135 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
             "mean_bar": float(np.mean(d)),
             "noise_rms_bar": float(np.sqrt(np.mean(n ** 2))), "units": len(per_unit), "pairs": pairs,
             "charge_bar": float(charge_bar)}
+
+
+def run_spread(physics: dict[str, Any], takes: Sequence[tuple[float, Path, Path]], unit_law: bool = False,
+               jobs: int = 2) -> dict[str, Any]:
+    """A baselined unit's run-to-run error (dt-core ``ObserverParams::run_sd_bar``), from takes
+    ``(charge, A, B)``: two runs of one unit at one known charge and one excitation. Each take is
+    read as a baseline and a later run would be: the baseline from ``A`` (with ``unit_law``, the
+    calibration's law refitted on ``A`` first, as ``baseline --unit-law`` does), ``B`` read with
+    the same law. Their difference at the last excited tick, ``d_i = e_B − e_A``, is what a later
+    run at the baseline's own charge would miss by (where the baseline's reading outweighs the
+    unit's prior, as it does at its charge); the interval already holds ``n_i² =`` A's
+    reading variance (its reversals and its drift, as ``baseline`` reports it) plus B's own
+    (its reversals). Each is modelled as ``d_i ~ N(0, n_i² + 2R(p_i)²)`` with ``R(p)² = R₀² +
+    (r p)²`` (each run carries its own; ``r``: what grows with the charge, as a gas temperature
+    read off from run to run does), and ``R₀²``, ``r²`` ≥ 0 are their maximum-likelihood values,
+    as ``transfer_spread`` does for ``κ`` (which assumes no ``R``). Takes at one charge cannot
+    tell the two apart: then ``r`` is 0. Needs units other than the calibration's, with takes of
+    their own run conditions."""
+    obs = physics["observer"]
+    if obs.get("baseline"):
+        raise SystemExit("the physics carries a unit baseline: give the model's own")
+    physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0, "run_sd_bar": 0.0, "run_rel": 0.0}}
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        got = list(progress(pool.map(_take_read, [(c, str(a), str(b), physics, unit_law) for c, a, b in takes]),
+                            total=len(takes), desc="takes"))
+    sys2, rel, band = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"], obs["accel_cluster_rel"]
+    pairs = []
+    for (charge, a, b), reads in zip(takes, got):
+        rows = []
+        for path, (m, sd, drift, own, span) in zip((a, b), reads):
+            if m is None or span is None:
+                raise SystemExit(f"{path}: no reversal read: no run spread from it")
+            if own:
+                raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its "
+                                 "own, where no baseline applies: give runs at the shared model's excitations")
+            rows.append((m, max(sd ** 2 - sys2 - (rel * m) ** 2, 1e-4), drift, span))
+        (ma, va, da, ra), (mb, vb, _, rb) = rows
+        if np.sqrt(va + da ** 2) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
+            raise SystemExit(f"{a}: the observer used (almost) no reversals (reading {ma:.2f} ± "
+                             f"{np.sqrt(va + da ** 2):.2f} bar from its reversals alone): no baseline from it")
+        if away(ra, rb, band) or away(rb, ra, band):
+            raise SystemExit(f"{a} and {b}: read at different excitations (|ÿ| {ra[0]:.1f}-{ra[1]:.1f} and "
+                             f"{rb[0]:.1f}-{rb[1]:.1f} m/s²): a take is two runs at one excitation "
+                             "(between excitations: `transfer`)")
+        pairs.append({"runs": [Path(a).name, Path(b).name], "charge_bar": float(charge),
+                      "error_a_bar": ma - charge, "error_b_bar": mb - charge, "difference_bar": mb - ma,
+                      "noise_sd_bar": float(np.sqrt(va + da ** 2 + vb))})
+    d = np.array([p["difference_bar"] for p in pairs])
+    n = np.array([p["noise_sd_bar"] for p in pairs])
+    r0, r_rel = fit_run_spread(d, n, np.array([p["charge_bar"] for p in pairs]))
+    return {"run_sd_bar": r0, "run_rel": r_rel, "rms_bar": float(np.sqrt(np.mean(d ** 2))),
+            "mean_bar": float(np.mean(d)), "noise_rms_bar": float(np.sqrt(np.mean(n ** 2))), "unit_law": unit_law,
+            "charges_bar": sorted({p["charge_bar"] for p in pairs}), "pairs": pairs}
+
+
+def fit_run_spread(d: np.ndarray, n: np.ndarray, charges: np.ndarray) -> tuple[float, float]:
+    """``(R₀, r)`` of ``run_spread``: the maximum-likelihood ``R₀², r² ≥ 0`` of ``d_i ~ N(0, n_i² +
+    2(R₀² + r² p_i²))``; ``r`` = 0 when every take is at one charge (nothing tells the two apart)."""
+    p2 = np.square(charges)
+    both = len(set(p2.tolist())) > 1
+
+    def nll(x: np.ndarray) -> float:
+        v = n ** 2 + 2.0 * (x[0] + x[1] * p2)
+        return float(0.5 * np.sum(np.log(v) + d ** 2 / v))
+
+    # R₀² and r² in units that keep them near 1 for the optimiser
+    scale = np.array([np.mean(n ** 2), np.mean(n ** 2) / np.mean(p2) if both else 0.0])
+    best = minimize(lambda y: nll(y * scale), np.array([0.5, 0.5 if both else 0.0]), method="L-BFGS-B",
+                    bounds=[(0.0, None), (0.0, None if both else 0.0)], options={"ftol": 1e-15, "gtol": 1e-12})
+    if not best.success:
+        raise SystemExit(f"run spread: the likelihood's maximum was not found ({best.message})")
+    r0, r_rel = np.sqrt(best.x * scale)
+    return float(r0), float(r_rel)
+
+
+def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple[Any, ...]]:
+    """One take of ``run_spread``: A's and B's readings (``_baseline_read``), with the law refitted
+    on A when asked."""
+    charge, a, b, physics, unit_law = args
+    if unit_law:
+        from train.campaign import read_run
+        from train.damping_law import unit_law as refit
+
+        try:
+            fit = refit([read_run(Path(a))], physics)
+        except (ValueError, OSError) as err:
+            raise SystemExit(f"{a}: {err}") from None
+        physics = {**physics, "observer": {**physics["observer"], "damping_law": fit["law"]}}
+    return [_baseline_read((p, physics)) for p in (a, b)]
+
+
+def cmd_run_spread(args: argparse.Namespace) -> int:
+    physics = json.loads(args.physics.read_text())
+    if not physics.get("observer"):
+        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    if len(args.take) < 2:
+        raise SystemExit(f"{len(args.take)} take: give at least two (units, or charges of one unit)")
+    takes = []
+    for charge, a, b in args.take:
+        try:
+            c = float(charge)
+        except ValueError:
+            c = float("nan")
+        if not (np.isfinite(c) and c > 0.0):
+            raise SystemExit(f"--take {charge} {a} {b}: the charge {charge!r} is not a charge (bar gauge, above 0)")
+        for p in (Path(a), Path(b)):
+            if not p.is_file():
+                raise SystemExit(f"{p}: no such run log")
+        if Path(a).resolve() == Path(b).resolve():
+            raise SystemExit(f"--take {charge} {a} {b}: one run twice: a take is two runs")
+        takes.append((c, Path(a), Path(b)))
+    t = run_spread(physics, takes, args.unit_law, args.jobs)
+    for p in t["pairs"]:
+        print(f"{p['runs'][1]} less {p['runs'][0]} at {p['charge_bar']:g} bar: {p['difference_bar']:+.2f} bar "
+              f"(the interval's {p['noise_sd_bar']:.2f})")
+    one = len(t["charges_bar"]) == 1
+    print(f"run spread: ±{t['run_sd_bar']:.3f} bar" + (" (one charge: nothing proportional to it measured)" if one
+                                                      else f" + {100 * t['run_rel']:.2f} % of the charge")
+          + f" per run (maximum likelihood beside the readings' own noise, RMS {t['noise_rms_bar']:.2f}) over "
+          f"{len(t['pairs'])} take(s); the differences' RMS {t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}"
+          f"{'; law refitted on each first take' if args.unit_law else ''}")
+    physics["observer"]["run_sd_bar"] = t["run_sd_bar"]
+    physics["observer"]["run_rel"] = t["run_rel"]
+    physics.setdefault("fit", {})["observer_run_spread"] = t | {
+        "note": "measured on units other than the calibration's (simulated data when made from shocktwin simulate)"}
+    out = args.out or args.physics
+    out.write_text(json.dumps(physics, indent=2) + "\n")
+    print(f"wrote {out}")
+    return 0
 
 
 def cmd_transfer(args: argparse.Namespace) -> int:
@@ -1416,7 +1549,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="one unit's runs at that charge, at two or more excitations (repeat per unit)")
     t.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
     t.add_argument("--jobs", type=int, default=2)
+    r = sub.add_parser("run-spread", help="a baselined unit's run-to-run error, from repeat takes of units other "
+                                          "than the calibration's (ObserverParams::run_sd_bar)")
+    r.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")
+    r.add_argument("--take", required=True, action="append", nargs=3, metavar=("CHARGE", "A", "B"),
+                   help="one unit's two runs at one known charge (bar gauge at 20 °C) and one excitation, with run "
+                        "conditions of their own: the baseline is read from A, B as a later run (repeat per take)")
+    r.add_argument("--unit-law", action="store_true",
+                   help="refit the damping law on each A first, as `baseline --unit-law` does")
+    r.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
+    r.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)
+    if args.cmd == "run-spread":
+        return cmd_run_spread(args)
     if args.cmd == "transfer":
         return cmd_transfer(args)
     if args.cmd == "fit":

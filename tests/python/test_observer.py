@@ -666,6 +666,77 @@ def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_e
         obs_tool.main([*args, "--unit", str(units[0][0]), str(units[1][0])])
 
 
+def test_a_units_run_spread_is_the_likeliest_spread_of_its_readings_between_takes(
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    """``observer run-spread``: two other units, each with two takes at a known 12 bar and 2 Hz
+    (run conditions of their own). Each take's difference is the one two baselines read from its
+    runs say; the run spread is the maximum-likelihood value of ``d ~ N(0, n² + 2R²)`` beside
+    the interval's own part ``n`` (the score is zero there, or ``R`` sits at 0 with a score
+    ≤ 0) and lands in the physics file, where the observer takes it. Takes at different
+    excitations, a single take and a charge that is no number are refused, named."""
+    _, physics = calibrated_campaign
+    takes = []
+    for unit in ("3", "4"):
+        a, b = (simulate(tmp_path / f"{unit}{k}", "--pressures", "12", "--frequencies", "2", "--unit", unit,
+                         "--seed", seed)[0] for k, seed in (("a", "21"), ("b", "22")))
+        takes.append((a, b))
+    out = tmp_path / "physics.json"
+    args = ["run-spread", "--physics", str(physics), "--out", str(out), "--jobs", "1"]
+    assert obs_tool.main([*args, *(x for a, b in takes for x in ("--take", "12", str(a), str(b)))]) == 0
+    got = json.loads(out.read_text())
+    base = json.loads(physics.read_text())
+    rec = got["fit"]["observer_run_spread"]
+    for (a, b), p in zip(takes, rec["pairs"]):
+        read = [obs_tool.baseline_of(base, [r], 12.0, jobs=1)["observer_baseline"] for r in (a, b)]
+        assert abs(p["difference_bar"] - (read[1]["read_bar"] - read[0]["read_bar"])) < 1e-6, (p, read)
+        assert p["noise_sd_bar"] >= read[0]["read_sd_bar"], (p, read)
+    r = got["observer"]["run_sd_bar"]
+    assert got["observer"]["run_rel"] == 0.0 and rec["charges_bar"] == [12.0], rec  # one charge: R₀ alone
+    d = np.array([p["difference_bar"] for p in rec["pairs"]])
+    v = np.square([p["noise_sd_bar"] for p in rec["pairs"]]) + 2.0 * r * r
+    score = float(np.sum((d ** 2 - v) / v ** 2))  # d/d(R₀²) of the log-likelihood
+    print(f"units 3 and 4 (simulated, quick): B less A {d[0]:+.2f}, {d[1]:+.2f} bar: run spread ±{r:.2f} bar")
+    if r == 0.0:
+        assert score <= 0.0, score
+    else:
+        assert abs(score) < 1e-3 * float(np.sum(1.0 / v ** 2)), (r, score)
+    # the observer reads with it: a baselined run's interval widens (and the baseline, less sure of
+    # its reading, corrects less)
+    ob = obs_tool.baseline_of(base, [takes[0][0]], 12.0, jobs=1)["observer_baseline"]
+    reads = []
+    for run_sd in (0.0, 0.5):
+        p = {**base, "observer": {**base["observer"], "baseline": ob, "run_sd_bar": run_sd}}
+        x, cols, _ = shocktwin.features(takes[0][1], p, ["observer"])
+        reads.append((x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")]))
+    assert reads[1][1] > max(reads[0][1], 0.5), reads
+    slow = simulate(tmp_path / "slow", "--pressures", "12", "--frequencies", "1", "--unit", "3", "--seed", "23")[0]
+    with pytest.raises(SystemExit, match="different excitations"):
+        obs_tool.main([*args, "--take", "12", str(takes[0][0]), str(slow), "--take", "12", *map(str, takes[1])])
+    with pytest.raises(SystemExit, match="1 take: give at least two"):
+        obs_tool.main([*args, "--take", "12", *map(str, takes[0])])
+    for bad in ("twelve", "nan", "-4"):
+        with pytest.raises(SystemExit, match=f"the charge '{bad}' is not a charge"):
+            obs_tool.main([*args, "--take", bad, *map(str, takes[0]), "--take", "12", *map(str, takes[1])])
+
+
+def test_the_run_spread_fit_finds_the_two_terms_it_was_drawn_with() -> None:
+    """``fit_run_spread`` on differences drawn from ``N(0, n² + 2(R₀² + r² p²))`` at two charges
+    gives ``R₀`` and ``r`` back (within their sampling error over 4,000 takes); differences no
+    larger than their noise give 0; one charge gives ``r`` = 0 and the ``R₀`` of its spread."""
+    rng = np.random.default_rng(3)
+    k = 4000
+    p = np.where(np.arange(k) % 2, 12.0, 4.0)
+    n = rng.uniform(0.05, 0.3, k)
+    d = rng.standard_normal(k) * np.sqrt(n ** 2 + 2.0 * (0.1 ** 2 + (0.02 * p) ** 2))
+    r0, r_rel = obs_tool.fit_run_spread(d, n, p)
+    assert abs(r0 - 0.1) < 0.02 and abs(r_rel - 0.02) < 0.002, (r0, r_rel)
+    assert obs_tool.fit_run_spread(0.5 * n * rng.standard_normal(k), n, p) == (0.0, 0.0)
+    one = np.full(k, 12.0)
+    d1 = rng.standard_normal(k) * np.sqrt(n ** 2 + 2.0 * 0.3 ** 2)
+    r0, r_rel = obs_tool.fit_run_spread(d1, n, one)
+    assert r_rel == 0.0 and abs(r0 - 0.3) < 0.02, (r0, r_rel)
+
+
 def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -> None:
     bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
     bad = tmp_path / "b.json"

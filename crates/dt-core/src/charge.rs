@@ -153,6 +153,15 @@
 //! used reversal from that range and `κ` measured on units other than the
 //! calibration's by `python -m train.observer transfer`.
 //!
+//! **A baselined unit from run to run** ([`ObserverParams::run_sd_bar`],
+//! [`ObserverParams::run_rel`]):
+//! one run's reading of a unit differs from another's at the same charge and
+//! excitation by more than their reversals say (the run's room and heat,
+//! a law fitted on one run). That error `R(p)` is no constant of the unit: it
+//! joins each baseline reading's variance and every later baselined run's,
+//! measured on repeat takes of units other than the calibration's by
+//! `python -m train.observer run-spread`.
+//!
 //! Two options change what each reversal or the interval carries (both off
 //! by default): `window_sd` takes `σ_α²` per reversal as the larger of
 //! `step_sd_n²` and its window fit's own variance of `α`; `stroke_ends`
@@ -368,6 +377,26 @@ pub struct ObserverParams {
     /// Systematic standard deviation per bar of the estimated charge (the
     /// unit-to-unit tolerance of the seal friction's pressure gain), 1.
     pub systematic_rel: f64,
+    /// `R₀`: a baselined unit's run-to-run error, bar — how far one run's
+    /// reading of a unit sits from another's at the same known charge and
+    /// excitation beyond their reversals' statistics (the run's room and
+    /// heat, the unit's own law fitted on one run), with
+    /// [`run_rel`](Self::run_rel): `R(p)² = R₀² + (r p)²`. It is not a
+    /// constant of the unit, so a [`UnitBaseline`] cannot condition it: each
+    /// baseline reading at `p₀` carries it (variance `read_sd_bar² +
+    /// R(p₀)²`) and so does every later run read with the baseline (its
+    /// systematic variance gains `R(p)²`). Without a baseline the
+    /// unconditioned spread already holds it (`systematic_sd_bar` is
+    /// measured leaving one run out). `python -m train.observer run-spread`
+    /// measures both on repeat takes of baselined units. 0 (the default, and
+    /// what a physics file written before this field means): none.
+    #[serde(default)]
+    pub run_sd_bar: f64,
+    /// `r`: the part of the run-to-run error that grows with the charge, per
+    /// bar of it, 1 (a gas temperature read a little off from run to run
+    /// moves the charge in proportion). 0 (the default): none.
+    #[serde(default)]
+    pub run_rel: f64,
     /// Prior mean of the charge, bar gauge.
     pub prior_mean_bar: f64,
     /// Prior standard deviation of the charge, bar.
@@ -749,18 +778,22 @@ struct MeasurementTerms {
 /// `u_s ~ N(0, ρ²)` its relative seal gain, `S` =
 /// [`systematic_sd_bar`](ObserverParams::systematic_sd_bar) and `ρ` =
 /// [`systematic_rel`](ObserverParams::systematic_rel). A baseline observes
-/// `e(p₀) = read_bar − charge_bar` with variance `read_sd_bar²`; the
-/// Gaussian update with `h = [1, p₀]`,
+/// `e(p₀) = read_bar − charge_bar` with variance `σ_b² = read_sd_bar² +
+/// R(p₀)²` (`R(p)² = R₀² + (r p)²`, [`run_sd_bar`](ObserverParams::run_sd_bar)
+/// and [`run_rel`](ObserverParams::run_rel): the reading run's own error,
+/// which is no constant of the unit); the Gaussian update with
+/// `h = [1, p₀]`,
 ///
 /// ```text
 /// Σ = diag(S², ρ²),  k = Σ hᵀ / (h Σ hᵀ + σ_b²),  û = k e,  Σ' = Σ − k h Σ
 /// ```
 ///
 /// gives the unit's correction: the reported mean is `(p̂ − û_f) / (1 + û_s)`
-/// and the systematic variance `[1, p] Σ' [1, p]ᵀ` instead of
-/// `S² + (ρ p)²`. One known charge cannot tell the offset from the gain, so
-/// the update splits `e` between them in proportion to their prior
-/// variances: near `p₀` the interval shrinks to about `σ_b`, far from it
+/// and the systematic variance `[1, p] Σ' [1, p]ᵀ + R(p)²` (the later run's
+/// own error) instead of `S² + (ρ p)²`. One known charge cannot tell the
+/// offset from the gain, so the update splits `e` between them in
+/// proportion to their prior variances: near `p₀` the systematic part
+/// shrinks to about `√(σ_b² + R(p₀)²)`, far from it
 /// only by what the offset explained. On the simulated units what it leaves
 /// far from `p₀` is mostly the seal's gain (README, "Forty-first
 /// session"). A [`second`](Self::second) reading at another charge `p₁`
@@ -939,6 +972,9 @@ struct UnitCorrection {
     gain_rel: f64,
     /// `Σ'` as `[Σ_ff, Σ_fs, Σ_ss]`.
     cov: [f64; 3],
+    /// `[R₀², r²]`, a run's own error ([`ObserverParams::run_sd_bar`],
+    /// [`ObserverParams::run_rel`]): `R(p)² = R₀² + r² p²`, bar².
+    run_var: [f64; 2],
 }
 
 impl UnitCorrection {
@@ -948,6 +984,7 @@ impl UnitCorrection {
             offset_bar: 0.0,
             gain_rel: 0.0,
             cov: [sff, 0.0, sss],
+            run_var: [p.run_sd_bar.powi(2), p.run_rel.powi(2)],
         };
         let Some(b) = p.baseline else {
             return prior;
@@ -958,22 +995,32 @@ impl UnitCorrection {
             let p0 = r.charge_bar;
             let [sff, sfs, sss] = u.cov;
             let (sh_f, sh_s) = (sff + sfs * p0, sfs + sss * p0);
-            let s2 = sh_f + sh_s * p0 + r.read_sd_bar.powi(2);
+            let s2 = sh_f + sh_s * p0 + r.read_sd_bar.powi(2) + u.run_var(p0);
             let (k_f, k_s) = (sh_f / s2, sh_s / s2);
             let innovation = (r.read_bar - r.charge_bar) - (u.offset_bar + u.gain_rel * p0);
             Self {
                 offset_bar: u.offset_bar + k_f * innovation,
                 gain_rel: u.gain_rel + k_s * innovation,
                 cov: [sff - k_f * sh_f, sfs - k_f * sh_s, sss - k_s * sh_s],
+                ..u
             }
         })
     }
 
-    /// The corrected mean and the systematic variance at it.
+    /// The corrected mean and the systematic variance at it (the run's own
+    /// error included).
     fn apply(&self, read_bar: f64) -> (f64, f64) {
         let mean = (read_bar - self.offset_bar) / (1.0 + self.gain_rel);
         let [sff, sfs, sss] = self.cov;
-        (mean, sff + 2.0 * sfs * mean + sss * mean * mean)
+        (
+            mean,
+            sff + 2.0 * sfs * mean + sss * mean * mean + self.run_var(mean),
+        )
+    }
+
+    /// `R(p)²`, a run's own error at a charge `p`, bar².
+    fn run_var(&self, p_bar: f64) -> f64 {
+        self.run_var[0] + self.run_var[1] * p_bar * p_bar
     }
 }
 
@@ -1458,6 +1505,8 @@ impl Default for ObserverParams {
             cold_ref_c: DEFAULT_COLD_REF_C,
             systematic_sd_bar: 1.0,
             systematic_rel: 0.0,
+            run_sd_bar: 0.0,
+            run_rel: 0.0,
             prior_mean_bar: 6.0,
             prior_sd_bar: 6.0,
             random_walk_bar2_per_s: 1.0e-4,
@@ -1856,6 +1905,8 @@ impl ObserverParams {
             ),
             ("observer.systematic_sd_bar", self.systematic_sd_bar),
             ("observer.systematic_rel", self.systematic_rel),
+            ("observer.run_sd_bar", self.run_sd_bar),
+            ("observer.run_rel", self.run_rel),
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             ("observer.single_end_sd_bar", self.single_end_sd_bar),
             ("observer.held_sd_bar", self.held_sd_bar),
@@ -3552,6 +3603,82 @@ mod tests {
             err.to_string().contains("observer.baseline.read_bar"),
             "{err}"
         );
+    }
+
+    /// A run's own error `R(p)² = R₀² + (r p)²` (`run_sd_bar`, `run_rel`)
+    /// is no constant of the unit: it joins each baseline reading's variance
+    /// (at its charge) and every later run's (at its reading), checked
+    /// against the information form with `σ_b² + R(p₀)²` per reading and
+    /// `+ R(p)²` after; without a baseline it changes nothing.
+    #[test]
+    fn a_runs_own_error_is_carried_by_each_reading_and_each_later_run() {
+        use nalgebra::{Matrix2, Vector2};
+        let (sys, rel, run0, run_rel) = (1.99, 0.1, 0.1, 0.02);
+        let run_var = |p: f64| run0 * run0 + (run_rel * p).powi(2);
+        let (base, _) = baseline_reader(sys, rel);
+        let read = |baseline: Option<UnitBaseline>, run: [f64; 2]| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                run_sd_bar: run[0],
+                run_rel: run[1],
+                baseline,
+                ..base
+            })
+            .unwrap();
+            feed_ends(&mut obs, [40.0, 40.0], 400);
+            obs.estimate(obs.updated_ns.unwrap())
+        };
+        let raw = read(None, [0.0, 0.0]);
+        assert_eq!(read(None, [run0, run_rel]), raw);
+        let (first, second) = ((12.0, 13.1, 0.2), (4.0, 4.5, 0.25));
+        let two = UnitBaseline {
+            charge_bar: first.0,
+            read_bar: first.1,
+            read_sd_bar: first.2,
+            accel_range_mps2: None,
+            damping_law: None,
+            second: Some(BaselineReading {
+                charge_bar: second.0,
+                read_bar: second.1,
+                read_sd_bar: second.2,
+            }),
+        };
+        let mut info = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel)
+            .try_inverse()
+            .unwrap();
+        let mut score = Vector2::zeros();
+        for (p0, r, sd) in [first, second] {
+            let (h, var) = (Vector2::new(1.0, p0), sd * sd + run_var(p0));
+            info += h * h.transpose() / var;
+            score += h * ((r - p0) / var);
+        }
+        let post = info.try_inverse().unwrap();
+        let u = post * score;
+        let got = read(Some(two), [run0, run_rel]);
+        let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
+        assert!((got.mean_bar - mean).abs() < 1e-9, "{got:?} {mean}");
+        let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
+        let x = Vector2::new(1.0, mean);
+        let sd = (read_var / (1.0 + u[1]).powi(2) + (x.transpose() * post * x)[0] + run_var(mean))
+            .sqrt();
+        assert!((got.sd_bar - sd).abs() < 1e-9, "{got:?} {sd}");
+        // wider than without it, and never narrower than the run's own error
+        let without = read(Some(two), [0.0, 0.0]);
+        assert!(
+            got.sd_bar > without.sd_bar && got.sd_bar > run_var(mean).sqrt(),
+            "{got:?} {without:?}"
+        );
+        for (name, run) in [
+            ("observer.run_sd_bar", [-0.1, 0.0]),
+            ("observer.run_rel", [0.0, f64::NAN]),
+        ] {
+            let err = ChargeObserver::new(ObserverParams {
+                run_sd_bar: run[0],
+                run_rel: run[1],
+                ..base
+            })
+            .unwrap_err();
+            assert!(err.to_string().contains(name), "{err}");
+        }
     }
 
     /// A baseline with a second reading at another charge: the sequential
