@@ -636,6 +636,30 @@ impl Partition {
         Ok(())
     }
 
+    /// A new run's twin for `asset`, and the pending service it reads the
+    /// unit for (a road asset's by the road observer, any other's by the dyno
+    /// observer when the bundle has one).
+    fn start_twin(
+        &self,
+        asset: &str,
+    ) -> Result<(Estimator, Option<(ServiceToRead, ServiceReading)>), Refused> {
+        let asset_cfg = self.ctx.baselines.asset_config(&self.ctx.config, asset);
+        let twin = self.ctx.factory.estimator_of(asset, &asset_cfg);
+        let mut est = twin.map_err(|e| {
+            Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
+        })?;
+        let mut service = None;
+        if let Some(s) = asset_cfg.read_service {
+            if est.road().is_some() {
+                est = est.read_road_baseline(s.charge_bar);
+                service = Some((s, ServiceReading::new()));
+            } else if est.observer().is_some() {
+                service = Some((s, ServiceReading::new()));
+            }
+        }
+        Ok((est, service))
+    }
+
     async fn apply(&mut self, b: TelemetryBatch) -> Result<(), Refused> {
         let asset = b.asset_id.clone();
         if b.batch == 0 {
@@ -657,19 +681,7 @@ impl Partition {
             let meta = b
                 .metadata()
                 .map_err(|e| Refused::Input(e.kind(), e.to_string()))?;
-            let asset_cfg = self.ctx.baselines.asset_config(&self.ctx.config, &asset);
-            let mut est = self.ctx.factory.estimator_for(&asset_cfg).map_err(|e| {
-                Refused::Input("twin", format!("cannot start the twin for `{asset}`: {e}"))
-            })?;
-            let mut service = None;
-            if let Some(s) = asset_cfg.read_service {
-                if est.road().is_some() {
-                    est = est.read_road_baseline(s.charge_bar);
-                    service = Some((s, ServiceReading::new()));
-                } else if est.observer().is_some() {
-                    service = Some((s, ServiceReading::new()));
-                }
-            }
+            let (est, service) = self.start_twin(&asset)?;
             let mut map = meta.to_map();
             map.remove("asset_id");
             map.remove("run_id");

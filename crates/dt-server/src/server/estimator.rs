@@ -77,6 +77,12 @@ impl EstimatorFactory {
         }
     }
 
+    /// [`estimator_for`](Self::estimator_for) asset `id`: what setting it up
+    /// warns of names the asset.
+    pub fn estimator_of(&self, id: &str, asset: &AssetConfig) -> Result<Estimator, TwinError> {
+        tracing::warn_span!("asset", id).in_scope(|| self.estimator_for(asset))
+    }
+
     /// The bundle.
     #[must_use]
     pub fn bundle(&self) -> &Arc<Bundle> {
@@ -120,10 +126,10 @@ impl EstimatorFactory {
 impl TwinFactory for EstimatorFactory {
     fn create(
         &self,
-        _meta: &RunMetadata,
+        meta: &RunMetadata,
         asset: &AssetConfig,
     ) -> Result<Box<dyn AssetTwin>, TwinError> {
-        let mut est = self.estimator_for(asset)?;
+        let mut est = self.estimator_of(&meta.asset_id, asset)?;
         let mut service = None;
         if let Some(s) = asset.read_service {
             // a road asset's unit is read by the road observer (its blocks),

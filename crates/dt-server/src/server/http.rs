@@ -521,7 +521,7 @@ fn refuse_baseline(
         AssetBaseline::Observer(u) => asset.observer_baseline = Some(u),
     }
     model
-        .estimator_for(&asset)
+        .estimator_of(id, &asset)
         .err()
         .map(|e| format!("the model cannot use this baseline: {e}"))
 }
