@@ -1374,9 +1374,14 @@ def cmd_run_spread(args: argparse.Namespace) -> int:
           f"{'; law refitted on each first take' if args.unit_law else ''}")
     physics["observer"]["run_sd_bar"] = t["run_sd_bar"]
     physics["observer"]["run_rel"] = t["run_rel"]
-    physics.setdefault("fit", {})["observer_run_spread"] = t | {
+    return _write_measured(physics, "observer_run_spread", t, args.out or args.physics)
+
+
+def _write_measured(physics: dict[str, Any], key: str, record: dict[str, Any], out: Path) -> int:
+    """Writes ``physics`` to ``out`` with ``record`` (a term measured on other units) under
+    ``fit.<key>``."""
+    physics.setdefault("fit", {})[key] = record | {
         "note": "measured on units other than the calibration's (simulated data when made from shocktwin simulate)"}
-    out = args.out or args.physics
     out.write_text(json.dumps(physics, indent=2) + "\n")
     print(f"wrote {out}")
     return 0
@@ -1398,12 +1403,7 @@ def cmd_transfer(args: argparse.Namespace) -> int:
           f"likelihood beside the readings' own noise, RMS {t['noise_rms_bar']:.2f}) over {len(t['pairs'])} pair(s) of "
           f"{t['units']} unit(s); the differences' RMS {t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}")
     physics["observer"]["transfer_bar_per_ln_accel"] = k
-    physics.setdefault("fit", {})["observer_transfer"] = t | {
-        "note": "measured on units other than the calibration's (simulated data when made from shocktwin simulate)"}
-    out = args.out or args.physics
-    out.write_text(json.dumps(physics, indent=2) + "\n")
-    print(f"wrote {out}")
-    return 0
+    return _write_measured(physics, "observer_transfer", t, args.out or args.physics)
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
