@@ -345,13 +345,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, settle_s: float,
              jobs: int, baselines: dict[str, dict[str, Any]] | None = None,
-             observed: dict[str, Observed] | None = None) -> list[str]:
+             observed: dict[str, Observed] | None = None,
+             observed_baselined: dict[str, dict[str, Observed]] | None = None) -> list[str]:
     """Scores the observer of ``physics`` on every run of the held-out campaigns ``set_dirs``
     (name → directory), draws ``observer_bound.png`` and ``observer_runs.png`` into ``out`` and
     writes ``observer.md`` / ``observer.json`` there; returns the Markdown lines. A set named
     in ``baselines`` is scored with that unit baseline (``train.observer baseline``'s output),
     without the runs it was made from. ``observed`` (run path → its observer columns with
-    ``physics``, computed already) spares recomputing them for the sets without a baseline."""
+    ``physics``, computed already) spares recomputing them for the sets without a baseline;
+    ``observed_baselined`` (set name → run path → its columns with that set's baseline) likewise
+    for the baselined sets."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -368,7 +371,8 @@ def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, sett
             if run.path.name in own:
                 log.info("%s: %s made the unit baseline: not scored", name, run.path.name)
                 continue
-            tasks.append((str(run.path), name, set_physics, settle, None if b else (observed or {}).get(str(run.path))))
+            given = (observed_baselined or {}).get(name, {}) if b else (observed or {})
+            tasks.append((str(run.path), name, set_physics, settle, given.get(str(run.path))))
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         rows = list(progress(pool.map(score_run, tasks), total=len(tasks), desc="scoring", unit="run"))
     out.mkdir(parents=True, exist_ok=True)

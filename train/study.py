@@ -41,7 +41,7 @@ import numpy as np
 import shocktwin
 
 from train import dataset, evaluate, model, observer_report
-from train.campaign import CampaignError, load_campaign, main_wrapper
+from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper
 from train.fit_physics import calibrate, print_report, save_figures
 
 log = logging.getLogger("shocktwin.study")
@@ -207,7 +207,7 @@ def campaign_seed(campaign: Any) -> int | None:
 def generalisation(
     binary: str | None, out: Path, perms: Sequence[dict[str, Any]], models: dict[Any, model.Trained],
     data: dataset.CampaignData, cfg: Settings, quick: bool,
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, dataset.CampaignData]]:
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, dataset.CampaignData], dict[str, Any] | None]:
     """Scores of the whole-campaign networks on new simulated sets, and the oracle bound.
 
     Sets (``shocktwin simulate``): a second unit and unseen conditions on the campaign's own
@@ -219,9 +219,14 @@ def generalisation(
     it has seen every test condition, never the test runs, so it cannot memorise them; what it misses, these inputs do not carry across
     realisations (an estimate of the bound, with this network and budget). It is the best
     of ``ORACLE_ATTEMPTS`` training seeds, scored on the test runs: optimistic on purpose.
-    Also returns the simulated sets by name, with the feature tables computed for them."""
+    The networks that read the observer are also scored on the second unit after one service
+    (``UNIT_BASELINED``): its run at the nominal charge and the slowest excitation read as its
+    baseline (``service_baseline``), as a fleet's service gives it, and the unit's other runs read
+    with it — what the daemon reports for a serviced unit (SPEC §2a).
+    Also returns the simulated sets by name, with the feature tables computed for them, and the
+    service baseline (None when no network reads the observer or the unit gives none)."""
     if binary is None:
-        return [], [], {}
+        return [], [], {}, None
     seed = campaign_seed(data.campaign)
     rig = rig_seed(data, cfg)
     unseen = ["--pressures", UNSEEN_PRESSURES, "--frequencies", UNSEEN_FREQUENCIES]
@@ -236,13 +241,22 @@ def generalisation(
     sim = {key: dataset.CampaignData(load_campaign(simulate(binary, out / key, extra, quick, s)), data.physics)
            for key, (_, extra, s) in sets.items()}
     log.info("generalisation sets simulated: %.0f s", time.perf_counter() - t0)
+    service = None
+    if any(p["key"] in models and "observer" in p["groups"] for p in perms):
+        t0 = time.perf_counter()
+        service = service_baseline(data.physics, out / "unit", cfg.jobs)
+        if service is not None:
+            sim[UNIT_BASELINED] = after_service(sim["unit"], service)
+            sets[UNIT_BASELINED] = (f"second unit after one service (its {service['runs'][0]['file']} read as its "
+                                    "baseline, not scored)", [], rig)
+        log.info("the second unit's service baseline: %.0f s", time.perf_counter() - t0)
     t0 = time.perf_counter()
     rows = []
     for key, (name, _, _) in sets.items():
         if key == "oracle_train":
             continue
         for perm in perms:
-            if perm["key"] not in models:
+            if perm["key"] not in models or (key == UNIT_BASELINED and "observer" not in perm["groups"]):
                 continue
             tabs = sim[key].tables(perm["groups"])
             exc = sim[key].excited_for(tabs)
@@ -278,7 +292,20 @@ def generalisation(
                        "train_runs": [t.run.name for t in data.tables(perm["groups"])]
                        + [f"oracle/{t.run.name}" for t in sim["oracle_train"].tables(perm["groups"])]})
     log.info("%d oracle fits: %.0f s", len(tasks), time.perf_counter() - t0)
-    return rows, oracle, sim
+    return rows, oracle, sim, service
+
+
+def after_service(unit: dataset.CampaignData, service: dict[str, Any]) -> dataset.CampaignData:
+    """The runs of ``unit`` as the twin reads them after the service whose baseline is
+    ``service`` (``train.observer.baseline_of``'s output): the observer conditioned on it (the
+    physics' ``observer.baseline``, as ``shocktwin replay --observer-baseline`` and the daemon
+    apply it), without the runs the baseline was read from."""
+    own = {r["file"] for r in service["runs"]}
+    runs = [r for r in unit.campaign.runs if r.path.name not in own]
+    if not runs:
+        raise ValueError(f"{unit.campaign.root}: every run made the baseline: none left to score after the service")
+    physics = {**unit.physics, "observer": {**unit.physics["observer"], "baseline": service["observer_baseline"]}}
+    return dataset.CampaignData(Campaign(unit.campaign.root, runs), physics)
 
 
 # ---------------------------------------------------------------------------------------
@@ -489,6 +516,8 @@ def targets_section(gen: list[dict[str, Any]], oracle: list[dict[str, Any]]) -> 
     """The issue's targets on unseen conditions, beside the oracle bound and a verdict."""
     unseen = {g["perm"]["id"]: g for g in gen if g["key"] == "unseen"}
     other = {g["perm"]["id"]: g for g in gen if g["key"] == "unseen_rig"}
+    unit = {g["perm"]["id"]: g for g in gen if g["key"] == "unit"}
+    serviced = {g["perm"]["id"]: g for g in gen if g["key"] == UNIT_BASELINED}
     bound = {o["perm"]["id"]: o for o in oracle}
     if not unseen:
         return []
@@ -500,9 +529,17 @@ def targets_section(gen: list[dict[str, Any]], oracle: list[dict[str, Any]]) -> 
          "every test condition but not the test runs, so it cannot memorise them. "
          "What even the oracle misses, these inputs do not carry from one realisation to the next (an estimate "
          "of the bound with this network and training budget, not a proof). Targets 11 and 14–16 are ours "
-         "(11 and 14 carry model 12's target, 15–16 model 13's).\n",
-         "| id | inputs | target | ours | ours, 1 s avg | another rig | oracle | oracle, 1 s avg | verdict |",
-         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+         "(11 and 14 carry model 12's target, 15–16 model 13's). The verdict is the unseen set's. *second unit*: "
+         "the campaign's conditions on another unit of the model; *after one service*: the same unit once its "
+         "nominal-charge run at the slowest excitation has been read as its baseline (that run not scored; only "
+         "the networks that read the observer use a baseline), 1 s average in brackets.\n",
+         "| id | inputs | target | ours | ours, 1 s avg | another rig | second unit | after one service | oracle "
+         "| oracle, 1 s avg | verdict |",
+         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+
+    def both(g: dict[str, Any] | None) -> str:
+        return "–" if g is None else f"{fmt(g['rmse_bar'])} ({fmt(g['rmse_avg_bar'])})"
+
     for pid, t in TARGETS_BAR.items():
         g = unseen.get(pid)
         if g is None:
@@ -518,7 +555,7 @@ def targets_section(gen: list[dict[str, Any]], oracle: list[dict[str, Any]]) -> 
             verdict = "not met"
         L.append(f"| {pid} | {', '.join(g['perm']['groups'])} | {t} | {fmt(g['rmse_bar'])} | "
                  f"{fmt(g['rmse_avg_bar'])} | {fmt(other[pid]['rmse_bar']) if pid in other else '–'} | "
-                 f"{fmt(o['rmse_bar']) if o else '–'} | {fmt(o['rmse_avg_bar']) if o else '–'} | {verdict} |")
+                 f"{both(unit.get(pid))} | {both(serviced.get(pid))} | {fmt(o['rmse_bar']) if o else '–'} | {fmt(o['rmse_avg_bar']) if o else '–'} | {verdict} |")
     if bound:
         L.append("\nPer run (oracle, mean estimate against the label, bar): "
                  + "; ".join(f"model {o['perm']['id']}: " + ", ".join(
@@ -672,7 +709,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         import tempfile
 
         with tempfile.TemporaryDirectory(prefix="shocktwin-gen-") as work:
-            gen, oracle, sim = generalisation(args.shocktwin, Path(work), perms, models, data, cfg, args.quick)
+            gen, oracle, sim, service = generalisation(args.shocktwin, Path(work), perms, models, data, cfg,
+                                                       args.quick)
             if observer_ok and gen:
                 # the observer alone on the same held-out sets: coverage, maintenance metric, bound
                 t0 = time.perf_counter()
@@ -680,20 +718,22 @@ def main(argv: Sequence[str] | None = None) -> int:
                 held[UNITS] = simulate_units(args.shocktwin, Path(work) / UNITS, args.quick, rig_seed(data, cfg),
                                              UNITS_COUNT[args.quick])
                 log.info("%d other units simulated: %.0f s", UNITS_COUNT[args.quick], time.perf_counter() - t0)
-                t0 = time.perf_counter()
                 baselines = {}
-                service = service_baseline(physics, held["unit"], cfg.jobs)
-                if service is not None:
+                if service is not None:  # read in the generalisation above
                     held[UNIT_BASELINED] = held["unit"]
                     baselines[UNIT_BASELINED] = service
-                log.info("the second unit's service baseline: %.0f s", time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 # the observer alone is the tables of the observer's suite (permutation 17's),
-                # which the scoring above made already
-                observed = {str(tab.run.path): (tab.t_s, *tab.select(["observer_bar", "observer_sd_bar"]).T)
-                            for key in held if key in sim for tab in sim[key].tables(["observer"])}
+                # which the scoring above made already, with the service's baseline too
+                def columns(key: str) -> dict[str, observer_report.Observed]:
+                    return {str(tab.run.path): (tab.t_s, *tab.select(["observer_bar", "observer_sd_bar"]).T)
+                            for tab in sim[key].tables(["observer"])}
+
+                observed = {k: v for key in held if key in sim and key not in baselines for k, v in columns(key).items()}
+                observed_baselined = {key: columns(key) for key in baselines if key in sim}
                 observer_lines = observer_report.evaluate(physics, held, args.out / "observer",
-                                                          OBSERVER_SETTLE_S[args.quick], cfg.jobs, baselines, observed)
+                                                          OBSERVER_SETTLE_S[args.quick], cfg.jobs, baselines, observed,
+                                                          observed_baselined)
                 log.info("the observer's report: %.0f s", time.perf_counter() - t0)
 
     plots(args.out, table2, suites)

@@ -602,6 +602,25 @@ def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Pat
     scored = {r["run"] for r in rows if r["set"] == study.UNIT_BASELINED}
     assert scored == {"p4.0-f1.0-s1-u2.mcap", "p4.0-f2.0-s1-u2.mcap", "p12.0-f2.0-s1-u2.mcap"}
     assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in lines)
+    # the networks that read the observer are scored on the same three runs, read with the baseline
+    # as replay and the daemon apply it; the report takes those columns instead of recomputing them
+    from train import dataset
+    from train.campaign import load_campaign
+
+    plain = dataset.CampaignData(load_campaign(unit), physics)
+    serviced = study.after_service(plain, b)
+    assert {r.path.name for r in serviced.campaign.runs} == scored
+    assert serviced.physics["observer"]["baseline"] == b["observer_baseline"]
+    assert physics["observer"].get("baseline") is None, "the calibration itself is left as it was"
+    with_b = {str(t.run.path): (t.t_s, *t.select(["observer_bar", "observer_sd_bar"]).T)
+              for t in serviced.tables(["observer"])}
+    without = {str(t.run.path): t.select(["observer_sd_bar"])[-1, 0] for t in plain.tables(["observer"])}
+    # the baseline conditions the unit's part of the interval: every run ends narrower with it
+    assert all(sd[-1] < without[path] for path, (_, _, sd) in with_b.items())
+    evaluate(physics, {study.UNIT_BASELINED: unit}, tmp_path / "given", 30.0, 2, {study.UNIT_BASELINED: b},
+             None, {study.UNIT_BASELINED: with_b})
+    given = json.loads((tmp_path / "given" / "observer.json").read_text())["runs"]
+    assert given == [r for r in rows if r["set"] == study.UNIT_BASELINED]
     # only baselined sets: still a report (with their runs plotted)
     only = evaluate(physics, {study.UNIT_BASELINED: unit}, tmp_path / "only", 30.0, 2, {study.UNIT_BASELINED: b})
     assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in only)
