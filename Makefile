@@ -99,7 +99,7 @@ browser: ## check for (in CI as root: install) chromium and chromium-driver, for
 	fi
 
 # Three workers on two cores: part of the tests' time waits on real-time streams and servers
-# (the NATS failover, the daemon's drives), and a third worker fills it (README, "Twenty-seventh session").
+# (the NATS failover, the daemon's drives), and a third worker fills it (docs/history.md, "Twenty-seventh session").
 test-python: setup $(BIN) browser ## pytest: the Python contract, references and interop, the dashboard in Chromium
 	$(PY) -m pytest -q -n 3 --dist loadfile --durations=15 tests/python
 

@@ -253,7 +253,7 @@ plt.show()
 # third drive file at 12 bar) narrows the interval to that unit's own seal.
 # `shocktwin.road_blocks` runs the Rust observer over a log and returns every block it read.
 # A calibration vouches only for strokes as fast as those it saw: a slower drive is not read
-# (README, "Nineteenth session" and "Twentieth session").
+# (docs/history.md, "Nineteenth session" and "Twentieth session").
 
 # %%
 ROAD = OUT / "road"

@@ -83,7 +83,7 @@ BETA_MIN = 0.005          # 1/K: a viscous part that does not thin with the heat
 # runs span 20-120 °C. With the coefficient from the datasheet's oil (held, not fitted) no
 # span is needed: the quick campaign's law then reads another unit of the model at 2 Hz
 # (10.7 and 2.2 bar at a true 12 and 2) where its linear slopes read 4.4 and -13.2
-# (README, thirty-fourth session).
+# (docs/history.md, thirty-fourth session).
 LAW_MIN_TEMP_SPAN_K = 40.0
 
 
@@ -434,7 +434,7 @@ def _valve_start(v: np.ndarray, f: np.ndarray, ratio: float, knee_n: float, z0: 
     its inverse is not). Started from ``z0`` and from valves that crack at the force of a
     quarter, half and all of the speeds' range (a laminar bleed through that point, shims
     adding as much flow again): from ``z0`` alone the fit can end at a bleed whose crack lies
-    beyond every force (README, "Twenty-fifth session"). The best of those fits."""
+    beyond every force (docs/history.md, "Twenty-fifth session"). The best of those fits."""
     from scipy.optimize import least_squares
 
     def resid(z: np.ndarray) -> np.ndarray:
@@ -556,7 +556,7 @@ def unit_law(runs: Sequence[Run], physics: dict[str, Any],
     the friction amplitude, shift and offset, started where the calibration's window fit put
     them. No charge is needed: the amplitudes are free. The windows are found with the
     calibration's law and every residual cut lifted, so that an end of the stroke whose windows
-    the calibration's law does not fit (another unit's valves: the README, "Fortieth session")
+    the calibration's law does not fit (another unit's valves: docs/history.md, "Fortieth session")
     is in the fit too.
 
     Returns ``fit_twin_law_windows``'s (or ``fit_law_windows``'s) fit with ``residual_before``,
@@ -597,7 +597,7 @@ def unit_law(runs: Sequence[Run], physics: dict[str, Any],
 
 # The reversal windows of the 1 and 2 Hz nominal runs reach 0.16 m/s only in their last
 # milliseconds; at 3 Hz the windows run to 0.3 m/s, where dt-sim's compression valves have
-# blown off (README, "Twenty-seventh session"). The dyno's loadcell sees every speed of every
+# blown off (docs/history.md, "Twenty-seventh session"). The dyno's loadcell sees every speed of every
 # stroke: mid-stroke its reading is the law, the seal friction, the gas force and the mount's
 # inertia, through the amplifier's low pass (dt-sim 0.2.0: within 8 N RMS of the reading, on
 # 6 N of noise, with the plant's own static curve and a velocity of the potentiometer's).

@@ -11,7 +11,7 @@ the output, exactly (``z = relu(z) − relu(−z)``; weights 1 and the column's 
 ``mean``). The learned part reads neither of the observer's columns: from the estimate, or
 from its standard deviation (which grows with the charge), a network learns to pull the
 estimate onto the few charges the campaign was run at, which costs accuracy at every
-other charge (README, "Thirty-third session"). With the observer alone (permutation 17)
+other charge (docs/history.md, "Thirty-third session"). With the observer alone (permutation 17)
 there is nothing else to read and the learned part is zero: the network answers the
 observer's estimate. The bundle's network is still a plain 4 × 64 ReLU MLP from the
 normalised inputs to the charge in bar, so every reader of a bundle (the estimator,

@@ -18,22 +18,22 @@ the calibration runs' cold bins least biased), and what it leaves in those bins 
 With each end of the stroke filtered apart, ``single_end_sd_bar`` is how far one end sits
 from the charge in the warm bins; with ``--single-end``, while only one end has been read at
 a calibrated excitation, the observer reports that end with this spread added (off by
-default: README, "One end alone").
+default: docs/history.md, "One end alone").
 The law's compression side is the twin-tube damper's base and piston valves working together and
 its extension side a valve whose knee sits at a force (``--law-form twin-tube``, the default;
 ``valve``: the extension valve with hinges in compression, the default until the twenty-sixth
 session; ``hinges``: knees at fixed velocities only; ``valves``: a single valve on either side:
-README, "Twenty-third session"), and
+docs/history.md, "Twenty-third session"), and
 each window's two law scales get a Gaussian prior about 1 (``--scale-prior-sd``, 0.2 by
 default; 0: free).
 The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residuals.
 Each reversal's slope ``ÿ_r`` is read from the accelerometers, the rod end's own acceleration
 (``--reversal-accel accelerometers``, the default; ``velocity-chord``: the Kalman velocity's
-chord, biased by end and frequency: README, "Twenty-fifth session").
+chord, biased by end and frequency: docs/history.md, "Twenty-fifth session").
 An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
 model of its own per end of the stroke, with a drift in the gas temperature, when it validates
 leave one run out; its reversals are then read at that excitation only (``--no-own-excitations``:
-skipped as before; README, "4 Hz, read").
+skipped as before; docs/history.md, "4 Hz, read").
 The systematic spread ``systematic_sd_bar`` is measured, not assumed: every
 run's charge is estimated by the model fitted *without that run* (leave one run out), and
 the RMS of those errors beyond their statistical part is kept; the unit-to-unit
@@ -95,7 +95,7 @@ COLD_BIN_K, COLD_BIN_MIN = 3.0, 10
 # With a damping law, the window fit's per-side law scales get a prior about 1 of this sd: a
 # unit's valves differ from the calibrated law by a few percent (the simulator's scatter is
 # 3-5 %), and without it a window at the valve's knee can read the friction step against a
-# law twice as stiff (README, "The extension valve").
+# law twice as stiff (docs/history.md, "The extension valve").
 SCALE_PRIOR_SD = 0.2
 
 
@@ -829,10 +829,10 @@ def fastest_on_its_own(cal: dict[str, Any], campaign: Any, physics: dict[str, An
     bends (the window law's reach, cavitation at a low charge): on the simulated dyno the
     twin-tube law (``--law-form twin-tube``) fits the 4 Hz windows well enough for them to join
     the line, and read LORO 0.82 bar with 4 Hz on it against 0.08 with a model of its own, which
-    also keeps the cavitation bound (README, twenty-fourth session). When the own model wins,
+    also keeps the cavitation bound (docs/history.md, twenty-fourth session). When the own model wins,
     the fastest stays on the line as well (``own_model_on_the_line``): the line, validated
     through it, reads the reversals between it and the next excitation (3 Hz, "unseen": 1.02 →
-    0.39 bar with the accelerometers' slope, README, twenty-fifth session), the own model reads
+    0.39 bar with the accelerometers' slope, docs/history.md, twenty-fifth session), the own model reads
     it. ``--fastest-off-the-line`` takes it off the line; ``--keep-fastest-shared`` skips this."""
     o = cal["observer"]
     own = (o.get("excitations") or {}).get("own") or [False] * 4
@@ -865,7 +865,7 @@ def held_sd(cal: dict[str, Any], revs: Sequence[dict[str, Any]], law_obs: dict[s
     ``cal``'s residual cut, which the observer applies to held reversals too). Returns the RMS of
     their charge errors and the rows; None with fewer than two spaced excitations on the line or
     no run at ``a_1`` read. On the simulated dyno the line extrapolated from 1–2 Hz to 3 Hz reads
-    +1.5…+2.2 bar high, a line drawn to the 4 Hz model's terms 2.5–2.9 bar low (README, thirtieth
+    +1.5…+2.2 bar high, a line drawn to the 4 Hz model's terms 2.5–2.9 bar low (docs/history.md, thirtieth
     session): neither can be tested on a campaign without 3 Hz, the hold can."""
     o = cal["observer"]
     own = (o.get("excitations") or {}).get("own") or [False] * 4
@@ -1033,7 +1033,7 @@ def excitation_end_s(lg: Any, default_s: float) -> float:
 
 # The window fit is nearly all of the observer's cost: a reversal is fitted only when one more
 # reading could narrow the reported variance of the charge by this share of its systematic part.
-# Chosen on a validation campaign of its own (README, "Reversals spared"): 1e-4 cost 0.04 bar of
+# Chosen on a validation campaign of its own (docs/history.md, "Thirteenth session"): 1e-4 cost 0.04 bar of
 # RMSE there and fitted 19-53 % of the reversals; 1e-3 cost 0.34 bar.
 FIT_GAIN_FLOOR = 1e-4
 
@@ -1473,12 +1473,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with the ends apart, let one end read at a calibrated excitation stand alone until "
                         "the other is read (its spread from the warm bins added; dt-core "
                         "ObserverParams::single_end_sd_bar). Off by default: on ten simulated units it called "
-                        "`leak` sooner but raised false alarms on nominal runs (README)")
+                        "`leak` sooner but raised false alarms on nominal runs (docs/history.md)")
     f.add_argument("--no-between", action="store_true",
                    help="with the law, skip reversals between calibrated excitations")
     f.add_argument("--no-held", action="store_true",
                    help="with the law, skip reversals above the shared line's fastest excitation instead of "
-                        "reading them with the model held there (dt-core ObserverParams::held_sd_bar; README, "
+                        "reading them with the model held there (dt-core ObserverParams::held_sd_bar; docs/history.md, "
                         "\"Thirtieth session\")")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
@@ -1487,7 +1487,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "(dt-core ObserverParams::scale_prior_sd; 0: none)")
     f.add_argument("--no-own-excitations", action="store_true",
                    help="with the damping law: skip the campaign's excitations the shared measurement model does "
-                        "not calibrate, instead of fitting each a model of its own (README, \"4 Hz, read\")")
+                        "not calibrate, instead of fitting each a model of its own (docs/history.md, \"4 Hz, read\")")
     f.add_argument("--fit-gain-floor", type=float, default=FIT_GAIN_FLOOR,
                    help="fit a reversal's window only when one more reading could narrow the reported variance of "
                         "the charge by this share (default %(default)g; 0: fit every reversal; dt-core "
@@ -1495,24 +1495,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--keep-fastest-shared", action="store_true",
                    help="keep the fastest excitation on the shared measurement model even when a model of its own "
                         "reads the calibration runs better: reversals between it and the next excitation are then "
-                        "read, and it loses its cavitation bound (README, \"Twenty-fourth session\")")
+                        "read, and it loses its cavitation bound (docs/history.md, \"Twenty-fourth session\")")
     f.add_argument("--fastest-off-the-line", action="store_true",
                    help="when the fastest excitation gets a model of its own, take it off the shared line too: "
                         "reversals between it and the next excitation are then not read (the twenty-fourth "
-                        "session's behaviour; README, \"Twenty-fifth session\")")
+                        "session's behaviour; docs/history.md, \"Twenty-fifth session\")")
     f.add_argument("--law-loadcell", choices=("auto", "off"), default="off",
                    help="with --law-form twin-tube: fit the law on the nominal runs' loadcell too (mid-stroke, "
                         "the speeds beyond the reversal windows' reach; auto: when they carry one, off: the "
                         "windows alone; train.damping_law.LoadcellRows)")
     f.add_argument("--law-form", choices=("hinges", "valve", "valves", "twin-tube"), default="twin-tube",
                    help="the damping law's form: hinges at fixed velocities, or those refined with an "
-                        "extension valve whose knee sits at a force (README, \"The extension valve\"), or a valve "
-                        "on either side (README, \"Twenty-third session\"), or the compression side as the base "
-                        "and piston valves together (the default; README, \"Twenty-fourth session\")")
+                        "extension valve whose knee sits at a force (docs/history.md, \"The extension valve\"), or a valve "
+                        "on either side (docs/history.md, \"Twenty-third session\"), or the compression side as the base "
+                        "and piston valves together (the default; docs/history.md, \"Twenty-fourth session\")")
     f.add_argument("--reversal-accel", choices=("velocity-chord", "accelerometers"), default="accelerometers",
                    help="where the velocity slope at a reversal is read: the Kalman velocity's chord over "
                         "±20 ms, or (the default) the rod end's own acceleration from the accelerometers, a1 − a2 (less the "
-                        "filter's bias) plus a2 less its running mean, over ±5 ms (dt-core ReversalAccel; README, "
+                        "filter's bias) plus a2 less its running mean, over ±5 ms (dt-core ReversalAccel; docs/history.md, "
                         "\"Twenty-fifth session\")")
     e = sub.add_parser("evaluate", help="score the observer on held-out sets")
     e.add_argument("--physics", required=True, type=Path)

@@ -1,7 +1,7 @@
 """How much the cheap suite could know of the charge on a road: a Cramér–Rao bound.
 
 The observer (dt-core `charge`) reads the seal friction's flip at each velocity reversal, one
-window at a time, and only at the dyno's sines; on a road it reads nothing (README, "Fifteenth
+window at a time, and only at the dyno's sines; on a road it reads nothing (docs/history.md, "Fifteenth
 session"). This asks whether the information is there at all. The body accelerometer `a2`
 is modelled over a whole stretch of drive, every reversal at once:
 

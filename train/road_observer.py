@@ -6,7 +6,7 @@ accelerometer, regressed over ten-second blocks of drive (a research tool; simul
     python -m train.road_observer skew --physics physics.json --road road.json RUN.mcap ...
 
 The dyno observer (dt-core ``charge``) fits one window per velocity reversal of a sine and
-refuses a road (README, "Fifteenth session"); ``train.road_bound`` says the information is
+refuses a road (docs/history.md, "Fifteenth session"); ``train.road_bound`` says the information is
 there. This reads it. Over each block of ``--block-s`` seconds the body accelerometer is
 modelled as the damper force through the calibrated body-end mount and the accelerometer's
 first-order filter (the ``observer`` section of physics.json), the force linear in its
@@ -50,7 +50,7 @@ is not read (here by :func:`calibrated_blocks`, in dt-core by the streaming obse
 slower, the friction read falls short of the calibration's line by a factor: errors in
 variables, the sensors' noise in the stroke velocity weighing more on a slow stroke
 (:mod:`train.road_velocity` measures it; :func:`simex_alpha` corrects for the noise's part, about
-40 % of the loss on the corrected simulator, in this reference only; README, "Twentieth session"
+40 % of the loss on the corrected simulator, in this reference only; docs/history.md, "Twentieth session"
 and "Twenty-first session"): calibrate with drives at the speeds the vehicles drive.
 """
 

@@ -57,7 +57,7 @@ OBSERVER_SETTLE_S = {False: 60.0, True: 30.0}
 # The observer's `units` set: other units of the same model (unit seeds from UNITS_FIRST_SEED),
 # one 2 Hz run each at these charges in turn, so many in the full study and so many in the quick
 # one. A unit's runs share most of its error, so a set of one unit is one draw of the interval's
-# widest part; these are as many draws (README, "Thirty-ninth session").
+# widest part; these are as many draws (docs/history.md, "Thirty-ninth session").
 UNITS_CHARGES_BAR = (2.0, 4.0, 7.0, 10.0, 12.0)
 UNITS_COUNT = {False: 20, True: 5}
 UNITS_FIRST_SEED = 300

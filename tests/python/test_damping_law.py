@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 A_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15], "width_mps": 0.008,
          "viscous_nspm": [2500.0, 0, 0, 0, 0, 5000.0, 0, 0, 0],
          "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
-NOISE_MPS2 = 0.07  # the simulated body accelerometer's noise (README: the 1 Hz residual)
+NOISE_MPS2 = 0.07  # the simulated body accelerometer's noise (docs/history.md: the 1 Hz residual)
 
 
 def synthetic_windows(law_: dict) -> tuple[list[dict], list[float]]:

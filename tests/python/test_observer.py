@@ -119,7 +119,7 @@ def test_window_model_matches_scipy_at_2_3_and_4_hz(law: dict | None) -> None:
     # The window model alone (no fit) against scipy's RK45 at rtol 1e-9: at the campaign's 2, 3 and
     # 4 Hz slopes. dt-core's RK4 step (a quarter of the friction's turn-over `v_s / |ÿ_r|` at most)
     # stays within 3.7e-4 m/s² (far below a fitted window's residual, ≈ 0.1 m/s²); the largest step
-    # (2e-4 s) taken at 3-4 Hz too misses by 1.0-1.25e-3 and fails (README, thirty-fourth session).
+    # (2e-4 s) taken at 3-4 Hz too misses by 1.0-1.25e-3 and fails (docs/history.md, thirty-fourth session).
     params = observer_physics(**({"damping_law": law} if law is not None else {}))
     o = params["observer"]
     times = np.arange(-o["window_pre_s"], o["window_post_s"] + 1e-9, 1e-3)
@@ -355,7 +355,7 @@ def test_the_accelerometers_read_the_rods_slope_at_both_ends_and_every_frequency
     """``reversal_accel = "accelerometers"`` (dt-core ``ReversalAccel``) reads ``ÿ_r`` as the
     rod end's own acceleration: on a sine it is the same at both ends of the stroke and scales
     as the square of the frequency (same stroke at 2 and 4 Hz). The Kalman velocity's ±20 ms
-    chord reads the two ends 3–5 % apart at 2 Hz on the same runs (README, "Twenty-fifth
+    chord reads the two ends 3–5 % apart at 2 Hz on the same runs (docs/history.md, "Twenty-fifth
     session")."""
     runs = {float(p.name.split("-f")[1].split("-")[0]): p
             for p in simulate(tmp_path, "--pressures", "8", "--frequencies", "2,4")}
@@ -968,7 +968,7 @@ def test_the_datasheet_oils_viscosity_lets_a_short_campaign_fit_the_damping_law(
     # `fit --damping auto` asks the nominal runs for 40 K of oil temperature only to measure the
     # law's viscosity coefficient; with the datasheet's oil it is given, and a short (cold)
     # campaign fits the law. The demo's quick campaign (21-41 °C) fell back to linear slopes that
-    # read another unit of the model 15 bar low at 2 Hz (README, thirty-fourth session).
+    # read another unit of the model 15 bar low at 2 Hz (docs/history.md, thirty-fourth session).
     from train.damping_law import LAW_MIN_TEMP_SPAN_K
     from train.datasheet import load_datasheet
     from train.observer import law_min_span_k

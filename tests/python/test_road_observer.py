@@ -146,7 +146,7 @@ def test_fit_then_evaluate_reads_a_held_out_drive(road_sets: tuple[Path, Path, P
     assert model["held_out"] == "drive" and len(model["drives"]) == 2
     for row in model["held_out_reads"]:  # each run read by the other drive file's calibration
         # worst 1.53 bar (12 bar C60 read 13.53) since the simulator's step was made second
-        # order (README, "Twenty-first session"); below 1.5 before
+        # order (docs/history.md, "Twenty-first session"); below 1.5 before
         assert abs(row["read_bar"] - row["label_bar"]) < 2.0, row
     assert 0.0 < model["held_out_sd_bar"] < 1.5  # one drive file reads beside another: measured, kept
     assert model["systematic_sd_bar"] > 1.0  # 10 % of the seal's friction, in bar
@@ -387,7 +387,7 @@ FIXTURE_BUNDLE = Path(__file__).resolve().parents[2] / "crates" / "dt-core" / "t
 
 def test_a_drive_slower_than_the_calibration_s_is_not_read(shocktwin_bin: Path, road_sets: tuple[Path, Path, Path],
                                                            road_model: tuple[Path, Path], tmp_path: Path) -> None:
-    """The friction read falls short of the calibration's line the slower the stroke (README,
+    """The friction read falls short of the calibration's line the slower the stroke (docs/history.md,
     "Nineteenth session": a healthy 12 bar unit read `low` at 2 km/h). The fit keeps the slowest
     stroke it read; a drive at 5 km/h on the same road class, slower than every calibration
     block, is not read — `unknown`, the reason named by `shocktwin road` and `replay --road` —
@@ -421,7 +421,7 @@ def test_a_drive_slower_than_the_calibration_s_is_not_read(shocktwin_bin: Path, 
 
 def test_at_a_slow_drive_the_friction_falls_short_by_the_sensors_noise_and_simex_recovers_part_of_it(
         shocktwin_bin: Path, road_model: tuple[Path, Path], tmp_path: Path) -> None:
-    """Why a slow drive reads low (README, "Twentieth session" and "Twenty-first session"): a
+    """Why a slow drive reads low (docs/history.md, "Twentieth session" and "Twenty-first session"): a
     5 km/h drive at 2 and 12 bar with the simulator's velocity logged at 1 kHz. The stroke
     filter's error there is mostly what the sensors' noise figures give through the filter
     alone; regressed on that velocity, the friction's slope against the gas pressure falls short
@@ -751,7 +751,7 @@ def test_a_drive_file_of_its_own_seed_is_its_own_drive_for_the_calibration() -> 
 
 def test_a_sampling_skew_of_a2_behind_a1_beyond_100_us_lowers_the_friction_read(
         road_sets: tuple[Path, Path, Path], road_model: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> None:
-    """`road_observer skew` (README, "Twentieth session" and "Twenty-first session"): read
+    """`road_observer skew` (docs/history.md, "Twentieth session" and "Twenty-first session"): read
     unskewed, a run reads as the observer does; `a2` sampled 100 µs after `a1` moves the friction
     read by well under 2 %, 250 µs lowers it (6 % on the demo's quick 60 km/h drive) and so the charge; a skew of
     0 is the plain reading exactly. A fractional shift by FFT moves a sampled sine by its skew."""

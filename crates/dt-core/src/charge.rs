@@ -466,7 +466,7 @@ pub struct ObserverParams {
     /// interpolate (1.5 Hz between 1 and 2 Hz off by ≈ 4 bar on the
     /// simulated dyno); with the law the batch charge of three 1.5 Hz runs
     /// never calibrated came within 0.4 bar (at 1.75 Hz, though, three runs
-    /// read 1–2 bar low: README). No extrapolation: `|ÿ_r|`
+    /// read 1–2 bar low: docs/history.md). No extrapolation: `|ÿ_r|`
     /// beyond the calibrated range is skipped. Needs two clusters with
     /// spacings. Default false.
     #[serde(default)]
@@ -483,7 +483,7 @@ pub struct ObserverParams {
     /// step down: the runs at `a_1` read with the model calibrated without
     /// them, held at `a_0` (RMS of their charge errors). On the simulated
     /// dyno the line extrapolated from 1–2 Hz to 3 Hz read +1.5…+2.2 bar
-    /// high, a line to the 4 Hz model's terms 2.5–2.9 bar low (README,
+    /// high, a line to the 4 Hz model's terms 2.5–2.9 bar low (docs/history.md,
     /// thirtieth session). Needs two clusters with spacings on the line.
     /// 0 (the default, and what a physics file written before this field
     /// means): such reversals are skipped.
@@ -502,7 +502,7 @@ pub struct ObserverParams {
     /// at one known charge and two or more excitations, by maximum
     /// likelihood on the differences of their errors; on ten simulated units
     /// the spread between 1 and 1.5 Hz and between 1 and 2 Hz grew about as
-    /// `L` (README, "Thirty-first session"). The calibration campaign's one
+    /// `L` (docs/history.md, "Thirty-first session"). The calibration campaign's one
     /// unit cannot say it. 0 (the default, and what a physics file written
     /// before this field means): a baseline applies alike at every
     /// excitation of the shared model.
@@ -553,7 +553,7 @@ pub struct ObserverParams {
     /// runs, the warm bins of each end; `python -m train.observer fit
     /// --single-end` writes it, and without that flag 0: on ten simulated
     /// units one end read cold called `leak` sooner but raised false
-    /// alarms on nominal runs, README "One end alone").
+    /// alarms on nominal runs, docs/history.md "One end alone").
     /// With [`stroke_ends`](Self::stroke_ends), while exactly one end has
     /// been read and every reading so far was at a calibrated excitation
     /// (not [between](Self::between_excitations) them), the estimate is
@@ -656,7 +656,7 @@ pub enum ReversalAccel {
 /// valves the window model follows less well (residual 0.5–1 m/s² against
 /// 0.07 at 1 Hz), still carry the charge (the amplitude ±1 N per run once
 /// warm), but at an offset and gain no line through 1 and 2 Hz reaches
-/// (leave-one-run-out 2.4 bar with one model, README "4 Hz, read"), and
+/// (leave-one-run-out 2.4 bar with one model, docs/history.md "4 Hz, read"), and
 /// with an offset that drifts with the heat beyond the cold term.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -691,10 +691,10 @@ pub struct ExcitationModel {
     /// [between](ObserverParams::between_excitations) it and another
     /// excitation through this slot: on the simulated dyno, with the
     /// Kalman chord's `ÿ_r`, the `ÿ_r < 0` amplitude at 3 Hz lies ≈ 11 N
-    /// below both the 2 Hz line's and the 4 Hz model's (README "4 Hz,
+    /// below both the 2 Hz line's and the 4 Hz model's (docs/history.md "4 Hz,
     /// read"). The same excitation may also hold another slot on the shared
     /// line, when the calibration validated the line through it (`python -m
-    /// train.observer fit`, README "Twenty-fifth session"): its own model
+    /// train.observer fit`, docs/history.md "Twenty-fifth session"): its own model
     /// then reads it, and the line the reversals between it and the next
     /// excitation.
     pub own: [bool; 4],
@@ -795,7 +795,7 @@ struct MeasurementTerms {
 /// proportion to their prior variances: near `p₀` the systematic part
 /// shrinks to about `√(σ_b² + R(p₀)²)`, far from it
 /// only by what the offset explained. On the simulated units what it leaves
-/// far from `p₀` is mostly the seal's gain (README, "Forty-first
+/// far from `p₀` is mostly the seal's gain (docs/history.md, "Forty-first
 /// session"). A [`second`](Self::second) reading at another charge `p₁`
 /// is a second update of the same kind (`h = [1, p₁]`, the innovation
 /// `e₁ − h û`), which separates the two.
@@ -827,7 +827,7 @@ pub struct UnitBaseline {
     /// --unit-law`), read with it, and so to be read with it on every later
     /// run: [`ChargeObserver::new`] puts it in the calibration's place.
     /// Another unit's valves can leave one end of the stroke unread by the
-    /// calibration's law (README, "Fortieth session"). None: the
+    /// calibration's law (docs/history.md, "Fortieth session"). None: the
     /// calibration's law.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub damping_law: Option<DampingLaw>,
@@ -1103,7 +1103,7 @@ pub struct DampingLaw {
 /// the sum does: on the simulated dyno its best fit to the plant's
 /// compression force at 80 °C (within 7 N from 0 to 0.6 m/s) still left a
 /// 3.5 Hz window's fit 0.5–0.7 m/s² off the noise-free truth, two valves
-/// 0.13–0.19 (README, twenty-fourth session).
+/// 0.13–0.19 (docs/history.md, twenty-fourth session).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LawValves {

@@ -121,7 +121,7 @@ pub struct RoadFilters {
     /// read, m/s: a slower block is not read (absent in calibrations fitted
     /// before it: `min_stroke_rms_mps` alone). The friction read falls short
     /// of the calibration's line the slower the stroke (measured down to
-    /// 0.04 m/s: about 10 % short at 0.06 m/s, README "Nineteenth session"),
+    /// 0.04 m/s: about 10 % short at 0.06 m/s, docs/history.md "Nineteenth session"),
     /// and nothing in a calibration at faster strokes says by how much.
     #[serde(default)]
     pub slowest_calibrated_stroke_rms_mps: Option<f64>,

@@ -5,7 +5,7 @@
 //! paper's excitation at `--frequency`, seed `--seed`: the same noise and room
 //! for every parameter), one directory per parameter, `nominal` beside them.
 //! Read them with `python -m train.observer evaluate … NAME=DIR …` and compare
-//! each parameter's errors with `nominal`'s (README, "Forty-first session").
+//! each parameter's errors with `nominal`'s (docs/history.md, "Forty-first session").
 //!
 //! `cargo run --release -p dt-sim --example unit_sensitivity -- --out DIR
 //! [--pressures 2,12] [--frequency 2] [--seed 5] [--sigmas 2] [--only a,b]`
