@@ -245,8 +245,13 @@ def generalisation(
     if any(p["key"] in models and "observer" in p["groups"] for p in perms):
         t0 = time.perf_counter()
         service = service_baseline(data.physics, out / "unit", cfg.jobs)
-        if service is not None:
-            sim[UNIT_BASELINED] = after_service(sim["unit"], service)
+        try:
+            serviced = after_service(sim["unit"], service) if service is not None else None
+        except ValueError as e:  # an optional row: the study goes on without it, saying why
+            print(f"observer: {e}: no row after the service")
+            service = serviced = None
+        if service is not None and serviced is not None:
+            sim[UNIT_BASELINED] = serviced
             sets[UNIT_BASELINED] = (f"second unit after one service (its {service['runs'][0]['file']} read as its "
                                     "baseline, not scored)", [], rig)
         log.info("the second unit's service baseline: %.0f s", time.perf_counter() - t0)

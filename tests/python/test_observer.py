@@ -617,10 +617,21 @@ def test_the_studys_second_unit_after_one_service(calibrated_campaign: tuple[Pat
     without = {str(t.run.path): t.select(["observer_sd_bar"])[-1, 0] for t in plain.tables(["observer"])}
     # the baseline conditions the unit's part of the interval: every run ends narrower with it
     assert all(sd[-1] < without[path] for path, (_, _, sd) in with_b.items())
-    evaluate(physics, {study.UNIT_BASELINED: unit}, tmp_path / "given", 30.0, 2, {study.UNIT_BASELINED: b},
-             None, {study.UNIT_BASELINED: with_b})
-    given = json.loads((tmp_path / "given" / "observer.json").read_text())["runs"]
-    assert given == [r for r in rows if r["set"] == study.UNIT_BASELINED]
+    plain_cols = {str(t.run.path): (t.t_s, *t.select(["observer_bar", "observer_sd_bar"]).T)
+                  for t in plain.tables(["observer"])}
+    # both sets at once, as the study runs them: the same paths, each set its own columns
+    given = {}
+    for name, cols in (("given", with_b), ("shifted", {k: (t, bar + 1.0, sd) for k, (t, bar, sd) in with_b.items()})):
+        evaluate(physics, {"unit": unit, study.UNIT_BASELINED: unit}, tmp_path / name, 30.0, 2,
+                 {study.UNIT_BASELINED: b}, plain_cols, {study.UNIT_BASELINED: cols})
+        given[name] = json.loads((tmp_path / name / "observer.json").read_text())["runs"]
+    assert given["given"] == rows
+    # the baselined set reads the columns it is handed, the plain set does not
+    shifted = {r["set"]: [] for r in given["shifted"]}
+    for r in given["shifted"]:
+        shifted[r["set"]].append(r)
+    assert shifted["unit"] == [r for r in rows if r["set"] == "unit"]
+    assert shifted[study.UNIT_BASELINED] != [r for r in rows if r["set"] == study.UNIT_BASELINED]
     # only baselined sets: still a report (with their runs plotted)
     only = evaluate(physics, {study.UNIT_BASELINED: unit}, tmp_path / "only", 30.0, 2, {study.UNIT_BASELINED: b})
     assert any(line.startswith(f"| {study.UNIT_BASELINED} | 3 |") for line in only)

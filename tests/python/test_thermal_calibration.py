@@ -7,7 +7,7 @@ thermocouple that reads 0.88 of the tube's rise, lags 8 s, has an offset, noise 
 converter's 0.25 °C steps. With the datasheet's heat capacities the fit finds the sensor's
 gain and the oil temperature; without them the gain is not identifiable and stays 1. (On
 the simulated campaign, whose plant has three heat nodes, the twin's oil ran +37 °C hot at
-2 Hz without the gain and +2.3 °C with it: docs/history.md, "The thermal model's oil node".)
+2 Hz without the gain and +2.3 °C with it: docs/history.md, "The oil node fixed".)
 """
 
 from __future__ import annotations
