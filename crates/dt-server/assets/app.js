@@ -274,7 +274,7 @@ function renderRuns(runs) {
   const tb = $("runs").tBodies[0];
   if (!runs.length) { tb.innerHTML = `<tr><td colspan="7" class="muted">no runs recorded</td></tr>`; return; }
   tb.innerHTML = runs.slice(0, 20).map((r) => `<tr data-run-id="${esc(r.run_id)}">
-    <td>${esc(r.run_id)}</td><td class="small src">${esc(r.source || DASH)}</td>
+    <td>${esc(r.run_id)}</td><td class="small src" title="${esc(r.source || "")}">${esc(r.source || DASH)}</td>
     <td>${fmtTime(tsec(r.start))}</td><td>${duration(tsec(r.start), tsec(r.end))}</td><td>${r.ticks ?? DASH}</td>
     <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td>${r.road ? roadCell(r.road) : observerCell(r.observer)}</tr>` +
     (r.reason ? `<tr><td></td><td colspan="6" class="reason">${esc(r.reason)}</td></tr>` : "") +
