@@ -1037,3 +1037,37 @@ def test_an_interval_below_vacuum_is_no_verdict() -> None:
     assert health(-1.5, 0.2) == "unknown"
     assert health(-1.5, 0.5) == "leak"
     assert health(2.0, 1.0) == "leak"
+
+
+def test_the_study_scores_the_networks_that_read_the_observer_after_one_service(
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    """``train.study.generalisation`` with one network that reads the observer (17) and one that
+    does not (13): the second unit's service baseline is read from its nominal-charge run at
+    the slowest excitation, only 17 is scored after it, on the unit's other runs, and reading
+    them with the baseline changes the network's answer (the same weights, other inputs)."""
+    from train import dataset, evaluate, study
+    from train.campaign import load_campaign
+
+    campaign, physics_path = calibrated_campaign
+    physics = json.loads(physics_path.read_text())
+    data = dataset.CampaignData(load_campaign(campaign), physics)
+    cfg = study.settings(True, 0, 2)
+    perms = [dict(p, key=p["id"]) for p in shocktwin.permutations() if p["id"] == 13]
+    perms += [dict(p, key=p["id"]) for p in shocktwin.extra_permutations() if p["id"] == 17]
+    models = {}
+    for perm in perms:
+        tabs = data.tables(perm["groups"])
+        cols = dataset.group_columns(perm["groups"])
+        x, y = evaluate.training_set(tabs, cols, data.excited_for(tabs), None, 200, seed=0)
+        models[perm["key"]] = evaluate.fit_job(x, y, cols, 0, 10)
+    rows, _, sim, service = study.generalisation(str(BIN), tmp_path, perms, models, data, cfg, True)
+    assert service is not None
+    assert [r["file"] for r in service["runs"]] == ["p12.0-f1.0-s1-u2.mcap"]
+    after = [r for r in rows if r["key"] == study.UNIT_BASELINED]
+    assert [r["perm"]["id"] for r in after] == [17], "only the networks that read the observer"
+    before = next(r for r in rows if r["key"] == "unit" and r["perm"]["id"] == 17)
+    scored = {r["run"] for r in after[0]["runs"]}
+    assert "p12.0-f1.0-s1-u2.mcap" not in scored
+    assert scored == {r["run"] for r in before["runs"]} - {"p12.0-f1.0-s1-u2.mcap"}
+    assert sim[study.UNIT_BASELINED].physics["observer"]["baseline"] == service["observer_baseline"]
+    assert after[0]["rmse_bar"] != before["rmse_bar"]
