@@ -9,6 +9,7 @@ needed, is an error that names the runs.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import sys
 from dataclasses import dataclass, field
@@ -132,6 +133,15 @@ def require_topics(runs: Sequence[Run], topics: Sequence[str], what: str) -> Non
         # an empty topic is as good as a missing one
     if lacking:
         raise CampaignError(f"{what}: " + "; ".join(lacking))
+
+
+def read_json(path: Path | str) -> Any:
+    """The JSON document in ``path``; a file that is not JSON is an error naming it and where."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not JSON ({err.msg} at line {err.lineno}, column {err.colno})") from None
 
 
 def main_wrapper(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:

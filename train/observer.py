@@ -64,6 +64,7 @@ import copy
 import json
 import logging
 import multiprocessing
+import sys
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from multiprocessing.context import BaseContext
 from pathlib import Path
@@ -74,7 +75,7 @@ from scipy.optimize import least_squares, minimize, minimize_scalar
 
 import shocktwin
 
-from train.campaign import Run, load_campaign, main_wrapper
+from train.campaign import Run, load_campaign, main_wrapper, read_json
 from train.damping_law import LAW_MIN_TEMP_SPAN_K, law_calibrated
 from train.progress import progress
 from train.fit_physics import rest_end_s
@@ -902,7 +903,7 @@ def linear_calibration(runs: Sequence[Run], physics: dict[str, Any], obs: dict[s
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     campaign = load_campaign(args.campaign)
     obs = dict(shocktwin.default_observer_params())
     beta_per_k = None
@@ -917,7 +918,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if sheet.oil_expansion_m3_per_k is not None:
             obs["oil_expansion_m3_per_k"] = sheet.oil_expansion_m3_per_k
     elif args.datasheet:
-        obs.update(json.loads(args.datasheet.read_text()))
+        obs.update(read_json(args.datasheet))
     obs["window_sd"] = bool(args.window_sd)
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
     cal, law, law_cal = None, None, None
@@ -1250,7 +1251,9 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
     return {"transfer_bar_per_ln_accel": float(np.exp(best.x)), "rms_bar": float(np.sqrt(np.mean(d ** 2))),
             "mean_bar": float(np.mean(d)),
             "noise_rms_bar": float(np.sqrt(np.mean(n ** 2))), "units": len(per_unit), "pairs": pairs,
-            "charge_bar": float(charge_bar)}
+            "charge_bar": float(charge_bar),
+            # the run term it was measured beside: `run-spread` after it makes it stale
+            "run_sd_bar": float(obs.get("run_sd_bar", 0.0)), "run_rel": float(obs.get("run_rel", 0.0))}
 
 
 def run_spread(physics: dict[str, Any], takes: Sequence[tuple[float, Path, Path]], unit_law: bool = False,
@@ -1343,7 +1346,7 @@ def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple
 
 
 def cmd_run_spread(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     if not physics.get("observer"):
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
     if len(args.take) < 2:
@@ -1374,6 +1377,13 @@ def cmd_run_spread(args: argparse.Namespace) -> int:
           f"{'; law refitted on each first take' if args.unit_law else ''}")
     physics["observer"]["run_sd_bar"] = t["run_sd_bar"]
     physics["observer"]["run_rel"] = t["run_rel"]
+    if physics["observer"].get("transfer_bar_per_ln_accel"):
+        was = physics.get("fit", {}).get("observer_transfer", {})
+        before = (was.get("run_sd_bar", 0.0), was.get("run_rel", 0.0))
+        if not np.allclose(before, (t["run_sd_bar"], t["run_rel"]), rtol=1e-9, atol=0.0):
+            print(f"warning: the transfer spread in {args.physics} was measured beside a run spread of "
+                  f"±{before[0]:.3f} bar + {100 * before[1]:.2f} %, not this one: it counts the difference twice "
+                  f"(or not at all); run `python -m train.observer transfer` again on this file", file=sys.stderr)
     return _write_measured(physics, "observer_run_spread", t, args.out or args.physics)
 
 
@@ -1388,7 +1398,7 @@ def _write_measured(physics: dict[str, Any], key: str, record: dict[str, Any], o
 
 
 def cmd_transfer(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     if not physics.get("observer"):
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
     for p in (p for u in args.unit for p in u):
@@ -1407,9 +1417,12 @@ def cmd_transfer(args: argparse.Namespace) -> int:
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     if not physics.get("observer"):
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    for flag, c in (("--charge-bar", args.charge_bar), ("--second-charge-bar", args.second_charge_bar)):
+        if c is not None and not (np.isfinite(c) and c > 0.0):
+            raise SystemExit(f"{flag} {c:g}: not a charge (bar gauge, above 0)")
     for p in args.runs:
         if not p.is_file():
             raise SystemExit(f"{p}: no such run log")
@@ -1427,7 +1440,12 @@ def cmd_baseline(args: argparse.Namespace) -> int:
             raise SystemExit(f"{p}: no such run log")
     second = (args.second_charge_bar, args.second_runs) if args.second_runs else None
     b = baseline_of(physics, args.runs, args.charge_bar, args.jobs, unit_law=args.unit_law, second=second)
-    args.out.write_text(json.dumps(b, indent=2) + "\n")
+    try:
+        text = json.dumps(b, indent=2, allow_nan=False)
+    except ValueError:
+        raise SystemExit(f"the baseline read from {', '.join(map(str, args.runs))} holds a number that is not finite: "
+                         f"not written to {args.out}") from None
+    args.out.write_text(text + "\n")
     ob = b["observer_baseline"]
     if "unit_law" in b:
         u = b["unit_law"]

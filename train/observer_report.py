@@ -40,7 +40,7 @@ from scipy.stats import chi2
 
 import shocktwin
 
-from train.campaign import load_campaign
+from train.campaign import load_campaign, read_json
 from train.damping_law import law_calibrated
 from train.fit_physics import rest_end_s
 from train.progress import progress
@@ -320,7 +320,7 @@ def gas_spring_fisher_per_s(obs: dict[str, float], freq_hz: float) -> float:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     if not physics.get("observer"):
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
     if getattr(args, "fit_gain_floor", None) is not None:
@@ -336,11 +336,30 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         name, _, f = spec.partition("=")
         if name not in sets or not f:
             raise SystemExit(f"--baseline {spec!r}: need SET=FILE with SET one of {', '.join(sets)}")
-        baselines[name] = json.loads(Path(f).read_text())
+        baselines[name] = baseline_document(read_json(f), f)
     lines = evaluate(physics, sets, args.out, args.settle_s, args.jobs, baselines)
     print("\n".join(lines[:4 + len(sets)]))
     print(f"report: {args.out / 'observer.md'}")
     return 0
+
+
+def baseline_document(doc: Any, source: str) -> dict[str, Any]:
+    """``train.observer baseline``'s document, or the bare baseline the daemon and ``shocktwin replay``
+    take (``charge_bar``, ``read_bar``, ``read_sd_bar``, …: no runs of its own to leave out), as the
+    former; anything else is an error naming ``source`` and the field."""
+    if not isinstance(doc, dict):
+        raise ValueError(f"{source}: a unit baseline is a JSON object")
+    if "observer_baseline" not in doc:
+        doc = {"observer_baseline": doc, "runs": []}
+    ob = doc["observer_baseline"]
+    for key in ("charge_bar", "read_bar", "read_sd_bar"):
+        v = ob.get(key) if isinstance(ob, dict) else None
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ValueError(f"{source}: the unit baseline's `{key}` is {v!r}, not a finite number")
+    runs = doc.get("runs", [])
+    if not isinstance(runs, list) or not all(isinstance(r, dict) and isinstance(r.get("file"), str) for r in runs):
+        raise ValueError(f"{source}: `runs` is a list of {{\"file\": NAME, …}}")
+    return {**doc, "runs": runs}
 
 
 def evaluate(physics: dict[str, Any], set_dirs: dict[str, Path], out: Path, settle_s: float,

@@ -25,7 +25,6 @@ is computed the same way for comparison. Simulated parameters throughout.
 from __future__ import annotations
 
 import argparse
-import json
 import warnings
 from pathlib import Path
 from typing import Any, Sequence
@@ -33,6 +32,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import signal
 
+from train.campaign import read_json
 from train.observer_report import ACC_LSB_MPS2, ACC_NOISE_MPS2
 
 FS_HZ = 1000.0           # the accelerometer's rate: the bound's samples
@@ -117,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seconds", default="60,600", help="stretch lengths, s, comma separated")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
-    obs = json.loads(args.physics.read_text()).get("observer")
+    obs = read_json(args.physics).get("observer")
     if not obs:
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
     drives = {

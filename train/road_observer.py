@@ -72,7 +72,7 @@ from scipy.optimize import least_squares
 
 import shocktwin
 
-from train.campaign import load_campaign, main_wrapper, require_topics
+from train.campaign import load_campaign, main_wrapper, read_json, require_topics
 from train.fit_physics import rest_end_s
 from train.observer import P_ATM_BAR, Z95, theta
 from train.observer_report import expected_health, health_series
@@ -419,7 +419,7 @@ def streaming_constants(physics: dict[str, Any], opts: dict[str, float]) -> dict
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     campaign = load_campaign(args.campaign)
     campaign.require_labels()
     require_topics(campaign.runs, TOPICS, "the road observer")
@@ -530,8 +530,8 @@ def options(args: argparse.Namespace) -> dict[str, float]:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    physics = json.loads(args.physics.read_text())
-    model = json.loads(args.road.read_text())
+    physics = read_json(args.physics)
+    model = read_json(args.road)
     opts = calibration_options(model)
     args.out.mkdir(parents=True, exist_ok=True)
     cache = args.out / "blocks"
@@ -644,8 +644,8 @@ def cmd_skew(args: argparse.Namespace) -> int:
     """Each run read with ``a2`` taken later than ``a1`` by each skew: the mean friction read and
     the charge it gives, against the unskewed read. A calibration absorbs a skew its drives
     share; this says how closely the vehicles' acquisition must match the rig's."""
-    physics = json.loads(args.physics.read_text())
-    model = json.loads(args.road.read_text())
+    physics = read_json(args.physics)
+    model = read_json(args.road)
     opts = calibration_options(model)
     skews = [float(v) for v in args.skew_us.split(",")]
     print("The friction read against a sampling skew of a2 behind a1"

@@ -40,7 +40,7 @@ import numpy as np
 
 import shocktwin
 
-from train.campaign import main_wrapper
+from train.campaign import main_wrapper, read_json
 from train.observer import P_ATM_BAR
 from train.progress import progress
 from train.road_observer import (ACC_DT_S, block_readings, calibration_options, charge_of, gas_ratio,
@@ -133,10 +133,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="write the rows and slopes here")
     ap.add_argument("runs", nargs="+", type=Path, help="simulated runs with /truth/velocity at 1 kHz")
     args = ap.parse_args(argv)
-    physics = json.loads(args.physics.read_text())
+    physics = read_json(args.physics)
     physics.setdefault("observer", shocktwin.default_observer_params())
     physics.setdefault("kalman", shocktwin.default_params()["kalman"])
-    model = json.loads(args.road.read_text())
+    model = read_json(args.road)
     figures = {"accel_noise_mps2": args.accel_noise_mps2, "accel_lsb_mps2": args.accel_lsb_mps2,
                "pos_noise_m": args.pos_noise_m, "pos_lsb_m": args.pos_lsb_m}
     rows = [study_run(p, physics, model, figures, args.seed) for p in progress(args.runs, desc="runs", unit="run")]

@@ -41,7 +41,7 @@ import numpy as np
 import shocktwin
 
 from train import dataset, evaluate, model, observer_report
-from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper
+from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper, read_json
 from train.fit_physics import calibrate, print_report, save_figures
 
 log = logging.getLogger("shocktwin.study")
@@ -653,7 +653,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for path, reason in campaign.skipped:
         print(f"skipped unreadable run {path.name}: {reason}")
     if args.physics:
-        physics = json.loads(args.physics.read_text())
+        physics = read_json(args.physics)
     else:
         from train.datasheet import load_datasheet
 

@@ -13,7 +13,6 @@ Without ``--physics`` the physics is calibrated on the campaign's nominal runs f
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 from typing import Any, Sequence
@@ -23,7 +22,7 @@ import numpy as np
 import shocktwin
 
 from train import dataset, evaluate, model
-from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper
+from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper, read_json
 from train.datasheet import parse_pressure_bar
 
 log = logging.getLogger("shocktwin.train")
@@ -68,7 +67,7 @@ def permutation_for_sensors(spec: str) -> dict[str, Any]:
 
 def load_physics(path: Path | None, campaign: Campaign, nominal_bar: float) -> dict[str, Any]:
     if path is not None:
-        physics = json.loads(Path(path).read_text())
+        physics = read_json(path)
         for part in ("kalman", "thermal", "force"):
             if part not in physics:
                 raise CampaignError(f"{path}: no '{part}' parameters")

@@ -683,6 +683,8 @@ def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_e
           f"±{kappa:.2f} bar per unit of ln|ÿ|")
     rec = got["fit"]["observer_transfer"]
     assert abs(rec["rms_bar"] - float(np.sqrt(np.mean(np.square(diffs))))) < 1e-6
+    # the run term it was measured beside is recorded (none here), for `run-spread` to check
+    assert (rec["run_sd_bar"], rec["run_rel"]) == (0.0, 0.0), rec
     ln_d = np.array([p["ln_distance"] for p in pairs])
     assert np.all(np.abs(ln_d - np.log(4.0)) < 0.25), ln_d
     v = (kappa * ln_d) ** 2 + np.square([p["noise_sd_bar"] for p in pairs])
@@ -697,14 +699,18 @@ def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_e
 
 
 def test_a_units_run_spread_is_the_likeliest_spread_of_its_readings_between_takes(
-        calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``observer run-spread``: two other units, each with two takes at a known 12 bar and 2 Hz
     (run conditions of their own). Each take's difference is the one two baselines read from its
     runs say; the run spread is the maximum-likelihood value of ``d ~ N(0, n² + 2R²)`` beside
     the interval's own part ``n`` (the score is zero there, or ``R`` sits at 0 with a score
-    ≤ 0) and lands in the physics file, where the observer takes it. Takes at different
+    ≤ 0) and lands in the physics file, where the observer takes it. A transfer spread in the
+    file, measured beside no run spread, is kept and said to be stale. Takes at different
     excitations, a single take and a charge that is no number are refused, named."""
-    _, physics = calibrated_campaign
+    _, calibrated = calibrated_campaign
+    physics = tmp_path / "with-transfer.json"
+    base = json.loads(calibrated.read_text())
+    physics.write_text(json.dumps({**base, "observer": {**base["observer"], "transfer_bar_per_ln_accel": 0.05}}))
     takes = []
     for unit in ("3", "4"):
         a, b = (simulate(tmp_path / f"{unit}{k}", "--pressures", "12", "--frequencies", "2", "--unit", unit,
@@ -714,7 +720,10 @@ def test_a_units_run_spread_is_the_likeliest_spread_of_its_readings_between_take
     args = ["run-spread", "--physics", str(physics), "--out", str(out), "--jobs", "1"]
     assert obs_tool.main([*args, *(x for a, b in takes for x in ("--take", "12", str(a), str(b)))]) == 0
     got = json.loads(out.read_text())
-    base = json.loads(physics.read_text())
+    assert got["observer"]["transfer_bar_per_ln_accel"] == 0.05
+    err = capsys.readouterr().err
+    stale = "the transfer spread in" in err and "run `python -m train.observer transfer` again" in err
+    assert stale == (got["observer"]["run_sd_bar"] > 0.0), err  # a term of 0 leaves it as measured
     rec = got["fit"]["observer_run_spread"]
     for (a, b), p in zip(takes, rec["pairs"]):
         read = [obs_tool.baseline_of(base, [r], 12.0, jobs=1)["observer_baseline"] for r in (a, b)]
@@ -902,6 +911,45 @@ def test_the_held_models_spread_is_measured_one_step_down() -> None:
         assert held["held_sd_bar"] == pytest.approx(fall * 4.5 / gain, abs=0.05)
     one = {**cal, "observer": {**cal["observer"], "accel_clusters_mps2": [6.0, 0.0, 0.0, 0.0]}}
     assert obs_tool.held_sd(one, revs, obs, 10.0) is None  # one excitation on the line: nothing to hold
+
+
+def test_a_baseline_file_or_charge_that_cannot_be_read_is_refused_by_name(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``evaluate --baseline`` takes the bare baseline the daemon and ``replay`` take as well as
+    ``baseline``'s document; a file that is no JSON, or a field missing or not finite, is one line
+    naming the file and the field (exit 1), not a traceback. ``baseline`` refuses a charge that
+    is no charge, naming the flag, before reading a run."""
+    from train.campaign import main_wrapper, read_json
+    from train.observer_report import baseline_document
+
+    bare = {"charge_bar": 12.0, "read_bar": 11.4, "read_sd_bar": 0.3}
+    assert baseline_document(bare, "b.json") == {"observer_baseline": bare, "runs": []}
+    full = {"observer_baseline": bare, "runs": [{"file": "a.mcap", "read_bar": 11.4}]}
+    assert baseline_document(full, "b.json") == full
+    with pytest.raises(ValueError, match=r"^b\.json: the unit baseline's `read_sd_bar` is None"):
+        baseline_document({"charge_bar": 12.0, "read_bar": 11.4}, "b.json")
+    with pytest.raises(ValueError, match=r"^b\.json: the unit baseline's `read_bar` is nan"):
+        baseline_document({**bare, "read_bar": float("nan")}, "b.json")
+    with pytest.raises(ValueError, match=r"^b\.json: `runs` is a list"):
+        baseline_document({"observer_baseline": bare, "runs": ["a.mcap"]}, "b.json")
+    bad = tmp_path / "b.json"
+    bad.write_text("{charge_bar: 12}")
+    with pytest.raises(ValueError, match=r"b\.json: not JSON \(.* at line 1, column 2\)"):
+        read_json(bad)
+    physics = Path(__file__).resolve().parents[2] / "docs" / "study" / "physics.json"
+    cli = main_wrapper(obs_tool.main)
+    assert cli(["evaluate", "--physics", str(physics), "--out", str(tmp_path / "r"), "--baseline", f"u={bad}",
+                f"u={tmp_path}"]) == 1
+    err = capsys.readouterr().err
+    assert f"{bad}: not JSON" in err and "Traceback" not in err, err
+    for flag, charge in (("--charge-bar", "nan"), ("--second-charge-bar", "0")):
+        argv = (["baseline", "--physics", str(physics), "--charge-bar", charge, "--out", str(tmp_path / "o.json"),
+                 str(bad)] if flag == "--charge-bar" else
+                ["baseline", "--physics", str(physics), "--charge-bar", "12", "--out", str(tmp_path / "o.json"),
+                 "--second-charge-bar", charge, "--second-runs", str(bad), "--", str(bad)])
+        with pytest.raises(SystemExit, match=f"^{flag} {charge}: not a charge"):
+            obs_tool.main(argv)
+    assert not (tmp_path / "o.json").exists()
 
 
 def test_a_baseline_is_refused_at_an_excitation_with_its_own_model(run_4bar: Path) -> None:

@@ -788,9 +788,12 @@ struct MeasurementTerms {
 /// Σ = diag(S², ρ²),  k = Σ hᵀ / (h Σ hᵀ + σ_b²),  û = k e,  Σ' = Σ − k h Σ
 /// ```
 ///
-/// gives the unit's correction: the reported mean is `(p̂ − û_f) / (1 + û_s)`
-/// and the systematic variance `[1, p] Σ' [1, p]ᵀ + R(p)²` (the later run's
-/// own error) instead of `S² + (ρ p)²`. One known charge cannot tell the
+/// gives the unit's correction: the reported mean is
+/// `p = (p̂ − û_f) / (1 + û_s)` and its variance
+/// `(σ_p̂² + [1, p] Σ' [1, p]ᵀ + R(p)²) / (1 + û_s)²` (`σ_p̂²` the reading's
+/// own, `R(p)²` the later run's own error: the delta method, every error of
+/// `p̂` and `û` divided by the gain) instead of `σ_p̂² + S² + (ρ p)²`. One
+/// known charge cannot tell the
 /// offset from the gain, so the update splits `e` between them in
 /// proportion to their prior variances: near `p₀` the systematic part
 /// shrinks to about `√(σ_b² + R(p₀)²)`, far from it
@@ -2850,11 +2853,13 @@ impl ChargeObserver {
         // so a reading that holds one reports the unconditioned spread.
         let (mean_bar, sd_bar) = if self.p.baseline.is_some() && !self.used_own {
             let unit = UnitCorrection::of(&self.p);
+            // Every error of the raw reading and of the unit's correction
+            // reaches the corrected mean divided by `1 + û_s`.
             let (mean, sys_var) = unit.apply(read);
             let scale = 1.0 + unit.gain_rel;
             (
                 mean,
-                (read_var / (scale * scale) + sys_var + self.held_var() + self.transfer_var())
+                ((read_var + sys_var + self.held_var() + self.transfer_var()) / (scale * scale))
                     .sqrt(),
             )
         } else {
@@ -3159,6 +3164,23 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The sd of `p = (r − u_f) / (1 + u_s)` by the delta method: the raw
+    /// reading `r` with variance `r_var`, independent of the unit's
+    /// correction `u ~ N(û, post)`; the Jacobian at the means.
+    fn delta_method_sd(
+        r_var: f64,
+        post: &nalgebra::Matrix2<f64>,
+        u: &nalgebra::Vector2<f64>,
+        mean: f64,
+    ) -> f64 {
+        let scale = 1.0 + u[1];
+        let jac = nalgebra::RowVector3::new(1.0 / scale, -1.0 / scale, -mean / scale);
+        let mut cov = nalgebra::Matrix3::zeros();
+        cov[(0, 0)] = r_var;
+        cov.fixed_view_mut::<2, 2>(1, 1).copy_from(post);
+        (jac * cov * jac.transpose())[0].sqrt()
+    }
 
     fn params() -> ObserverParams {
         ObserverParams {
@@ -3552,7 +3574,7 @@ mod tests {
     /// with a far narrower interval.
     #[test]
     fn a_baseline_conditions_the_units_offset_and_gain() {
-        use nalgebra::{Matrix2, RowVector2, Vector2};
+        use nalgebra::{Matrix2, RowVector2};
         let (sys, rel, sd_b) = (1.9, 0.1, 0.1);
         let (base, read) = baseline_reader(sys, rel);
         let raw = read(None);
@@ -3575,8 +3597,7 @@ mod tests {
         let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
         assert!((est.mean_bar - mean).abs() < 1e-9, "{est:?} {mean}");
         let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
-        let x = Vector2::new(1.0, mean);
-        let sd = (read_var / (1.0 + u[1]).powi(2) + (x.transpose() * post * x)[0]).sqrt();
+        let sd = delta_method_sd(read_var, &post, &u, mean);
         assert!((est.sd_bar - sd).abs() < 1e-9, "{est:?} {sd}");
         assert!((est.mean_bar - b.charge_bar).abs() < 0.02, "{est:?} {b:?}");
         assert!(est.sd_bar < 0.25 * raw.sd_bar, "{est:?} {raw:?}");
@@ -3657,9 +3678,7 @@ mod tests {
         let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
         assert!((got.mean_bar - mean).abs() < 1e-9, "{got:?} {mean}");
         let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
-        let x = Vector2::new(1.0, mean);
-        let sd = (read_var / (1.0 + u[1]).powi(2) + (x.transpose() * post * x)[0] + run_var(mean))
-            .sqrt();
+        let sd = delta_method_sd(read_var + run_var(mean), &post, &u, mean);
         assert!((got.sd_bar - sd).abs() < 1e-9, "{got:?} {sd}");
         // wider than without it, and never narrower than the run's own error
         let without = read(Some(two), [0.0, 0.0]);
@@ -3727,8 +3746,7 @@ mod tests {
         let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
         assert!((got.mean_bar - mean).abs() < 1e-9, "{got:?} {mean}");
         let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
-        let x = Vector2::new(1.0, mean);
-        let sd = (read_var / (1.0 + u[1]).powi(2) + (x.transpose() * post * x)[0]).sqrt();
+        let sd = delta_method_sd(read_var, &post, &u, mean);
         assert!((got.sd_bar - sd).abs() < 1e-9, "{got:?} {sd}");
         // right where one reading is not: the truth is raw / 1.2
         let truth = raw.mean_bar / 1.2;

@@ -202,32 +202,40 @@ impl Baselines {
     /// Every asset's trend starts at its API baseline or its pending
     /// service, the later of the two (see [`Trends::set_since`]).
     pub fn restart_trends(&self, trends: &Trends) {
-        let mut since: HashMap<String, i64> = HashMap::new();
-        for (asset, b) in self
-            .by_asset
-            .read()
-            .unwrap_or_else(PoisonError::into_inner)
-            .iter()
-        {
-            since.insert(asset.clone(), b.set_ms);
-        }
-        for (asset, s) in self
-            .services
-            .read()
-            .unwrap_or_else(PoisonError::into_inner)
-            .iter()
-        {
-            let t = since.entry(asset.clone()).or_insert(s.set_ms);
-            *t = (*t).max(s.set_ms);
-        }
-        for (asset, t) in since {
-            trends.set_since(&asset, Some(t));
+        let assets: Vec<String> = {
+            let by_asset = self.by_asset.read().unwrap_or_else(PoisonError::into_inner);
+            let services = self.services.read().unwrap_or_else(PoisonError::into_inner);
+            by_asset.keys().chain(services.keys()).cloned().collect()
+        };
+        for asset in assets {
+            trends.set_since(&asset, self.trend_start(&asset));
         }
     }
 
+    /// Where the asset's trend starts, ms: at its API baseline or its
+    /// pending service, the later of the two; `None` (every run) with
+    /// neither. The one rule for a restart and for every change over the API,
+    /// so that a trend reads the same before and after a restart.
+    fn trend_start(&self, asset_id: &str) -> Option<i64> {
+        let baseline = self
+            .by_asset
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .map(|b| b.set_ms);
+        let service = self
+            .services
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .map(|s| s.set_ms);
+        baseline.max(service)
+    }
+
     /// Reports (`Some`) or withdraws (`None`) a service of the asset: in the
-    /// store first, then here; a reported service restarts the asset's trend
-    /// at it.
+    /// store first, then here; the asset's trend then starts where
+    /// [`Self::trend_start`] says (a reported service restarts it at the
+    /// service, unless an API baseline is later).
     pub fn set_service(
         &self,
         store: Option<&dyn FleetStore>,
@@ -238,19 +246,17 @@ impl Baselines {
         if let Some(store) = store {
             store.set_service(asset_id, service.as_ref())?;
         }
-        let mut map = self
-            .services
-            .write()
-            .unwrap_or_else(PoisonError::into_inner);
-        match service {
-            Some(s) => {
-                trends.set_since(asset_id, Some(s.set_ms));
-                map.insert(asset_id.to_owned(), s);
-            }
-            None => {
-                map.remove(asset_id);
-            }
+        {
+            let mut map = self
+                .services
+                .write()
+                .unwrap_or_else(PoisonError::into_inner);
+            match service {
+                Some(s) => map.insert(asset_id.to_owned(), s),
+                None => map.remove(asset_id),
+            };
         }
+        trends.set_since(asset_id, self.trend_start(asset_id));
         Ok(())
     }
 
@@ -311,8 +317,9 @@ impl Baselines {
 
     /// Sets (`Some`) or removes (`None`) the asset's API baseline: in the
     /// store first, if the daemon keeps one, so that what the daemon uses is
-    /// always what it would restore; the asset's trend then starts at the
-    /// baseline (or spans every run again).
+    /// always what it would restore; the asset's trend then starts where
+    /// [`Self::trend_start`] says (at the baseline, or at a later pending
+    /// service, or spans every run again).
     pub fn set(
         &self,
         store: Option<&dyn FleetStore>,
@@ -323,15 +330,17 @@ impl Baselines {
         if let Some(store) = store {
             store.set_baseline(asset_id, baseline.as_ref())?;
         }
-        trends.set_since(asset_id, baseline.map(|b| b.set_ms));
-        let mut map = self
-            .by_asset
-            .write()
-            .unwrap_or_else(PoisonError::into_inner);
-        match baseline {
-            Some(b) => map.insert(asset_id.to_owned(), b),
-            None => map.remove(asset_id),
-        };
+        {
+            let mut map = self
+                .by_asset
+                .write()
+                .unwrap_or_else(PoisonError::into_inner);
+            match baseline {
+                Some(b) => map.insert(asset_id.to_owned(), b),
+                None => map.remove(asset_id),
+            };
+        }
+        trends.set_since(asset_id, self.trend_start(asset_id));
         Ok(())
     }
 
@@ -403,6 +412,59 @@ mod tests {
     use super::*;
     use crate::server::config::AssetOverrides;
     use crate::server::store::SqliteStore;
+
+    /// The trend starts at the later of the API baseline and the pending
+    /// service after every change over the API, as it does after a restart:
+    /// withdrawing either falls back to the other, never to a withdrawn one.
+    #[test]
+    fn a_trend_starts_where_a_restart_would_start_it_after_every_change() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = SqliteStore::open(&dir.path().join("fleet.sqlite")).unwrap();
+        let (baselines, trends) = (Baselines::default(), Trends::default());
+        let restarted = || {
+            let trends = Trends::default();
+            Baselines::load(&store).unwrap().restart_trends(&trends);
+            trends.since("van")
+        };
+        let baseline = |set_ms| StoredBaseline {
+            baseline: AssetBaseline::Observer(UnitBaseline {
+                charge_bar: 12.0,
+                read_bar: 11.5,
+                read_sd_bar: 0.4,
+                accel_range_mps2: None,
+                damping_law: None,
+                second: None,
+            }),
+            set_ms,
+        };
+        let service = |set_ms| PendingService {
+            charge_bar: 12.0,
+            set_ms,
+            refusal: None,
+        };
+        let steps: [(&str, Option<i64>); 6] = [
+            ("baseline at 9 s", Some(9_000)),
+            ("a service reported earlier, at 5 s", Some(9_000)),
+            ("the baseline withdrawn", Some(5_000)),
+            ("the service withdrawn", None),
+            ("a service at 7 s", Some(7_000)),
+            ("a baseline at 3 s", Some(7_000)),
+        ];
+        for (i, (what, want)) in steps.into_iter().enumerate() {
+            let s = Some(&store as &dyn FleetStore);
+            match i {
+                0 => baselines.set(s, &trends, "van", Some(baseline(9_000))),
+                1 => baselines.set_service(s, &trends, "van", Some(service(5_000))),
+                2 => baselines.set(s, &trends, "van", None),
+                3 => baselines.set_service(s, &trends, "van", None),
+                4 => baselines.set_service(s, &trends, "van", Some(service(7_000))),
+                _ => baselines.set(s, &trends, "van", Some(baseline(3_000))),
+            }
+            .unwrap();
+            assert_eq!(trends.since("van"), want, "{what}");
+            assert_eq!(restarted(), want, "{what}, after a restart");
+        }
+    }
 
     #[test]
     fn a_service_is_completed_once_by_its_own_run_and_a_refusal_is_kept() {

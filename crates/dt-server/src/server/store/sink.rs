@@ -89,6 +89,16 @@ impl Trends {
         };
     }
 
+    /// Where the asset's trend starts (see [`Trends::set_since`]).
+    #[must_use]
+    pub fn since(&self, asset_id: &str) -> Option<i64> {
+        self.since_ms
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(asset_id)
+            .copied()
+    }
+
     /// Recomputes the trend of `asset_id` from the store and publishes it
     /// (also to the metrics).
     pub fn refresh(
