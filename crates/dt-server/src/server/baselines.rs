@@ -190,6 +190,15 @@ pub struct Baselines {
     services: RwLock<HashMap<String, PendingService>>,
 }
 
+/// Keeps (`Some`) or forgets (`None`) the asset's entry in `map`.
+fn put<T>(map: &RwLock<HashMap<String, T>>, asset_id: &str, value: Option<T>) {
+    let mut map = map.write().unwrap_or_else(PoisonError::into_inner);
+    match value {
+        Some(v) => map.insert(asset_id.to_owned(), v),
+        None => map.remove(asset_id),
+    };
+}
+
 impl Baselines {
     /// The baselines and pending services `store` keeps.
     pub fn load(store: &dyn FleetStore) -> Result<Self, StoreError> {
@@ -246,16 +255,7 @@ impl Baselines {
         if let Some(store) = store {
             store.set_service(asset_id, service.as_ref())?;
         }
-        {
-            let mut map = self
-                .services
-                .write()
-                .unwrap_or_else(PoisonError::into_inner);
-            match service {
-                Some(s) => map.insert(asset_id.to_owned(), s),
-                None => map.remove(asset_id),
-            };
-        }
+        put(&self.services, asset_id, service);
         trends.set_since(asset_id, self.trend_start(asset_id));
         Ok(())
     }
@@ -330,16 +330,7 @@ impl Baselines {
         if let Some(store) = store {
             store.set_baseline(asset_id, baseline.as_ref())?;
         }
-        {
-            let mut map = self
-                .by_asset
-                .write()
-                .unwrap_or_else(PoisonError::into_inner);
-            match baseline {
-                Some(b) => map.insert(asset_id.to_owned(), b),
-                None => map.remove(asset_id),
-            };
-        }
+        put(&self.by_asset, asset_id, baseline);
         trends.set_since(asset_id, self.trend_start(asset_id));
         Ok(())
     }
