@@ -72,6 +72,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares, minimize, minimize_scalar
+from scipy.stats import chi2 as chi2_dist
 
 import shocktwin
 
@@ -1053,8 +1054,13 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     drift of the reading within the run (RMS of its departure from the final reading over
     the ticks from ``BASELINE_SETTLE_S`` after onset: the error changes as the unit heats —
     on the simulated second unit it read 7.7 bar for 10 at the cold start and 10.2 hot —
-    and a constant correction cannot follow it) and, over several runs, their spread
-    about the mean.
+    and a constant correction cannot follow it). Over several runs the baseline records their
+    effective number (``runs_averaged``, Kish's ``(Σw)²/Σw²``), by which dt-core divides a run's
+    own error (``run_sd_bar``, ``run_rel``: ``run-spread``). With a calibration that carries
+    that term, the sd leaves out the runs' spread about their mean (the term holds it), unless
+    they spread beyond it (χ² above its 99.9 % point: added, with a warning); without the term,
+    their spread is added. So a baseline read over several runs with a run term belongs with
+    a calibration that carries it: read with one without, the runs' spread is counted nowhere.
 
     ``unit_law``: first refit the calibration's damping law on these runs' reversal windows
     (``train.damping_law.unit_law``), read the baseline with it and return it in the baseline
@@ -1084,15 +1090,19 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     # A unit's reading takes every reversal (as the daemon's service reading does): its sd
     # is what the baseline will condition the unit on.
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
-    first = _reading(physics, paths, jobs)
+    first = _reading(physics, paths, jobs, charge_bar)
     ob = {"charge_bar": float(charge_bar), "read_bar": first["read_bar"], "read_sd_bar": first["read_sd_bar"]}
+    if first["runs_effective"] > 1.0:
+        ob["runs_averaged"] = first["runs_effective"]  # dt-core UnitBaseline::runs_averaged
     ranges = first["ranges"]
     runs = [{**r, "charge_bar": float(charge_bar)} for r in first["runs"]]
     if second is not None:
-        other = _reading(physics, second[1], jobs)
+        other = _reading(physics, second[1], jobs, second[0])
         # dt-core UnitBaseline::second
         ob["second"] = {"charge_bar": float(second[0]), "read_bar": other["read_bar"],
                         "read_sd_bar": other["read_sd_bar"]}
+        if other["runs_effective"] > 1.0:
+            ob["second"]["runs_averaged"] = other["runs_effective"]
         ranges = ranges + other["ranges"]
         runs += [{**r, "charge_bar": float(second[0])} for r in other["runs"]]
     if ranges:
@@ -1107,7 +1117,7 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     return out
 
 
-def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int) -> dict[str, Any]:
+def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_bar: float) -> dict[str, Any]:
     """One reading of a unit at one known charge for ``baseline_of``: each run's reading,
     combined by inverse variance; the runs, and the ``|ÿ_r|`` range of each run's reversals."""
     obs = physics["observer"]
@@ -1134,8 +1144,28 @@ def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int) -> dict[
     w = np.array([1.0 / v for _, _, v in rows])
     m = np.array([x for _, x, _ in rows])
     mean = float(np.sum(w * m) / np.sum(w))
-    spread = float(np.sum(w * (m - mean) ** 2) / np.sum(w)) if len(rows) > 1 else 0.0
-    return {"read_bar": mean, "read_sd_bar": float(np.sqrt(1.0 / np.sum(w) + spread)), "ranges": ranges,
+    # the runs' effective number (Kish): each carries a run error of its own (R(p₀)², dt-core
+    # ObserverParams::run_sd_bar), which their weighted mean holds as R(p₀)² Σw² / (Σw)²
+    n_eff = float(np.sum(w) ** 2 / np.sum(w ** 2))
+    run2 = obs.get("run_sd_bar", 0.0) ** 2 + (obs.get("run_rel", 0.0) * charge_bar) ** 2
+    var = 1.0 / np.sum(w)
+    spread = float(np.sum(w * (m - mean) ** 2) / np.sum(w))
+    if len(rows) > 1 and run2 > 0.0:
+        # the run term holds the runs' spread about their mean (dt-core divides it by
+        # `runs_averaged`), unless they spread far more than it and their reversals explain:
+        # then their spread is added as without one, and named
+        chi2_runs = float(np.sum((m - mean) ** 2 / (1.0 / w + run2)))
+        if chi2_runs > chi2_dist.ppf(0.999, len(rows) - 1):
+            var += spread
+            log.warning("%s: the %d runs read %s bar: further apart than their reversals and the calibration's "
+                        "run-to-run error (±%.2f bar) allow (χ² %.1f on %d degrees of freedom): their spread is "
+                        "added to the reading's sd; is the charge the same in each?",
+                        ", ".join(str(p) for p, _, _ in rows), len(rows), " / ".join(f"{x:.2f}" for x in m),
+                        np.sqrt(run2), chi2_runs, len(rows) - 1)
+    elif len(rows) > 1:
+        # no run term in the calibration: their spread about the mean stands in for it
+        var += spread
+    return {"read_bar": mean, "read_sd_bar": float(np.sqrt(var)), "runs_effective": n_eff, "ranges": ranges,
             "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
                      for (p, x, v), (_, _, d) in zip(rows, reads)]}
 
@@ -1315,17 +1345,34 @@ def fit_run_spread(d: np.ndarray, n: np.ndarray, charges: np.ndarray) -> tuple[f
     p2 = np.square(charges)
     both = len(set(p2.tolist())) > 1
 
-    def nll(x: np.ndarray) -> float:
+    g = np.stack([np.ones_like(p2), p2])
+
+    def nll(x: np.ndarray) -> tuple[float, np.ndarray]:
+        """The negative log-likelihood at ``x = [R₀², r²]`` and its gradient (∂v/∂x = 2g)."""
         v = n ** 2 + 2.0 * (x[0] + x[1] * p2)
-        return float(0.5 * np.sum(np.log(v) + d ** 2 / v))
+        return float(0.5 * np.sum(np.log(v) + d ** 2 / v)), g @ (1.0 / v - d ** 2 / v ** 2)
 
     # R₀² and r² in units that keep them near 1 for the optimiser
     scale = np.array([np.mean(n ** 2), np.mean(n ** 2) / np.mean(p2) if both else 0.0])
-    best = minimize(lambda y: nll(y * scale), np.array([0.5, 0.5 if both else 0.0]), method="L-BFGS-B",
+
+    def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
+        f, grad = nll(y * scale)
+        return f, grad * scale
+
+    best = minimize(scaled, np.array([0.5, 0.5 if both else 0.0]), jac=True, method="L-BFGS-B",
                     bounds=[(0.0, None), (0.0, None if both else 0.0)], options={"ftol": 1e-15, "gtol": 1e-12})
-    if not best.success:
-        raise SystemExit(f"run spread: the likelihood's maximum was not found ({best.message})")
-    r0, r_rel = np.sqrt(best.x * scale)
+    # L-BFGS-B's line search can stop at these tolerances at the maximum itself ("ABNORMAL"):
+    # what decides is whether the score vanishes there (or points out of a bound it rests on)
+    x = best.x * scale
+    _, score = nll(x)
+    v = n ** 2 + 2.0 * (x[0] + x[1] * p2)
+    tol = 1e-6 * np.sum(1.0 / v) * np.array([1.0, np.mean(p2)])
+    at_bound = best.x <= 1e-10
+    free, held = ~at_bound & np.array([True, both]), at_bound & np.array([True, both])
+    if not (np.all(np.abs(score[free]) <= tol[free]) and np.all(score[held] >= -tol[held])):
+        raise SystemExit(f"run spread: the likelihood's maximum was not found ({best.message}; score {score} at "
+                         f"R₀² {x[0]:.3g}, r² {x[1]:.3g})")
+    r0, r_rel = np.sqrt(x)
     return float(r0), float(r_rel)
 
 

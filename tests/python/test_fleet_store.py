@@ -325,9 +325,11 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     ext = cal["valves"]["extension"]
     law = {**cal, "valves": {**cal["valves"], "extension": {**ext, "laminar_nspm": 1.1 * ext["laminar_nspm"],
                                                             "crack_n": 0.95 * ext["crack_n"]}}}
-    # (and a second reading at another known charge: `baseline --second-charge-bar`)
-    second = {"charge_bar": 4.0, "read_bar": 3.4, "read_sd_bar": 0.3}
-    own = {**doc, "observer_baseline": {**doc["observer_baseline"], "damping_law": law, "second": second}}
+    # (and a second reading at another known charge: `baseline --second-charge-bar`; each
+    # reading of several runs, `runs_averaged`, as `baseline` writes it for several runs)
+    second = {"charge_bar": 4.0, "read_bar": 3.4, "read_sd_bar": 0.3, "runs_averaged": 2.5}
+    own = {**doc, "observer_baseline": {**doc["observer_baseline"], "damping_law": law, "second": second,
+                                        "runs_averaged": 3.0}}
     (tmp_path / "own.json").write_text(json.dumps(own))
     run2 = sorted(world["runs"].glob("*.mcap"))[1]
     with_own = replay_binned(bundle, run2, tmp_path / "o.csv", "--observer-baseline", str(tmp_path / "own.json"))
@@ -343,6 +345,10 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     assert r.status_code == 422 and "observer.baseline.second.read_sd_bar" in r.json()["error"], r.text
     r = httpx.put(url, json=own)
     assert r.status_code == 200 and r.json()["own_damping_law"] is True and r.json()["second"] == second, r.text
+    assert r.json()["runs_averaged"] == 3.0, r.text
+    bad = {**own, "observer_baseline": {**own["observer_baseline"], "runs_averaged": 0.5}}
+    r = httpx.put(url, json=bad)
+    assert r.status_code == 422 and "observer.baseline.runs_averaged" in r.json()["error"], r.text
     shutil.copy(run2, inbox3 / run2.name)
     d3.wait_runs("dyno-unit-A", 1)
     assert_history_is(d3, "dyno-unit-A", with_own)
@@ -350,7 +356,7 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     d4 = Daemon(bundle, db3, inbox3)
     daemons.append(d4)
     kept = d4.get("/v1/assets/dyno-unit-A/baseline")
-    assert kept["own_damping_law"] is True and kept["second"] == second, kept
+    assert kept["own_damping_law"] is True and kept["second"] == second and kept["runs_averaged"] == 3.0, kept
     # A service (a recharge) does not change the valves: the daemon reads the unit with its
     # own law and the baseline it reads keeps it, as `train.observer baseline` reads the run
     # with that law in the calibration's place.
@@ -370,6 +376,7 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     got = service_baseline(url)
     # (a service's reading is one reading: it replaces both)
     assert got["own_damping_law"] is True and got["charge_bar"] == day.label_bar and "second" not in got, got
+    assert "runs_averaged" not in got, got
     assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
     assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
     d4.stop()

@@ -16,6 +16,7 @@ simulated runs (``shocktwin simulate --quick``):
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 from pathlib import Path
@@ -423,6 +424,49 @@ def test_a_damping_law_of_the_wrong_shape_is_named() -> None:
         shocktwin.reversal_window(params, 6.0, 40.0, [40.0, 1.0, 1.0, 0.0, 0.0], [0.0, 1e-3])
 
 
+def test_a_reading_of_several_runs_carries_their_number(calibrated_campaign: tuple[Path, Path], tmp_path: Path,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
+    """A baseline read from two takes of one unit at one charge, with a calibration that carries
+    a run's own error: the reading is the runs' inverse-variance mean with the variance of that
+    mean alone, and it records their effective number (Kish's ``(Σw)²/Σw²``), by which dt-core
+    divides the run term; the unit is then read more narrowly than with the same reading counted
+    as one run. Without a run term the runs' spread is added to the sd as before. Runs that
+    disagree far beyond the run term are named."""
+    _, physics = calibrated_campaign
+    takes = [simulate(tmp_path / f"take{k}", "--pressures", "3,12", "--frequencies", "1", "--unit", "3",
+                      "--repeat", str(k)) for k in (0, 1)]
+    run3 = next(r for r in takes[0] if r.name.startswith("p3.0"))
+    runs12 = [next(r for r in t if r.name.startswith("p12.0")) for t in takes]
+    params = json.loads(physics.read_text())
+    run_params = {**params, "observer": {**params["observer"], "run_sd_bar": 0.1, "run_rel": 0.02}}
+    b = obs_tool.baseline_of(run_params, runs12, 12.0, jobs=1)
+    ob, each = b["observer_baseline"], b["runs"]
+    w = np.array([1.0 / r["read_sd_bar"] ** 2 for r in each])
+    m = np.array([r["read_bar"] for r in each])
+    assert ob["runs_averaged"] == pytest.approx(np.sum(w) ** 2 / np.sum(w ** 2), rel=1e-12)
+    assert 1.0 < ob["runs_averaged"] <= 2.0
+    assert ob["read_bar"] == pytest.approx(np.sum(w * m) / np.sum(w), rel=1e-12)
+    assert ob["read_sd_bar"] == pytest.approx(np.sqrt(1.0 / np.sum(w)), rel=1e-12)
+    # without a run term: the spread about the mean stands in for it (and the number is kept)
+    plain = obs_tool.baseline_of(params, runs12, 12.0, jobs=1)["observer_baseline"]
+    spread = np.sum(w * (m - ob["read_bar"]) ** 2) / np.sum(w)
+    assert plain["read_sd_bar"] == pytest.approx(np.sqrt(1.0 / np.sum(w) + spread), rel=1e-12)
+    # dt-core takes the number: R(p₀)²/runs_averaged, so narrower than the same reading counted once
+    sds = {}
+    for name, base in (("several", ob), ("one", {k: v for k, v in ob.items() if k != "runs_averaged"})):
+        x, cols, _ = shocktwin.features(run3, {**run_params, "observer": {**run_params["observer"],
+                                                                          "baseline": base}}, ["observer"])
+        sds[name] = x[-1, cols.index("observer_sd_bar")]
+    print(f"unit 3 at 3 bar (simulated), baselined on two takes at 12 bar: sd {sds['several']:.3f} bar, "
+          f"{sds['one']:.3f} counted as one run")
+    assert sds["several"] < sds["one"], sds
+    # runs at charges far apart given as one charge: named
+    with caplog.at_level(logging.WARNING, logger="shocktwin.observer"):
+        obs_tool.baseline_of(run_params, [runs12[0], run3], 12.0, jobs=1)
+    assert any("further apart than" in r.getMessage() and str(run3) in r.getMessage() for r in caplog.records), \
+        [r.getMessage() for r in caplog.records]
+
+
 def test_many_windows_at_once_are_each_window_alone() -> None:
     """``reversal_windows`` (every core, the parameters read once) gives the same bits as one
     ``reversal_window`` per window, end to end in their order; arguments of different lengths
@@ -774,6 +818,24 @@ def test_the_run_spread_fit_finds_the_two_terms_it_was_drawn_with() -> None:
     d1 = rng.standard_normal(k) * np.sqrt(n ** 2 + 2.0 * 0.3 ** 2)
     r0, r_rel = obs_tool.fit_run_spread(d1, n, one)
     assert r_rel == 0.0 and abs(r0 - 0.3) < 0.02, (r0, r_rel)
+    # small sets at scales far apart: the fit never refuses, and no point of a dense grid over
+    # both terms (zero included; computed here, not by the fit) is likelier than what it found
+    for i in range(100):
+        rng = np.random.default_rng(100 + i)
+        k, s = int(rng.integers(3, 40)), 10.0 ** rng.uniform(-2, 1)
+        p = rng.choice([2.0, 4.0, 7.0, 12.0], k)
+        n = s * rng.uniform(0.2, 1.0, k)
+        d = s * rng.standard_normal(k) * rng.uniform(0.1, 3.0)
+        r0, r_rel = obs_tool.fit_run_spread(d, n, p)
+
+        def nll(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            v = n ** 2 + 2.0 * (a[..., None] + b[..., None] * p ** 2)
+            return 0.5 * np.sum(np.log(v) + d ** 2 / v, axis=-1)
+
+        grid = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 160)]) * s ** 2
+        a, b = np.meshgrid(grid, grid / 49.0)
+        best = nll(np.array(r0 ** 2), np.array(r_rel ** 2))
+        assert best <= nll(a, b).min() + 1e-9 * abs(best) + 1e-12, (i, r0, r_rel, best, nll(a, b).min())
 
 
 def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -> None:

@@ -384,8 +384,9 @@ pub struct ObserverParams {
     /// [`run_rel`](Self::run_rel): `R(p)² = R₀² + (r p)²`. It is not a
     /// constant of the unit, so a [`UnitBaseline`] cannot condition it: each
     /// baseline reading at `p₀` carries it (variance `read_sd_bar² +
-    /// R(p₀)²`) and so does every later run read with the baseline (its
-    /// systematic variance gains `R(p)²`). Without a baseline the
+    /// R(p₀)²/n`, a reading of `n` runs:
+    /// [`UnitBaseline::runs_averaged`]) and so does every later run read
+    /// with the baseline (its systematic variance gains `R(p)²`). Without a baseline the
     /// unconditioned spread already holds it (`systematic_sd_bar` is
     /// measured leaving one run out). `python -m train.observer run-spread`
     /// measures both on repeat takes of baselined units. 0 (the default, and
@@ -779,9 +780,10 @@ struct MeasurementTerms {
 /// [`systematic_sd_bar`](ObserverParams::systematic_sd_bar) and `ρ` =
 /// [`systematic_rel`](ObserverParams::systematic_rel). A baseline observes
 /// `e(p₀) = read_bar − charge_bar` with variance `σ_b² = read_sd_bar² +
-/// R(p₀)²` (`R(p)² = R₀² + (r p)²`, [`run_sd_bar`](ObserverParams::run_sd_bar)
-/// and [`run_rel`](ObserverParams::run_rel): the reading run's own error,
-/// which is no constant of the unit); the Gaussian update with
+/// R(p₀)²/n` (`R(p)² = R₀² + (r p)²`, [`run_sd_bar`](ObserverParams::run_sd_bar)
+/// and [`run_rel`](ObserverParams::run_rel): a run's own error, which is no
+/// constant of the unit, averaged over the reading's `n` =
+/// [`runs_averaged`](Self::runs_averaged)); the Gaussian update with
 /// `h = [1, p₀]`,
 ///
 /// ```text
@@ -840,6 +842,13 @@ pub struct UnitBaseline {
     /// its gain; two can: the update takes both readings. None: one reading.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub second: Option<BaselineReading>,
+    /// How many independent runs the reading averages (their effective
+    /// number, `(Σw)²/Σw²` of their weights: `python -m train.observer
+    /// baseline` over several runs): each run carries an error of its own,
+    /// `R(p₀)²` ([`ObserverParams::run_sd_bar`]), and their mean holds
+    /// `R(p₀)²/runs_averaged`. 1 (left out of the document): one run.
+    #[serde(default = "one_run", skip_serializing_if = "is_one_run")]
+    pub runs_averaged: f64,
 }
 
 /// One reading of a unit at a known charge: the second one of a
@@ -853,6 +862,21 @@ pub struct BaselineReading {
     pub read_bar: f64,
     /// Standard deviation of that reading from its reversals alone, bar.
     pub read_sd_bar: f64,
+    /// How many independent runs the reading averages
+    /// ([`UnitBaseline::runs_averaged`]); 1 (left out of the document): one run.
+    #[serde(default = "one_run", skip_serializing_if = "is_one_run")]
+    pub runs_averaged: f64,
+}
+
+/// The default of [`UnitBaseline::runs_averaged`]: a reading of one run.
+const fn one_run() -> f64 {
+    1.0
+}
+
+/// Whether a reading is of one run (the field is then left out).
+#[allow(clippy::trivially_copy_pass_by_ref, clippy::float_cmp)] // serde passes a reference; 1 is exact
+fn is_one_run(runs: &f64) -> bool {
+    *runs == 1.0
 }
 
 impl UnitBaseline {
@@ -862,6 +886,7 @@ impl UnitBaseline {
             charge_bar: self.charge_bar,
             read_bar: self.read_bar,
             read_sd_bar: self.read_sd_bar,
+            runs_averaged: self.runs_averaged,
         };
         std::iter::once(first).chain(self.second)
     }
@@ -882,7 +907,8 @@ impl UnitBaseline {
                 "need charge_bar, read_bar and read_sd_bar (numbers, bar), \
                  and optionally accel_range_mps2 ([lo, hi], m/s²), damping_law \
                  (the unit's own, as `observer.damping_law`) and second (a reading at \
-                 another known charge: charge_bar, read_bar, read_sd_bar): {e}"
+                 another known charge: charge_bar, read_bar, read_sd_bar), and \
+                 runs_averaged (how many runs a reading averages, default 1): {e}"
             )
         })?;
         b.validate().map_err(|e| e.to_string())?;
@@ -902,6 +928,17 @@ impl UnitBaseline {
             "observer.baseline.second.read_sd_bar",
         ];
         for (r, names) in self.readings().zip([FIRST, SECOND]) {
+            if !(r.runs_averaged.is_finite() && r.runs_averaged >= 1.0) {
+                return Err(PhysicsError::InvalidParameter {
+                    name: if names == FIRST {
+                        "observer.baseline.runs_averaged"
+                    } else {
+                        "observer.baseline.second.runs_averaged"
+                    },
+                    value: r.runs_averaged,
+                    reason: "must be a finite number of runs, at least 1",
+                });
+            }
             for (i, value) in [r.charge_bar, r.read_bar, r.read_sd_bar]
                 .into_iter()
                 .enumerate()
@@ -998,7 +1035,7 @@ impl UnitCorrection {
             let p0 = r.charge_bar;
             let [sff, sfs, sss] = u.cov;
             let (sh_f, sh_s) = (sff + sfs * p0, sfs + sss * p0);
-            let s2 = sh_f + sh_s * p0 + r.read_sd_bar.powi(2) + u.run_var(p0);
+            let s2 = sh_f + sh_s * p0 + r.read_sd_bar.powi(2) + u.run_var(p0) / r.runs_averaged;
             let (k_f, k_s) = (sh_f / s2, sh_s / s2);
             let innovation = (r.read_bar - r.charge_bar) - (u.offset_bar + u.gain_rel * p0);
             Self {
@@ -3586,6 +3623,7 @@ mod tests {
             accel_range_mps2: None,
             damping_law: None,
             second: None,
+            runs_averaged: 1.0,
         };
         let est = read(Some(b));
         let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
@@ -3616,6 +3654,7 @@ mod tests {
                 accel_range_mps2: None,
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             }),
             ..base
         })
@@ -3629,8 +3668,10 @@ mod tests {
     /// A run's own error `R(p)² = R₀² + (r p)²` (`run_sd_bar`, `run_rel`)
     /// is no constant of the unit: it joins each baseline reading's variance
     /// (at its charge) and every later run's (at its reading), checked
-    /// against the information form with `σ_b² + R(p₀)²` per reading and
-    /// `+ R(p)²` after; without a baseline it changes nothing.
+    /// against the information form with `σ_b² + R(p₀)²/n` per reading of
+    /// `n` runs (`runs_averaged`) and `+ R(p)²` after; without a baseline
+    /// it changes nothing. A reading's `n` that is no number of runs is
+    /// refused by name; one run is left out of the document.
     #[test]
     fn a_runs_own_error_is_carried_by_each_reading_and_each_later_run() {
         use nalgebra::{Matrix2, Vector2};
@@ -3651,7 +3692,7 @@ mod tests {
         let raw = read(None, [0.0, 0.0]);
         assert_eq!(read(None, [run0, run_rel]), raw);
         let (first, second) = ((12.0, 13.1, 0.2), (4.0, 4.5, 0.25));
-        let two = UnitBaseline {
+        let two_of = |runs: [f64; 2]| UnitBaseline {
             charge_bar: first.0,
             read_bar: first.1,
             read_sd_bar: first.2,
@@ -3661,31 +3702,53 @@ mod tests {
                 charge_bar: second.0,
                 read_bar: second.1,
                 read_sd_bar: second.2,
+                runs_averaged: runs[1],
             }),
+            runs_averaged: runs[0],
         };
-        let mut info = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel)
-            .try_inverse()
-            .unwrap();
-        let mut score = Vector2::zeros();
-        for (p0, r, sd) in [first, second] {
-            let (h, var) = (Vector2::new(1.0, p0), sd * sd + run_var(p0));
-            info += h * h.transpose() / var;
-            score += h * ((r - p0) / var);
+        let mut sds = Vec::new();
+        // each reading of one run, then of several (their mean holds R(p₀)²/n)
+        for runs in [[1.0, 1.0], [3.0, 2.5]] {
+            let mut info = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel)
+                .try_inverse()
+                .unwrap();
+            let mut score = Vector2::zeros();
+            for ((p0, r, sd), n) in [first, second].into_iter().zip(runs) {
+                let (h, var) = (Vector2::new(1.0, p0), sd * sd + run_var(p0) / n);
+                info += h * h.transpose() / var;
+                score += h * ((r - p0) / var);
+            }
+            let post = info.try_inverse().unwrap();
+            let u = post * score;
+            let got = read(Some(two_of(runs)), [run0, run_rel]);
+            let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
+            assert!((got.mean_bar - mean).abs() < 1e-9, "{got:?} {mean}");
+            let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
+            let sd = delta_method_sd(read_var + run_var(mean), &post, &u, mean);
+            assert!((got.sd_bar - sd).abs() < 1e-9, "{runs:?} {got:?} {sd}");
+            // wider than without it, and never narrower than the run's own error
+            let without = read(Some(two_of(runs)), [0.0, 0.0]);
+            assert!(
+                got.sd_bar > without.sd_bar && got.sd_bar > run_var(mean).sqrt(),
+                "{got:?} {without:?}"
+            );
+            sds.push(got.sd_bar);
         }
-        let post = info.try_inverse().unwrap();
-        let u = post * score;
-        let got = read(Some(two), [run0, run_rel]);
-        let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
-        assert!((got.mean_bar - mean).abs() < 1e-9, "{got:?} {mean}");
-        let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
-        let sd = delta_method_sd(read_var + run_var(mean), &post, &u, mean);
-        assert!((got.sd_bar - sd).abs() < 1e-9, "{got:?} {sd}");
-        // wider than without it, and never narrower than the run's own error
-        let without = read(Some(two), [0.0, 0.0]);
-        assert!(
-            got.sd_bar > without.sd_bar && got.sd_bar > run_var(mean).sqrt(),
-            "{got:?} {without:?}"
-        );
+        // readings of several runs each condition the unit more narrowly
+        assert!(sds[1] < sds[0], "{sds:?}");
+        // a number of runs that is none is refused by name; one run is left
+        // out of the document, several are kept
+        for (name, runs) in [
+            ("observer.baseline.runs_averaged", [0.5, 1.0]),
+            ("observer.baseline.second.runs_averaged", [1.0, f64::NAN]),
+        ] {
+            let err = two_of(runs).validate().unwrap_err();
+            assert!(err.to_string().contains(name), "{err}");
+        }
+        let doc = serde_json::to_value(two_of([1.0, 1.0])).unwrap();
+        assert!(!doc.to_string().contains("runs_averaged"), "{doc}");
+        let doc = serde_json::to_value(two_of([3.0, 2.5])).unwrap();
+        assert_eq!(UnitBaseline::from_document(doc), Ok(two_of([3.0, 2.5])));
         for (name, run) in [
             ("observer.run_sd_bar", [-0.1, 0.0]),
             ("observer.run_rel", [0.0, f64::NAN]),
@@ -3723,12 +3786,14 @@ mod tests {
             accel_range_mps2: None,
             damping_law: None,
             second: None,
+            runs_averaged: 1.0,
         };
         let two = UnitBaseline {
             second: Some(BaselineReading {
                 charge_bar: second.0,
                 read_bar: second.1,
                 read_sd_bar: second.2,
+                runs_averaged: 1.0,
             }),
             ..one
         };
@@ -3798,6 +3863,7 @@ mod tests {
             accel_range_mps2: Some([5.5, 6.5]),
             damping_law: Some(own),
             second: None,
+            runs_averaged: 1.0,
         };
         let base = ObserverParams {
             damping_law: a_law(),
@@ -3922,6 +3988,7 @@ mod tests {
                 accel_range_mps2: None,
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             }),
             ..p
         };
@@ -3965,6 +4032,7 @@ mod tests {
             accel_range_mps2: Some([1.4, 1.6]),
             damping_law: None,
             second: None,
+            runs_averaged: 1.0,
         };
         let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {

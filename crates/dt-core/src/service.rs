@@ -220,6 +220,7 @@ impl ServiceReading {
                 // daemon carries a unit's own through a service)
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             },
             drift_sd_bar: drift,
         })

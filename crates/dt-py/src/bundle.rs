@@ -264,7 +264,7 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// (its nominal pressure and health thresholds, a 100 ms re-order window, a
 /// new segment after a 2 s gap). ``observer_baseline`` (a dict with
 /// ``charge_bar``, ``read_bar``, ``read_sd_bar`` and optionally the unit's
-/// own ``damping_law``, as ``python -m train.observer baseline [--unit-law]``
+/// own ``damping_law``, a ``second`` reading and ``runs_averaged``, as ``python -m train.observer baseline [--unit-law]``
 /// writes under that key) is this unit's charge-observer baseline, for a
 /// bundle that reads the observer.
 ///

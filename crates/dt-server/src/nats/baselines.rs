@@ -56,6 +56,9 @@ pub struct BaselineEntry {
     /// See [`UnitBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub second: Option<dt_core::charge::BaselineReading>,
+    /// See [`UnitBaseline`] (left out: one run).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runs_averaged: Option<f64>,
     /// See [`RoadBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -79,6 +82,7 @@ impl From<StoredBaseline> for BaselineEntry {
             accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
             damping_law: read.and_then(|u| u.damping_law),
             second: read.and_then(|u| u.second),
+            runs_averaged: read.map(|u| u.runs_averaged).filter(|&n| n > 1.0),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
@@ -98,6 +102,7 @@ impl BaselineEntry {
                     accel_range_mps2: self.accel_range_mps2,
                     damping_law: self.damping_law,
                     second: self.second,
+                    runs_averaged: self.runs_averaged.unwrap_or(1.0),
                 };
                 b.validate().map_err(|e| e.to_string())?;
                 AssetBaseline::Observer(b)
@@ -487,6 +492,7 @@ mod tests {
                 accel_range_mps2,
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             }),
             set_ms: 1_700_000_000_000,
         }
@@ -511,7 +517,10 @@ mod tests {
                 charge_bar: 4.0,
                 read_bar: 3.4,
                 read_sd_bar: 0.3,
+                runs_averaged: 7.0 / 3.0,
             });
+            // each reading averaging several runs
+            u.runs_averaged = 2.0 / 0.7;
         }
         for b in [observer, ranged, two, road] {
             let json = serde_json::to_string(&BaselineEntry::from(b)).unwrap();

@@ -78,6 +78,10 @@ pub struct BaselineView {
     /// ([`dt_core::charge::UnitBaseline::second`]), when the baseline has one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub second: Option<dt_core::charge::BaselineReading>,
+    /// How many runs the (first) reading averages
+    /// ([`dt_core::charge::UnitBaseline::runs_averaged`]), when more than one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub runs_averaged: Option<f64>,
     /// The unit's seal friction offset from the road calibration's, N.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -116,6 +120,7 @@ impl BaselineView {
             accel_range_mps2: read.and_then(|u| u.accel_range_mps2),
             own_damping_law: read.map(|u| u.damping_law.is_some()),
             second: read.and_then(|u| u.second),
+            runs_averaged: read.map(|u| u.runs_averaged).filter(|&n| n > 1.0),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             source,
@@ -425,6 +430,7 @@ mod tests {
                 accel_range_mps2: None,
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             }),
             set_ms,
         };
@@ -472,6 +478,7 @@ mod tests {
                 accel_range_mps2: None,
                 damping_law: Some(unit_law()),
                 second: None,
+                runs_averaged: 1.0,
             }),
             set_ms: 1_000,
         };
@@ -517,6 +524,7 @@ mod tests {
             accel_range_mps2: Some([1.4, 1.6]),
             damping_law: None,
             second: None,
+            runs_averaged: 1.0,
         };
         assert_eq!(
             baselines
@@ -578,6 +586,7 @@ mod tests {
             accel_range_mps2: None,
             damping_law: Some(unit_law()),
             second: None,
+            runs_averaged: 1.0,
         };
         let mut config = Config::default();
         for (id, road) in [("van", false), ("car", true)] {

@@ -25,7 +25,7 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 9;
+pub const SCHEMA_VERSION: i64 = 10;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
 const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
@@ -122,6 +122,11 @@ ALTER TABLE baselines ADD COLUMN damping_law TEXT;
     r"
 ALTER TABLE baselines ADD COLUMN second TEXT;
 ",
+    // How many runs the first reading averages
+    // (`dt_core::charge::UnitBaseline::runs_averaged`); 1: one.
+    r"
+ALTER TABLE baselines ADD COLUMN runs_averaged REAL NOT NULL DEFAULT 1.0;
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
@@ -186,8 +191,8 @@ fn put_baseline(
         AssetBaseline::Observer(u) => tx.execute(
             &format!(
                 "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms, \
-                 accel_lo_mps2, accel_hi_mps2, damping_law, second) \
-                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)"
+                 accel_lo_mps2, accel_hi_mps2, damping_law, second, runs_averaged) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)"
             ),
             params![
                 asset_id,
@@ -201,6 +206,7 @@ fn put_baseline(
                     .map(|l| serde_json::to_string(&l).expect("a law is plain numbers")),
                 u.second
                     .map(|r| serde_json::to_string(&r).expect("a reading is plain numbers")),
+                u.runs_averaged,
             ],
         )?,
         AssetBaseline::Road(r) => tx.execute(
@@ -642,7 +648,7 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms, \
-                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law, b.second \
+                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law, b.second, b.runs_averaged \
                  FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
             let mut all = stmt
@@ -660,6 +666,7 @@ impl FleetStore for SqliteStore {
                                 },
                                 damping_law: json_column(r, 7, "damping_law")?,
                                 second: json_column(r, 8, "second")?,
+                                runs_averaged: r.get(9)?,
                             }),
                             set_ms: r.get(4)?,
                         },
@@ -922,6 +929,7 @@ mod tests {
                 accel_range_mps2: Some([1.45, 1.61]),
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             }),
             set_ms: 1_700_000_000_000,
         };
@@ -946,7 +954,10 @@ mod tests {
                     charge_bar: 4.0,
                     read_bar: 3.1 / 0.7,
                     read_sd_bar: 0.123_456_789,
+                    runs_averaged: 7.0 / 3.0,
                 }),
+                // and the runs each reading averages
+                runs_averaged: 2.0 / 0.7,
             }),
             ..b
         };
@@ -997,6 +1008,7 @@ mod tests {
                 accel_range_mps2: None,
                 damping_law: None,
                 second: None,
+                runs_averaged: 1.0,
             }),
             set_ms: 1_700_000_000_000,
         };
