@@ -320,8 +320,13 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     d2.stop()
     # With a model whose calibration has a law (the full study's, committed), the daemon
     # estimates with the unit's own, as replay does, keeps it across a restart and says so.
-    bundle = ROOT / "docs" / "study" / "bundles" / "perm-18"
-    cal = json.loads((bundle / "twin.json").read_text())["physics"]["observer"]["damping_law"]
+    # (with a run-to-run term in its calibration, which a reading of several runs divides)
+    bundle = tmp_path / "perm-18-run"
+    shutil.copytree(ROOT / "docs" / "study" / "bundles" / "perm-18", bundle)
+    twin = json.loads((bundle / "twin.json").read_text())
+    twin["physics"]["observer"].update(run_sd_bar=0.1, run_rel=0.02)
+    (bundle / "twin.json").write_text(json.dumps(twin))
+    cal = twin["physics"]["observer"]["damping_law"]
     ext = cal["valves"]["extension"]
     law = {**cal, "valves": {**cal["valves"], "extension": {**ext, "laminar_nspm": 1.1 * ext["laminar_nspm"],
                                                             "crack_n": 0.95 * ext["crack_n"]}}}
@@ -335,6 +340,12 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     with_own = replay_binned(bundle, run2, tmp_path / "o.csv", "--observer-baseline", str(tmp_path / "own.json"))
     plain = replay_binned(bundle, run2, tmp_path / "p.csv", "--observer-baseline", str(tmp_path / "unit.json"))
     assert max(abs(with_own[s] - plain[s]) for s in plain) > 0.01, "the unit's own law changed nothing"
+    once = {**own, "observer_baseline": {k: v for k, v in own["observer_baseline"].items() if k != "runs_averaged"}}
+    (tmp_path / "once.json").write_text(json.dumps(once))
+    counted_once = replay_binned(bundle, run2, tmp_path / "c.csv", "--observer-baseline", str(tmp_path / "once.json"))
+    moved = max(abs(with_own[s] - counted_once[s]) for s in plain)
+    print(f"a baseline's readings of 3 and 2.5 runs against one each: the estimate moves by up to {moved:.4f} bar")
+    assert moved > 1e-3, "runs_averaged changed nothing"
     inbox3, db3 = tmp_path / "inbox3", tmp_path / "fleet3.sqlite"
     inbox3.mkdir()
     d3 = Daemon(bundle, db3, inbox3)
