@@ -229,48 +229,6 @@ UNIT_LAW = {"knots_mps": [-0.15, -0.09, -0.05, -0.025, 0.025, 0.05, 0.09, 0.15],
             "dry_nspm": [500.0, -5000.0, 0, 2500.0, 0, 0, 0, 0, -6000.0], "beta_per_k": 0.03}
 
 
-def test_an_older_run_processed_later_does_not_become_the_assets_latest(world: dict[str, Path], tmp_path: Path,
-                                                                        daemons: list[Daemon]) -> None:
-    """A backlog upload: the leaking unit's last day goes into the inbox first, then its first
-    day (12 bar). `/v1/assets` keeps showing the last day (its run, pressure, recent history and
-    last run), not the run processed last, as the fleet store does after a restart; nor does a
-    middle day processed after that."""
-    days = sorted(world["runs"].glob("*.mcap"))
-    newest, oldest, middle = days[-1], days[0], days[len(days) // 2]
-    inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
-    inbox.mkdir()
-    d = Daemon(world["bundle"], db, inbox)
-    daemons.append(d)
-
-    def row() -> dict[str, Any]:
-        return next(a for a in d.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
-
-    shutil.copy(newest, inbox / newest.name)
-    d.wait_runs("dyno-unit-A", 1)
-    shown = row()
-    shutil.copy(oldest, inbox / oldest.name)
-    runs = d.wait_runs("dyno-unit-A", 2)
-    assert runs[0]["run_id"] == shown["run_id"] != runs[1]["run_id"], runs
-    after = row()
-    for k in ("run_id", "pressure_bar", "pressure_lo_bar", "pressure_hi_bar", "health", "last_t_ns"):
-        assert after[k] == shown[k], (k, shown, after)
-    assert after["ticks"] > shown["ticks"], after
-    hist = d.get("/v1/assets/dyno-unit-A", history=100000)["history"]
-    assert hist and hist[-1]["t_ns"] == shown["last_t_ns"], hist[-1]
-    assert all(a["t_ns"] < b["t_ns"] for a, b in zip(hist, hist[1:])), "history out of order"
-    d.stop()
-    # the store says the same after a restart
-    d2 = Daemon(world["bundle"], db, inbox)
-    daemons.append(d2)
-    d = d2
-    assert row()["run_id"] == shown["run_id"]
-    # a run newer than what it shows is shown
-    shutil.copy(middle, inbox / middle.name)
-    d.wait_runs("dyno-unit-A", 3)
-    assert row()["run_id"] == shown["run_id"], "a middle day is older than the last"
-    d2.stop()
-
-
 def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path], tmp_path: Path,
                                                           daemons: list[Daemon]) -> None:
     """`[assets.<id>] observer_baseline` in the daemon's config: that asset's estimates are

@@ -444,10 +444,6 @@ function onEstimate(ev) {
     S.assets.set(ev.asset_id, a);
     scheduleRefresh(1500);
   }
-  // A run of older data (a backlog upload) does not replace what the row shows, as on the server
-  // (`/v1/assets` follows the newest data): comparable only when both are Unix times.
-  const UNIX_NS = 1e18;
-  if (a.run_id && ev.run_id !== a.run_id && a.last_t_ns > UNIX_NS && ev.t_ns > UNIX_NS && ev.t_ns < a.last_t_ns) return;
   for (const k of ["run_id", "pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar",
     "expected_bar", "health"]) a[k] = ev[k];
   a.last_t_ns = ev.t_ns;
