@@ -19,6 +19,7 @@ const S = {
   liveCount: 0, lastEvent: null, seeded: false,
   fleetDirty: false, fleetDrawn: 0, liveDirty: false, detailTimer: null, refreshTimer: null,
   liveChart: null, trendChart: null, trendKey: null,
+  uploads: new Set(),            // run ids of uploads (inbox, POST v1/runs) seen starting
 };
 
 // ---- formatting --------------------------------------------------------------------
@@ -444,6 +445,12 @@ function onEstimate(ev) {
     S.assets.set(ev.asset_id, a);
     scheduleRefresh(1500);
   }
+  // An upload of older data (a backlog) does not replace what the row shows, as on the server
+  // (`/v1/assets` follows an upload only when its data are newer; a live stream always shows):
+  // comparable only when both are Unix times.
+  const UNIX_NS = 1e18;
+  if (S.uploads.has(ev.run_id) && a.run_id && ev.run_id !== a.run_id && a.last_t_ns > UNIX_NS &&
+    ev.t_ns > UNIX_NS && ev.t_ns < a.last_t_ns) return;
   for (const k of ["run_id", "pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar",
     "expected_bar", "health"]) a[k] = ev[k];
   a.last_t_ns = ev.t_ns;
@@ -467,6 +474,9 @@ function connect() {
   });
   es.addEventListener("run", (e) => {
     const r = JSON.parse(e.data);
+    const upload = /^(inbox|http) /.test(r.source || "");
+    if (upload && r.status === "started") S.uploads.add(r.run_id);
+    else if (upload) S.uploads.delete(r.run_id);
     if (r.asset_id === S.selected) scheduleDetail();
     if (r.status !== "started") scheduleRefresh(700);   // its trend may have moved
   });

@@ -6,7 +6,7 @@
 //! | `GET /healthz` | `200 ok` while the process serves |
 //! | `GET /readyz` | `200 ready` once every source takes work (the inbox: once its directory is watched, or rescanned when it cannot be), or `503` while starting (`not ready: starting <source>`) or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
 //! | `GET /metrics` | Prometheus metrics (`OpenMetrics` text) |
-//! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update |
+//! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update (an upload of older data than shown does not replace it; a live stream always does) |
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
 //! | `GET /v1/assets/{id}/history?since=&until=&step_s=` | 1 s history from the fleet store (SPEC §9); times RFC 3339 or Unix s; default the last day of the asset's data |
 //! | `GET /v1/assets/{id}/trend` | leak rate, predicted warn/fault crossings with intervals, or why not (SPEC §9) |

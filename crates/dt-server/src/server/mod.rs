@@ -362,7 +362,7 @@ pub async fn run(
     let live = Arc::new(LiveState::new(limits.history_len, limits.queue_depth));
 
     let trends = Arc::new(Trends::default());
-    let mut sinks: Vec<Box<dyn Sink>> = vec![Box::new(LiveSink(Arc::clone(&live)))];
+    let mut sinks: Vec<Box<dyn Sink>> = vec![Box::new(LiveSink::new(Arc::clone(&live)))];
     if let Some(dir) = &config.server.record_dir {
         sinks.push(Box::new(McapRecorder::new(dir, config.record.clone())?));
     }

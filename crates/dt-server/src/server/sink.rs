@@ -32,6 +32,13 @@ pub enum SourceKind {
 }
 
 impl SourceKind {
+    /// A stream that is the asset now (TCP, NATS), not an upload of a log
+    /// that may be older than what the asset has shown (inbox, HTTP).
+    #[must_use]
+    pub fn is_live(self) -> bool {
+        matches!(self, SourceKind::Tcp | SourceKind::Nats)
+    }
+
     /// `tcp` or `inbox` (metric label).
     #[must_use]
     pub fn as_str(self) -> &'static str {

@@ -2,7 +2,7 @@
 //! estimate, a bounded history and the health; and the live event stream
 //! (`GET /v1/events`), a bounded broadcast whose slow readers skip ahead.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::{Arc, PoisonError, RwLock};
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -12,7 +12,7 @@ use tokio::sync::broadcast;
 
 use super::config::Config;
 use super::sink::{ObserverRead, RoadRead, RunEnd, RunInfo, Sink, SinkError};
-use super::store::{AssetState, HistoryPoint};
+use super::store::{AssetState, CalendarClock, HistoryPoint};
 
 /// One event of the live stream; the SSE event name is [`LiveEvent::name`].
 #[derive(Debug, Clone, Serialize)]
@@ -125,6 +125,12 @@ pub struct AssetDetail {
 struct AssetView {
     summary: AssetSummary,
     history: VecDeque<Estimate>,
+    /// Calendar ms of the newest estimate shown ([`CalendarClock`]):
+    /// an upload's summary and recent history follow the asset's newest
+    /// data, not the run processed last (a backlog of old logs uploaded
+    /// after newer ones must not show an old charge as the current one);
+    /// a live stream always shows.
+    shown_ms: i64,
 }
 
 /// The live state shared by the sink thread (writer) and the HTTP handlers.
@@ -223,6 +229,7 @@ impl LiveState {
                 AssetView {
                     summary,
                     history: VecDeque::new(),
+                    shown_ms: last.map_or(i64::MIN, |p| p.t_ms),
                 },
             );
         }
@@ -267,6 +274,7 @@ impl LiveState {
                     last_run_road: None,
                 },
                 history: VecDeque::with_capacity(self.history_len.min(4096)),
+                shown_ms: i64::MIN,
             });
         f(view)
     }
@@ -283,8 +291,24 @@ impl LiveState {
 }
 
 /// The [`Sink`] that keeps [`LiveState`] up to date.
-#[derive(Debug, Clone)]
-pub struct LiveSink(pub Arc<LiveState>);
+#[derive(Debug)]
+pub struct LiveSink {
+    state: Arc<LiveState>,
+    /// Each run in progress: its calendar clock (from its first estimate)
+    /// and whether any of its estimates was the asset's newest.
+    runs: HashMap<u64, (Option<CalendarClock>, bool)>,
+}
+
+impl LiveSink {
+    /// The sink that keeps `state` up to date.
+    #[must_use]
+    pub fn new(state: Arc<LiveState>) -> Self {
+        Self {
+            state,
+            runs: HashMap::new(),
+        }
+    }
+}
 
 impl Sink for LiveSink {
     fn name(&self) -> &'static str {
@@ -292,24 +316,38 @@ impl Sink for LiveSink {
     }
 
     fn run_started(&mut self, run: &RunInfo) -> Result<(), SinkError> {
-        self.0.with_asset(run, |v| {
+        self.runs.insert(run.seq, (None, false));
+        self.state.with_asset(run, |v| {
             v.summary.active_runs += 1;
-            v.summary.run_id.clone_from(&run.meta.run_id);
             v.summary.expected_bar = run.asset.nominal_bar;
         });
-        self.0.publish(LiveState::run_event(run, "started", None));
+        self.state
+            .publish(LiveState::run_event(run, "started", None));
         Ok(())
     }
 
     fn estimates(&mut self, run: &RunInfo, batch: &[Estimate]) -> Result<(), SinkError> {
-        let Some(last) = batch.last() else {
+        let Some(first) = batch.first() else {
             return Ok(());
         };
-        let state = &self.0;
+        let state = &self.state;
+        let (clock, shown_any) = self.runs.entry(run.seq).or_insert((None, false));
+        let clock = *clock.get_or_insert_with(|| CalendarClock::new(first.t_ns, run.started));
         let mut changes = Vec::new();
         state.with_asset(run, |v| {
             let mut health = v.summary.health;
+            let mut newest = None;
+            // An upload (inbox, `POST /v1/runs`) shows only what is not
+            // older than what the asset shows: a backlog of older logs
+            // processed later keeps its estimates to the store. A live
+            // stream (TCP, NATS) is the asset now, whatever its clock says.
+            let live = run.kind.is_live();
             for e in batch {
+                let ms = clock.ms(e.t_ns);
+                if !live && ms < v.shown_ms {
+                    continue;
+                }
+                v.shown_ms = v.shown_ms.max(ms);
                 if e.health != health {
                     changes.push((e.t_ns, health, e.health));
                     health = e.health;
@@ -318,8 +356,12 @@ impl Sink for LiveSink {
                     v.history.pop_front();
                 }
                 v.history.push_back(*e);
+                newest = Some(e);
             }
             let s = &mut v.summary;
+            s.ticks += batch.len() as u64;
+            let Some(last) = newest else { return };
+            *shown_any = true;
             s.run_id.clone_from(&run.meta.run_id);
             s.pressure_bar = finite(last.pressure_bar);
             s.pressure_avg_bar = finite(last.pressure_avg_bar);
@@ -329,7 +371,6 @@ impl Sink for LiveSink {
             s.health = health;
             s.last_t_ns = Some(last.t_ns);
             s.last_update_unix_ms = unix_ms(SystemTime::now());
-            s.ticks += batch.len() as u64;
         });
         if !state.listened() {
             return Ok(());
@@ -361,14 +402,23 @@ impl Sink for LiveSink {
 
     fn run_ended(&mut self, run: &RunInfo, end: &RunEnd) -> Result<(), SinkError> {
         let outcome = &end.outcome;
-        self.0.with_asset(run, |v| {
+        // A run whose every estimate was older than the asset's newest is
+        // not its last run; one with no estimate at all cannot be placed and
+        // is reported (a failure to read a new upload must show).
+        let last = match self.runs.remove(&run.seq) {
+            Some((Some(_), shown_any)) => shown_any,
+            _ => true,
+        };
+        self.state.with_asset(run, |v| {
             v.summary.active_runs = v.summary.active_runs.saturating_sub(1);
-            v.summary.last_run_status = Some(outcome.status());
-            v.summary.last_run_reason = outcome.reason().map(str::to_owned);
-            v.summary.last_run_observer = end.observer;
-            v.summary.last_run_road.clone_from(&end.road);
+            if last {
+                v.summary.last_run_status = Some(outcome.status());
+                v.summary.last_run_reason = outcome.reason().map(str::to_owned);
+                v.summary.last_run_observer = end.observer;
+                v.summary.last_run_road.clone_from(&end.road);
+            }
         });
-        self.0.publish(LiveState::run_event(
+        self.state.publish(LiveState::run_event(
             run,
             outcome.status(),
             outcome.reason().map(str::to_owned),
