@@ -1090,14 +1090,14 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     # A unit's reading takes every reversal (as the daemon's service reading does): its sd
     # is what the baseline will condition the unit on.
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
-    first = _reading(physics, paths, jobs, charge_bar)
+    first = _reading(physics, paths, jobs, charge_bar, own_law=fit is not None)
     ob = {"charge_bar": float(charge_bar), "read_bar": first["read_bar"], "read_sd_bar": first["read_sd_bar"]}
     if first["runs_effective"] > 1.0:
         ob["runs_averaged"] = first["runs_effective"]  # dt-core UnitBaseline::runs_averaged
     ranges = first["ranges"]
     runs = [{**r, "charge_bar": float(charge_bar)} for r in first["runs"]]
     if second is not None:
-        other = _reading(physics, second[1], jobs, second[0])
+        other = _reading(physics, second[1], jobs, second[0], own_law=fit is not None)
         # dt-core UnitBaseline::second
         ob["second"] = {"charge_bar": float(second[0]), "read_bar": other["read_bar"],
                         "read_sd_bar": other["read_sd_bar"]}
@@ -1117,9 +1117,12 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     return out
 
 
-def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_bar: float) -> dict[str, Any]:
+def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_bar: float,
+             own_law: bool = False) -> dict[str, Any]:
     """One reading of a unit at one known charge for ``baseline_of``: each run's reading,
-    combined by inverse variance; the runs, and the ``|ÿ_r|`` range of each run's reversals."""
+    combined by inverse variance; the runs, and the ``|ÿ_r|`` range of each run's reversals.
+    ``own_law``: the unit is read with its own damping law (``--unit-law``); without it, a
+    reading refused for too few reversals suggests it."""
     obs = physics["observer"]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
@@ -1139,7 +1142,10 @@ def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_b
         if np.sqrt(var) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
             raise SystemExit(f"{path}: the observer used (almost) no reversals (reading {m:.2f} ± "
                              f"{np.sqrt(var):.2f} bar from its reversals alone): an excitation it was not "
-                             "calibrated at? No baseline from it")
+                             "calibrated at"
+                             + ("?" if own_law else ", or a unit whose valves the calibration's damping law "
+                                "does not fit (then `--unit-law` refits the law on these runs)?")
+                             + " No baseline from it")
         rows.append((str(path), m, var))
     w = np.array([1.0 / v for _, _, v in rows])
     m = np.array([x for _, x, _ in rows])

@@ -538,6 +538,8 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     d2.wait_runs("dyno-unit-A", 2)
     why = refusal()
     assert "no reversals" in why and "p12.0-f4.0" in why, why
+    # read with the calibration's law: the other way to get a baseline is named
+    assert "baseline --unit-law" in why and "/v1/assets/{id}/baseline" in why, why
     row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
     assert row["service"]["last_refusal"] == why and row["baseline"] is None, row
     shutil.copy(run, inbox / run.name)

@@ -603,7 +603,8 @@ def test_a_units_own_damping_law_reads_the_end_of_the_stroke_the_calibrations_ca
     cut = params["observer"]["max_residual_mps2"]
     drive = simulate(tmp_path / "drive", "--pressures", "12", "--frequencies", "2", "--seed", "6", "--unit", "33")[0]
     later = simulate(tmp_path / "later", "--pressures", "10", "--frequencies", "2", "--seed", "5", "--unit", "33")[0]
-    with pytest.raises(SystemExit, match=r"\(almost\) no reversals"):
+    # refused, and told what to try
+    with pytest.raises(SystemExit, match=r"\(almost\) no reversals.*`--unit-law` refits the law"):
         obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", str(drive),
                        "--out", str(tmp_path / "plain.json"), "--jobs", "1"])
     out = tmp_path / "own.json"

@@ -15,7 +15,7 @@ use dt_core::estimate::Estimate;
 use dt_core::estimator::{Estimator, EstimatorConfig};
 use dt_core::log::{RunMetadata, Sample};
 use dt_core::road::RoadCalibration;
-use dt_core::service::ServiceReading;
+use dt_core::service::{ServiceReading, ServiceRefusal};
 
 use super::config::AssetConfig;
 use super::store::AssetBaseline;
@@ -206,7 +206,16 @@ impl AssetTwin for EstimatorTwin {
                         ..r.baseline
                     })
                 })
-                .map_err(|e| e.to_string()),
+                .map_err(|e| match e {
+                    // read with the calibration's law: the unit's valves may be
+                    // what the reversals did not fit
+                    ServiceRefusal::TooWide { .. } if law.is_none() => format!(
+                        "{e}; or a unit whose valves the calibration's damping law does not \
+                         fit: read its baseline with `python -m train.observer baseline \
+                         --unit-law` and PUT it to /v1/assets/{{id}}/baseline"
+                    ),
+                    e => e.to_string(),
+                }),
         )
     }
 
