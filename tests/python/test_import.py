@@ -174,6 +174,14 @@ def test_missing_column_unit_and_gap_are_named(tmp_path: Path) -> None:
     done = shocktwin("import", "--map", MAP, "--temp-ambient", "Ambient [°C]", "--out", out, export, check=False)
     assert done.returncode == 1
     assert "run_150psi.csv" in done.stderr and "Ambient [°C]" in done.stderr
+    # ... with the nearest header row and what it lacks
+    assert "the nearest, has no [\"Ambient [°C]\"]" in done.stderr, done.stderr
+
+    # A unit the header names, contradicted by the mapping: refused before anything is written
+    # (read in inches, the export's millimetres made a 2 m stroke that replayed without a word).
+    done = shocktwin("import", "--map", MAP, "--position-unit", "in", "--out", out, export, check=False)
+    assert done.returncode == 1 and "Displacement [mm]" in done.stderr and '"in"' in done.stderr, done.stderr
+    assert not out.exists() or not list(out.glob("*.mcap"))
 
     done = shocktwin("import", "--map", MAP, "--force-unit", "stone", "--out", out, export, check=False)
     assert done.returncode == 1 and '"stone"' in done.stderr and "lbf" in done.stderr

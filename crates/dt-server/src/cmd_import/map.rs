@@ -162,6 +162,21 @@ pub enum TimeFormat {
     Auto,
 }
 
+impl TimeFormat {
+    /// The format's name in the mapping (`[time] format`, `--time-format`).
+    #[must_use]
+    pub fn key(self) -> &'static str {
+        match self {
+            TimeFormat::Iso8601 => "iso8601",
+            TimeFormat::EpochS => "epoch_s",
+            TimeFormat::EpochMs => "epoch_ms",
+            TimeFormat::ElapsedS => "elapsed_s",
+            TimeFormat::ElapsedMs => "elapsed_ms",
+            TimeFormat::Auto => "auto",
+        }
+    }
+}
+
 /// A column converted by `si = scale · raw + offset`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Column {
@@ -370,7 +385,12 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
     let position = match &f.position {
         None => None,
         Some(p) => {
-            let unit = length_unit(p.unit.as_deref().unwrap_or("m"))?;
+            let name = need(p.column.as_ref(), "[position] column")?;
+            let given = p.unit.as_deref();
+            let unit = length_unit(given.unwrap_or("m"))?;
+            agrees(&name, "position", given, "m", |u| {
+                length_unit(u).ok().map(|x| same(x, unit))
+            })?;
             let sign = sign(
                 p.positive.as_deref(),
                 "extension",
@@ -378,51 +398,57 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
                 "[position] positive",
             )?;
             let zero = p.mid_stroke.unwrap_or(0.0);
-            Some(Column::new(
-                need(p.column.as_ref(), "[position] column")?,
-                sign * unit,
-                -sign * unit * zero,
-            ))
+            Some(Column::new(name, sign * unit, -sign * unit * zero))
         }
     };
     let force = match &f.force {
         None => None,
         Some(p) => {
-            let unit = force_unit(p.unit.as_deref().unwrap_or("N"))?;
+            let name = need(p.column.as_ref(), "[force] column")?;
+            let given = p.unit.as_deref();
+            let unit = force_unit(given.unwrap_or("N"))?;
+            agrees(&name, "force", given, "N", |u| {
+                force_unit(u).ok().map(|x| same(x, unit))
+            })?;
             let sign = sign(
                 p.positive.as_deref(),
                 "tension",
                 "compression",
                 "[force] positive",
             )?;
-            Some(Column::new(
-                need(p.column.as_ref(), "[force] column")?,
-                sign * unit,
-                0.0,
-            ))
+            Some(Column::new(name, sign * unit, 0.0))
         }
     };
     let temp = |m: &Option<TempMap>, key: &str| -> anyhow::Result<Option<Column>> {
         let Some(m) = m else { return Ok(None) };
-        let (scale, offset) = temperature_unit(m.unit.as_deref().unwrap_or("C"))?;
-        Ok(Some(Column::new(
-            need(m.column.as_ref(), &format!("[{key}] column"))?,
-            scale,
-            offset,
-        )))
+        let name = need(m.column.as_ref(), &format!("[{key}] column"))?;
+        let given = m.unit.as_deref();
+        let conv = temperature_unit(given.unwrap_or("C"))?;
+        agrees(&name, key, given, "C", |u| {
+            temperature_unit(u)
+                .ok()
+                .map(|x| same(x.0, conv.0) && same(x.1, conv.1))
+        })?;
+        Ok(Some(Column::new(name, conv.0, conv.1)))
     };
     let acceleration = match &f.acceleration {
         None => None,
         Some(a) => {
-            let scale = match a.unit.as_deref().unwrap_or("m/s2") {
-                "g" => G_MPS2,
-                "m/s2" | "m/s^2" | "mps2" => 1.0,
-                other => bail!("[acceleration] unit = {other:?}: not one of g, m/s2"),
+            let given = a.unit.as_deref();
+            let Some(scale) = accel_unit(given.unwrap_or("m/s2")) else {
+                bail!(
+                    "[acceleration] unit = {:?}: not one of g, m/s2",
+                    given.unwrap_or_default()
+                );
             };
-            Some((
-                Column::new(need(a.a1.as_ref(), "[acceleration] a1")?, scale, 0.0),
-                Column::new(need(a.a2.as_ref(), "[acceleration] a2")?, scale, 0.0),
-            ))
+            let a1 = need(a.a1.as_ref(), "[acceleration] a1")?;
+            let a2 = need(a.a2.as_ref(), "[acceleration] a2")?;
+            for name in [&a1, &a2] {
+                agrees(name, "acceleration", given, "m/s2", |u| {
+                    accel_unit(u).map(|x| same(x, scale))
+                })?;
+            }
+            Some((Column::new(a1, scale, 0.0), Column::new(a2, scale, 0.0)))
         }
     };
     let run = f.run.clone().unwrap_or_default();
@@ -464,6 +490,70 @@ fn sign(value: Option<&str>, spec: &str, opposite: &str, key: &str) -> anyhow::R
         Some(v) if v == spec => Ok(1.0),
         Some(v) if v == opposite => Ok(-1.0),
         Some(v) => bail!("{key} = {v:?}: not one of {spec}, {opposite}"),
+    }
+}
+
+/// The unit a header names at its end, in brackets or parentheses
+/// (`Displacement [mm]`, `Force (kN)`), if any.
+fn header_unit(name: &str) -> Option<&str> {
+    let name = name.trim_end();
+    let open = match name.chars().last()? {
+        ']' => '[',
+        ')' => '(',
+        _ => return None,
+    };
+    let inner = &name[name.rfind(open)? + 1..name.len() - 1];
+    Some(inner.trim()).filter(|u| !u.is_empty())
+}
+
+/// A column whose header names a unit is read in that unit: a mapping that
+/// reads `Displacement [mm]` in inches (given, or the default) would import
+/// every value scaled wrong without a word. `same(u)` says whether the
+/// header's unit `u` converts as the mapping's (`None`: not a unit of this
+/// quantity, e.g. `[raw]`, which is left to the mapping).
+fn agrees(
+    name: &str,
+    key: &str,
+    given: Option<&str>,
+    default: &str,
+    same: impl Fn(&str) -> Option<bool>,
+) -> anyhow::Result<()> {
+    let Some(unit) = header_unit(name) else {
+        return Ok(());
+    };
+    if same(unit) != Some(false) {
+        return Ok(());
+    }
+    let flag = match key {
+        "position" => "--position-unit",
+        "force" => "--force-unit",
+        "acceleration" => "--accel-unit",
+        _ => "--temp-unit",
+    };
+    match given {
+        Some(g) => bail!(
+            "[{key}] column {name:?} names its unit {unit:?}, but the mapping reads it in {g:?} \
+             ([{key}] unit or {flag}): give {unit:?}, or the unit the values are really in"
+        ),
+        None => bail!(
+            "[{key}] column {name:?} names its unit {unit:?}, but the mapping reads it in {default:?}, \
+             the default: give [{key}] unit = {unit:?} or {flag} {unit}"
+        ),
+    }
+}
+
+/// Two conversions taken from the same tables: the same unit (or another
+/// spelling of it) gives the same bits.
+fn same(a: f64, b: f64) -> bool {
+    a.to_bits() == b.to_bits()
+}
+
+/// m/s² per unit.
+fn accel_unit(unit: &str) -> Option<f64> {
+    match unit {
+        "g" => Some(G_MPS2),
+        "m/s2" | "m/s^2" | "m/s²" | "mps2" => Some(1.0),
+        _ => None,
     }
 }
 
@@ -545,6 +635,79 @@ pub fn charge_in_name(name: &str) -> Option<(String, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn mapped(toml_text: &str) -> anyhow::Result<Mapping> {
+        resolve_file(&toml::from_str(toml_text).unwrap())
+    }
+
+    /// A unit in the header's brackets or parentheses must agree with the
+    /// mapping's, given or default: otherwise every value would be imported
+    /// scaled wrong without a word (a test engineer's `--position-unit in`
+    /// on a `[mm]` column imported a 2 m stroke).
+    #[test]
+    fn a_header_naming_its_unit_is_read_in_it() {
+        assert_eq!(header_unit("Displacement [mm]"), Some("mm"));
+        assert_eq!(header_unit("Force (kN) "), Some("kN"));
+        assert_eq!(header_unit("x"), None);
+        assert_eq!(header_unit("[]"), None);
+        assert_eq!(header_unit("]"), None);
+        assert_eq!(header_unit("a)"), None);
+        let time = "[time]\ncolumn = \"t\"\n";
+        let err = format!(
+            "{:#}",
+            mapped(&format!(
+                "{time}[position]\ncolumn = \"Displacement [mm]\"\nunit = \"in\""
+            ))
+            .unwrap_err()
+        );
+        assert!(
+            err.contains("\"Displacement [mm]\" names its unit \"mm\"")
+                && err.contains("in \"in\"")
+                && err.contains("--position-unit"),
+            "{err}"
+        );
+        // the default (m) is a unit too
+        let err = format!(
+            "{:#}",
+            mapped(&format!("{time}[force]\ncolumn = \"Force [kN]\"")).unwrap_err()
+        );
+        assert!(
+            err.contains("the default") && err.contains("unit = \"kN\""),
+            "{err}"
+        );
+        let err = format!(
+            "{:#}",
+            mapped(&format!(
+                "{time}[temperature_shock]\ncolumn = \"T (F)\"\nunit = \"C\""
+            ))
+            .unwrap_err()
+        );
+        assert!(
+            err.contains("[temperature_shock]") && err.contains("--temp-unit"),
+            "{err}"
+        );
+        let err = format!(
+            "{:#}",
+            mapped(&format!(
+                "{time}[acceleration]\na1 = \"a1 [m/s2]\"\na2 = \"a2 [m/s2]\"\nunit = \"g\""
+            ))
+            .unwrap_err()
+        );
+        assert!(err.contains("\"a1 [m/s2]\""), "{err}");
+        // agreeing, another spelling of the same unit, or not a unit of the
+        // quantity (left to the mapping): read as mapped
+        let m = mapped(&format!(
+            "{time}[position]\ncolumn = \"Displacement [mm]\"\nunit = \"mm\"\n\
+             [force]\ncolumn = \"F [raw]\"\nunit = \"kN\"\n\
+             [temperature_shock]\ncolumn = \"Temperature [°C]\"\nunit = \"C\"\n\
+             [acceleration]\na1 = \"a1 (g)\"\na2 = \"a2\"\nunit = \"g\""
+        ))
+        .unwrap();
+        assert!((m.position.unwrap().scale - 1e-3).abs() < 1e-15);
+        assert!((m.force.unwrap().scale - 1e3).abs() < 1e-9);
+        assert!((m.temp_shock.unwrap().scale - 1.0).abs() < 1e-15);
+        assert!((m.acceleration.unwrap().0.scale - G_MPS2).abs() < 1e-12);
+    }
 
     #[test]
     fn charge_labels_in_every_unit() {

@@ -136,11 +136,17 @@ fn import_file(
         .with_context(|| format!("{file}: renaming to {}", out.display()))?;
 
     let duration_s = (table.t_ns[table.t_ns.len() - 1] - t0) as f64 * 1e-9;
-    let mut report = format!(
-        "{file} -> {}: {} rows, {duration_s:.1} s at {rate} Hz;",
-        out.display(),
-        table.rows
-    );
+    let kept = table.t_ns.len();
+    let mut report = if kept as u64 == table.rows {
+        format!("{file} -> {}: {kept} rows", out.display())
+    } else {
+        format!(
+            "{file} -> {}: {kept} rows (of {} read)",
+            out.display(),
+            table.rows
+        )
+    };
+    let _ = write!(report, ", {duration_s:.1} s at {rate} Hz;");
     for s in &series {
         let _ = write!(report, " {} {} Hz", s.topic, s.rate_hz);
         if s.rate_hz < s.nominal_hz {

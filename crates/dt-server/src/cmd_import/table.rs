@@ -51,21 +51,44 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         .with_context(|| format!("{file}: cannot open"))?;
     let wanted = map.columns();
     let mut records = reader.records();
+    // The row naming the most mapped columns, should none name them all:
+    // (how many, its line, its cells).
+    let mut nearest: Option<(usize, u64, Vec<String>)> = None;
     // The header: the given line, or the first row naming every mapped column.
     let (header, header_line) = loop {
         let Some(record) = records.next() else {
-            match map.header_line {
-                Some(n) => bail!("{file}: the file ends before header line {n}"),
-                None => bail!(
-                    "{file}: no header row names all the mapped columns {wanted:?} (give header_line if the names differ)"
+            match (map.header_line, nearest) {
+                (Some(n), _) => bail!("{file}: the file ends before header line {n}"),
+                (None, Some((_, line, cells))) => {
+                    let missing: Vec<&str> = wanted
+                        .iter()
+                        .copied()
+                        .filter(|w| !cells.iter().any(|c| c == w))
+                        .collect();
+                    bail!(
+                        "{file}: no header row names all the mapped columns {wanted:?}: line {line}, \
+                         the nearest, has no {missing:?} (its columns: {cells:?}; give header_line \
+                         if the names differ)"
+                    )
+                }
+                (None, None) => bail!(
+                    "{file}: no row names any of the mapped columns {wanted:?} (give header_line if the names differ)"
                 ),
             }
         };
         let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
         let line = record.position().map_or(0, csv::Position::line);
-        let found = match map.header_line {
-            Some(n) => line as usize == n,
-            None => wanted.iter().all(|w| record.iter().any(|c| c == *w)),
+        let found = if let Some(n) = map.header_line {
+            line as usize == n
+        } else {
+            let named = wanted
+                .iter()
+                .filter(|w| record.iter().any(|c| c == **w))
+                .count();
+            if named > 0 && nearest.as_ref().is_none_or(|(n, ..)| named > *n) {
+                nearest = Some((named, line, record.iter().map(str::to_owned).collect()));
+            }
+            named == wanted.len()
         };
         if found {
             break (record, line);
@@ -222,7 +245,7 @@ fn parse_time(text: &str, format: &mut TimeFormat) -> Result<i64, String> {
     let number = |scale: f64| -> Result<i64, String> {
         let x: f64 = text
             .parse()
-            .map_err(|_| format!("{text:?} is not a number ({format:?} time)"))?;
+            .map_err(|_| format!("{text:?} is not a number ({} time)", format.key()))?;
         if !x.is_finite() {
             return Err(format!("{text:?} is not a finite time"));
         }
@@ -283,6 +306,21 @@ mod tests {
             err.contains(":3: column \"t\"") && err.contains("(9223372036.954"),
             "{err}"
         );
+        // a mapped column missing from the header: the nearest row and what
+        // it lacks are named
+        std::fs::write(&path, "Stroke,80\nt,y\n0.1,1\n").unwrap();
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(
+            err.contains("line 2, the nearest, has no [\"x\"]") && err.contains("[\"t\", \"y\"]"),
+            "{err}"
+        );
+        std::fs::write(&path, "a,b\n0.1,1\n").unwrap();
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(err.contains("no row names any of"), "{err}");
+        // a time cell that is not a number names the format as the mapping does
+        std::fs::write(&path, "t,x\n0.1,1\nsoon,2\n").unwrap();
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(err.contains("(elapsed_s time)"), "{err}");
         // a finite cell out of range once converted (found by fuzzing)
         std::fs::write(&path, "t,x\n0.1,1\n0.2,1e308\n").unwrap();
         let map = Mapping {
