@@ -34,7 +34,11 @@ PRESSURE_UNITS_BAR: dict[str, float] = {
     "kpa": 1e-2,
     "mpa": 10.0,  # megapascal (nobody charges a damper in millipascal)
 }
-_UNITS_HELP = "bar, mbar, psi, Pa, kPa, MPa (gauge)"
+#: Absolute units (a charge label in psia or bara, as `shocktwin import` reads them) -> bar,
+#: then less one standard atmosphere.
+ABSOLUTE_UNITS_BAR: dict[str, float] = {"bara": 1.0, "psia": PRESSURE_UNITS_BAR["psi"]}
+ATM_BAR = 1.01325
+_UNITS_HELP = "bar, mbar, psi, Pa, kPa, MPa (gauge); bara, psia (absolute)"
 _PRESSURE = re.compile(r"^\s*([-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z]+)\s*$")
 
 
@@ -49,10 +53,12 @@ def parse_pressure_bar(text: str) -> float:
         raise ValueError(f"cannot read the pressure {text!r}: expected a number and a unit, "
                          f"e.g. '150 psi' or '10.3 bar' (units: {_UNITS_HELP})")
     value, unit = float(m.group(1)), m.group(2)
-    factor = PRESSURE_UNITS_BAR.get(unit.lower())
-    if factor is None:
+    if (absolute := ABSOLUTE_UNITS_BAR.get(unit.lower())) is not None:
+        bar = value * absolute - ATM_BAR
+    elif (factor := PRESSURE_UNITS_BAR.get(unit.lower())) is not None:
+        bar = value * factor
+    else:
         raise ValueError(f"unknown pressure unit {unit!r} in {text!r} (units: {_UNITS_HELP})")
-    bar = value * factor
     if not math.isfinite(bar) or bar <= -1.01325:
         raise ValueError(f"the pressure {text!r} is below vacuum")
     return bar

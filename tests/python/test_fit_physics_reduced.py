@@ -134,6 +134,9 @@ def test_pressure_units():
     assert parse_pressure_bar("1.03 MPa") == pytest.approx(10.3)
     assert parse_pressure_bar("1030kPa") == pytest.approx(10.3)
     assert parse_pressure_bar("900 KPA") == pytest.approx(9.0)
+    # absolute, as `shocktwin import` reads a charge label (dt-server charge_bar): less 1 atm
+    assert parse_pressure_bar("145.2 psia") == pytest.approx(145.2 / 14.503773773 - 1.01325, abs=1e-6)
+    assert parse_pressure_bar("11.01325 bara") == pytest.approx(10.0)
 
 
 @pytest.mark.parametrize(("value", "expected"), [
