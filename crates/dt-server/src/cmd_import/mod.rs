@@ -4,7 +4,8 @@
 //! Per file: the header is found ([`table`]), every mapped cell parsed and
 //! converted to SPEC units and conventions ([`map`]), the rows put on a
 //! uniform grid and each topic resampled, anti-aliased, to its nominal rate
-//! ([`resample`]), then written with the `shocktwin.run` metadata (asset,
+//! ([`resample`]) — each stretch between gaps on its own, the gaps left in
+//! the log — then written with the `shocktwin.run` metadata (asset,
 //! run, the charge label converted to bar gauge, the source file's name
 //! and rate). A file that fails is reported (file, line, column) and the
 //! others are still imported; the exit status is 1 if any failed. The log
@@ -25,8 +26,10 @@ use dt_core::log::{is_valid_id, LogWriter, RunMetadata, Sample, WriteOptions};
 use crate::cli::ImportArgs;
 use map::{Charge, Mapping};
 
-/// A step between rows longer than this many mean steps is a gap the
-/// import will not interpolate across.
+/// A step between rows longer than this many median steps is a gap the
+/// import will not interpolate across: the stretches on either side are
+/// resampled each on its own and written into one log with the gap in it
+/// (the twin reads a gap in a stream as one).
 const GAP_STEPS: f64 = 10.0;
 
 /// Runs `shocktwin import`.
@@ -93,6 +96,7 @@ struct Series {
     values: Vec<Vec<f64>>,
 }
 
+#[allow(clippy::too_many_lines)] // read, resample, write, then the report line by line
 fn import_file(
     path: &Path,
     map: &Mapping,
@@ -113,14 +117,21 @@ fn import_file(
         );
     }
     let table = table::read(path, map, args.skip_bad_rows)?;
-    check_gaps(&file, &table)?;
-    let rate = resample::grid_rate_hz(&table.t_ns);
-    let series = resample_topics(map, &table, rate).with_context(|| file.clone())?;
+    if table.t_ns.len() < 2 {
+        bail!("{file}: fewer than two data rows: nothing to import");
+    }
+    let Resampled {
+        stretches,
+        rate,
+        samples: samples_out,
+        series,
+        left_out,
+    } = resample_stretches(&file, map, &table)?;
 
     let out = args.out.join(format!("{}.mcap", metadata.run_id));
     let part = args.out.join(format!("{}.mcap.part", metadata.run_id));
     let t0 = table.t_ns[0];
-    let mut samples = samples(&series, t0);
+    let mut samples = samples_out;
     samples.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
     let mut writer = LogWriter::create(&part, &metadata, WriteOptions::default())
         .with_context(|| format!("{file}: writing {}", part.display()))?;
@@ -171,6 +182,20 @@ fn import_file(
             report,
             "\n  skipped {n} rows: {reason} (first at line {first})"
         );
+    }
+    for w in stretches.windows(2) {
+        let (a, b) = (w[0].end - 1, w[1].start);
+        let _ = write!(
+            report,
+            "\n  gap of {:.3} s after line {} (more than {GAP_STEPS} median steps): not \
+             interpolated, the log has none of it (each side resampled on its own: its first and \
+             last few samples ring)",
+            (table.t_ns[b] - table.t_ns[a]) as f64 * 1e-9,
+            table.lines[a],
+        );
+    }
+    for what in &left_out {
+        let _ = write!(report, "\n  left out {what}");
     }
     for (topic, what) in [
         (
@@ -251,20 +276,85 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
     Ok(meta)
 }
 
-/// Steps longer than [`GAP_STEPS`] mean steps are not interpolated across.
-fn check_gaps(file: &str, table: &table::Table) -> anyhow::Result<()> {
-    let t = &table.t_ns;
-    let mean_ns = (t[t.len() - 1] - t[0]) as f64 / (t.len() - 1) as f64;
-    if let Some(k) = (1..t.len()).find(|&k| (t[k] - t[k - 1]) as f64 > GAP_STEPS * mean_ns) {
-        bail!(
-            "{file}:{}: a gap of {:.3} s after line {} (more than {GAP_STEPS} mean steps of {:.4} s; split the file there)",
-            table.lines[k],
-            (t[k] - t[k - 1]) as f64 * 1e-9,
-            table.lines[k - 1],
-            mean_ns * 1e-9
-        );
+/// The table's stretches between gaps, each resampled on its own at one
+/// grid rate (the longest stretch's).
+struct Resampled {
+    stretches: Vec<std::ops::Range<usize>>,
+    rate: u32,
+    samples: Vec<Sample>,
+    /// The first stretch's series (their rates; the report's).
+    series: Vec<Series>,
+    /// The stretches left out and why.
+    left_out: Vec<String>,
+}
+
+fn resample_stretches(
+    file: &str,
+    map: &Mapping,
+    table: &table::Table,
+) -> anyhow::Result<Resampled> {
+    let stretches = stretches(table);
+    // One grid rate for every stretch: the longest one's.
+    let longest = stretches
+        .iter()
+        .max_by_key(|r| r.len())
+        .cloned()
+        .unwrap_or(0..table.t_ns.len());
+    if longest.len() < 2 {
+        bail!("{file}: no two rows closer than {GAP_STEPS} median steps: nothing to import");
     }
-    Ok(())
+    let rate = resample::grid_rate_hz(&table.t_ns[longest]);
+    let mut samples_out = Vec::new();
+    let mut series = None;
+    let mut left_out = Vec::new();
+    for r in &stretches {
+        let (first, last) = (table.lines[r.start], table.lines[r.end - 1]);
+        if r.len() < 2 {
+            left_out.push(format!("line {first}: one row between gaps"));
+            continue;
+        }
+        let part = table.slice(r.clone());
+        match resample_topics(map, &part, rate) {
+            Ok(s) => {
+                samples_out.extend(samples(&s, part.t_ns[0]));
+                series.get_or_insert(s);
+            }
+            Err(e) if stretches.len() == 1 => return Err(e.context(file.to_owned())),
+            Err(e) => left_out.push(format!("lines {first}-{last}: {e:#}")),
+        }
+    }
+    let Some(series) = series else {
+        bail!(
+            "{file}: no stretch between its gaps could be resampled ({})",
+            left_out.join("; ")
+        );
+    };
+    Ok(Resampled {
+        stretches,
+        rate,
+        samples: samples_out,
+        series,
+        left_out,
+    })
+}
+
+/// The rows' stretches between gaps: steps longer than [`GAP_STEPS`]
+/// median steps are not interpolated across (the table has two rows or more).
+fn stretches(table: &table::Table) -> Vec<std::ops::Range<usize>> {
+    let t = &table.t_ns;
+    let mut steps: Vec<i64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    let mid = steps.len() / 2;
+    let median_ns = *steps.select_nth_unstable(mid).1 as f64;
+    let mut out = Vec::new();
+    let mut start = 0;
+    for k in 1..t.len() {
+        if (t[k] - t[k - 1]) as f64 > GAP_STEPS * median_ns {
+            out.push(start..k);
+            start = k;
+        }
+    }
+    out.push(start..t.len());
+    out
 }
 
 fn resample_topics(map: &Mapping, table: &table::Table, rate: u32) -> anyhow::Result<Vec<Series>> {

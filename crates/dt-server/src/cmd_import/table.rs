@@ -31,6 +31,18 @@ impl Table {
         self.skipped.entry(reason).or_insert((0, line)).0 += 1;
     }
 
+    /// The rows `r` alone (their values, times and lines; no skip counts).
+    #[must_use]
+    pub fn slice(&self, r: std::ops::Range<usize>) -> Table {
+        Table {
+            t_ns: self.t_ns[r.clone()].to_vec(),
+            values: self.values.iter().map(|v| v[r.clone()].to_vec()).collect(),
+            lines: self.lines[r.clone()].to_vec(),
+            skipped: BTreeMap::new(),
+            rows: r.len() as u64,
+        }
+    }
+
     /// Total skipped rows.
     #[must_use]
     pub fn skipped_rows(&self) -> u64 {
