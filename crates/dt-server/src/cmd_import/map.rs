@@ -640,6 +640,11 @@ mod tests {
         resolve_file(&toml::from_str(toml_text).unwrap())
     }
 
+    /// The error a mapping is refused with.
+    fn refused(toml_text: &str) -> String {
+        format!("{:#}", mapped(toml_text).unwrap_err())
+    }
+
     /// A unit in the header's brackets or parentheses must agree with the
     /// mapping's, given or default: otherwise every value would be imported
     /// scaled wrong without a word (a test engineer's `--position-unit in`
@@ -653,13 +658,9 @@ mod tests {
         assert_eq!(header_unit("]"), None);
         assert_eq!(header_unit("a)"), None);
         let time = "[time]\ncolumn = \"t\"\n";
-        let err = format!(
-            "{:#}",
-            mapped(&format!(
-                "{time}[position]\ncolumn = \"Displacement [mm]\"\nunit = \"in\""
-            ))
-            .unwrap_err()
-        );
+        let err = refused(&format!(
+            "{time}[position]\ncolumn = \"Displacement [mm]\"\nunit = \"in\""
+        ));
         assert!(
             err.contains("\"Displacement [mm]\" names its unit \"mm\"")
                 && err.contains("in \"in\"")
@@ -667,32 +668,21 @@ mod tests {
             "{err}"
         );
         // the default (m) is a unit too
-        let err = format!(
-            "{:#}",
-            mapped(&format!("{time}[force]\ncolumn = \"Force [kN]\"")).unwrap_err()
-        );
+        let err = refused(&format!("{time}[force]\ncolumn = \"Force [kN]\""));
         assert!(
             err.contains("the default") && err.contains("unit = \"kN\""),
             "{err}"
         );
-        let err = format!(
-            "{:#}",
-            mapped(&format!(
-                "{time}[temperature_shock]\ncolumn = \"T (F)\"\nunit = \"C\""
-            ))
-            .unwrap_err()
-        );
+        let err = refused(&format!(
+            "{time}[temperature_shock]\ncolumn = \"T (F)\"\nunit = \"C\""
+        ));
         assert!(
             err.contains("[temperature_shock]") && err.contains("--temp-unit"),
             "{err}"
         );
-        let err = format!(
-            "{:#}",
-            mapped(&format!(
-                "{time}[acceleration]\na1 = \"a1 [m/s2]\"\na2 = \"a2 [m/s2]\"\nunit = \"g\""
-            ))
-            .unwrap_err()
-        );
+        let err = refused(&format!(
+            "{time}[acceleration]\na1 = \"a1 [m/s2]\"\na2 = \"a2 [m/s2]\"\nunit = \"g\""
+        ));
         assert!(err.contains("\"a1 [m/s2]\""), "{err}");
         // agreeing, another spelling of the same unit, or not a unit of the
         // quantity (left to the mapping): read as mapped

@@ -123,7 +123,7 @@ fn import_file(
     let Resampled {
         stretches,
         rate,
-        samples: samples_out,
+        mut samples,
         series,
         left_out,
     } = resample_stretches(&file, map, &table)?;
@@ -131,7 +131,6 @@ fn import_file(
     let out = args.out.join(format!("{}.mcap", metadata.run_id));
     let part = args.out.join(format!("{}.mcap.part", metadata.run_id));
     let t0 = table.t_ns[0];
-    let mut samples = samples_out;
     samples.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
     let mut writer = LogWriter::create(&part, &metadata, WriteOptions::default())
         .with_context(|| format!("{file}: writing {}", part.display()))?;
@@ -294,15 +293,13 @@ fn resample_stretches(
     table: &table::Table,
 ) -> anyhow::Result<Resampled> {
     let stretches = stretches(table);
-    // One grid rate for every stretch: the longest one's.
+    // One grid rate for every stretch: the longest one's (two rows or more:
+    // the median step itself is no gap).
     let longest = stretches
         .iter()
         .max_by_key(|r| r.len())
         .cloned()
         .unwrap_or(0..table.t_ns.len());
-    if longest.len() < 2 {
-        bail!("{file}: no two rows closer than {GAP_STEPS} median steps: nothing to import");
-    }
     let rate = resample::grid_rate_hz(&table.t_ns[longest]);
     let mut samples_out = Vec::new();
     let mut series = None;
