@@ -246,3 +246,32 @@ def test_flags_alone_with_imperial_units(tmp_path: Path) -> None:
     # Away from the ends (the band-limited filter rings ~10 output samples at a cut end).
     inner = slice(15, -15)
     assert np.allclose(force[inner], 4.4482216152605 * 10 * np.sin(k[inner] / 10), rtol=0, atol=0.02)
+
+
+def test_positions_beyond_the_stated_stroke_are_refused(tmp_path: Path) -> None:
+    """A stated stroke (`--stroke-pp-mm`, `[run] stroke_pp_mm`) bounds the positions' range: a
+    column read in a unit it is not in (no unit in its header to contradict) is refused, naming
+    the column, its span and the stroke; a spike does not refuse the file."""
+    csv = tmp_path / "travel.csv"
+    rows = [f"{k / 100:.2f},{np.sin(k / 10):.5f}" for k in range(1000)]  # ±1 in: 50.8 mm peak to peak
+    rows[500] = "5.00,5.00000"  # one spike of 5 in
+    csv.write_text("t,travel\n" + "\n".join(rows) + "\n")
+    out = tmp_path / "out"
+
+    def run(unit: str, stroke: str) -> subprocess.CompletedProcess[str]:
+        return shocktwin("import", "--time", "t", "--time-format", "elapsed_s", "--position", "travel",
+                         "--position-unit", unit, "--stroke-pp-mm", stroke, "--asset-id", "u1", "--run-id",
+                         f"r-{unit}-{stroke}", "--charge", "10 bar", "--out", out, csv, check=False)
+
+    done = run("in", "60")
+    assert done.returncode == 0, done.stderr
+    assert (out / "r-in-60.mcap").exists()
+    done = run("m", "60")  # 2 m where the dyno strokes 60 mm
+    assert done.returncode == 1, done.stdout
+    assert "travel.csv" in done.stderr and '"travel"' in done.stderr, done.stderr
+    assert "spans 2000.0 mm" in done.stderr and "stroke of 60.0 mm" in done.stderr, done.stderr
+    assert not (out / "r-m-60.mcap").exists()
+    done = run("in", "40")  # 50.8 mm is more than 1.25 × 40 mm
+    assert done.returncode == 1 and "spans 50.8 mm" in done.stderr, done.stderr
+    done = run("in", "0")
+    assert done.returncode == 1 and "stroke_pp_mm = 0" in done.stderr, done.stderr

@@ -260,6 +260,9 @@ pub struct ImportArgs {
     /// Dyno excitation frequency, Hz (metadata).
     #[arg(long)]
     pub frequency_hz: Option<f64>,
+    /// Dyno stroke peak to peak, mm (metadata; the positions' range is checked against it).
+    #[arg(long)]
+    pub stroke_pp_mm: Option<f64>,
     /// Extra run metadata, KEY=VALUE (repeatable), e.g. `simulated=true`
     /// for exports of a simulated dyno.
     #[arg(long = "meta", value_name = "KEY=VALUE")]

@@ -357,6 +357,7 @@ fn overlay(f: &mut MapFile, a: &ImportArgs) {
     set(&mut r.run_id, a.run_id.as_ref());
     set(&mut r.charge, a.charge.as_ref());
     set(&mut r.frequency_hz, a.frequency_hz.as_ref());
+    set(&mut r.stroke_pp_mm, a.stroke_pp_mm.as_ref());
 }
 
 fn need(column: Option<&String>, key: &str) -> anyhow::Result<String> {
@@ -465,6 +466,12 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         Some(c) if c.is_ascii() => c as u8,
         Some(c) => bail!("delimiter {c:?}: must be one ASCII character"),
     };
+    let stroke_pp_m = match run.stroke_pp_mm {
+        Some(mm) if !(mm.is_finite() && mm > 0.0) => {
+            bail!("stroke_pp_mm = {mm}: must be a stroke above 0 mm")
+        }
+        mm => mm.map(|mm| mm * 1e-3),
+    };
     Ok(Mapping {
         header_line: f.header_line,
         delimiter,
@@ -479,7 +486,7 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         run_id: run.run_id,
         charge,
         frequency_hz: run.frequency_hz,
-        stroke_pp_m: run.stroke_pp_mm.map(|mm| mm * 1e-3),
+        stroke_pp_m,
         metadata: run.metadata,
     })
 }

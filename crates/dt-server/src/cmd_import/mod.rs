@@ -120,6 +120,9 @@ fn import_file(
     if table.t_ns.len() < 2 {
         bail!("{file}: fewer than two data rows: nothing to import");
     }
+    if let (Some(stroke), Some(position)) = (map.stroke_pp_m, &map.position) {
+        check_stroke(&file, &position.name, &table.values[0], stroke)?;
+    }
     let Resampled {
         stretches,
         rate,
@@ -333,6 +336,32 @@ fn resample_stretches(
         series,
         left_out,
     })
+}
+
+/// The positions may span at most this many times the stated stroke: beyond
+/// it the position's unit (or the stroke) is wrong.
+const STROKE_SLACK: f64 = 1.25;
+
+/// Refuses a position column whose range the stated stroke cannot hold
+/// (`positions` in m, `stroke` peak to peak in m): read in inches, an 80 mm
+/// stroke becomes 2 m and would replay without a word. The range is taken
+/// between the 0.1 % and 99.9 % points (a few spikes do not refuse a file);
+/// a range well inside the stroke is not refused: a run may use part of it.
+fn check_stroke(file: &str, column: &str, positions: &[f64], stroke: f64) -> anyhow::Result<()> {
+    let mut sorted = positions.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let at = |q: f64| sorted[((sorted.len() - 1) as f64 * q).round() as usize];
+    let (lo, hi) = (at(0.001), at(0.999));
+    let span = hi - lo;
+    if span > STROKE_SLACK * stroke {
+        bail!(
+            "{file}: column {column:?} spans {:.1} mm, more than the stroke of {:.1} mm \
+             (stroke_pp_mm) allows: is the position's unit (position_unit) or the stroke wrong?",
+            span * 1e3,
+            stroke * 1e3
+        );
+    }
+    Ok(())
 }
 
 /// The rows' stretches between gaps: steps longer than [`GAP_STEPS`]
