@@ -121,6 +121,7 @@ fn import_file(
         bail!("{file}: fewer than two data rows: nothing to import");
     }
     if let (Some(stroke), Some(position)) = (map.stroke_pp_m, &map.position) {
+        // the position is the first value column (`Mapping::value_columns`)
         check_stroke(&file, &position.name, &table.values[0], stroke)?;
     }
     let Resampled {
@@ -345,7 +346,8 @@ const STROKE_SLACK: f64 = 1.25;
 /// Refuses a position column whose range the stated stroke cannot hold
 /// (`positions` in m, `stroke` peak to peak in m): read in inches, an 80 mm
 /// stroke becomes 2 m and would replay without a word. The range is taken
-/// between the 0.1 % and 99.9 % points (a few spikes do not refuse a file);
+/// between the 0.1 % and 99.9 % points (spikes in up to 0.1 % of the rows at
+/// either end do not refuse a file);
 /// a range well inside the stroke is not refused: a run may use part of it.
 fn check_stroke(file: &str, column: &str, positions: &[f64], stroke: f64) -> anyhow::Result<()> {
     let mut sorted = positions.to_vec();
