@@ -3,6 +3,7 @@
     python -m train.observer fit --campaign DIR --physics physics.json [--out physics.json]
     python -m train.observer evaluate --physics physics.json --out DIR NAME=DIR [NAME=DIR ...]
     python -m train.observer baseline --physics physics.json --charge-bar 12 RUN.mcap... --out unit.json
+    python -m train.observer unit-spread --physics physics.json --unit 4=A.mcap 12=B.mcap --unit ... [--out P]
 
 ``fit`` runs the observer's per-reversal window fit (``shocktwin.charge_reversals``, the
 code the daemon runs) over every run of a labelled campaign and fits its measurement
@@ -1382,6 +1383,103 @@ def fit_run_spread(d: np.ndarray, n: np.ndarray, charges: np.ndarray) -> tuple[f
     return float(r0), float(r_rel)
 
 
+def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, Path]]],
+                jobs: int = 2) -> dict[str, Any]:
+    """The unit-to-unit spread of the observer's systematic error (dt-core
+    ``ObserverParams::systematic_sd_bar`` ``S`` and ``systematic_rel`` ``ρ``), from units other
+    than the calibration's, each run at a known charge and read as a unit without a baseline
+    (every reversal, the reading at the last excited tick: ``_baseline_read``).
+
+    dt-core models that error as ``e(p) = u_f + u_s p``, ``u_f ~ N(0, S²)`` (the unit's friction
+    offset and the calibration's own error) and ``u_s ~ N(0, ρ²)`` (its relative seal gain), and
+    adds ``S² + (ρ p̂)²`` to every unit's interval until a baseline conditions them; ``fit`` sets
+    them from the calibration unit's leave-one-run-out error and an assumed tolerance
+    (``--unit-tolerance-pct``). Here they are measured: unit ``u``'s errors ``e_u = m_u − p_u`` at
+    its charges ``p_u`` are ``N(0, C_u)`` with ``C_u = diag(n_u² + R(p_u)²) + S² 1 1ᵀ + ρ² p_u
+    p_uᵀ`` (``n``: each reading's own noise, its variance less the systematic part it carries;
+    ``R``: a run's own error, ``run_sd_bar`` and ``run_rel``, when measured), and ``S², ρ² ≥ 0``
+    are their maximum-likelihood values (zero mean: a shift every unit shares is part of what an
+    interval without a baseline must hold). A unit read at two charges tells its own offset from
+    its gain; units at one charge each still tell them apart across charges."""
+    obs = physics["observer"]
+    if obs.get("baseline"):
+        raise SystemExit("the physics carries a unit baseline: give the model's own")
+    physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
+    flat = [(u, c, Path(p)) for u, runs in enumerate(units) for c, p in runs]
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        reads = list(progress(pool.map(_baseline_read, [(str(p), physics) for _, _, p in flat]),
+                              total=len(flat), desc="runs"))
+    sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
+    r0, r_rel = obs.get("run_sd_bar", 0.0), obs.get("run_rel", 0.0)
+    rows = []
+    for (u, charge, path), (m, sd, _drift, own, _span) in zip(flat, reads):
+        if m is None:
+            raise SystemExit(f"{path}: no excited tick: no unit spread from it")
+        if own:
+            raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own "
+                             "(whose interval this term does not set): give runs at the shared model's excitations")
+        # a run the observer barely read (a reading near its prior) carries its own wide noise and
+        # so weighs little: kept, not refused
+        noise2 = max(sd ** 2 - sys2 - (rel * m) ** 2, 0.0)
+        rows.append({"unit": u, "file": path.name, "charge_bar": float(charge), "error_bar": m - charge,
+                     "noise_sd_bar": float(np.sqrt(noise2 + r0 ** 2 + (r_rel * charge) ** 2))})
+    if len({r["charge_bar"] for r in rows}) < 2:
+        raise SystemExit("every run is at one charge: an offset cannot be told from a gain; give units at two or "
+                         "more charges")
+    groups = [[r for r in rows if r["unit"] == u] for u in range(len(units))]
+    s_bar, s_rel = fit_unit_spread([(np.array([r["error_bar"] for r in g]), np.array([r["noise_sd_bar"] for r in g]),
+                                     np.array([r["charge_bar"] for r in g])) for g in groups])
+    e = np.array([r["error_bar"] for r in rows])
+    return {"systematic_sd_bar": s_bar, "systematic_rel": s_rel, "units": len(units), "runs": rows,
+            "rms_bar": float(np.sqrt(np.mean(e ** 2))), "mean_bar": float(np.mean(e)),
+            "noise_rms_bar": float(np.sqrt(np.mean([r["noise_sd_bar"] ** 2 for r in rows]))),
+            "charges_bar": sorted({r["charge_bar"] for r in rows}),
+            # what `fit` had set, from the calibration unit and the assumed tolerance
+            "replaced": {"systematic_sd_bar": float(obs["systematic_sd_bar"]), "systematic_rel": float(rel)},
+            "run_sd_bar": float(r0), "run_rel": float(r_rel)}
+
+
+def fit_unit_spread(units: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[float, float]:
+    """``(S, ρ)`` of ``unit_spread``: the maximum-likelihood ``S², ρ² ≥ 0`` of ``e_u ~ N(0, diag(n_u²)
+    + S² 1 1ᵀ + ρ² p_u p_uᵀ)`` over units ``(e_u, n_u, p_u)``, with the analytic score
+    ``½ Σ_u tr(C⁻¹ ∂C) − e C⁻¹ ∂C C⁻¹ e``; accepted where the score vanishes (or points out of
+    a bound it rests on), as ``fit_run_spread`` is."""
+    p2_mean = float(np.mean(np.concatenate([p ** 2 for _, _, p in units])))
+    n2_mean = float(np.mean(np.concatenate([n ** 2 for _, n, _ in units])))
+    e2_mean = float(np.mean(np.concatenate([e ** 2 for e, _, _ in units])))
+    # S² and ρ² in units that keep them near 1 for the optimiser
+    scale = np.array([max(e2_mean, n2_mean, 1e-6), max(e2_mean, n2_mean, 1e-6) / p2_mean])
+
+    def nll(x: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = 0.0, np.zeros(2)
+        for e, n, p in units:
+            one = np.ones_like(p)
+            c = np.diag(n ** 2) + x[0] * np.outer(one, one) + x[1] * np.outer(p, p)
+            ci = np.linalg.inv(c)
+            a = ci @ e
+            f += 0.5 * (np.linalg.slogdet(c)[1] + e @ a)
+            for k, v in enumerate((one, p)):
+                g[k] += 0.5 * (v @ ci @ v - (v @ a) ** 2)
+        return float(f), g
+
+    def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
+        f, grad = nll(y * scale)
+        return f, grad * scale
+
+    best = minimize(scaled, np.array([0.5, 0.5]), jac=True, method="L-BFGS-B", bounds=[(0.0, None), (0.0, None)],
+                    options={"ftol": 1e-15, "gtol": 1e-12})
+    x = best.x * scale
+    _, score = nll(x)
+    at_bound = best.x <= 1e-10
+    # the score's size: its terms' own, so that a vanishing score is judged relative to them
+    tol = 1e-6 * np.array([sum(len(e) for e, _, _ in units) / scale[0]] * 2) * np.array([1.0, p2_mean])
+    if not (np.all(np.abs(score[~at_bound]) <= tol[~at_bound]) and np.all(score[at_bound] >= -tol[at_bound])):
+        raise SystemExit(f"unit spread: the likelihood's maximum was not found ({best.message}; score {score} at "
+                         f"S² {x[0]:.3g}, ρ² {x[1]:.3g})")
+    s, rho = np.sqrt(x)
+    return float(s), float(rho)
+
+
 def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple[Any, ...]]:
     """One take of ``run_spread``: A's and B's readings (``_baseline_read``), with the law refitted
     on A when asked."""
@@ -1467,6 +1565,46 @@ def cmd_transfer(args: argparse.Namespace) -> int:
           f"{t['units']} unit(s); the differences' RMS {t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}")
     physics["observer"]["transfer_bar_per_ln_accel"] = k
     return _write_measured(physics, "observer_transfer", t, args.out or args.physics)
+
+
+def cmd_unit_spread(args: argparse.Namespace) -> int:
+    physics = read_json(args.physics)
+    if not physics.get("observer"):
+        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    units = []
+    for runs in args.unit:
+        unit = []
+        for item in runs:
+            charge, sep, path = item.partition("=")
+            try:
+                c = float(charge)
+            except ValueError:
+                c = float("nan")
+            if not sep or not (np.isfinite(c) and c > 0.0):
+                raise SystemExit(f"--unit {item}: not CHARGE=RUN with a charge in bar gauge above 0")
+            if not Path(path).is_file():
+                raise SystemExit(f"{path}: no such run log")
+            unit.append((c, Path(path)))
+        units.append(unit)
+    if len(units) < 2:
+        raise SystemExit(f"{len(units)} unit: give at least two (each --unit one unit's runs)")
+    t = unit_spread(physics, units, args.jobs)
+    for r in t["runs"]:
+        print(f"unit {r['unit'] + 1}: {r['file']} at {r['charge_bar']:g} bar: {r['error_bar']:+.2f} bar "
+              f"(its reading's own {r['noise_sd_bar']:.2f})")
+    was = t["replaced"]
+    print(f"unit spread: ±{t['systematic_sd_bar']:.3f} bar + {100 * t['systematic_rel']:.2f} % of the charge "
+          f"(maximum likelihood beside the readings' own noise, RMS {t['noise_rms_bar']:.2f}) over {t['units']} "
+          f"units; the errors' RMS {t['rms_bar']:.2f}, mean {t['mean_bar']:+.2f}; was ±{was['systematic_sd_bar']:.3f} "
+          f"bar + {100 * was['systematic_rel']:.2f} % (the calibration unit and --unit-tolerance-pct)")
+    physics["observer"]["systematic_sd_bar"] = t["systematic_sd_bar"]
+    physics["observer"]["systematic_rel"] = t["systematic_rel"]
+    for key in ("observer_run_spread", "observer_transfer"):
+        if key in physics.get("fit", {}):
+            print(f"warning: {args.physics} holds a {key.removeprefix('observer_').replace('_', ' ')} measured "
+                  "beside the old unit spread, whose noise it took its readings' less: run it again on this file",
+                  file=sys.stderr)
+    return _write_measured(physics, "observer_unit_spread", t, args.out or args.physics)
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
@@ -1630,7 +1768,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="refit the damping law on each A first, as `baseline --unit-law` does")
     r.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
     r.add_argument("--jobs", type=int, default=2)
+    us = sub.add_parser("unit-spread", help="the unit-to-unit spread of the observer's error without a baseline, "
+                                            "from units other than the calibration's (ObserverParams::"
+                                            "systematic_sd_bar, systematic_rel)")
+    us.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")
+    us.add_argument("--unit", required=True, action="append", nargs="+", metavar="CHARGE=RUN",
+                    help="one unit's runs, each at the charge it held (bar gauge at 20 °C), at the shared model's "
+                         "excitations (repeat per unit)")
+    us.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
+    us.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)
+    if args.cmd == "unit-spread":
+        return cmd_unit_spread(args)
     if args.cmd == "run-spread":
         return cmd_run_spread(args)
     if args.cmd == "transfer":

@@ -839,6 +839,98 @@ def test_the_run_spread_fit_finds_the_two_terms_it_was_drawn_with() -> None:
         assert best <= nll(a, b).min() + 1e-9 * abs(best) + 1e-12, (i, r0, r_rel, best, nll(a, b).min())
 
 
+def test_the_unit_spread_fit_finds_the_offset_and_gain_it_was_drawn_with() -> None:
+    """``fit_unit_spread`` on units whose errors are drawn as dt-core models them, ``e = u_f + u_s
+    p + noise`` with ``u_f ~ N(0, S²)``, ``u_s ~ N(0, ρ²)`` shared by a unit's runs, gives ``S``
+    and ``ρ`` back (within their sampling error over 3,000 units); errors no larger than their
+    noise give 0. On small sets, its likelihood (the units' joint normal densities, from scipy
+    here, not the fit's own algebra) is nowhere on a dense grid of ``(S², ρ²)`` higher than at
+    what it found."""
+    from scipy.stats import multivariate_normal
+
+    def draw(rng: np.random.Generator, k: int, s: float, rho: float, scale: float = 1.0) -> list:
+        units = []
+        for _ in range(k):
+            p = rng.choice([2.0, 4.0, 7.0, 10.0, 12.0], int(rng.integers(1, 3)), replace=False)
+            n = scale * rng.uniform(0.05, 0.4, len(p))
+            e = rng.normal(0.0, s) + rng.normal(0.0, rho) * p + n * rng.standard_normal(len(p))
+            units.append((e, n, p))
+        return units
+
+    rng = np.random.default_rng(5)
+    s, rho = obs_tool.fit_unit_spread(draw(rng, 3000, 1.2, 0.08))
+    assert abs(s - 1.2) < 0.08 and abs(rho - 0.08) < 0.008, (s, rho)
+    quiet = [(0.3 * n * rng.standard_normal(len(n)), n, p) for _, n, p in draw(rng, 200, 1.0, 0.1)]
+    assert obs_tool.fit_unit_spread(quiet) == (0.0, 0.0)
+    for i in range(12):
+        rng = np.random.default_rng(200 + i)
+        scale = 10.0 ** rng.uniform(-1, 0.5)
+        units = draw(rng, int(rng.integers(3, 25)), scale * rng.uniform(0.0, 2.0), rng.uniform(0.0, 0.2), scale)
+        s, rho = obs_tool.fit_unit_spread(units)
+
+        def nll(a: float, b: float) -> float:
+            return -sum(multivariate_normal(np.zeros(len(p)), np.diag(n ** 2) + a + b * np.outer(p, p)).logpdf(e)
+                        for e, n, p in units)
+
+        grid = np.concatenate([[0.0], np.geomspace(1e-4, 1e2, 30)]) * scale ** 2
+        best = nll(s * s, rho * rho)
+        worst_gap = min(nll(a, b) for a in grid for b in grid / 49.0) - best
+        assert worst_gap >= -1e-7 * abs(best) - 1e-9, (i, s, rho, best, worst_gap)
+
+
+def test_a_unit_spread_is_measured_on_other_units_and_lands_in_the_physics(
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``observer unit-spread``: three other units, each at two known charges at 2 Hz. Each run's
+    error is what a baseline's reading of it says, less its charge; ``S`` and ``ρ`` are
+    ``fit_unit_spread``'s on those errors and land in the physics file, whose observer then
+    reads with them (its interval at the last tick is ``S² + (ρ p̂)²`` plus the reading's own
+    variance). One unit, runs at one charge, and a charge that is no number are refused, named."""
+    _, calibrated = calibrated_campaign
+    base = json.loads(calibrated.read_text())
+    units = []
+    for unit in ("5", "6", "7"):
+        runs = simulate(tmp_path / unit, "--pressures", "4,12", "--frequencies", "2", "--unit", unit)
+        units.append([(float(r.name.split("-")[0][1:]), r) for r in runs])
+    out = tmp_path / "physics.json"
+    args = ["unit-spread", "--physics", str(calibrated), "--out", str(out), "--jobs", "1"]
+    assert obs_tool.main([*args, *(x for u in units for x in ("--unit", *(f"{c:g}={r}" for c, r in u)))]) == 0
+    got = json.loads(out.read_text())
+    rec = got["fit"]["observer_unit_spread"]
+    assert len(rec["runs"]) == 6 and rec["charges_bar"] == [4.0, 12.0], rec
+    errs = []
+    for (c, r), row in zip((x for u in units for x in u), rec["runs"]):
+        read = obs_tool.baseline_of(base, [r], c, jobs=1)["observer_baseline"]
+        assert abs(row["error_bar"] - (read["read_bar"] - c)) < 1e-6, (row, read)
+        assert 0.0 < row["noise_sd_bar"] <= read["read_sd_bar"] + 1e-9, (row, read)
+        errs.append(row)
+    s, rho = obs_tool.fit_unit_spread([(np.array([r["error_bar"] for r in errs if r["unit"] == u]),
+                                        np.array([r["noise_sd_bar"] for r in errs if r["unit"] == u]),
+                                        np.array([r["charge_bar"] for r in errs if r["unit"] == u])) for u in range(3)])
+    assert (got["observer"]["systematic_sd_bar"], got["observer"]["systematic_rel"]) == (s, rho), rec
+    assert rec["replaced"]["systematic_sd_bar"] == base["observer"]["systematic_sd_bar"], rec
+    print(f"units 5-7 (simulated, quick): errors {[round(r['error_bar'], 2) for r in errs]} bar: "
+          f"unit spread ±{s:.2f} bar + {100 * rho:.1f} %, was ±{base['observer']['systematic_sd_bar']:.2f} + "
+          f"{100 * base['observer']['systematic_rel']:.0f} %")
+    assert "unit spread: ±" in capsys.readouterr().out
+    # the observer reads with it: the last tick's variance is the reading's own plus the new systematic
+    # part (every window fitted in both: the gain floor stops fitting at a point that the systematic part sets)
+    run = units[0][1][1]
+    every = [{**p, "observer": {**p["observer"], "fit_gain_floor": 0.0}} for p in (base, got)]
+    (m0, sd0), (m1, sd1) = ((x[-1, cols.index("observer_bar")], x[-1, cols.index("observer_sd_bar")])
+                            for x, cols, _ in (shocktwin.features(run, p, ["observer"]) for p in every))
+    assert m0 == m1, (m0, m1)  # the filter's own state knows nothing of the systematic part
+    own0 = sd0 ** 2 - base["observer"]["systematic_sd_bar"] ** 2 - (base["observer"]["systematic_rel"] * m0) ** 2
+    own1 = sd1 ** 2 - s ** 2 - (rho * m1) ** 2
+    assert abs(own1 - own0) < 1e-6 * max(sd0 ** 2, 1.0), (own0, own1)
+    with pytest.raises(SystemExit, match="1 unit: give at least two"):
+        obs_tool.main([*args, "--unit", *(f"{c:g}={r}" for c, r in units[0])])
+    with pytest.raises(SystemExit, match="every run is at one charge"):
+        obs_tool.main([*args, *(x for u in units for x in ("--unit", f"{u[0][0]:g}={u[0][1]}"))])
+    for bad in ("twelve", "nan", "0"):
+        with pytest.raises(SystemExit, match=f"--unit {bad}=.*not CHARGE=RUN"):
+            obs_tool.main([*args, "--unit", f"{bad}={units[0][0][1]}", "--unit", f"4={units[1][0][1]}"])
+
+
 def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -> None:
     bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
     bad = tmp_path / "b.json"
