@@ -4,6 +4,7 @@
     python -m train.observer evaluate --physics physics.json --out DIR NAME=DIR [NAME=DIR ...]
     python -m train.observer baseline --physics physics.json --charge-bar 12 RUN.mcap... --out unit.json
     python -m train.observer unit-spread --physics physics.json --unit 4=A.mcap 12=B.mcap --unit ... [--out P]
+    python -m train.observer unit-spread --physics physics.json --campaign OTHER_UNITS_DIR [--out P]
 
 ``fit`` runs the observer's per-reversal window fit (``shocktwin.charge_reversals``, the
 code the daemon runs) over every run of a labelled campaign and fits its measurement
@@ -1567,12 +1568,26 @@ def cmd_transfer(args: argparse.Namespace) -> int:
     return _write_measured(physics, "observer_transfer", t, args.out or args.physics)
 
 
+def units_of(campaign_dir: Path) -> list[list[tuple[float, Path]]]:
+    """A directory's runs as ``unit_spread`` takes them: grouped by unit (the log's ``asset_id``),
+    each at its labelled charge; a run without a label is refused by name."""
+    runs = load_campaign(campaign_dir).runs
+    by_unit: dict[str, list[tuple[float, Path]]] = {}
+    for r in runs:
+        if r.label_bar is None:
+            raise SystemExit(f"{r.path}: no charge label: a unit spread needs each run's known charge")
+        by_unit.setdefault(r.asset_id, []).append((float(r.label_bar), r.path))
+    return [by_unit[k] for k in sorted(by_unit)]
+
+
 def cmd_unit_spread(args: argparse.Namespace) -> int:
     physics = read_json(args.physics)
     if not physics.get("observer"):
         raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
-    units = []
-    for runs in args.unit:
+    if bool(args.unit) == bool(args.campaign):
+        raise SystemExit("give the units either as --unit CHARGE=RUN ... (repeat per unit) or as --campaign DIR")
+    units = [] if args.unit else units_of(args.campaign)
+    for runs in args.unit or []:
         unit = []
         for item in runs:
             charge, sep, path = item.partition("=")
@@ -1772,9 +1787,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                                             "from units other than the calibration's (ObserverParams::"
                                             "systematic_sd_bar, systematic_rel)")
     us.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")
-    us.add_argument("--unit", required=True, action="append", nargs="+", metavar="CHARGE=RUN",
+    us.add_argument("--unit", action="append", nargs="+", metavar="CHARGE=RUN",
                     help="one unit's runs, each at the charge it held (bar gauge at 20 °C), at the shared model's "
                          "excitations (repeat per unit)")
+    us.add_argument("--campaign", type=Path, metavar="DIR",
+                    help="instead of --unit: a directory of labelled runs, grouped into units by their asset id")
     us.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
     us.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)
