@@ -51,13 +51,26 @@ wheel: $(VENV)/.deps ## build the abi3 wheel of the bindings into dist/ (maturin
 
 build: $(BIN) ## build the shocktwin CLI (release)
 
-demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer), read the charge on a road, study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
+# Other units of the damper (unit seeds 400 on, apart from every unit a study scores), each run
+# at two known charges at 2 Hz on the campaign's rig: the batch `observer unit-spread` measures the
+# observer's unit-to-unit spread on (an end-of-line test of a few units at a gauged charge).
+# $(1): the directory, $(2): how many units, $(3): more `simulate` flags.
+SPREAD_CHARGES := 2 4 7 10 12
+define other_units
+rm -rf $(1); c=($(SPREAD_CHARGES)); for k in $$(seq 0 $$(($(2) - 1))); do \
+  $(BIN) simulate $(3) --seed 1 --unit $$((400 + k)) --frequencies 2 \
+    --pressures $${c[k % 5]},$${c[(k + 2) % 5]} --out $(1) > /dev/null; done
+endef
+
+demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer and its unit spread on ten other units), read the charge on a road, study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
 	@$(MAKE) --no-print-directory browser || echo "(without Chromium the demo skips the dashboard screenshot)"
 	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
 	$(BIN) inspect $(CAMPAIGN)/p12.0-f2.0-s1.mcap
 	$(PY) -m train.fit_physics --campaign $(CAMPAIGN) --out $(OUT)/physics.json --figures $(OUT)/figures --datasheet $(DATASHEET) --nominal-bar 12
 	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --datasheet $(DATASHEET)
+	$(call other_units,$(OUT)/other-units,10,--quick)
+	$(PY) -m train.observer unit-spread --physics $(OUT)/physics.json --campaign $(OUT)/other-units | tail -n 2
 	$(BIN) simulate --quick --road 60 --out $(OUT)/road-cal
 	$(BIN) simulate --quick --road 45 --seed 4 --out $(OUT)/road-cal45 && mv $(OUT)/road-cal45/*.mcap $(OUT)/road-cal/ && rmdir $(OUT)/road-cal45
 	$(BIN) simulate --quick --road 60 --seed 2 --pressures 2,12 --out $(OUT)/road-held
@@ -78,6 +91,8 @@ study: setup ## the full study on the default campaign: physics, charge observer
 	$(BIN) simulate --out $(OUT)/full-campaign
 	$(PY) -m train.fit_physics --campaign $(OUT)/full-campaign --out $(OUT)/full-physics.json --datasheet $(DATASHEET) --nominal-bar 12
 	$(PY) -m train.observer fit --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --datasheet $(DATASHEET)
+	$(call other_units,$(OUT)/full-other-units,20,)
+	$(PY) -m train.observer unit-spread --physics $(OUT)/full-physics.json --campaign $(OUT)/full-other-units
 	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --out docs/study
 
 # dt-bench holds no test, and its dev-dependency criterion would be compiled for nothing:
