@@ -41,6 +41,8 @@ run's charge is estimated by the model fitted *without that run* (leave one run 
 the RMS of those errors beyond their statistical part is kept; the unit-to-unit
 tolerance of the friction (``--unit-tolerance-pct`` of ``f0`` and ``s``, a datasheet
 figure) adds ``systematic_rel`` so that the interval stays honest on another unit.
+``unit-spread`` then replaces both with the spread measured on other units at known charges
+(``make demo`` and ``make study`` run it).
 The mount, sensor filter and friction smoothing stay at the rig's documented values.
 
 ``evaluate`` runs the streaming pipeline (``shocktwin.features`` with the ``observer``

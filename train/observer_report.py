@@ -18,7 +18,9 @@ to bar with the measurement model's gain. Reversals come at twice the excitation
 frequency, so after ``t`` seconds the noise-only bound is
 ``sd(t) = 1 / sqrt(2 f t I_p)``. The *Bayesian* bound adds the prior spread of
 what no amount of data from one unit separates from the charge: the unit-to-unit
-tolerance of the seal friction (``systematic_sd_bar`` and ``systematic_rel``).
+spread of the observer's error (``systematic_sd_bar`` and ``systematic_rel``: measured on other
+units by ``observer unit-spread`` where it was run, as ``make demo`` and ``make study`` do; else
+the calibration's leave-one-run-out spread and an assumed tolerance of the seal friction).
 The gas-spring channel is bounded the same way (its force amplitude per bar through
 the mount at the excitation frequency, white accelerometer noise).
 """
@@ -267,8 +269,8 @@ def window_model(theta: np.ndarray, accel: float, obs: dict[str, Any], times: np
 
 def systematic_floor(obs: dict[str, Any], p_bar: float) -> float:
     """The systematic part of the reported sd at a reading ``p_bar`` on a unit never baselined,
-    bar: ``hypot(systematic_sd_bar, systematic_rel · p)``, the calibration's leave-one-run-out
-    spread and the unit-to-unit tolerance of the seal friction (dt-core ``systematic_var``)."""
+    bar: ``hypot(systematic_sd_bar, systematic_rel · p)``, the unit-to-unit spread of the
+    observer's error (dt-core ``systematic_var``; see the module's doc for where it comes from)."""
     return float(np.hypot(obs["systematic_sd_bar"], obs.get("systematic_rel", 0.0) * p_bar))
 
 
