@@ -1500,9 +1500,7 @@ def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple
 
 
 def cmd_run_spread(args: argparse.Namespace) -> int:
-    physics = read_json(args.physics)
-    if not physics.get("observer"):
-        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    physics = calibrated_physics(args.physics)
     if len(args.take) < 2:
         raise SystemExit(f"{len(args.take)} take: give at least two (units, or charges of one unit)")
     takes = []
@@ -1541,6 +1539,14 @@ def cmd_run_spread(args: argparse.Namespace) -> int:
     return _write_measured(physics, "observer_run_spread", t, args.out or args.physics)
 
 
+def calibrated_physics(path: Path) -> dict[str, Any]:
+    """The physics file at ``path``, refused by name when it holds no calibrated observer."""
+    physics = read_json(path)
+    if not physics.get("observer"):
+        raise SystemExit(f"{path}: no `observer` section: run `python -m train.observer fit` first")
+    return physics
+
+
 def _write_measured(physics: dict[str, Any], key: str, record: dict[str, Any], out: Path) -> int:
     """Writes ``physics`` to ``out`` with ``record`` (a term measured on other units) under
     ``fit.<key>``."""
@@ -1552,9 +1558,7 @@ def _write_measured(physics: dict[str, Any], key: str, record: dict[str, Any], o
 
 
 def cmd_transfer(args: argparse.Namespace) -> int:
-    physics = read_json(args.physics)
-    if not physics.get("observer"):
-        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    physics = calibrated_physics(args.physics)
     for p in (p for u in args.unit for p in u):
         if not p.is_file():
             raise SystemExit(f"{p}: no such run log")
@@ -1583,9 +1587,7 @@ def units_of(campaign_dir: Path) -> list[list[tuple[float, Path]]]:
 
 
 def cmd_unit_spread(args: argparse.Namespace) -> int:
-    physics = read_json(args.physics)
-    if not physics.get("observer"):
-        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    physics = calibrated_physics(args.physics)
     if bool(args.unit) == bool(args.campaign):
         raise SystemExit("give the units either as --unit CHARGE=RUN ... (repeat per unit) or as --campaign DIR")
     units = [] if args.unit else units_of(args.campaign)
@@ -1625,9 +1627,7 @@ def cmd_unit_spread(args: argparse.Namespace) -> int:
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
-    physics = read_json(args.physics)
-    if not physics.get("observer"):
-        raise SystemExit(f"{args.physics}: no `observer` section: run `python -m train.observer fit` first")
+    physics = calibrated_physics(args.physics)
     for flag, c in (("--charge-bar", args.charge_bar), ("--second-charge-bar", args.second_charge_bar)):
         if c is not None and not (np.isfinite(c) and c > 0.0):
             raise SystemExit(f"{flag} {c:g}: not a charge (bar gauge, above 0)")
