@@ -1422,8 +1422,9 @@ def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, P
             raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own "
                              "(whose interval this term does not set): give runs at the shared model's excitations")
         # a run the observer barely read (a reading near its prior) carries its own wide noise and
-        # so weighs little: kept, not refused
-        noise2 = max(sd ** 2 - sys2 - (rel * m) ** 2, 0.0)
+        # so weighs little: kept, not refused; a floor of 0.01 bar keeps each unit's covariance
+        # invertible where both terms rest at 0 (as `run_spread`'s)
+        noise2 = max(sd ** 2 - sys2 - (rel * m) ** 2, 1e-4)
         rows.append({"unit": u, "file": path.name, "charge_bar": float(charge), "error_bar": m - charge,
                      "noise_sd_bar": float(np.sqrt(noise2 + r0 ** 2 + (r_rel * charge) ** 2))})
     if len({r["charge_bar"] for r in rows}) < 2:
