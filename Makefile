@@ -59,7 +59,7 @@ SPREAD_CHARGES := 2 4 7 10 12
 define other_units
 rm -rf $(1); c=($(SPREAD_CHARGES)); for k in $$(seq 0 $$(($(2) - 1))); do \
   $(BIN) simulate $(3) --seed 1 --unit $$((400 + k)) --frequencies 2 \
-    --pressures $${c[k % 5]},$${c[(k + 2) % 5]} --out $(1) > /dev/null; done
+    --pressures $${c[k % $${#c[@]}]},$${c[(k + 2) % $${#c[@]}]} --out $(1) > /dev/null; done
 endef
 
 demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer and its unit spread on ten other units), read the charge on a road, study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
