@@ -1484,6 +1484,122 @@ def fit_unit_spread(units: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) 
     return float(s), float(rho)
 
 
+def own_law_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, Path]]],
+                   jobs: int = 2) -> dict[str, Any]:
+    """The prior on a unit's error when it is read with its own damping law (dt-core
+    ``ObserverParams::own_law_spread``), from units other than the calibration's, each run at a
+    known charge, as one-charge baselines are used: for every ordered pair of a unit's runs at
+    different charges ``(A, B)``, the calibration's law is refitted on ``A`` (as ``baseline
+    --unit-law`` does), and ``A`` and ``B`` are read with it (``_take_read``). ``A``'s error is the
+    baseline's, ``e_A``, with the variance a baseline carries (its reversals, its drift and
+    ``R(p_A)²``); ``B``'s, ``e_B``, is what the baselined unit is later scored by (its reversals
+    and ``R(p_B)²``).
+
+    The law fitted on ``A``'s own windows reads ``A`` in sample and ``B`` out of it, so the two
+    errors need not spread as readings with the calibration's law do (``unit_spread``). What a
+    baseline must get right is ``e_B`` given ``e_A``: under dt-core's model (``e = u_f + u_s p``,
+    ``u_f ~ N(0, S²)``, ``u_s ~ N(0, ρ²)``) that is normal with the mean and variance of its
+    ``UnitCorrection``'s update, and ``S², ρ² ≥ 0`` are the maximum of the product of those
+    conditional densities over the pairs (``fit_own_law_spread``; a composite likelihood: a
+    unit's two directions are not independent, which leaves the estimate consistent and its
+    sampling error larger than one pair per unit would give)."""
+    obs = physics["observer"]
+    if obs.get("baseline"):
+        raise SystemExit("the physics carries a unit baseline: give the model's own")
+    physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
+    pairs = [(u, ca, a, cb, b) for u, runs in enumerate(units) for ca, a in runs for cb, b in runs if ca != cb]
+    if not pairs:
+        raise SystemExit("no unit has runs at two different charges: a unit read with its own law at one known "
+                         "charge is scored at another")
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        got = list(progress(pool.map(_take_read, [(ca, str(a), str(b), physics, True) for _, ca, a, _, b in pairs]),
+                            total=len(pairs), desc="pairs"))
+    sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
+    run2 = lambda p: obs.get("run_sd_bar", 0.0) ** 2 + (obs.get("run_rel", 0.0) * p) ** 2  # noqa: E731
+    rows = []
+    for (u, ca, a, cb, b), reads in zip(pairs, got):
+        (ma, sda, da, own_a, _), (mb, sdb, _, own_b, _) = reads
+        for path, m, own in ((a, ma, own_a), (b, mb, own_b)):
+            if m is None:
+                raise SystemExit(f"{path}: no excited tick: no own-law spread from it")
+            if own:
+                raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own, "
+                                 "where no baseline applies: give runs at the shared model's excitations")
+        na2 = max(sda ** 2 - sys2 - (rel * ma) ** 2, 1e-4) + da ** 2 + run2(ca)
+        if np.sqrt(na2) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
+            raise SystemExit(f"{a}: the observer used (almost) no reversals with the unit's law (reading {ma:.2f} ± "
+                             f"{np.sqrt(na2):.2f} bar from its reversals alone): no baseline from it")
+        nb2 = max(sdb ** 2 - sys2 - (rel * mb) ** 2, 1e-4) + run2(cb)
+        rows.append({"unit": u, "baseline": Path(a).name, "baseline_charge_bar": float(ca),
+                     "baseline_error_bar": ma - ca, "baseline_noise_sd_bar": float(np.sqrt(na2)),
+                     "scored": Path(b).name, "charge_bar": float(cb), "error_bar": mb - cb,
+                     "noise_sd_bar": float(np.sqrt(nb2))})
+    cols = {k: np.array([r[k] for r in rows]) for k in rows[0] if k not in ("baseline", "scored")}
+    x = (cols["baseline_charge_bar"], cols["baseline_error_bar"], cols["baseline_noise_sd_bar"] ** 2,
+         cols["charge_bar"], cols["error_bar"], cols["noise_sd_bar"] ** 2)
+    s_bar, s_rel = fit_own_law_spread(*x)
+    z = {}
+    for name, (s, r) in (("own_law", (s_bar, s_rel)), ("systematic", (np.sqrt(sys2), rel))):
+        m, v = own_law_predictive(s * s, r * r, *x)[:2]
+        z[name] = float(np.sqrt(np.mean((cols["error_bar"] - m) ** 2 / v)))
+    return {"sd_bar": s_bar, "rel": s_rel, "units": len({r["unit"] for r in rows}), "pairs": rows,
+            "charges_bar": sorted({r["charge_bar"] for r in rows}),
+            # the scored errors ÷ their predictive sd (RMS) under the measured prior, and under the
+            # spread of readings with the calibration's law (what the baselines used before)
+            "z_rms": z["own_law"], "z_rms_with_systematic": z["systematic"],
+            "systematic_sd_bar": float(np.sqrt(sys2)), "systematic_rel": float(rel)}
+
+
+def own_law_predictive(s2: float, r2: float, pa: np.ndarray, ea: np.ndarray, na2: np.ndarray, pb: np.ndarray,
+                       eb: np.ndarray, nb2: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, ...]]]:
+    """The mean and variance of ``e_B`` given a baseline ``e_A`` (``own_law_spread``) under the prior
+    ``S² = s2``, ``ρ² = r2``, and their derivatives by ``(S², ρ²)``: ``[(∂m, ∂v)]``. The joint
+    covariance is ``c_aa = S² + ρ² p_A² + n_A²``, ``c_ab = S² + ρ² p_A p_B``, ``c_bb = S² + ρ² p_B² +
+    n_B²``; the conditional ``m = c_ab e_A / c_aa``, ``v = c_bb − c_ab² / c_aa``: dt-core's
+    ``UnitCorrection`` for one reading, in the errors' own terms."""
+    caa, cab, cbb = s2 + r2 * pa * pa + na2, s2 + r2 * pa * pb, s2 + r2 * pb * pb + nb2
+    m, v = cab * ea / caa, cbb - cab * cab / caa
+    grads = []
+    for d_aa, d_ab, d_bb in ((1.0, 1.0, 1.0), (pa * pa, pa * pb, pb * pb)):
+        dm = ea * (d_ab * caa - cab * d_aa) / caa ** 2
+        dv = d_bb - (2.0 * cab * d_ab * caa - cab * cab * d_aa) / caa ** 2
+        grads.append((dm, dv))
+    return m, v, grads
+
+
+def fit_own_law_spread(pa: np.ndarray, ea: np.ndarray, na2: np.ndarray, pb: np.ndarray, eb: np.ndarray,
+                       nb2: np.ndarray) -> tuple[float, float]:
+    """``(S, ρ)`` of ``own_law_spread``: the ``S², ρ² ≥ 0`` that maximise ``Π N(e_B; m, v)``
+    (``own_law_predictive``), with the analytic score; accepted where the score vanishes (or
+    points out of a bound it rests on), as ``fit_unit_spread`` is."""
+    e2 = float(np.mean(np.concatenate([ea ** 2, eb ** 2, na2, nb2])))
+    p2 = float(np.mean(np.concatenate([pa ** 2, pb ** 2])))
+    scale = np.array([max(e2, 1e-6), max(e2, 1e-6) / p2])
+
+    def nll(x: np.ndarray) -> tuple[float, np.ndarray]:
+        m, v, grads = own_law_predictive(x[0], x[1], pa, ea, na2, pb, eb, nb2)
+        r = eb - m
+        f = 0.5 * float(np.sum(np.log(v) + r * r / v))
+        g = np.array([0.5 * float(np.sum(dv / v - r * r * dv / v ** 2 - 2.0 * r * dm / v)) for dm, dv in grads])
+        return f, g
+
+    def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
+        f, grad = nll(y * scale)
+        return f, grad * scale
+
+    best = minimize(scaled, np.array([0.5, 0.5]), jac=True, method="L-BFGS-B", bounds=[(0.0, None), (0.0, None)],
+                    options={"ftol": 1e-15, "gtol": 1e-12})
+    x = best.x * scale
+    _, score = nll(x)
+    at_bound = best.x <= 1e-10
+    tol = 1e-6 * len(eb) / scale
+    if not (np.all(np.abs(score[~at_bound]) <= tol[~at_bound]) and np.all(score[at_bound] >= -tol[at_bound])):
+        raise SystemExit(f"own-law spread: the likelihood's maximum was not found ({best.message}; score {score} at "
+                         f"S² {x[0]:.3g}, ρ² {x[1]:.3g})")
+    s, rho = np.sqrt(x)
+    return float(s), float(rho)
+
+
 def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple[Any, ...]]:
     """One take of ``run_spread``: A's and B's readings (``_baseline_read``), with the law refitted
     on A when asked."""
@@ -1608,6 +1724,8 @@ def cmd_unit_spread(args: argparse.Namespace) -> int:
         units.append(unit)
     if len(units) < 2:
         raise SystemExit(f"{len(units)} unit: give at least two (each --unit one unit's runs)")
+    if args.unit_law:
+        return own_law_command(args, physics, units)
     t = unit_spread(physics, units, args.jobs)
     for r in t["runs"]:
         print(f"unit {r['unit'] + 1}: {r['file']} at {r['charge_bar']:g} bar: {r['error_bar']:+.2f} bar "
@@ -1619,12 +1737,28 @@ def cmd_unit_spread(args: argparse.Namespace) -> int:
           f"bar + {100 * was['systematic_rel']:.2f} % (the calibration unit and --unit-tolerance-pct)")
     physics["observer"]["systematic_sd_bar"] = t["systematic_sd_bar"]
     physics["observer"]["systematic_rel"] = t["systematic_rel"]
-    for key in ("observer_run_spread", "observer_transfer"):
+    for key in ("observer_run_spread", "observer_transfer", "observer_own_law_spread"):
         if key in physics.get("fit", {}):
             print(f"warning: {args.physics} holds a {key.removeprefix('observer_').replace('_', ' ')} measured "
                   "beside the old unit spread, whose noise it took its readings' less: run it again on this file",
                   file=sys.stderr)
     return _write_measured(physics, "observer_unit_spread", t, args.out or args.physics)
+
+
+def own_law_command(args: argparse.Namespace, physics: dict[str, Any], units: list[list[tuple[float, Path]]]) -> int:
+    """``unit-spread --unit-law``: ``own_law_spread`` measured and written as the physics'
+    ``observer.own_law_spread``."""
+    t = own_law_spread(physics, units, args.jobs)
+    for r in t["pairs"]:
+        print(f"unit {r['unit'] + 1}: its own law from {r['baseline']} ({r['baseline_error_bar']:+.2f} bar at "
+              f"{r['baseline_charge_bar']:g}); {r['scored']} at {r['charge_bar']:g} bar: {r['error_bar']:+.2f} bar "
+              f"(its reading's own {r['noise_sd_bar']:.2f})")
+    print(f"own-law spread: ±{t['sd_bar']:.3f} bar + {100 * t['rel']:.2f} % of the charge (maximum likelihood of "
+          f"each scored error given its baseline) over {len(t['pairs'])} pairs of {t['units']} units; scored errors ÷ "
+          f"their sd RMS {t['z_rms']:.2f}, {t['z_rms_with_systematic']:.2f} with the unit spread "
+          f"(±{t['systematic_sd_bar']:.3f} bar + {100 * t['systematic_rel']:.2f} %) as the prior")
+    physics["observer"]["own_law_spread"] = {"sd_bar": t["sd_bar"], "rel": t["rel"]}
+    return _write_measured(physics, "observer_own_law_spread", t, args.out or args.physics)
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
@@ -1795,6 +1929,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "excitations (repeat per unit)")
     us.add_argument("--campaign", type=Path, metavar="DIR",
                     help="instead of --unit: a directory of labelled runs, grouped into units by their asset id")
+    us.add_argument("--unit-law", action="store_true",
+                    help="instead: the prior of a unit read with its own damping law (ObserverParams::"
+                         "own_law_spread), each run read as a one-charge baseline with the law refitted on it "
+                         "(as `baseline --unit-law`) and the unit's runs at other charges scored with it")
     us.add_argument("--out", type=Path, help="physics.json to write (default: --physics, updated)")
     us.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)

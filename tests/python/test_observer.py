@@ -941,6 +941,91 @@ def test_a_unit_spread_is_measured_on_other_units_and_lands_in_the_physics(
             obs_tool.main([*args, "--unit", f"{bad}={units[0][0][1]}", "--unit", f"4={units[1][0][1]}"])
 
 
+def test_the_own_law_spread_fit_finds_the_prior_a_baseline_conditions() -> None:
+    """``fit_own_law_spread``: pairs of a unit's errors drawn as dt-core models them (``e = u_f + u_s p
+    + noise``, ``u_f ~ N(0, S²)``, ``u_s ~ N(0, ρ²)`` shared by the pair), the second scored given the
+    first, give ``S`` and ``ρ`` back over 3,000 units; its analytic score agrees with finite
+    differences; on small sets no point of a dense grid has a higher likelihood, computed here as
+    scipy's joint normal density less the baseline's marginal one (not the fit's own algebra)."""
+    from scipy.stats import multivariate_normal, norm
+
+    def draw(rng: np.random.Generator, k: int, s: float, rho: float, scale: float = 1.0) -> tuple[np.ndarray, ...]:
+        pa, pb = np.array([rng.choice([2.0, 4.0, 7.0, 10.0, 12.0], 2, replace=False) for _ in range(k)]).T
+        na, nb = scale * rng.uniform(0.05, 0.6, k), scale * rng.uniform(0.05, 0.2, k)
+        uf, us = rng.normal(0.0, s, k), rng.normal(0.0, rho, k)
+        ea = uf + us * pa + na * rng.standard_normal(k)
+        eb = uf + us * pb + nb * rng.standard_normal(k)
+        return pa, ea, na ** 2, pb, eb, nb ** 2
+
+    rng = np.random.default_rng(11)
+    s, rho = obs_tool.fit_own_law_spread(*draw(rng, 3000, 1.3, 0.09))
+    assert abs(s - 1.3) < 0.1 and abs(rho - 0.09) < 0.01, (s, rho)
+    x = draw(rng, 30, 1.0, 0.1)
+    _, _, grads = obs_tool.own_law_predictive(1.1, 0.012, *x)
+    for k, step in enumerate(([1e-6, 0.0], [0.0, 1e-8])):
+        hi, lo = (obs_tool.own_law_predictive(1.1 + d * step[0], 0.012 + d * step[1], *x) for d in (1.0, -1.0))
+        for j in range(2):
+            fd = (hi[j] - lo[j]) / (2.0 * sum(step))
+            assert np.allclose(grads[k][j], fd, rtol=1e-5, atol=1e-8), (k, j)
+    for i in range(6):
+        rng = np.random.default_rng(300 + i)
+        scale = 10.0 ** rng.uniform(-1, 0.5)
+        pa, ea, na2, pb, eb, nb2 = x = draw(rng, int(rng.integers(4, 25)), scale * rng.uniform(0.2, 2.0),
+                                              rng.uniform(0.0, 0.2), scale)
+        s, rho = obs_tool.fit_own_law_spread(*x)
+
+        def nll(a: float, b: float) -> float:
+            total = 0.0
+            for k in range(len(pa)):
+                h = np.array([[1.0, pa[k]], [1.0, pb[k]]])
+                c = h @ np.diag([a, b]) @ h.T + np.diag([na2[k], nb2[k]])
+                total -= multivariate_normal(np.zeros(2), c).logpdf([ea[k], eb[k]])
+                total += norm(0.0, np.sqrt(c[0, 0])).logpdf(ea[k])
+            return total
+
+        grid = np.concatenate([[0.0], np.geomspace(1e-4, 1e2, 15)]) * scale ** 2
+        best = nll(s * s, rho * rho)
+        gap = min(nll(a, b) for a in grid for b in grid / 49.0) - best
+        assert gap >= -1e-7 * abs(best) - 1e-9, (i, s, rho, best, gap)
+
+
+def test_the_own_law_spread_is_measured_on_baselined_pairs_and_lands_in_the_physics(tmp_path: Path) -> None:
+    """``observer unit-spread --unit-law``: two other units, each at two known charges at 2 Hz
+    (quick runs), the study's calibration. Each run is read as a one-charge baseline with the law
+    refitted on it (its error is what ``baseline --unit-law`` reads, less the charge) and the
+    unit's other run is scored with that law; ``S`` and ``ρ`` are ``fit_own_law_spread``'s on
+    those pairs and land in the physics as ``own_law_spread``, the unit spread untouched. Units
+    with runs at one charge each are refused, named."""
+    physics = ROOT / "docs" / "study" / "physics.json"
+    base = json.loads(physics.read_text())
+    units = []
+    for unit in ("5", "6"):
+        runs = simulate(tmp_path / unit, "--pressures", "4,12", "--frequencies", "2", "--unit", unit)
+        units.append([(float(r.name.split("-")[0][1:]), r) for r in runs])
+    out = tmp_path / "physics.json"
+    args = ["unit-spread", "--unit-law", "--physics", str(physics), "--out", str(out), "--jobs", "1"]
+    assert obs_tool.main([*args, *(x for u in units for x in ("--unit", *(f"{c:g}={r}" for c, r in u)))]) == 0
+    got = json.loads(out.read_text())
+    rec = got["fit"]["observer_own_law_spread"]
+    assert len(rec["pairs"]) == 4 and rec["charges_bar"] == [4.0, 12.0], rec
+    for row in rec["pairs"][:2]:
+        c, run = next((c, r) for c, r in units[row["unit"]] if r.name == row["baseline"])
+        read = obs_tool.baseline_of(base, [run], c, jobs=1, unit_law=True)["observer_baseline"]
+        assert abs(row["baseline_error_bar"] - (read["read_bar"] - c)) < 1e-6, (row, read)
+    cols = [np.array([r[k] for r in rec["pairs"]]) for k in ("baseline_charge_bar", "baseline_error_bar",
+                                                              "baseline_noise_sd_bar", "charge_bar", "error_bar",
+                                                              "noise_sd_bar")]
+    cols[2], cols[5] = cols[2] ** 2, cols[5] ** 2
+    s, rho = obs_tool.fit_own_law_spread(*cols)
+    assert got["observer"]["own_law_spread"] == {"sd_bar": s, "rel": rho}, rec
+    assert (got["observer"]["systematic_sd_bar"], got["observer"]["systematic_rel"]) == \
+        (base["observer"]["systematic_sd_bar"], base["observer"]["systematic_rel"])
+    print(f"units 5-6 (simulated, quick): own-law spread ±{s:.2f} bar + {100 * rho:.1f} %, scored errors ÷ sd "
+          f"RMS {rec['z_rms']:.2f} ({rec['z_rms_with_systematic']:.2f} with the unit spread)")
+    with pytest.raises(SystemExit, match="no unit has runs at two different charges"):
+        obs_tool.main([*args, *(x for u in units for x in ("--unit", f"{u[0][0]:g}={u[0][1]}"))])
+
+
 def test_replay_names_a_baseline_it_cannot_use(tmp_path: Path, run_4bar: Path) -> None:
     bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
     bad = tmp_path / "b.json"

@@ -398,6 +398,21 @@ pub struct ObserverParams {
     /// moves the charge in proportion). 0 (the default): none.
     #[serde(default)]
     pub run_rel: f64,
+    /// `S` and `ρ` of a unit read with its own damping law (a
+    /// [`UnitBaseline`] that carries one,
+    /// [`UnitBaseline::damping_law`]): the prior its baseline conditions in
+    /// place of [`systematic_sd_bar`](Self::systematic_sd_bar) and
+    /// [`systematic_rel`](Self::systematic_rel). A law refitted on the
+    /// baseline's own run reads that run's error and a later run's
+    /// differently from the calibration's law, so the spread measured on
+    /// readings with the calibration's law need not be theirs.
+    /// `python -m train.observer unit-spread --unit-law` measures it on
+    /// units other than the calibration's, each read as a baseline at one
+    /// known charge and scored at another. None (the default, and what a
+    /// physics file written before this field means): the unit's prior is
+    /// `S` and `ρ` alike.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub own_law_spread: Option<UnitSpread>,
     /// Prior mean of the charge, bar gauge.
     pub prior_mean_bar: f64,
     /// Prior standard deviation of the charge, bar.
@@ -1005,6 +1020,18 @@ pub fn widen_range(range: Option<[f64; 2]>, other: [f64; 2]) -> [f64; 2] {
     range.map_or(other, |[lo, hi]| [lo.min(other[0]), hi.max(other[1])])
 }
 
+/// The unit-to-unit spread of the observer's systematic error for a unit
+/// read with its own damping law ([`ObserverParams::own_law_spread`]):
+/// `u_f ~ N(0, sd_bar²)`, `u_s ~ N(0, rel²)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UnitSpread {
+    /// `S`, bar.
+    pub sd_bar: f64,
+    /// `ρ`, per bar of the charge, 1.
+    pub rel: f64,
+}
+
 /// A [`UnitBaseline`]'s posterior: `û = [u_f, u_s]` and `Σ'`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct UnitCorrection {
@@ -1019,7 +1046,8 @@ struct UnitCorrection {
 
 impl UnitCorrection {
     fn of(p: &ObserverParams) -> Self {
-        let (sff, sss) = (p.systematic_sd_bar.powi(2), p.systematic_rel.powi(2));
+        let (s, rho) = p.unit_prior();
+        let (sff, sss) = (s * s, rho * rho);
         let prior = Self {
             offset_bar: 0.0,
             gain_rel: 0.0,
@@ -1547,6 +1575,7 @@ impl Default for ObserverParams {
             systematic_rel: 0.0,
             run_sd_bar: 0.0,
             run_rel: 0.0,
+            own_law_spread: None,
             prior_mean_bar: 6.0,
             prior_sd_bar: 6.0,
             random_walk_bar2_per_s: 1.0e-4,
@@ -1603,6 +1632,22 @@ impl ObserverParams {
         self.damping_law.is_calibrated()
             && law.is_calibrated()
             && law.form() == self.damping_law.form()
+    }
+
+    /// `(S, ρ)`, the prior on the unit's error that its baseline
+    /// conditions: [`own_law_spread`](Self::own_law_spread) when the
+    /// baseline carries the unit's own law and the spread was measured,
+    /// else [`systematic_sd_bar`](Self::systematic_sd_bar) and
+    /// [`systematic_rel`](Self::systematic_rel).
+    #[must_use]
+    pub fn unit_prior(&self) -> (f64, f64) {
+        match (
+            self.baseline.and_then(|b| b.damping_law),
+            self.own_law_spread,
+        ) {
+            (Some(_), Some(u)) => (u.sd_bar, u.rel),
+            _ => (self.systematic_sd_bar, self.systematic_rel),
+        }
     }
 
     /// The damping law the window model runs: the unit's own, when its
@@ -1947,6 +1992,14 @@ impl ObserverParams {
             ("observer.systematic_rel", self.systematic_rel),
             ("observer.run_sd_bar", self.run_sd_bar),
             ("observer.run_rel", self.run_rel),
+            (
+                "observer.own_law_spread.sd_bar",
+                self.own_law_spread.map_or(0.0, |u| u.sd_bar),
+            ),
+            (
+                "observer.own_law_spread.rel",
+                self.own_law_spread.map_or(0.0, |u| u.rel),
+            ),
             ("observer.cold_bias_sd_ns2pm", self.cold_bias_sd_ns2pm),
             ("observer.single_end_sd_bar", self.single_end_sd_bar),
             ("observer.held_sd_bar", self.held_sd_bar),
@@ -4011,6 +4064,93 @@ mod tests {
         let (w, wo) = (with.estimate(t + 1), without.estimate(t + 1));
         assert!((w.mean_bar - wo.mean_bar).abs() < 1e-12 && (w.sd_bar - wo.sd_bar).abs() < 1e-12);
         assert!(wo.sd_bar > p.systematic_sd_bar, "{wo:?}");
+    }
+
+    /// A baseline that carries the unit's own law conditions
+    /// `own_law_spread`'s prior in place of `S` and `ρ`: the estimate is
+    /// exactly the one with those values as `S` and `ρ`. A baseline read
+    /// with the calibration's law, and a reading without a baseline, keep
+    /// `S` and `ρ`. A spread that is no standard deviation is refused by
+    /// name; a physics document without the field reads as before.
+    #[test]
+    fn a_baseline_with_its_own_law_conditions_the_own_law_spread() {
+        let (base, _) = baseline_reader(1.4, 0.08);
+        let base = ObserverParams {
+            damping_law: a_law(),
+            ..base
+        };
+        let mut own = a_law();
+        own.viscous_nspm[0] *= 1.1;
+        let b = UnitBaseline {
+            charge_bar: 12.0,
+            read_bar: 13.0,
+            read_sd_bar: 0.1,
+            accel_range_mps2: None,
+            damping_law: Some(own),
+            second: None,
+            runs_averaged: 1.0,
+        };
+        let spread = UnitSpread {
+            sd_bar: 1.9,
+            rel: 0.11,
+        };
+        let read = |p: ObserverParams| {
+            let mut obs = ChargeObserver::new(p).unwrap();
+            feed_ends(&mut obs, [40.0, 40.0], 400);
+            obs.estimate(obs.updated_ns.unwrap())
+        };
+        let measured = read(ObserverParams {
+            baseline: Some(b),
+            own_law_spread: Some(spread),
+            ..base
+        });
+        let as_systematic = read(ObserverParams {
+            baseline: Some(b),
+            systematic_sd_bar: 1.9,
+            systematic_rel: 0.11,
+            ..base
+        });
+        assert_eq!(measured, as_systematic);
+        let without = read(ObserverParams {
+            baseline: Some(b),
+            ..base
+        });
+        assert!(measured.sd_bar > without.sd_bar, "{measured:?} {without:?}");
+        let plain = Some(UnitBaseline {
+            damping_law: None,
+            ..b
+        });
+        for baseline in [plain, None] {
+            let p = ObserverParams { baseline, ..base };
+            let q = ObserverParams {
+                own_law_spread: Some(spread),
+                ..p
+            };
+            assert_eq!(read(q), read(p), "{baseline:?}");
+        }
+        for (name, bad) in [
+            ("observer.own_law_spread.sd_bar", [-1.0, 0.1]),
+            ("observer.own_law_spread.rel", [1.0, f64::NAN]),
+        ] {
+            let err = ChargeObserver::new(ObserverParams {
+                own_law_spread: Some(UnitSpread {
+                    sd_bar: bad[0],
+                    rel: bad[1],
+                }),
+                ..base
+            })
+            .unwrap_err();
+            assert!(err.to_string().contains(name), "{err}");
+        }
+        let doc = serde_json::to_value(base).unwrap();
+        assert!(doc.get("own_law_spread").is_none(), "{doc}");
+        let with = ObserverParams {
+            own_law_spread: Some(spread),
+            ..base
+        };
+        let doc = serde_json::to_value(with).unwrap();
+        assert_eq!(doc["own_law_spread"]["sd_bar"], 1.9);
+        assert_eq!(serde_json::from_value::<ObserverParams>(doc).unwrap(), with);
     }
 
     /// A baseline read at 1.5 m/s² narrows the interval there as before;
