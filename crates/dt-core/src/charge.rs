@@ -155,12 +155,18 @@
 //!
 //! **A baselined unit from run to run** ([`ObserverParams::run_sd_bar`],
 //! [`ObserverParams::run_rel`]):
-//! one run's reading of a unit differs from another's at the same charge and
-//! excitation by more than their reversals say (the run's room and heat,
-//! a law fitted on one run). That error `R(p)` is no constant of the unit: it
-//! joins each baseline reading's variance and every later baselined run's,
-//! measured on repeat takes of units other than the calibration's by
-//! `python -m train.observer run-spread`.
+//! one run's reading of a unit can differ from another's at the same charge
+//! and excitation by more than their reversals say. That error `R(p)` is no
+//! constant of the unit: it joins each baseline reading's variance and every
+//! later baselined run's, measured on repeat takes of units other than the
+//! calibration's by `python -m train.observer run-spread`. On the simulated
+//! dyno it is the sensors': repeat takes on one rig (its own room, heat and
+//! noise each) differ by 0.06 bar RMS and give `R` = 0, takes on rigs of
+//! their own (other accelerometers and thermocouples) give `R₀` = 0.11 bar,
+//! `r` = 2.3 % (docs/history.md, "Fiftieth session"). So a baseline read on
+//! the sensors the unit is later read with needs none; one read on other
+//! sensors (a dyno before installation, a sensor replaced since) needs the
+//! term measured across sensor sets.
 //!
 //! Two options change what each reversal or the interval carries (both off
 //! by default): `window_sd` takes `σ_α²` per reversal as the larger of
@@ -379,8 +385,9 @@ pub struct ObserverParams {
     pub systematic_rel: f64,
     /// `R₀`: a baselined unit's run-to-run error, bar — how far one run's
     /// reading of a unit sits from another's at the same known charge and
-    /// excitation beyond their reversals' statistics (the run's room and
-    /// heat, the unit's own law fitted on one run), with
+    /// excitation beyond their reversals' statistics (on the simulated dyno,
+    /// the sensors': 0 between runs on one set of sensors; see the module's
+    /// "A baselined unit from run to run"), with
     /// [`run_rel`](Self::run_rel): `R(p)² = R₀² + (r p)²`. It is not a
     /// constant of the unit, so a [`UnitBaseline`] cannot condition it: each
     /// baseline reading at `p₀` carries it (variance `read_sd_bar² +
