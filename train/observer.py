@@ -1121,6 +1121,13 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     return out
 
 
+def reading_var(obs: dict[str, Any], m: float, sd: float, floor: float = 1e-4) -> float:
+    """A raw reading's own variance (its reversals), bar²: the observer's reported ``sd²`` at
+    reading ``m`` less the systematic part it carried without a baseline (``S² + (ρ m)²``),
+    floored at ``floor`` (0.01 bar: a covariance stays invertible where every other term is 0)."""
+    return max(sd ** 2 - obs["systematic_sd_bar"] ** 2 - (obs["systematic_rel"] * m) ** 2, floor)
+
+
 def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_bar: float,
              own_law: bool = False) -> dict[str, Any]:
     """One reading of a unit at one known charge for ``baseline_of``: each run's reading,
@@ -1137,12 +1144,11 @@ def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_b
                              "at one of the shared model's excitations (the calibration's 1 Hz run is one)")
     ranges = [r[4] for r in reads if r[4] is not None]
     reads = [r[:3] for r in reads]
-    sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
     rows = []
     for path, (m, sd, drift) in zip(paths, reads):
         if m is None:
             raise SystemExit(f"{path}: no excited tick: no baseline from it")
-        var = max(sd ** 2 - sys2 - (rel * m) ** 2, 1e-4) + drift ** 2
+        var = reading_var(obs, m, sd) + drift ** 2
         if np.sqrt(var) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
             raise SystemExit(f"{path}: the observer used (almost) no reversals (reading {m:.2f} ± "
                              f"{np.sqrt(var):.2f} bar from its reversals alone): an excitation it was not "
@@ -1252,7 +1258,7 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
     flat = [(u, Path(p)) for u, runs in enumerate(units) for p in runs]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for _, p in flat]))
-    sys2, rel, band = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"], obs["accel_cluster_rel"]
+    band = obs["accel_cluster_rel"]
     per_unit: dict[int, list[dict[str, Any]]] = {}
     for (u, path), (m, sd, _drift, own, span) in zip(flat, reads):
         if m is None or span is None:
@@ -1260,7 +1266,7 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
         if own:
             raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own, "
                              "where no baseline applies: give runs at the shared model's excitations")
-        noise2 = max(sd ** 2 - sys2 - (rel * m) ** 2, 0.0)
+        noise2 = reading_var(obs, m, sd, floor=0.0)
         per_unit.setdefault(u, []).append({"file": path.name, "error_bar": m - charge_bar,
                                            "noise_sd_bar": float(np.sqrt(noise2)), "accel_range_mps2": span})
     pairs = []
@@ -1316,10 +1322,10 @@ def run_spread(physics: dict[str, Any], takes: Sequence[tuple[float, Path, Path]
     if obs.get("baseline"):
         raise SystemExit("the physics carries a unit baseline: give the model's own")
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0, "run_sd_bar": 0.0, "run_rel": 0.0}}
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with law_pool(jobs) as pool:
         got = list(progress(pool.map(_take_read, [(c, str(a), str(b), physics, unit_law) for c, a, b in takes]),
                             total=len(takes), desc="takes"))
-    sys2, rel, band = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"], obs["accel_cluster_rel"]
+    band = obs["accel_cluster_rel"]
     pairs = []
     for (charge, a, b), reads in zip(takes, got):
         rows = []
@@ -1329,7 +1335,7 @@ def run_spread(physics: dict[str, Any], takes: Sequence[tuple[float, Path, Path]
             if own:
                 raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its "
                                  "own, where no baseline applies: give runs at the shared model's excitations")
-            rows.append((m, max(sd ** 2 - sys2 - (rel * m) ** 2, 1e-4), drift, span))
+            rows.append((m, reading_var(obs, m, sd), drift, span))
         (ma, va, da, ra), (mb, vb, _, rb) = rows
         if np.sqrt(va + da ** 2) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
             raise SystemExit(f"{a}: the observer used (almost) no reversals (reading {ma:.2f} ± "
@@ -1412,7 +1418,6 @@ def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, P
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(progress(pool.map(_baseline_read, [(str(p), physics) for _, _, p in flat]),
                               total=len(flat), desc="runs"))
-    sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
     r0, r_rel = obs.get("run_sd_bar", 0.0), obs.get("run_rel", 0.0)
     rows = []
     for (u, charge, path), (m, sd, _drift, own, _span) in zip(flat, reads):
@@ -1422,9 +1427,8 @@ def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, P
             raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own "
                              "(whose interval this term does not set): give runs at the shared model's excitations")
         # a run the observer barely read (a reading near its prior) carries its own wide noise and
-        # so weighs little: kept, not refused; a floor of 0.01 bar keeps each unit's covariance
-        # invertible where both terms rest at 0 (as `run_spread`'s)
-        noise2 = max(sd ** 2 - sys2 - (rel * m) ** 2, 1e-4)
+        # so weighs little: kept, not refused
+        noise2 = reading_var(obs, m, sd)
         rows.append({"unit": u, "file": path.name, "charge_bar": float(charge), "error_bar": m - charge,
                      "noise_sd_bar": float(np.sqrt(noise2 + r0 ** 2 + (r_rel * charge) ** 2))})
     if len({r["charge_bar"] for r in rows}) < 2:
@@ -1439,7 +1443,7 @@ def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, P
             "noise_rms_bar": float(np.sqrt(np.mean([r["noise_sd_bar"] ** 2 for r in rows]))),
             "charges_bar": sorted({r["charge_bar"] for r in rows}),
             # what `fit` had set, from the calibration unit and the assumed tolerance
-            "replaced": {"systematic_sd_bar": float(obs["systematic_sd_bar"]), "systematic_rel": float(rel)},
+            "replaced": {"systematic_sd_bar": float(obs["systematic_sd_bar"]), "systematic_rel": float(obs["systematic_rel"])},
             "run_sd_bar": float(r0), "run_rel": float(r_rel)}
 
 
@@ -1511,7 +1515,7 @@ def own_law_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float
     if not pairs:
         raise SystemExit("no unit has runs at two different charges: a unit read with its own law at one known "
                          "charge is scored at another")
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with law_pool(jobs) as pool:
         got = list(progress(pool.map(_take_read, [(ca, str(a), str(b), physics, True) for _, ca, a, _, b in pairs]),
                             total=len(pairs), desc="pairs"))
     sys2, rel = obs["systematic_sd_bar"] ** 2, obs["systematic_rel"]
@@ -1525,11 +1529,11 @@ def own_law_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float
             if own:
                 raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a model of its own, "
                                  "where no baseline applies: give runs at the shared model's excitations")
-        na2 = max(sda ** 2 - sys2 - (rel * ma) ** 2, 1e-4) + da ** 2 + run2(ca)
+        na2 = reading_var(obs, ma, sda) + da ** 2 + run2(ca)
         if np.sqrt(na2) > BASELINE_MAX_SD_SHARE * obs["prior_sd_bar"]:
             raise SystemExit(f"{a}: the observer used (almost) no reversals with the unit's law (reading {ma:.2f} ± "
                              f"{np.sqrt(na2):.2f} bar from its reversals alone): no baseline from it")
-        nb2 = max(sdb ** 2 - sys2 - (rel * mb) ** 2, 1e-4) + run2(cb)
+        nb2 = reading_var(obs, mb, sdb) + run2(cb)
         rows.append({"unit": u, "baseline": Path(a).name, "baseline_charge_bar": float(ca),
                      "baseline_error_bar": ma - ca, "baseline_noise_sd_bar": float(np.sqrt(na2)),
                      "scored": Path(b).name, "charge_bar": float(cb), "error_bar": mb - cb,
@@ -1598,6 +1602,15 @@ def fit_own_law_spread(pa: np.ndarray, ea: np.ndarray, na2: np.ndarray, pb: np.n
                          f"S² {x[0]:.3g}, ρ² {x[1]:.3g})")
     s, rho = np.sqrt(x)
     return float(s), float(rho)
+
+
+def law_pool(jobs: int) -> ProcessPoolExecutor:
+    """Worker processes for ``_take_read``, each started from a fresh interpreter (forkserver). A
+    unit's law is refitted there, and the fit runs the native module's thread pool
+    (``shocktwin.reversal_windows``, on every core); a forked worker inherits that pool's state
+    from a parent that used it (``baseline --unit-law`` in the same process) without its threads,
+    and waits on them forever."""
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver"))
 
 
 def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple[Any, ...]]:
@@ -1739,7 +1752,7 @@ def cmd_unit_spread(args: argparse.Namespace) -> int:
     physics["observer"]["systematic_rel"] = t["systematic_rel"]
     for key in ("observer_run_spread", "observer_transfer", "observer_own_law_spread"):
         if key in physics.get("fit", {}):
-            print(f"warning: {args.physics} holds a {key.removeprefix('observer_').replace('_', ' ')} measured "
+            print(f"warning: {args.physics} holds the {key.removeprefix('observer_').replace('_', ' ')} measured "
                   "beside the old unit spread, whose noise it took its readings' less: run it again on this file",
                   file=sys.stderr)
     return _write_measured(physics, "observer_unit_spread", t, args.out or args.physics)
