@@ -1443,7 +1443,8 @@ def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, P
             "noise_rms_bar": float(np.sqrt(np.mean([r["noise_sd_bar"] ** 2 for r in rows]))),
             "charges_bar": sorted({r["charge_bar"] for r in rows}),
             # what `fit` had set, from the calibration unit and the assumed tolerance
-            "replaced": {"systematic_sd_bar": float(obs["systematic_sd_bar"]), "systematic_rel": float(obs["systematic_rel"])},
+            "replaced": {"systematic_sd_bar": float(obs["systematic_sd_bar"]),
+                         "systematic_rel": float(obs["systematic_rel"])},
             "run_sd_bar": float(r0), "run_rel": float(r_rel)}
 
 
@@ -1470,6 +1471,18 @@ def fit_unit_spread(units: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) 
                 g[k] += 0.5 * (v @ ci @ v - (v @ a) ** 2)
         return float(f), g
 
+    # the score's size: its terms' own, so that a vanishing score is judged relative to them
+    tol = 1e-6 * np.array([sum(len(e) for e, _, _ in units) / scale[0]] * 2) * np.array([1.0, p2_mean])
+    return spread_by_likelihood(nll, scale, tol, "unit spread")
+
+
+def spread_by_likelihood(nll: Any, scale: np.ndarray, tol: np.ndarray, what: str) -> tuple[float, float]:
+    """``(S, ρ)``, the square roots of the variances ``x = [S², ρ²] ≥ 0`` that minimise ``nll(x)`` (its
+    value and gradient), found by L-BFGS-B in units of ``scale`` (which keep them near 1) and
+    accepted where the score vanishes (``|∂nll| ≤ tol``) or points out of a bound it rests on:
+    L-BFGS-B's line search can stop at these tolerances at the maximum itself ("ABNORMAL"), and what
+    decides is the score. Otherwise refused, naming ``what``."""
+
     def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
         f, grad = nll(y * scale)
         return f, grad * scale
@@ -1479,10 +1492,8 @@ def fit_unit_spread(units: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) 
     x = best.x * scale
     _, score = nll(x)
     at_bound = best.x <= 1e-10
-    # the score's size: its terms' own, so that a vanishing score is judged relative to them
-    tol = 1e-6 * np.array([sum(len(e) for e, _, _ in units) / scale[0]] * 2) * np.array([1.0, p2_mean])
     if not (np.all(np.abs(score[~at_bound]) <= tol[~at_bound]) and np.all(score[at_bound] >= -tol[at_bound])):
-        raise SystemExit(f"unit spread: the likelihood's maximum was not found ({best.message}; score {score} at "
+        raise SystemExit(f"{what}: the likelihood's maximum was not found ({best.message}; score {score} at "
                          f"S² {x[0]:.3g}, ρ² {x[1]:.3g})")
     s, rho = np.sqrt(x)
     return float(s), float(rho)
@@ -1587,21 +1598,7 @@ def fit_own_law_spread(pa: np.ndarray, ea: np.ndarray, na2: np.ndarray, pb: np.n
         g = np.array([0.5 * float(np.sum(dv / v - r * r * dv / v ** 2 - 2.0 * r * dm / v)) for dm, dv in grads])
         return f, g
 
-    def scaled(y: np.ndarray) -> tuple[float, np.ndarray]:
-        f, grad = nll(y * scale)
-        return f, grad * scale
-
-    best = minimize(scaled, np.array([0.5, 0.5]), jac=True, method="L-BFGS-B", bounds=[(0.0, None), (0.0, None)],
-                    options={"ftol": 1e-15, "gtol": 1e-12})
-    x = best.x * scale
-    _, score = nll(x)
-    at_bound = best.x <= 1e-10
-    tol = 1e-6 * len(eb) / scale
-    if not (np.all(np.abs(score[~at_bound]) <= tol[~at_bound]) and np.all(score[at_bound] >= -tol[at_bound])):
-        raise SystemExit(f"own-law spread: the likelihood's maximum was not found ({best.message}; score {score} at "
-                         f"S² {x[0]:.3g}, ρ² {x[1]:.3g})")
-    s, rho = np.sqrt(x)
-    return float(s), float(rho)
+    return spread_by_likelihood(nll, scale, 1e-6 * len(eb) / scale, "own-law spread")
 
 
 def law_pool(jobs: int) -> ProcessPoolExecutor:
