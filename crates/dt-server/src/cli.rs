@@ -145,6 +145,12 @@ pub struct SimulateArgs {
     /// on the same vehicle and sensors. Run ids get `-d<seed>`.
     #[arg(long, requires = "road", conflicts_with = "days")]
     pub drive_seed: Option<u64>,
+    /// The rig's own seed: the sensors' errors (accelerometer offsets and
+    /// gains, thermocouple offsets) drawn from it, apart from --seed (which
+    /// keeps drawing the room and the noise): the same runs read by another
+    /// set of sensors. Run ids get `-g<seed>`.
+    #[arg(long, conflicts_with = "days")]
+    pub rig_seed: Option<u64>,
     /// Play a road drive file instead of the sines: the suspension stroke of
     /// a car at this speed (km/h) over an ISO 8608 road (--road-class),
     /// through a linear quarter-car, 0.5-20 Hz; one run per pressure, every

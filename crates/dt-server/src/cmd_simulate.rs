@@ -63,6 +63,7 @@ fn campaign(args: &SimulateArgs) -> anyhow::Result<Vec<dt_sim::RunSummary>> {
         }),
         truth_velocity_hz: args.truth_velocity_hz,
         drive_seed: args.drive_seed,
+        rig_seed: args.rig_seed,
         ..CampaignSpec::paper(args.seed)
     };
     let bar = crate::progress::bar(spec.runs().len() as u64, "simulate");

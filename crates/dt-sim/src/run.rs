@@ -76,6 +76,11 @@ pub struct RunSpec {
     /// room and the noise: another road on the same vehicle. `None`: the
     /// drive file follows the campaign's seed (or the leak history's day).
     pub drive_seed: Option<u64>,
+    /// The rig's own seed: its sensor errors (accelerometer offsets and
+    /// gains, thermocouple offsets) drawn from it instead of from `seed`,
+    /// which keeps drawing the room and the noise: the same run on another
+    /// set of sensors. `None`: the rig of `seed`.
+    pub rig_seed: Option<u64>,
 }
 
 /// `/truth/velocity`'s rate unless asked otherwise, Hz.
@@ -159,6 +164,7 @@ impl RunSpec {
             road: None,
             truth_velocity_hz: DEFAULT_TRUTH_VELOCITY_HZ,
             drive_seed: None,
+            rig_seed: None,
         }
     }
 
@@ -172,7 +178,8 @@ impl RunSpec {
     }
 
     /// E.g. `p12.0-f2.0-s1`, `p12.0-roadC60-s1` (`-d<k>` appended for a drive file of seed `k`
-    /// on the campaign's rig, `-u<n>` for a varied unit, `-r<k>` for repeat take `k > 0`).
+    /// on the campaign's rig, `-g<k>` for the sensors of rig seed `k`, `-u<n>` for a varied unit,
+    /// `-r<k>` for repeat take `k > 0`).
     #[must_use]
     pub fn run_id(&self) -> String {
         let excitation = match self.road {
@@ -182,6 +189,9 @@ impl RunSpec {
         let mut id = format!("p{}-{excitation}-s{}", fmt_num(self.charge_bar), self.seed);
         if let Some(d) = self.drive_seed {
             id = format!("{id}-d{d}");
+        }
+        if let Some(g) = self.rig_seed {
+            id = format!("{id}-g{g}");
         }
         if let Some(n) = self.unit {
             id = format!("{id}-u{n}");
@@ -229,6 +239,9 @@ impl RunSpec {
         meta.extra.insert("seed".into(), self.seed.to_string());
         if let Some(d) = self.drive_seed {
             meta.extra.insert("drive_seed".into(), d.to_string());
+        }
+        if let Some(g) = self.rig_seed {
+            meta.extra.insert("rig_seed".into(), g.to_string());
         }
         meta.extra.insert("quick".into(), self.quick.to_string());
         if let Some(n) = self.unit {
@@ -347,7 +360,8 @@ where
     let run_seed = spec.run_seed();
     let room_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 1]));
     let sensor_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[run_seed, 2]));
-    let mut rig_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[spec.seed, 0x0072_6967]));
+    let rig_seed = spec.rig_seed.unwrap_or(spec.seed);
+    let mut rig_rng = ChaCha8Rng::seed_from_u64(mix_seed(&[rig_seed, 0x0072_6967]));
     let rig = RigErrors::draw(params, &mut rig_rng);
 
     let mut plant = Plant::new(params, &config, room_rng)?;
@@ -670,6 +684,8 @@ pub struct CampaignSpec {
     /// With `road`: the drive file's seed apart from the rig's (see
     /// [`RunSpec::drive_seed`]).
     pub drive_seed: Option<u64>,
+    /// The rig's own seed (see [`RunSpec::rig_seed`]).
+    pub rig_seed: Option<u64>,
 }
 
 impl CampaignSpec {
@@ -687,6 +703,7 @@ impl CampaignSpec {
             road: None,
             truth_velocity_hz: DEFAULT_TRUTH_VELOCITY_HZ,
             drive_seed: None,
+            rig_seed: None,
         }
     }
 
@@ -715,6 +732,7 @@ impl CampaignSpec {
                     }),
                     truth_velocity_hz: self.truth_velocity_hz,
                     drive_seed: self.road.and(self.drive_seed),
+                    rig_seed: self.rig_seed,
                 });
             }
         }

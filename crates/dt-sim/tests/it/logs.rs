@@ -160,3 +160,49 @@ fn a_drive_seed_plays_another_road_on_the_same_sensors() {
     assert!(corr(&stroke(&rig4_road6), &stroke(&rig6)) > 0.99);
     assert!(corr(&stroke(&rig4_road6), &stroke(&rig4)).abs() < 0.5);
 }
+
+/// A rig seed of its own: the sensors' errors are the rig seed's (the body
+/// accelerometer's reading at rest is the campaign of that seed's), the room
+/// and the noise stay the campaign seed's, and the run id and metadata say so.
+#[test]
+fn a_rig_seed_reads_the_same_run_on_another_rig() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, seed: u64, rig: Option<u64>| {
+        let spec = dt_sim::CampaignSpec {
+            pressures_bar: vec![12.0],
+            frequencies_hz: vec![2.0],
+            quick: true,
+            rig_seed: rig,
+            ..dt_sim::CampaignSpec::paper(seed)
+        };
+        let out = dir.path().join(name);
+        dt_sim::simulate_campaign(&spec, &out).unwrap();
+        let path = std::fs::read_dir(&out)
+            .unwrap()
+            .next()
+            .unwrap()
+            .unwrap()
+            .path();
+        read_log(&path).unwrap()
+    };
+    let (run4, run4_rig6, run6) = (run("a", 4, None), run("b", 4, Some(6)), run("c", 6, None));
+    assert_eq!(run4_rig6.metadata.run_id, "p12.0-f2.0-s4-g6");
+    let extra = |log: &dt_core::log::RunLog, key: &str| log.metadata.extra.get(key).cloned();
+    assert_eq!(extra(&run4_rig6, "rig_seed").as_deref(), Some("6"));
+    assert_eq!(extra(&run4_rig6, "seed").as_deref(), Some("4"));
+    assert_eq!(extra(&run4, "rig_seed"), None);
+    // the body accelerometer at rest (the first 5 s): the rig's offset and gain
+    let rest_a2 = |log: &dt_core::log::RunLog| {
+        let v: Vec<f64> = log.acceleration.iter().take(5000).map(|a| a.2).collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    assert!((rest_a2(&run4_rig6) - rest_a2(&run6)).abs() < 0.005);
+    assert!((rest_a2(&run4_rig6) - rest_a2(&run4)).abs() > 0.03);
+    // the noise: the campaign seed's (the potentiometer, whose errors are the
+    // run's, reads run 4's values at rest, sample for sample)
+    let rest_pos = |log: &dt_core::log::RunLog| -> Vec<f64> {
+        log.position.iter().take(200).map(|p| p.1).collect()
+    };
+    assert_eq!(rest_pos(&run4_rig6), rest_pos(&run4));
+    assert_ne!(rest_pos(&run4_rig6), rest_pos(&run6));
+}

@@ -49,6 +49,7 @@ fn at_rest_rates_and_noise_match_the_table() {
         road: None,
         truth_velocity_hz: dt_sim::run::DEFAULT_TRUTH_VELOCITY_HZ,
         drive_seed: None,
+        rig_seed: None,
     };
     let mut samples = Vec::new();
     let summary = simulate_run_with(&spec, &p, |s| {

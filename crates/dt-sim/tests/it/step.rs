@@ -32,6 +32,7 @@ fn readings(substep_s: f64, on_road: bool) -> [Vec<f64>; 4] {
         }),
         truth_velocity_hz: 1000,
         drive_seed: None,
+        rig_seed: None,
     };
     let mut out: [Vec<f64>; 4] = Default::default();
     simulate_run_with(&spec, &p, |s| {
