@@ -147,6 +147,26 @@ def reversals(runs: Sequence[Run], params: dict[str, Any], jobs: int,
     return out
 
 
+def _rod_scale(args: tuple[str, dict[str, Any]]) -> float:
+    path, params = args
+    return float(shocktwin.charge_reversals(path, params)["rod_accel_scale"])
+
+
+def rod_accel_scale(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any], jobs: int,
+                    mp_context: BaseContext | None = None) -> tuple[float | None, list[float]]:
+    """The accelerometers' scale on the campaign's rig, ``k_cal`` (dt-core
+    ``ObserverParams::rod_accel_scale``): the median over its runs of each run's scale against the
+    potentiometer (dt-core ``ChargeObserver::rod_accel_scale``), and the runs' scales (NaN: too few
+    reversals). Every reversal is spared its window fit (``fit_gain_floor`` 0.99): the scale does not
+    need it, and the pass takes about a second a run. None when no run has a scale."""
+    params = {**physics, "observer": {**obs, "fit_gain_floor": 0.99, "rod_accel_scale": None}}
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp_context) as pool:
+        scales = list(progress(pool.map(_rod_scale, [(str(r.path), params) for r in runs]), total=len(runs),
+                               desc="accelerometer scale", unit="run"))
+    finite = [k for k in scales if np.isfinite(k)]
+    return (float(np.median(finite)) if finite else None), scales
+
+
 def cold_excess(rev: dict[str, np.ndarray], obs: dict[str, Any]) -> np.ndarray:
     """``x(T) |ÿ_r|`` per reversal, the regressor of the cold term (dt-core
     ``ObserverParams::cold_excess``): ``x = max(0, r(T)/r(T_c) − 1)``, ``r`` the damping law's
@@ -926,6 +946,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
         obs.update(read_json(args.datasheet))
     obs["window_sd"] = bool(args.window_sd)
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
+    rod_scales = None
+    if obs["reversal_accel"] == "accelerometers" and not args.no_rod_scale:
+        # Before any window is fitted, so that the law and every calibration reversal read `ÿ_r` as
+        # the runs the observer will read later, each corrected by its own scale against this one.
+        k_cal, rod_scales = rod_accel_scale(campaign.runs, physics, obs, args.jobs)
+        if k_cal is not None:
+            obs["rod_accel_scale"] = k_cal
+            print(f"accelerometer scale against the potentiometer: {k_cal:.5f} (median of "
+                  f"{sum(np.isfinite(rod_scales))} runs, {np.nanmin(rod_scales):.5f}–{np.nanmax(rod_scales):.5f}); "
+                  "each run's `ÿ_r` is read as these sensors would read it (dt-core "
+                  "ObserverParams::rod_accel_scale)")
     cal, law, law_cal = None, None, None
     linear = None
     if args.damping == "auto" and args.jobs > 1:
@@ -995,6 +1026,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     o["fit_gain_floor"] = float(args.fit_gain_floor)
     physics["observer"] = cal["observer"]
     physics.setdefault("fit", {})["observer"] = {k: v for k, v in cal.items() if k != "observer"}
+    if rod_scales is not None:
+        physics["fit"]["observer"]["rod_accel_scale_runs"] = {
+            r.name: (k if np.isfinite(k) else None) for r, k in zip(campaign.runs, rod_scales)}
     out = args.out or args.physics
     out.write_text(json.dumps(physics, indent=2) + "\n")
     print("Charge observer calibration (simulated data), measurement model alpha = "
@@ -1880,6 +1914,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "extension valve whose knee sits at a force (docs/history.md, \"The extension valve\"), or a valve "
                         "on either side (docs/history.md, \"Twenty-third session\"), or the compression side as the base "
                         "and piston valves together (the default; docs/history.md, \"Twenty-fourth session\")")
+    f.add_argument("--no-rod-scale", action="store_true",
+                   help="read each reversal's `ÿ_r` as the accelerometers give it, not scaled against the "
+                        "potentiometer to the calibration rig's (dt-core ObserverParams::rod_accel_scale; the "
+                        "behaviour before the fifty-first session: a rod-end accelerometer 2 %% low then left half "
+                        "of a 12 bar run's windows unfitted, docs/history.md)")
     f.add_argument("--reversal-accel", choices=("velocity-chord", "accelerometers"), default="accelerometers",
                    help="where the velocity slope at a reversal is read: the Kalman velocity's chord over "
                         "±20 ms, or (the default) the rod end's own acceleration from the accelerometers, a1 − a2 (less the "

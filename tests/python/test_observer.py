@@ -1369,3 +1369,58 @@ def test_the_study_scores_the_networks_that_read_the_observer_after_one_service(
     assert scored == {r["run"] for r in before["runs"]} - {"p12.0-f1.0-s1-u2.mcap"}
     assert sim[study.UNIT_BASELINED].physics["observer"]["baseline"] == service["observer_baseline"]
     assert after[0]["rmse_bar"] != before["rmse_bar"]
+
+
+def _accelerometer_scaled(src: Path, dst: Path, a1_gain: float) -> Path:
+    """A copy of the log `src` (read and written with the Python ``mcap`` library) whose rod-end
+    accelerometer reads ``a1_gain`` times what it read: another sensor of the same make."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    with open(src, "rb") as fi, open(dst, "wb") as fo:
+        reader = make_reader(fi)
+        summary = reader.get_summary()
+        writer = Writer(fo, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="shocktwin-tests")
+        for m in reader.iter_metadata():
+            writer.add_metadata(m.name, m.metadata)
+        schemas = {s.id: writer.register_schema(s.name, s.encoding, s.data) for s in summary.schemas.values()}
+        channels = {c.id: writer.register_channel(c.topic, c.message_encoding, schemas.get(c.schema_id, 0),
+                                                  c.metadata) for c in summary.channels.values()}
+        for _, channel, msg in reader.iter_messages(log_time_order=False):
+            data = msg.data
+            if channel.topic == "/acceleration":
+                sample = json.loads(data)
+                sample["a1_mps2"] *= a1_gain
+                data = json.dumps(sample).encode()
+            writer.add_message(channels[channel.id], msg.log_time, data, msg.publish_time, msg.sequence)
+        writer.finish()
+    return dst
+
+
+def test_the_potentiometer_scales_the_accelerometers_to_the_calibrations(calibrated_campaign: tuple[Path, Path],
+                                                                         tmp_path: Path) -> None:
+    """`observer fit` measures the calibration rig's accelerometer scale against the potentiometer
+    (dt-core ObserverParams::rod_accel_scale). A run whose rod-end accelerometer reads 2 % low
+    shows a scale 1/0.98 of its own, and with the calibration's scale its reversals' `ÿ_r` read as
+    the calibration's sensors would have read them: without it, 2 % low (simulated data)."""
+    campaign, physics = calibrated_campaign
+    params = json.loads(physics.read_text())
+    k_cal = params["observer"]["rod_accel_scale"]
+    runs = params["fit"]["observer"]["rod_accel_scale_runs"]
+    assert len(runs) == 10 and all(k is not None and abs(k - k_cal) < 0.01 for k in runs.values()), runs
+    assert k_cal == pytest.approx(float(np.median(list(runs.values()))))
+    run = campaign / "p12.0-f2.0-s1.mcap"
+    low = _accelerometer_scaled(run, tmp_path / "low.mcap", 0.98)
+    raw = {k: v for k, v in params["observer"].items() if k != "rod_accel_scale"}
+    read = {name: shocktwin.charge_reversals(path, {**params, "observer": obs})
+            for name, path, obs in (("run", run, params["observer"]), ("low", low, params["observer"]),
+                                    ("low, raw", low, raw))}
+    k_run, k_low = read["run"]["rod_accel_scale"], read["low"]["rod_accel_scale"]
+    print(f"accelerometer scale (simulated): calibration {k_cal:.5f}, its 12 bar 2 Hz run {k_run:.5f}, "
+          f"that run with a1 2 % low {k_low:.5f}")
+    assert k_low / k_run == pytest.approx(1 / 0.98, abs=1.5e-3)
+    # the reversals at both ends of the stroke, from the tenth on (each end's scale needs eight)
+    accel = {name: np.median(np.abs(r["accel_mps2"][10:])) for name, r in read.items()}
+    assert accel["low"] / accel["run"] == pytest.approx(1.0, abs=3e-3), accel
+    assert accel["low, raw"] / accel["run"] == pytest.approx(0.98 * k_cal / k_run, abs=3e-3), accel

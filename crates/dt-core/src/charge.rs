@@ -273,6 +273,21 @@ const SLOPE_HALF_S: f64 = 0.02;
 /// Half-width of the mean of `a1 − a2 − b̂_a` that reads `ÿ_r` with
 /// [`ReversalAccel::Accelerometers`], s.
 pub const ACCEL_MEAN_HALF_S: f64 = 0.005;
+/// The potentiometer's samples from this long before a reversal to the
+/// window's end measure the accelerometers' scale at it
+/// ([`ChargeObserver::rod_accel_scale`]), s.
+pub const ROD_SCALE_PRE_S: f64 = 0.04;
+/// Reversals per end of the stroke whose scales the running medians hold
+/// ([`ChargeObserver::rod_accel_scale`]).
+pub const ROD_SCALE_READINGS: usize = 31;
+/// Scales each end's median needs before `ÿ_r` is corrected
+/// ([`ObserverParams::rod_accel_scale`]).
+pub const ROD_SCALE_MIN_READINGS: usize = 8;
+/// A reversal's scale further than this from 1 is not a reading (a bump, a gap), 1.
+const ROD_SCALE_GATE: f64 = 0.2;
+/// Least curvature of the stroke across a scale window for a reading, m:
+/// `max − min` of the accelerometers' double integral at the potentiometer's samples.
+const ROD_SCALE_MIN_CURVE_M: f64 = 5.0e-4;
 /// Time constant of the body accelerometer's running mean `ā2`
 /// ([`ReversalAccel::Accelerometers`]), s.
 pub const A2_MEAN_TAU_S: f64 = 0.5;
@@ -422,6 +437,23 @@ pub struct ObserverParams {
     /// `S` and `ρ` alike.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub own_law_spread: Option<UnitSpread>,
+    /// The accelerometers' scale on the calibration's rig, `k_cal`: the
+    /// median over the calibration campaign's runs of each run's
+    /// [`ChargeObserver::rod_accel_scale`] (`python -m train.observer
+    /// rod-scale`). The window model reads the stroke's curvature at a
+    /// reversal, `ÿ_r`, from the accelerometers, and on the simulated dyno
+    /// it is sensitive to their sensitivity: a rod-end accelerometer reading
+    /// 2 % low left half of a 12 bar run's windows unfitted and read
+    /// 9.5 ± 3.9 bar (docs/history.md, "Fifty-first session"). The
+    /// potentiometer is the rig's length reference: once a run has
+    /// [`ROD_SCALE_MIN_READINGS`] scales at each end of the stroke, each `ÿ_r` is multiplied by
+    /// `k̂ / k_cal` (`k̂` the run's running median), so that it reads as the
+    /// calibration's sensors would have read it. Only with
+    /// [`ReversalAccel::Accelerometers`]. None (the default, and what a
+    /// physics file written before this field means): `ÿ_r` as the
+    /// accelerometers give it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rod_accel_scale: Option<f64>,
     /// Prior mean of the charge, bar gauge.
     pub prior_mean_bar: f64,
     /// Prior standard deviation of the charge, bar.
@@ -1022,6 +1054,20 @@ impl UnitBaseline {
     }
 }
 
+/// [`ObserverParams::rod_accel_scale`], when given, is a finite scale in `[0.5, 2]`.
+fn check_rod_accel_scale(scale: Option<f64>) -> Result<(), PhysicsError> {
+    match scale {
+        Some(k) if !(k.is_finite() && (0.5..=2.0).contains(&k)) => {
+            Err(PhysicsError::InvalidParameter {
+                name: "observer.rod_accel_scale",
+                value: k,
+                reason: "must be a finite scale between 0.5 and 2",
+            })
+        }
+        _ => Ok(()),
+    }
+}
+
 /// The range `[lo, hi]` widened to hold `other` too (`other` alone when
 /// there is none yet).
 #[must_use]
@@ -1585,6 +1631,7 @@ impl Default for ObserverParams {
             run_sd_bar: 0.0,
             run_rel: 0.0,
             own_law_spread: None,
+            rod_accel_scale: None,
             prior_mean_bar: 6.0,
             prior_sd_bar: 6.0,
             random_walk_bar2_per_s: 1.0e-4,
@@ -1966,6 +2013,7 @@ impl ObserverParams {
 
     /// Checks every parameter; the error names the first bad one.
     pub fn validate(&self) -> Result<(), PhysicsError> {
+        check_rod_accel_scale(self.rod_accel_scale)?;
         let kappa = self.transfer_bar_per_ln_accel;
         for (name, value) in [
             ("observer.a_rod_m2", self.a_rod_m2),
@@ -2209,6 +2257,9 @@ struct AccPoint {
     /// not given).
     #[serde(default = "nan")]
     rod_mps2: f64,
+    /// The relative acceleration `a1 − a2 − b̂_a`, m/s² (NaN: not given).
+    #[serde(default = "nan")]
+    arel_mps2: f64,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize)]
@@ -2290,6 +2341,13 @@ pub struct ChargeObserver {
     /// ([`ReversalAccel::Accelerometers`]; NaN before the first sample).
     #[serde(default = "nan")]
     a2_mean: f64,
+    /// The potentiometer's raw samples `(t_ns, y_m)` of the last `keep_ns`.
+    #[serde(default)]
+    pot: VecDeque<(i64, f64)>,
+    /// The last [`ROD_SCALE_READINGS`] reversals' scales at each end of the
+    /// stroke (`ÿ_r > 0`, `ÿ_r < 0`), newest last.
+    #[serde(default)]
+    rod_scales: [VecDeque<f64>; 2],
 }
 
 impl ChargeObserver {
@@ -2301,7 +2359,7 @@ impl ChargeObserver {
         params.damping_law = params.window_law();
         // The window before the reversal, plus the time the velocity can
         // spend inside the band after it (detection lags the crossing).
-        let keep_s = params.window_pre_s.max(SLOPE_HALF_S)
+        let keep_s = params.window_pre_s.max(SLOPE_HALF_S).max(ROD_SCALE_PRE_S)
             + params.window_post_s.max(SLOPE_HALF_S)
             + params.reversal_band_mps / params.min_reversal_accel_mps2.max(0.05)
             + 0.01;
@@ -2332,7 +2390,142 @@ impl ChargeObserver {
             silent_run: [[0; 2]; 4],
             other_fits: [[0; 2]; 4],
             a2_mean: f64::NAN,
+            pot: VecDeque::with_capacity(16),
+            rod_scales: [
+                VecDeque::with_capacity(ROD_SCALE_READINGS),
+                VecDeque::with_capacity(ROD_SCALE_READINGS),
+            ],
         })
+    }
+
+    /// Takes a raw potentiometer sample (the extension, m): the length
+    /// reference of [`rod_accel_scale`](Self::rod_accel_scale). A
+    /// non-finite value, or a time before the last, is ignored.
+    pub fn position(&mut self, t_ns: i64, y_m: f64) {
+        if !y_m.is_finite() || self.pot.back().is_some_and(|&(t, _)| t_ns <= t) {
+            return;
+        }
+        self.pot.push_back((t_ns, y_m));
+        while self
+            .pot
+            .front()
+            .is_some_and(|&(t, _)| t_ns - t > self.keep_ns)
+        {
+            self.pot.pop_front();
+        }
+    }
+
+    /// The run's accelerometer scale `k̂`: the mean of the two ends of the
+    /// stroke's medians of their last [`ROD_SCALE_READINGS`] reversals'
+    /// ratios of the stroke's curvature as the potentiometer reads it to the
+    /// curvature of `a1 − a2 − b̂_a` (None before [`ROD_SCALE_MIN_READINGS`]
+    /// at each end; the ends apart, since the potentiometer's bow reads them
+    /// apart, ≈ 0.15 % on the simulated dyno). Each is the coefficient
+    /// `k` of the least-squares fit `y(s) = c₀ + c₁ s + k Y(s)` to the
+    /// potentiometer's samples from [`ROD_SCALE_PRE_S`] before the reversal
+    /// to the window's end, `Y` the double integral (trapezoids) of the
+    /// relative acceleration over the same span. A gain error of the
+    /// accelerometers scales `Y` and so `1/k`; the potentiometer's own lag
+    /// and bow leave a bias that is the same on every rig (on the simulated
+    /// dyno `k̂` read 1.004, 1.001 and 0.999 at 1, 2 and 4 Hz on one rig),
+    /// which [`ObserverParams::rod_accel_scale`] takes away.
+    #[must_use]
+    pub fn rod_accel_scale(&self) -> Option<f64> {
+        let median = |ring: &VecDeque<f64>| -> Option<f64> {
+            if ring.len() < ROD_SCALE_MIN_READINGS {
+                return None;
+            }
+            let mut v: Vec<f64> = ring.iter().copied().collect();
+            v.sort_by(f64::total_cmp);
+            let n = v.len();
+            Some(if n % 2 == 1 {
+                v[n / 2]
+            } else {
+                0.5 * (v[n / 2 - 1] + v[n / 2])
+            })
+        };
+        Some(0.5 * (median(&self.rod_scales[0])? + median(&self.rod_scales[1])?))
+    }
+
+    /// What multiplies `ÿ_r`: `k̂ / k_cal` once both are known, else 1.
+    fn rod_scale_factor(&self) -> f64 {
+        match (self.p.rod_accel_scale, self.rod_accel_scale()) {
+            (Some(k_cal), Some(k)) if self.p.reversal_accel == ReversalAccel::Accelerometers => {
+                k / k_cal
+            }
+            _ => 1.0,
+        }
+    }
+
+    /// One reversal's scale `k` (see [`rod_accel_scale`](Self::rod_accel_scale))
+    /// and its end of the stroke (0: `ÿ_r > 0`), None when its span lacks
+    /// samples or curvature, or `k` is beyond the gate.
+    fn window_rod_scale(&self, pending: Pending) -> Option<(f64, usize)> {
+        let rel = |t_ns: i64| Self::rel_s(pending, t_ns);
+        let (lo, hi) = (-ROD_SCALE_PRE_S, self.p.window_post_s.max(SLOPE_HALF_S));
+        // The relative acceleration from just before the span to its end,
+        // twice integrated by trapezoids.
+        let mut acc: Vec<(f64, f64)> = Vec::with_capacity(96);
+        for q in &self.buf {
+            let s = rel(q.t_ns);
+            if s >= lo - MAX_SAMPLE_GAP_S && s <= hi + MAX_SAMPLE_GAP_S {
+                if !q.arel_mps2.is_finite() {
+                    return None;
+                }
+                acc.push((s, q.arel_mps2));
+            }
+        }
+        let (first, last) = (acc.first()?.0, acc.last()?.0);
+        if first > lo || last < hi || acc.windows(2).any(|w| w[1].0 - w[0].0 > MAX_SAMPLE_GAP_S) {
+            return None;
+        }
+        let mut integral = Vec::with_capacity(acc.len());
+        let (mut v, mut y) = (0.0, 0.0);
+        integral.push((first, 0.0));
+        for w in acc.windows(2) {
+            let ((s0, a0), (s1, a1)) = (w[0], w[1]);
+            let dt = s1 - s0;
+            let v1 = v + 0.5 * (a0 + a1) * dt;
+            y += 0.5 * (v + v1) * dt;
+            v = v1;
+            integral.push((s1, y));
+        }
+        // Normal equations of [1, s, Y] against the potentiometer.
+        let (mut ata, mut aty) = (
+            nalgebra::Matrix3::<f64>::zeros(),
+            nalgebra::Vector3::<f64>::zeros(),
+        );
+        let (mut n, mut y_lo, mut y_hi) = (0_usize, f64::INFINITY, f64::NEG_INFINITY);
+        let mut j = 0;
+        for &(t_ns, pos) in &self.pot {
+            let s = rel(t_ns);
+            if s < lo || s > hi {
+                continue;
+            }
+            while j + 2 < integral.len() && integral[j + 1].0 < s {
+                j += 1;
+            }
+            let ((s0, y0), (s1, y1)) = (integral[j], integral[j + 1]);
+            let big_y = y0 + (y1 - y0) * (s - s0) / (s1 - s0);
+            let x = nalgebra::Vector3::new(1.0, s, big_y);
+            ata += x * x.transpose();
+            aty += x * pos;
+            n += 1;
+            y_lo = y_lo.min(big_y);
+            y_hi = y_hi.max(big_y);
+        }
+        if n < 5 || y_hi - y_lo < ROD_SCALE_MIN_CURVE_M {
+            return None;
+        }
+        let k = ata.cholesky()?.solve(&aty)[2];
+        // The end of the stroke: the sign of the acceleration at the reversal.
+        let at_reversal: f64 = acc
+            .iter()
+            .filter(|(s, _)| s.abs() <= ACCEL_MEAN_HALF_S)
+            .map(|(_, a)| a)
+            .sum();
+        let end = usize::from(at_reversal < 0.0);
+        ((k - 1.0).abs() <= ROD_SCALE_GATE).then_some((k, end))
     }
 
     /// Keeps every fitted [`Reversal`] (for analysis and tests).
@@ -2419,6 +2612,7 @@ impl ChargeObserver {
             v_mps,
             y_m,
             rod_mps2,
+            arel_mps2,
         };
         if v_mps.abs() >= self.p.reversal_band_mps {
             if let Some(out) = self.outside {
@@ -2487,7 +2681,19 @@ impl ChargeObserver {
     }
 
     fn fit(&mut self, pending: Pending) {
-        match self.fit_window(pending) {
+        // `ÿ_r` corrected by the scales of the reversals before this one; this
+        // one's joins them after.
+        let scale = self.rod_scale_factor();
+        let reading = self.window_rod_scale(pending);
+        let window = self.fit_window(pending, scale);
+        if let Some((k, end)) = reading {
+            let ring = &mut self.rod_scales[end];
+            if ring.len() == ROD_SCALE_READINGS {
+                ring.pop_front();
+            }
+            ring.push_back(k);
+        }
+        match window {
             Window::Fitted(rev) => {
                 self.note_window(rev.accel_mps2, true);
                 self.update(rev);
@@ -2608,11 +2814,14 @@ impl ChargeObserver {
     /// The reversal's window: fitted, taken but no fit passed (`ÿ_r`), spared
     /// ([`ObserverParams::fit_gain_floor`]), at an excitation the calibration
     /// does not cover, or no candidate (gate, gaps, too few samples).
-    fn fit_window(&self, pending: Pending) -> Window {
-        self.try_fit_window(pending).unwrap_or(Window::NoCandidate)
+    /// The reversal's window, `ÿ_r` multiplied by `scale`
+    /// ([`rod_scale_factor`](Self::rod_scale_factor)).
+    fn fit_window(&self, pending: Pending, scale: f64) -> Window {
+        self.try_fit_window(pending, scale)
+            .unwrap_or(Window::NoCandidate)
     }
 
-    fn try_fit_window(&self, pending: Pending) -> Option<Window> {
+    fn try_fit_window(&self, pending: Pending, scale: f64) -> Option<Window> {
         let p = &self.p;
         let rel = |t_ns: i64| Self::rel_s(pending, t_ns);
         // Velocity slope across the reversal and the extension at it.
@@ -2639,7 +2848,7 @@ impl ChargeObserver {
                 if f64::from(n) < ACCEL_MEAN_HALF_S * 1e3 {
                     return None;
                 }
-                sum / f64::from(n)
+                scale * sum / f64::from(n)
             }
         };
         if accel.abs() < p.min_reversal_accel_mps2 || accel.is_nan() {
@@ -3354,6 +3563,124 @@ mod tests {
         feed(&mut obs, 40.0, 8);
         assert!(obs.reversals().len() >= 6, "{:?}", obs.counters());
         obs.reversals().to_vec()
+    }
+
+    /// A stream of `n` reversals as [`feed_stroke`] makes them (friction
+    /// amplitude 40 N, the sine's stroke) read by an accelerometer pair
+    /// whose rod-end sensor reads `1 + gain` times the rod's acceleration,
+    /// with the potentiometer's exact extension at 100 Hz when `pot`; the
+    /// fitted reversals' `|ÿ_r|`.
+    fn scaled_stream(
+        p: &ObserverParams,
+        n: usize,
+        gain: f64,
+        pot: bool,
+    ) -> (ChargeObserver, Vec<f64>) {
+        let mut obs = ChargeObserver::new(*p).unwrap();
+        obs.record_reversals();
+        let (half, accel_mag, dt_ns) = (0.25, 6.0, 1_000_000_i64);
+        let mut t_ns = 0_i64;
+        for k in 0..n {
+            let accel = if k % 2 == 0 { -accel_mag } else { accel_mag };
+            let model = ReversalModel::new(p, accel, CHARGE_REF_TEMP_C);
+            let theta = Vector5::new(40.0, 1.9, 0.54, 0.0, -9.8);
+            let t_r = (k as f64 + 0.5) * half;
+            let times: Vec<f64> = (0..250)
+                .map(|i| (t_ns + i * dt_ns) as f64 * 1e-9 - t_r)
+                .collect();
+            let a2 = model.simulate(&theta, &times[..]);
+            let end = -accel.signum() * accel_mag * half * half / std::f64::consts::PI.powi(2);
+            for (i, (&s, &a)) in times.iter().zip(&a2).enumerate() {
+                let t = t_ns + i as i64 * dt_ns;
+                let y = end + 0.5 * accel * s * s;
+                if pot && i % 10 == 0 {
+                    obs.position(t, y);
+                }
+                obs.sample(t, a, y, accel * s, (1.0 + gain) * accel - (a + 9.8));
+            }
+            t_ns += 250 * dt_ns;
+        }
+        let accels = obs.reversals().iter().map(|r| r.accel_mps2.abs()).collect();
+        (obs, accels)
+    }
+
+    #[test]
+    fn the_potentiometer_measures_the_accelerometers_scale() {
+        let p = ObserverParams {
+            reversal_accel: ReversalAccel::Accelerometers,
+            ..params()
+        };
+        // A rod-end accelerometer 2 % low: the potentiometer's curvature is
+        // 1/0.98 of the pair's.
+        let (obs, raw) = scaled_stream(&p, 40, -0.02, true);
+        let k = obs.rod_accel_scale().unwrap();
+        // (to 5e-3: the stream's potentiometer reads the rod's extension
+        // alone, without the body's ringing that `a1 − a2` holds)
+        assert!((k - 1.0 / 0.98).abs() < 5e-3, "{k}");
+        assert_eq!(
+            obs.rod_scales.each_ref().map(VecDeque::len),
+            [20, 20],
+            "{:?}",
+            obs.counters()
+        );
+        // Without the calibration's scale nothing is corrected: `ÿ_r` reads 2 % low.
+        for a in &raw[4..] {
+            assert!((a - 0.98 * 6.0).abs() < 0.03, "{a}");
+        }
+        // The calibration's sensors read true (`k_cal` = 1): once the run has
+        // its scales, `ÿ_r` reads as they would have.
+        let calibrated = ObserverParams {
+            rod_accel_scale: Some(1.0),
+            ..p
+        };
+        let (_, fixed) = scaled_stream(&calibrated, 40, -0.02, true);
+        assert_eq!(fixed.len(), raw.len());
+        for a in &fixed[2 * ROD_SCALE_MIN_READINGS..] {
+            assert!((a - 6.0).abs() < 0.03, "{a}");
+        }
+        // and before it, as the accelerometers give it
+        assert!((fixed[4] - raw[4]).abs() < 1e-12);
+        // With no potentiometer, or with `ÿ_r` from the Kalman's velocity, no correction.
+        let (blind, accels) = scaled_stream(&calibrated, 40, -0.02, false);
+        assert_eq!(blind.rod_accel_scale(), None);
+        assert_eq!(accels, raw);
+        let chord = ObserverParams {
+            reversal_accel: ReversalAccel::VelocityChord,
+            ..calibrated
+        };
+        let (_, chord_fixed) = scaled_stream(&chord, 40, -0.02, true);
+        let (_, chord_raw) = scaled_stream(
+            &ObserverParams {
+                rod_accel_scale: None,
+                ..chord
+            },
+            40,
+            -0.02,
+            true,
+        );
+        assert_eq!(chord_fixed, chord_raw);
+    }
+
+    #[test]
+    fn a_calibration_scale_out_of_range_is_refused_by_name() {
+        for bad in [0.3, 2.5, f64::NAN] {
+            let err = ObserverParams {
+                rod_accel_scale: Some(bad),
+                ..ObserverParams::default()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(
+                err.to_string().contains("observer.rod_accel_scale"),
+                "{err}"
+            );
+        }
+        let doc = serde_json::to_value(ObserverParams::default()).unwrap();
+        assert!(doc.get("rod_accel_scale").is_none(), "{doc}");
+        let mut doc = doc;
+        doc["rod_accel_scale"] = serde_json::json!(1.004);
+        let with: ObserverParams = serde_json::from_value(doc).unwrap();
+        assert_eq!(with.rod_accel_scale, Some(1.004));
     }
 
     #[test]

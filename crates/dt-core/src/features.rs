@@ -1148,6 +1148,9 @@ impl FeaturePipeline {
                         self.bx_pos.add(position_m);
                     }
                     self.kf.position(t, position_m)?;
+                    if let Some(obs) = self.observer.as_mut() {
+                        obs.position(t, position_m);
+                    }
                     if self.position_only {
                         self.pending_t_ns = Some(t);
                         self.pending_n += 1.0;
@@ -1472,15 +1475,16 @@ pub fn sorted_samples(log: &RunLog) -> Vec<Sample> {
 
 /// The gas-charge observer's fitted reversals over a whole run (for
 /// calibration and analysis): the [`FeaturePipeline`] on the observer
-/// group's topics, with `params.observer` or its defaults. An error names
-/// the run and the topics it lacks.
+/// group's topics, with `params.observer` or its defaults, its counters and
+/// its accelerometer scale at the end ([`ChargeObserver::rod_accel_scale`]).
+/// An error names the run and the topics it lacks.
 ///
 /// # Panics
 /// Never: the observer group's pipeline always has an observer.
 pub fn compute_reversals(
     log: &RunLog,
     params: &PhysicsParams,
-) -> Result<(Vec<Reversal>, ObserverCounters), PhysicsError> {
+) -> Result<(Vec<Reversal>, ObserverCounters, Option<f64>), PhysicsError> {
     let groups = [Group::Observer];
     let available = TopicSet::from_log(log);
     let missing = available.missing_for(&groups);
@@ -1504,7 +1508,11 @@ pub fn compute_reversals(
     let obs = pipe
         .observer()
         .expect("the observer group makes an observer");
-    Ok((obs.reversals().to_vec(), obs.counters()))
+    Ok((
+        obs.reversals().to_vec(),
+        obs.counters(),
+        obs.rod_accel_scale(),
+    ))
 }
 
 /// Batch features of one run: checks that the log has every topic `groups`

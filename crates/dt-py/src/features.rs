@@ -129,7 +129,9 @@ pub(crate) fn features<'py>(
 /// ``used`` (1.0 when the update took it), plus the counts ``detected``,
 /// ``skipped``, ``rejected``, ``spared`` (not fitted: the evidence was
 /// enough, ``observer.fit_gain_floor``) and ``uncalibrated`` (at an excitation
-/// the calibration does not cover, so not read). Raises ``MissingTopicsError`` when the log lacks
+/// the calibration does not cover, so not read), and ``rod_accel_scale`` (the
+/// run's accelerometer scale against the potentiometer, NaN before enough
+/// reversals: ``observer.rod_accel_scale``). Raises ``MissingTopicsError`` when the log lacks
 /// a topic the observer needs.
 #[pyfunction]
 pub(crate) fn charge_reversals<'py>(
@@ -143,7 +145,7 @@ pub(crate) fn charge_reversals<'py>(
         .samples_sorted()
         .first()
         .map_or(0, dt_core::log::Sample::t_ns);
-    let (revs, counters) =
+    let (revs, counters, rod_scale) =
         without_gil(py, move || compute_reversals(&run, &params)).map_err(CoreError::from)?;
     let out = PyDict::new(py);
     let col = |f: &dyn Fn(&dt_core::charge::Reversal) -> f64| -> Vec<f64> {
@@ -178,6 +180,7 @@ pub(crate) fn charge_reversals<'py>(
     out.set_item("rejected", counters.rejected)?;
     out.set_item("spared", counters.spared)?;
     out.set_item("uncalibrated", counters.uncalibrated)?;
+    out.set_item("rod_accel_scale", rod_scale.unwrap_or(f64::NAN))?;
     Ok(out)
 }
 
