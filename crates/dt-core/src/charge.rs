@@ -75,6 +75,24 @@
 //! the calibration's default), and the window fit may hold its two scales
 //! near 1 with a Gaussian prior ([`ObserverParams::scale_prior_sd`]).
 //!
+//! **The accelerometers' scale.** The window model is sensitive to the
+//! scale of `ÿ_r`: on the simulated dyno a rod-end accelerometer reading 2 %
+//! low (twice its sensitivity tolerance) left half of a 12 bar run's windows
+//! failing their checks, and the run read 9.5 ± 3.9 bar. The potentiometer
+//! is the rig's length reference: at every reversal the observer fits the
+//! potentiometer's samples from [`ROD_SCALE_PRE_S`] before it to the window's
+//! end as `y = c₀ + c₁ s + k Y(s)`, `Y` the double integral of
+//! `a1 − a2 − b̂_a`, and keeps the median of `k` per end of the stroke
+//! ([`ChargeObserver::rod_accel_scale`], the mean of the two). With the
+//! calibration rig's own scale ([`ObserverParams::rod_accel_scale`],
+//! measured by `python -m train.observer fit`) each `ÿ_r` is multiplied by
+//! `k̂ / k_cal`, so that another set of accelerometers reads it as the
+//! calibration's did. The body accelerometer's scale has no such reference
+//! among the cheap sensors: it scales the friction step `α` and moves the
+//! reading by `g α / b` bar for a gain error `g` (0.2–0.4 bar per 1 % on the
+//! simulated dyno, the potentiometer cannot see it); a baseline read on the
+//! same sensors takes it away with the unit's own error.
+//!
 //! # Measurement model and the recursive update
 //!
 //! The gas pressure at the reversal follows from the charge `p` (bar gauge at
