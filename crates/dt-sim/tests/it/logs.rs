@@ -97,6 +97,29 @@ fn full_4_hz_run_stops_at_80_c_within_minutes() {
     assert!(summary.heat_to_room_j < summary.energy_dissipated_j);
 }
 
+/// The one run of the campaign `spec`, simulated into `dir/name` and read back.
+fn only_run(
+    dir: &std::path::Path,
+    name: &str,
+    spec: &dt_sim::CampaignSpec,
+) -> dt_core::log::RunLog {
+    let out = dir.join(name);
+    dt_sim::simulate_campaign(spec, &out).unwrap();
+    let path = std::fs::read_dir(&out)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    read_log(&path).unwrap()
+}
+
+/// The body accelerometer's mean over the first 5 s (at rest): the rig's offset and gain.
+fn rest_a2(log: &dt_core::log::RunLog) -> f64 {
+    let v: Vec<f64> = log.acceleration.iter().take(5000).map(|a| a.2).collect();
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
 /// A drive file of its own seed on the campaign's rig: the rig's sensor errors
 /// stay the campaign seed's (the accelerometers' reading at rest), the road is
 /// the drive seed's (the stroke), and the run id and metadata say so.
@@ -116,15 +139,7 @@ fn a_drive_seed_plays_another_road_on_the_same_sensors() {
             drive_seed: drive,
             ..dt_sim::CampaignSpec::paper(seed)
         };
-        let out = dir.path().join(name);
-        dt_sim::simulate_campaign(&spec, &out).unwrap();
-        let path = std::fs::read_dir(&out)
-            .unwrap()
-            .next()
-            .unwrap()
-            .unwrap()
-            .path();
-        read_log(&path).unwrap()
+        only_run(dir.path(), name, &spec)
     };
     let (rig4, rig4_road6, rig6) = (run("a", 4, None), run("b", 4, Some(6)), run("c", 6, None));
     assert_eq!(rig4_road6.metadata.run_id, "p12.0-roadC60-s4-d6");
@@ -132,11 +147,7 @@ fn a_drive_seed_plays_another_road_on_the_same_sensors() {
     assert_eq!(extra(&rig4_road6, "drive_seed").as_deref(), Some("6"));
     assert_eq!(extra(&rig4_road6, "seed").as_deref(), Some("4"));
     assert_eq!(extra(&rig4, "drive_seed"), None);
-    // the body accelerometer at rest (the first 5 s): the rig's offset and gain
-    let rest_a2 = |log: &dt_core::log::RunLog| {
-        let v: Vec<f64> = log.acceleration.iter().take(5000).map(|a| a.2).collect();
-        v.iter().sum::<f64>() / v.len() as f64
-    };
+    // the body accelerometer at rest: the rig's
     assert!((rest_a2(&rig4_road6) - rest_a2(&rig4)).abs() < 0.005);
     assert!((rest_a2(&rig4_road6) - rest_a2(&rig6)).abs() > 0.03);
     // the stroke while driving: the drive seed's road
@@ -175,15 +186,7 @@ fn a_rig_seed_reads_the_same_run_on_another_rig() {
             rig_seed: rig,
             ..dt_sim::CampaignSpec::paper(seed)
         };
-        let out = dir.path().join(name);
-        dt_sim::simulate_campaign(&spec, &out).unwrap();
-        let path = std::fs::read_dir(&out)
-            .unwrap()
-            .next()
-            .unwrap()
-            .unwrap()
-            .path();
-        read_log(&path).unwrap()
+        only_run(dir.path(), name, &spec)
     };
     let (run4, run4_rig6, run6) = (run("a", 4, None), run("b", 4, Some(6)), run("c", 6, None));
     assert_eq!(run4_rig6.metadata.run_id, "p12.0-f2.0-s4-g6");
@@ -191,11 +194,7 @@ fn a_rig_seed_reads_the_same_run_on_another_rig() {
     assert_eq!(extra(&run4_rig6, "rig_seed").as_deref(), Some("6"));
     assert_eq!(extra(&run4_rig6, "seed").as_deref(), Some("4"));
     assert_eq!(extra(&run4, "rig_seed"), None);
-    // the body accelerometer at rest (the first 5 s): the rig's offset and gain
-    let rest_a2 = |log: &dt_core::log::RunLog| {
-        let v: Vec<f64> = log.acceleration.iter().take(5000).map(|a| a.2).collect();
-        v.iter().sum::<f64>() / v.len() as f64
-    };
+    // the body accelerometer at rest: the rig's
     assert!((rest_a2(&run4_rig6) - rest_a2(&run6)).abs() < 0.005);
     assert!((rest_a2(&run4_rig6) - rest_a2(&run4)).abs() > 0.03);
     // the noise: the campaign seed's (the potentiometer, whose errors are the
