@@ -147,11 +147,6 @@ def reversals(runs: Sequence[Run], params: dict[str, Any], jobs: int,
     return out
 
 
-def _rod_scale(args: tuple[str, dict[str, Any]]) -> float:
-    path, params = args
-    return float(shocktwin.charge_reversals(path, params)["rod_accel_scale"])
-
-
 def rod_accel_scale(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str, Any], jobs: int,
                     mp_context: BaseContext | None = None) -> tuple[float | None, list[float]]:
     """The accelerometers' scale on the campaign's rig, ``k_cal`` (dt-core
@@ -160,9 +155,7 @@ def rod_accel_scale(runs: Sequence[Run], physics: dict[str, Any], obs: dict[str,
     reversals). Every reversal is spared its window fit (``fit_gain_floor`` 0.99): the scale does not
     need it, and the pass takes about a second a run. None when no run has a scale."""
     params = {**physics, "observer": {**obs, "fit_gain_floor": 0.99, "rod_accel_scale": None}}
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp_context) as pool:
-        scales = list(progress(pool.map(_rod_scale, [(str(r.path), params) for r in runs]), total=len(runs),
-                               desc="accelerometer scale", unit="run"))
+    scales = [float(rev["rod_accel_scale"]) for rev in reversals(runs, params, jobs, mp_context)]
     finite = [k for k in scales if np.isfinite(k)]
     return (float(np.median(finite)) if finite else None), scales
 
