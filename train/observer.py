@@ -1125,6 +1125,8 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     ob = {"charge_bar": float(charge_bar), "read_bar": first["read_bar"], "read_sd_bar": first["read_sd_bar"]}
     if first["runs_effective"] > 1.0:
         ob["runs_averaged"] = first["runs_effective"]  # dt-core UnitBaseline::runs_averaged
+    if first["split_bar"] is not None:
+        ob["split_bar"] = first["split_bar"]  # dt-core UnitBaseline::split_bar
     ranges = first["ranges"]
     runs = [{**r, "charge_bar": float(charge_bar)} for r in first["runs"]]
     if second is not None:
@@ -1164,12 +1166,13 @@ def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_b
     obs = physics["observer"]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
-    for path, (*_, own, _) in zip(paths, reads):
+    for path, (*_, own, _, _) in zip(paths, reads):
         if own:
             raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a measurement model of "
                              "its own, which a baseline does not condition (dt-core UnitBaseline): take the baseline "
                              "at one of the shared model's excitations (the calibration's 1 Hz run is one)")
     ranges = [r[4] for r in reads if r[4] is not None]
+    splits = np.array([r[5] for r in reads])
     reads = [r[:3] for r in reads]
     rows = []
     for path, (m, sd, drift) in zip(paths, reads):
@@ -1208,7 +1211,11 @@ def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_b
     elif len(rows) > 1:
         # no run term in the calibration: their spread about the mean stands in for it
         var += spread
+    # the stroke's ends apart, averaged with the same weights (dt-core UnitBaseline::split_bar);
+    # None when a run has no split (no `stroke_ends`, or an end never read)
+    split = float(np.sum(w * splits) / np.sum(w)) if np.all(np.isfinite(splits)) else None
     return {"read_bar": mean, "read_sd_bar": float(np.sqrt(var)), "runs_effective": n_eff, "ranges": ranges,
+            "split_bar": split,
             "runs": [{"file": Path(p).name, "read_bar": x, "read_sd_bar": float(np.sqrt(v)), "drift_sd_bar": d}
                      for (p, x, v), (_, _, d) in zip(rows, reads)]}
 
@@ -1229,23 +1236,25 @@ def used_accel_range(rev: dict[str, np.ndarray]) -> list[float] | None:
     return [float(a.min()), float(a.max())] if len(a) else None
 
 
-def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float, int, list[float] | None]:
+def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float, int, list[float] | None,
+                                                               float]:
     path, physics = args
     rev = shocktwin.charge_reversals(path, physics)
-    own, span = own_reversals(rev, physics["observer"]), used_accel_range(rev)
+    own, span, split = own_reversals(rev, physics["observer"]), used_accel_range(rev), float(rev["ends_split_bar"])
     lg = shocktwin.read_log(path)
     x, cols, t = shocktwin.features(lg, physics, ["observer"])
     onset = rest_end_s(Run(path=Path(path), log=lg, run_id="", asset_id="", label_bar=None, frequency_hz=None))
     end = excitation_end_s(lg, float(t[-1]))
     idx = np.nonzero((t >= onset) & (t <= end))[0]
     if len(idx) == 0:
-        return None, float("nan"), float("nan"), own, span
+        return None, float("nan"), float("nan"), own, span, split
     i = idx[-1]
     mean = x[:, cols.index("observer_bar")]
     # how far the reading wanders at this constant charge, at the ticks a score would count
     scored = idx[t[idx] >= onset + BASELINE_SETTLE_S]
     drift = float(np.sqrt(np.mean((mean[scored] - mean[i]) ** 2))) if len(scored) else 0.0
-    return float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift, own, span
+    return (float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift, own, span,
+            split)
 
 
 def away(a: Sequence[float], b: Sequence[float], rel: float) -> bool:
@@ -1287,7 +1296,7 @@ def transfer_spread(physics: dict[str, Any], units: Sequence[Sequence[Path]], ch
         reads = list(pool.map(_baseline_read, [(str(p), physics) for _, p in flat]))
     band = obs["accel_cluster_rel"]
     per_unit: dict[int, list[dict[str, Any]]] = {}
-    for (u, path), (m, sd, _drift, own, span) in zip(flat, reads):
+    for (u, path), (m, sd, _drift, own, span, _split) in zip(flat, reads):
         if m is None or span is None:
             raise SystemExit(f"{path}: no reversal read: no transfer from it")
         if own:
@@ -1356,7 +1365,7 @@ def run_spread(physics: dict[str, Any], takes: Sequence[tuple[float, Path, Path]
     pairs = []
     for (charge, a, b), reads in zip(takes, got):
         rows = []
-        for path, (m, sd, drift, own, span) in zip((a, b), reads):
+        for path, (m, sd, drift, own, span, _split) in zip((a, b), reads):
             if m is None or span is None:
                 raise SystemExit(f"{path}: no reversal read: no run spread from it")
             if own:
@@ -1447,7 +1456,7 @@ def unit_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float, P
                               total=len(flat), desc="runs"))
     r0, r_rel = obs.get("run_sd_bar", 0.0), obs.get("run_rel", 0.0)
     rows = []
-    for (u, charge, path), (m, sd, _drift, own, _span) in zip(flat, reads):
+    for (u, charge, path), (m, sd, _drift, own, _span, _split) in zip(flat, reads):
         if m is None:
             raise SystemExit(f"{path}: no excited tick: no unit spread from it")
         if own:

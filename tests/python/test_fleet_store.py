@@ -491,11 +491,18 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     run, older = days[0].path, days[1].path  # day 0 at the start charge; day 1 a day later
     charge = days[0].label_bar
     assert charge is not None
-    physics = json.loads(calibrated_campaign[1].read_text())
+    # the bundle's observer reads the stroke's ends apart: the baseline records their split
+    bundle = tmp_path / "bundle"
+    shutil.copytree(world["bundle"], bundle)
+    twin = json.loads((bundle / "twin.json").read_text())
+    physics = twin["physics"]
+    assert physics["observer"] == json.loads(calibrated_campaign[1].read_text())["observer"]
+    physics["observer"]["stroke_ends"] = True
+    (bundle / "twin.json").write_text(json.dumps(twin))
     ref = observer_tool.baseline_of(physics, [run], charge, jobs=1)["observer_baseline"]
     inbox, db = tmp_path / "inbox", tmp_path / "fleet.sqlite"
     inbox.mkdir()
-    d = Daemon(world["bundle"], db, inbox)
+    d = Daemon(bundle, db, inbox)
     daemons.append(d)
     url = f"http://{d.http}/v1/assets/dyno-unit-A"
     assert httpx.get(f"{url}/service").status_code == 404
@@ -507,7 +514,7 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     assert r.status_code == 202 and r.json()["state"] == "pending", r.text
     set_at = r.json()["set_at"]
     d.stop()
-    d2 = Daemon(world["bundle"], db, inbox)
+    d2 = Daemon(bundle, db, inbox)
     daemons.append(d2)
     url = f"http://{d2.http}/v1/assets/dyno-unit-A"
     pending = d2.get("/v1/assets/dyno-unit-A/service")
@@ -550,8 +557,10 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     # this run: the same reading, sd 0.1722 against 0.1722)
     assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
     assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
-    # and records the excitations it was read at, as the tool does
+    # and records the excitations it was read at, and how far apart the stroke's ends read, as
+    # the tool does
     assert np.allclose(got["accel_range_mps2"], ref["accel_range_mps2"], rtol=1e-3), (got, ref)
+    assert abs(got["split_bar"] - ref["split_bar"]) < 1e-6, (got, ref)
     assert httpx.get(f"{url}/service").status_code == 404
     row = next(a for a in d2.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
     assert row["service"] is None and row["baseline"] == got, row

@@ -193,6 +193,12 @@
 //! gated against its own estimate, and reports their average `(m₊ + m₋)/2`
 //! with the variance `(v₊ + v₋)/4` plus their split beyond their noise,
 //! `max(0, (m₊ − m₋)² − v₊ − v₋) / 4`.
+//! Another unit's valves leave its ends apart by an amount of their own that
+//! holds from charge to charge (on the simulated dyno, read with the
+//! calibration's damping law, 0.1–4.7 bar, within ≈ 0.3–1.5 bar of itself
+//! at another charge): a [`UnitBaseline`] that read it
+//! ([`UnitBaseline::split_bar`], `s_b`) leaves only the change in the
+//! interval, `max(0, (m₊ − m₋ − s_b)² − v₊ − v₋) / 4`.
 //!
 //! # Assumptions
 //! - A dyno-like excitation: reversals with `|ÿ|` above the threshold; the
@@ -923,6 +929,16 @@ pub struct UnitBaseline {
     /// `R(p₀)²/runs_averaged`. 1 (left out of the document): one run.
     #[serde(default = "one_run", skip_serializing_if = "is_one_run")]
     pub runs_averaged: f64,
+    /// The split of the stroke's ends at the reading, `m₊ − m₋`, bar
+    /// ([`ObserverParams::stroke_ends`]; [`ChargeObserver::ends_split_bar`]
+    /// at the end of the run read). Another unit's valves leave each end of
+    /// the stroke reading it apart by an amount of their own, which holds
+    /// from charge to charge: with it, only the split's change since the
+    /// baseline joins the interval (`ChargeObserver::estimate`). None (a
+    /// baseline written before this field, or read without the ends): the
+    /// whole split does.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub split_bar: Option<f64>,
 }
 
 /// One reading of a unit at a known charge: the second one of a
@@ -981,8 +997,9 @@ impl UnitBaseline {
                 "need charge_bar, read_bar and read_sd_bar (numbers, bar), \
                  and optionally accel_range_mps2 ([lo, hi], m/s²), damping_law \
                  (the unit's own, as `observer.damping_law`) and second (a reading at \
-                 another known charge: charge_bar, read_bar, read_sd_bar), and \
-                 runs_averaged (how many runs a reading averages, default 1): {e}"
+                 another known charge: charge_bar, read_bar, read_sd_bar), \
+                 runs_averaged (how many runs a reading averages, default 1) and \
+                 split_bar (the stroke's ends apart at the reading, bar): {e}"
             )
         })?;
         b.validate().map_err(|e| e.to_string())?;
@@ -1041,6 +1058,13 @@ impl UnitBaseline {
                     });
                 }
             }
+        }
+        if let Some(split) = self.split_bar.filter(|v| !v.is_finite()) {
+            return Err(PhysicsError::InvalidParameter {
+                name: "observer.baseline.split_bar",
+                value: split,
+                reason: "must be finite",
+            });
         }
         if let Some(law) = &self.damping_law {
             if !law.is_calibrated() {
@@ -2567,6 +2591,21 @@ impl ChargeObserver {
         self.used_accel_range
     }
 
+    /// The split of the stroke's ends, `m₊ − m₋`, bar: what the reversals
+    /// with `ÿ_r > 0` read of the charge less what those with `ÿ_r < 0`
+    /// read ([`ObserverParams::stroke_ends`]; None without them or before
+    /// each end has used a reversal). A [`UnitBaseline`] read from this run
+    /// records it as [`UnitBaseline::split_bar`].
+    #[must_use]
+    pub fn ends_split_bar(&self) -> Option<f64> {
+        match (self.ends, self.ends_used) {
+            (Some([(m1, _), (m2, _)]), [n1, n2]) if self.p.stroke_ends && n1 > 0 && n2 > 0 => {
+                Some(m1 - m2)
+            }
+            _ => None,
+        }
+    }
+
     /// The fitted reversals kept since [`record_reversals`](Self::record_reversals).
     #[must_use]
     pub fn reversals(&self) -> &[Reversal] {
@@ -3164,7 +3203,16 @@ impl ChargeObserver {
                 (m, v + grown + s * s + bias * bias)
             }
             (Some([(m1, v1), (m2, v2)]), _) if self.p.stroke_ends => {
-                let split = ((m1 - m2).powi(2) - v1 - v2).max(0.0) / 4.0;
+                // A baseline that read the unit's ends apart explains that
+                // much of their split (a property of its valves): only the
+                // change since counts.
+                let known = self
+                    .p
+                    .baseline
+                    .filter(|_| !self.used_own)
+                    .and_then(|b| b.split_bar)
+                    .unwrap_or(0.0);
+                let split = ((m1 - m2 - known).powi(2) - v1 - v2).max(0.0) / 4.0;
                 let bias = 0.5 * (b1 + b2);
                 (
                     0.5 * (m1 + m2),
@@ -4031,6 +4079,7 @@ mod tests {
             damping_law: None,
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         let est = read(Some(b));
         let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
@@ -4062,6 +4111,7 @@ mod tests {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             ..base
         })
@@ -4112,6 +4162,7 @@ mod tests {
                 runs_averaged: runs[1],
             }),
             runs_averaged: runs[0],
+            split_bar: None,
         };
         let mut sds = Vec::new();
         // each reading of one run, then of several (their mean holds R(p₀)²/n)
@@ -4194,6 +4245,7 @@ mod tests {
             damping_law: None,
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         let two = UnitBaseline {
             second: Some(BaselineReading {
@@ -4271,6 +4323,7 @@ mod tests {
             damping_law: Some(own),
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         let base = ObserverParams {
             damping_law: a_law(),
@@ -4396,6 +4449,7 @@ mod tests {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             ..p
         };
@@ -4443,6 +4497,7 @@ mod tests {
             damping_law: Some(own),
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         let spread = UnitSpread {
             sd_bar: 1.9,
@@ -4527,6 +4582,7 @@ mod tests {
             damping_law: None,
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {
@@ -4705,6 +4761,56 @@ mod tests {
             (added.sqrt() - 10.0 / 1.5 / 2.0).abs() < 0.3,
             "{wide} against {narrow}"
         );
+    }
+
+    /// A baseline that read the ends as far apart as they read now leaves
+    /// their split out of the interval; a split that has changed since
+    /// joins it by its change.
+    #[test]
+    fn a_baseline_that_read_the_ends_apart_explains_their_split() {
+        let read = |alpha: [f64; 2], split_bar: Option<f64>| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                stroke_ends: true,
+                baseline: Some(UnitBaseline {
+                    charge_bar: 10.0,
+                    read_bar: 10.0,
+                    read_sd_bar: 0.3,
+                    accel_range_mps2: None,
+                    damping_law: None,
+                    second: None,
+                    runs_averaged: 1.0,
+                    split_bar,
+                }),
+                ..params()
+            })
+            .unwrap();
+            feed_ends(&mut obs, alpha, 40);
+            // 40 reversals 0.25 s apart: 10 s
+            (obs.ends_split_bar(), obs.estimate(10_000_000_000))
+        };
+        // 10 N apart at 1.5 N/bar: the `ÿ_r > 0` end reads 6.7 bar below the other
+        let (split, apart) = read([35.0, 45.0], None);
+        let split = split.unwrap();
+        assert!((split + 10.0 / 1.5).abs() < 0.1, "{split}");
+        let (_, agree) = read([40.0, 40.0], None);
+        let (_, known) = read([35.0, 45.0], Some(split));
+        assert!((known.mean_bar - apart.mean_bar).abs() < 1e-9);
+        assert!(
+            (known.sd_bar / agree.sd_bar - 1.0).abs() < 1e-3,
+            "{known:?} against {agree:?}"
+        );
+        assert!(apart.sd_bar > 2.0 * known.sd_bar, "{apart:?}");
+        // read 2 bar less apart than now: the interval gains that change's half
+        let (_, moved) = read([35.0, 45.0], Some(split + 2.0));
+        let added = moved.sd_bar.powi(2) - known.sd_bar.powi(2);
+        assert!(
+            (added.sqrt() - 1.0).abs() < 0.1,
+            "{moved:?} against {known:?}"
+        );
+        // without the ends there is no split to read
+        let mut one = ChargeObserver::new(params()).unwrap();
+        feed_ends(&mut one, [35.0, 45.0], 40);
+        assert_eq!(one.ends_split_bar(), None);
     }
 
     /// With the ends apart, an end whose readings are far from the other's

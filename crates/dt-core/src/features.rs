@@ -1473,10 +1473,23 @@ pub fn sorted_samples(log: &RunLog) -> Vec<Sample> {
     log.samples_sorted()
 }
 
+/// What the charge observer made of a whole run ([`compute_reversals`]).
+#[derive(Debug, Clone)]
+pub struct RunReversals {
+    /// The fitted reversals, in order.
+    pub reversals: Vec<Reversal>,
+    /// What the observer did.
+    pub counters: ObserverCounters,
+    /// Its accelerometer scale at the end ([`ChargeObserver::rod_accel_scale`]).
+    pub rod_accel_scale: Option<f64>,
+    /// The split of the stroke's ends at the end ([`ChargeObserver::ends_split_bar`]).
+    pub ends_split_bar: Option<f64>,
+}
+
 /// The gas-charge observer's fitted reversals over a whole run (for
 /// calibration and analysis): the [`FeaturePipeline`] on the observer
-/// group's topics, with `params.observer` or its defaults, its counters and
-/// its accelerometer scale at the end ([`ChargeObserver::rod_accel_scale`]).
+/// group's topics, with `params.observer` or its defaults, and what the
+/// observer holds at the end ([`RunReversals`]).
 /// An error names the run and the topics it lacks.
 ///
 /// # Panics
@@ -1484,7 +1497,7 @@ pub fn sorted_samples(log: &RunLog) -> Vec<Sample> {
 pub fn compute_reversals(
     log: &RunLog,
     params: &PhysicsParams,
-) -> Result<(Vec<Reversal>, ObserverCounters, Option<f64>), PhysicsError> {
+) -> Result<RunReversals, PhysicsError> {
     let groups = [Group::Observer];
     let available = TopicSet::from_log(log);
     let missing = available.missing_for(&groups);
@@ -1508,11 +1521,12 @@ pub fn compute_reversals(
     let obs = pipe
         .observer()
         .expect("the observer group makes an observer");
-    Ok((
-        obs.reversals().to_vec(),
-        obs.counters(),
-        obs.rod_accel_scale(),
-    ))
+    Ok(RunReversals {
+        reversals: obs.reversals().to_vec(),
+        counters: obs.counters(),
+        rod_accel_scale: obs.rod_accel_scale(),
+        ends_split_bar: obs.ends_split_bar(),
+    })
 }
 
 /// Batch features of one run: checks that the log has every topic `groups`

@@ -84,6 +84,9 @@ pub struct ServiceReading {
     /// The `|ÿ_r|` range of the reversals read, m/s².
     #[serde(default)]
     accel_range: Option<[f64; 2]>,
+    /// The stroke's ends apart, bar, when last noted.
+    #[serde(default)]
+    split_bar: Option<f64>,
 }
 
 /// What one run read of the unit at its known charge.
@@ -170,6 +173,13 @@ impl ServiceReading {
         self.accel_range = Some(crate::charge::widen_range(self.accel_range, range));
     }
 
+    /// Notes the split of the stroke's ends so far
+    /// ([`crate::charge::ChargeObserver::ends_split_bar`]): the baseline
+    /// records the last one noted ([`UnitBaseline::split_bar`]).
+    pub fn note_split(&mut self, split_bar: f64) {
+        self.split_bar = Some(split_bar);
+    }
+
     /// Drains the estimator's completed ticks into `out`, reading each (the
     /// estimator's excitation threshold decides `excited`).
     pub fn drain_from(&mut self, est: &mut Estimator, out: &mut Vec<Estimate>) {
@@ -187,6 +197,9 @@ impl ServiceReading {
         self.note_own(est.observer().is_some_and(ChargeObserver::used_own));
         if let Some(r) = est.observer().and_then(ChargeObserver::used_accel_range) {
             self.note_accel_range(r);
+        }
+        if let Some(split) = est.observer().and_then(ChargeObserver::ends_split_bar) {
+            self.note_split(split);
         }
     }
 
@@ -221,6 +234,7 @@ impl ServiceReading {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: self.split_bar,
             },
             drift_sd_bar: drift,
         })

@@ -131,7 +131,10 @@ pub(crate) fn features<'py>(
 /// enough, ``observer.fit_gain_floor``) and ``uncalibrated`` (at an excitation
 /// the calibration does not cover, so not read), and ``rod_accel_scale`` (the
 /// run's accelerometer scale against the potentiometer, NaN before enough
-/// reversals: ``observer.rod_accel_scale``). Raises ``MissingTopicsError`` when the log lacks
+/// reversals: ``observer.rod_accel_scale``) and ``ends_split_bar`` (the
+/// stroke's ends apart at the end of the run, ``m₊ − m₋`` in bar, NaN without
+/// ``observer.stroke_ends`` or before each end has read a reversal: what a
+/// baseline records as ``split_bar``). Raises ``MissingTopicsError`` when the log lacks
 /// a topic the observer needs.
 #[pyfunction]
 pub(crate) fn charge_reversals<'py>(
@@ -145,8 +148,12 @@ pub(crate) fn charge_reversals<'py>(
         .samples_sorted()
         .first()
         .map_or(0, dt_core::log::Sample::t_ns);
-    let (revs, counters, rod_scale) =
-        without_gil(py, move || compute_reversals(&run, &params)).map_err(CoreError::from)?;
+    let dt_core::features::RunReversals {
+        reversals: revs,
+        counters,
+        rod_accel_scale: rod_scale,
+        ends_split_bar,
+    } = without_gil(py, move || compute_reversals(&run, &params)).map_err(CoreError::from)?;
     let out = PyDict::new(py);
     let col = |f: &dyn Fn(&dt_core::charge::Reversal) -> f64| -> Vec<f64> {
         revs.iter().map(f).collect()
@@ -181,6 +188,7 @@ pub(crate) fn charge_reversals<'py>(
     out.set_item("spared", counters.spared)?;
     out.set_item("uncalibrated", counters.uncalibrated)?;
     out.set_item("rod_accel_scale", rod_scale.unwrap_or(f64::NAN))?;
+    out.set_item("ends_split_bar", ends_split_bar.unwrap_or(f64::NAN))?;
     Ok(out)
 }
 

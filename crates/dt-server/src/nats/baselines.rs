@@ -59,6 +59,9 @@ pub struct BaselineEntry {
     /// See [`UnitBaseline`] (left out: one run).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub runs_averaged: Option<f64>,
+    /// See [`UnitBaseline`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub split_bar: Option<f64>,
     /// See [`RoadBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -83,6 +86,7 @@ impl From<StoredBaseline> for BaselineEntry {
             damping_law: read.and_then(|u| u.damping_law),
             second: read.and_then(|u| u.second),
             runs_averaged: read.map(|u| u.runs_averaged).filter(|&n| n > 1.0),
+            split_bar: read.and_then(|u| u.split_bar),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
@@ -103,6 +107,7 @@ impl BaselineEntry {
                     damping_law: self.damping_law,
                     second: self.second,
                     runs_averaged: self.runs_averaged.unwrap_or(1.0),
+                    split_bar: self.split_bar,
                 };
                 b.validate().map_err(|e| e.to_string())?;
                 AssetBaseline::Observer(b)
@@ -493,6 +498,7 @@ mod tests {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             set_ms: 1_700_000_000_000,
         }

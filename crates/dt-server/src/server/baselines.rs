@@ -82,6 +82,10 @@ pub struct BaselineView {
     /// ([`dt_core::charge::UnitBaseline::runs_averaged`]), when more than one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub runs_averaged: Option<f64>,
+    /// The stroke's ends apart at the reading, bar
+    /// ([`dt_core::charge::UnitBaseline::split_bar`]), when read.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub split_bar: Option<f64>,
     /// The unit's seal friction offset from the road calibration's, N.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -121,6 +125,7 @@ impl BaselineView {
             own_damping_law: read.map(|u| u.damping_law.is_some()),
             second: read.and_then(|u| u.second),
             runs_averaged: read.map(|u| u.runs_averaged).filter(|&n| n > 1.0),
+            split_bar: read.and_then(|u| u.split_bar),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             source,
@@ -431,6 +436,7 @@ mod tests {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             set_ms,
         };
@@ -479,6 +485,7 @@ mod tests {
                 damping_law: Some(unit_law()),
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             set_ms: 1_000,
         };
@@ -525,6 +532,7 @@ mod tests {
             damping_law: None,
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         assert_eq!(
             baselines
@@ -587,6 +595,7 @@ mod tests {
             damping_law: Some(unit_law()),
             second: None,
             runs_averaged: 1.0,
+            split_bar: None,
         };
         let mut config = Config::default();
         for (id, road) in [("van", false), ("car", true)] {

@@ -25,7 +25,7 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 10;
+pub const SCHEMA_VERSION: i64 = 11;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
 const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
@@ -127,6 +127,11 @@ ALTER TABLE baselines ADD COLUMN second TEXT;
     r"
 ALTER TABLE baselines ADD COLUMN runs_averaged REAL NOT NULL DEFAULT 1.0;
 ",
+    // The stroke's ends apart at the reading
+    // (`dt_core::charge::UnitBaseline::split_bar`), bar; NULL: not read.
+    r"
+ALTER TABLE baselines ADD COLUMN split_bar REAL;
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
@@ -191,8 +196,8 @@ fn put_baseline(
         AssetBaseline::Observer(u) => tx.execute(
             &format!(
                 "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms, \
-                 accel_lo_mps2, accel_hi_mps2, damping_law, second, runs_averaged) \
-                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)"
+                 accel_lo_mps2, accel_hi_mps2, damping_law, second, runs_averaged, split_bar) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)"
             ),
             params![
                 asset_id,
@@ -207,6 +212,7 @@ fn put_baseline(
                 u.second
                     .map(|r| serde_json::to_string(&r).expect("a reading is plain numbers")),
                 u.runs_averaged,
+                u.split_bar,
             ],
         )?,
         AssetBaseline::Road(r) => tx.execute(
@@ -648,7 +654,8 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms, \
-                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law, b.second, b.runs_averaged \
+                 b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law, b.second, b.runs_averaged, \
+                 b.split_bar \
                  FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
             let mut all = stmt
@@ -667,6 +674,7 @@ impl FleetStore for SqliteStore {
                                 damping_law: json_column(r, 7, "damping_law")?,
                                 second: json_column(r, 8, "second")?,
                                 runs_averaged: r.get(9)?,
+                                split_bar: r.get(10)?,
                             }),
                             set_ms: r.get(4)?,
                         },
@@ -930,6 +938,7 @@ mod tests {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             set_ms: 1_700_000_000_000,
         };
@@ -958,6 +967,8 @@ mod tests {
                 }),
                 // and the runs each reading averages
                 runs_averaged: 2.0 / 0.7,
+                // and the stroke's ends apart at the reading
+                split_bar: Some(-1.0 / 3.0),
             }),
             ..b
         };
@@ -1009,6 +1020,7 @@ mod tests {
                 damping_law: None,
                 second: None,
                 runs_averaged: 1.0,
+                split_bar: None,
             }),
             set_ms: 1_700_000_000_000,
         };
