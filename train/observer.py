@@ -1569,7 +1569,7 @@ def own_law_spread(physics: dict[str, Any], units: Sequence[Sequence[tuple[float
     run2 = lambda p: obs.get("run_sd_bar", 0.0) ** 2 + (obs.get("run_rel", 0.0) * p) ** 2  # noqa: E731
     rows = []
     for (u, ca, a, cb, b), reads in zip(pairs, got):
-        (ma, sda, da, own_a, _), (mb, sdb, _, own_b, _) = reads
+        (ma, sda, da, own_a, *_), (mb, sdb, _, own_b, *_) = reads
         for path, m, own in ((a, ma, own_a), (b, mb, own_b)):
             if m is None:
                 raise SystemExit(f"{path}: no excited tick: no own-law spread from it")
