@@ -938,8 +938,8 @@ pub struct UnitBaseline {
     /// The split of the stroke's ends at the reading, `m₊ − m₋`, bar
     /// ([`ObserverParams::stroke_ends`]; [`ChargeObserver::ends_split_bar`]
     /// at the end of the run read). Another unit's valves leave each end of
-    /// the stroke reading it apart by an amount of their own, which holds
-    /// from charge to charge: with it, only the split's change since the
+    /// the stroke reading it apart by an amount of their own, which mostly
+    /// holds from charge to charge: with it, only the split's change since the
     /// baseline joins the interval (`ChargeObserver::estimate`). None (a
     /// baseline written before this field, or read without the ends): the
     /// whole split does.
