@@ -72,7 +72,7 @@ import sys
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from multiprocessing.context import BaseContext
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, NamedTuple, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares, minimize, minimize_scalar
@@ -1166,14 +1166,14 @@ def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_b
     obs = physics["observer"]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
-    for path, (*_, own, _, _) in zip(paths, reads):
-        if own:
-            raise SystemExit(f"{path}: {own} of its reversals were read at an excitation with a measurement model of "
+    for path, r in zip(paths, reads):
+        if r.own:
+            raise SystemExit(f"{path}: {r.own} of its reversals were read at an excitation with a measurement model of "
                              "its own, which a baseline does not condition (dt-core UnitBaseline): take the baseline "
                              "at one of the shared model's excitations (the calibration's 1 Hz run is one)")
-    ranges = [r[4] for r in reads if r[4] is not None]
-    splits = np.array([r[5] for r in reads])
-    reads = [r[:3] for r in reads]
+    ranges = [r.span for r in reads if r.span is not None]
+    splits = np.array([r.split_bar for r in reads])
+    reads = [(r.read_bar, r.sd_bar, r.drift_bar) for r in reads]
     rows = []
     for path, (m, sd, drift) in zip(paths, reads):
         if m is None:
@@ -1236,8 +1236,19 @@ def used_accel_range(rev: dict[str, np.ndarray]) -> list[float] | None:
     return [float(a.min()), float(a.max())] if len(a) else None
 
 
-def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, float, float, int, list[float] | None,
-                                                               float]:
+class BaselineRead(NamedTuple):
+    """One run's reading of a unit for a baseline (``_baseline_read``); a tuple, so callers that
+    take only its first fields unpack them with ``*_`` after."""
+
+    read_bar: float | None  # the reading at the last excited tick; None: no excited tick
+    sd_bar: float  # the observer's reported sd there
+    drift_bar: float  # RMS of the reading's departure from it over the settled ticks
+    own: int  # reversals read at an excitation with a model of its own
+    span: list[float] | None  # |ÿ_r| range of the used reversals, m/s²
+    split_bar: float  # the stroke's ends apart at the end of the run (NaN: none)
+
+
+def _baseline_read(args: tuple[str, dict[str, Any]]) -> BaselineRead:
     path, physics = args
     rev = shocktwin.charge_reversals(path, physics)
     own, span, split = own_reversals(rev, physics["observer"]), used_accel_range(rev), float(rev["ends_split_bar"])
@@ -1247,14 +1258,14 @@ def _baseline_read(args: tuple[str, dict[str, Any]]) -> tuple[float | None, floa
     end = excitation_end_s(lg, float(t[-1]))
     idx = np.nonzero((t >= onset) & (t <= end))[0]
     if len(idx) == 0:
-        return None, float("nan"), float("nan"), own, span, split
+        return BaselineRead(None, float("nan"), float("nan"), own, span, split)
     i = idx[-1]
     mean = x[:, cols.index("observer_bar")]
     # how far the reading wanders at this constant charge, at the ticks a score would count
     scored = idx[t[idx] >= onset + BASELINE_SETTLE_S]
     drift = float(np.sqrt(np.mean((mean[scored] - mean[i]) ** 2))) if len(scored) else 0.0
-    return (float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift, own, span,
-            split)
+    return BaselineRead(float(x[i, cols.index("observer_bar")]), float(x[i, cols.index("observer_sd_bar")]), drift,
+                        own, span, split)
 
 
 def away(a: Sequence[float], b: Sequence[float], rel: float) -> bool:
@@ -1646,7 +1657,7 @@ def law_pool(jobs: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver"))
 
 
-def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[tuple[Any, ...]]:
+def _take_read(args: tuple[float, str, str, dict[str, Any], bool]) -> list[BaselineRead]:
     """One take of ``run_spread``: A's and B's readings (``_baseline_read``), with the law refitted
     on A when asked."""
     charge, a, b, physics, unit_law = args
