@@ -62,7 +62,18 @@ rm -rf $(1); c=($(SPREAD_CHARGES)); for k in $$(seq 0 $$(($(2) - 1))); do \
     --pressures $${c[k % $${#c[@]}]},$${c[(k + 2) % $${#c[@]}]} --out $(1) > /dev/null; done
 endef
 
-demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer and its unit spread on ten other units), read the charge on a road, study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
+# Other units again (unit seeds 500 on), each at the nominal 12 bar at 1 and 2 Hz on the campaign's
+# rig: `observer transfer` measures on them how far a unit's error moves between excitations, which
+# a baseline read at one and used at the other carries (dt-core ObserverParams::transfer_bar_per_ln_accel).
+# Its `--unit` arguments: each unit's two runs. $(1): the directory, $(2): how many, $(3): more flags.
+define transfer_units
+rm -rf $(1); for k in $$(seq 0 $$(($(2) - 1))); do \
+  $(BIN) simulate $(3) --seed 1 --unit $$((500 + k)) --frequencies 1,2 --pressures 12 \
+    --out $(1)/u$$((500 + k)) > /dev/null; done
+endef
+transfer_args = $$(for d in $(1)/u*; do printf -- '--unit %s %s ' $$d/*.mcap; done)
+
+demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge observer and its unit and transfer spreads on other units), read the charge on a road, study, a fleet's past and a leaking run through the daemon, dashboard screenshot (simulated data)
 	@$(MAKE) --no-print-directory browser || echo "(without Chromium the demo skips the dashboard screenshot)"
 	rm -rf $(OUT)
 	$(BIN) simulate --quick --out $(CAMPAIGN)
@@ -71,6 +82,8 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(PY) -m train.observer fit --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --datasheet $(DATASHEET)
 	$(call other_units,$(OUT)/other-units,10,--quick)
 	$(PY) -m train.observer unit-spread --physics $(OUT)/physics.json --campaign $(OUT)/other-units | tail -n 2
+	$(call transfer_units,$(OUT)/transfer-units,10,--quick)
+	$(PY) -m train.observer transfer --physics $(OUT)/physics.json --charge-bar 12 $(call transfer_args,$(OUT)/transfer-units) | tail -n 2
 	$(BIN) simulate --quick --road 60 --out $(OUT)/road-cal
 	$(BIN) simulate --quick --road 45 --seed 4 --out $(OUT)/road-cal45 && mv $(OUT)/road-cal45/*.mcap $(OUT)/road-cal/ && rmdir $(OUT)/road-cal45
 	$(BIN) simulate --quick --road 60 --seed 2 --pressures 2,12 --out $(OUT)/road-held
@@ -86,13 +99,15 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	@shot=$(OUT)/serve-demo/dashboard.png; [ -f $$shot ] || shot="not taken (no chromium)"; \
 	echo "demo done (simulated data): report $(OUT)/study/report.md (with the plots), the charge read on a road $(OUT)/road/road_observer.md, figures $(OUT)/figures, dashboard $$shot (browse it again: $(BIN) serve --db $(OUT)/serve-demo/fleet.sqlite --model $(OUT)/study/bundles/perm-18 --config $(OUT)/serve-demo/road/serve.toml, then http://127.0.0.1:7411/)"
 
-study: setup ## the full study on the default campaign: physics, charge observer, Tables 2-3, suites (docs/study; simulated data)
+study: setup ## the full study on the default campaign: physics, charge observer (its unit and transfer spreads), Tables 2-3, suites (docs/study; simulated data)
 	rm -rf $(OUT)/full-campaign
 	$(BIN) simulate --out $(OUT)/full-campaign
 	$(PY) -m train.fit_physics --campaign $(OUT)/full-campaign --out $(OUT)/full-physics.json --datasheet $(DATASHEET) --nominal-bar 12
 	$(PY) -m train.observer fit --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --datasheet $(DATASHEET)
 	$(call other_units,$(OUT)/full-other-units,20,)
 	$(PY) -m train.observer unit-spread --physics $(OUT)/full-physics.json --campaign $(OUT)/full-other-units
+	$(call transfer_units,$(OUT)/full-transfer-units,10,)
+	$(PY) -m train.observer transfer --physics $(OUT)/full-physics.json --charge-bar 12 $(call transfer_args,$(OUT)/full-transfer-units) | tail -n 2
 	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --out docs/study
 
 # dt-bench holds no test, and its dev-dependency criterion would be compiled for nothing:
