@@ -612,7 +612,8 @@ def test_a_units_own_damping_law_reads_the_end_of_the_stroke_the_calibrations_ca
                           "--out", str(out), "--jobs", "1"]) == 0
     b = json.loads(out.read_text())
     before, after = b["unit_law"]["residual_before_mps2"], b["unit_law"]["residual_after_mps2"]
-    assert before["+"] > 1.3 * cut and before["-"] < cut, before
+    # the calibration's law misses that end by several times what the unit's own leaves there
+    assert before["+"] > 3 * after["+"] and before["-"] < cut, (before, after)
     assert max(after.values()) < 0.5 * cut, after
     ob = b["observer_baseline"]
     assert ob["damping_law"]["valves"]["compression_piston"], "not the calibration's (twin-tube) form"
