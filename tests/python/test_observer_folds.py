@@ -1,0 +1,46 @@
+"""train.observer_folds: permutations that read the charge observer, held out with the observer
+calibrated on each fold's training runs alone (the study's held-out column shares one calibration
+made on every run)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from train import observer_folds
+
+
+def test_each_fold_calibrates_its_observer_on_its_training_runs_alone(
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    campaign, physics = calibrated_campaign
+    shared = json.loads(physics.read_text())["observer"]
+    out = tmp_path / "folds"
+    assert observer_folds.main(["--campaign", str(campaign), "--physics", str(physics), "--out", str(out),
+                                "--quick", "--permutations", "17"]) == 0
+    res = json.loads((out / "observer_folds.json").read_text())
+    runs = sorted(p.name for p in campaign.glob("*.mcap"))
+    held = [set(f["held_out"]) for f in res["folds"]]
+    assert sorted(n for h in held for n in h) == runs  # every run held out once
+    for f, h in enumerate(held):
+        # the fold's observer was fitted on the other runs only, and is not the shared one
+        assert {p.name for p in (out / f"fold-{f}" / "campaign").iterdir()} == set(runs) - h
+        own = json.loads((out / f"fold-{f}" / "physics.json").read_text())["observer"]
+        assert own["step_per_bar_n"] != shared["step_per_bar_n"]
+        assert res["folds"][f]["calibration"]["accel_clusters_mps2"] == own["accel_clusters_mps2"]
+    scores = res["permutations"]["17"]
+    assert {r["run"] for r in scores["held_out_runs"]} == set(runs)
+    assert scores["held_out"]["n"] > 0
+    # the observer alone (17), read by a fold that never saw the run, still carries information:
+    # below what always answering the campaign's mean charge would score (the labels' spread)
+    labels = [r["label_bar"] for r in scores["held_out_runs"]]
+    assert scores["held_out"]["rmse_bar"] < float(np.std(labels))
+
+
+def test_a_permutation_without_the_observer_is_refused_by_name(
+        calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    campaign, physics = calibrated_campaign
+    with pytest.raises(SystemExit, match="12 is not a permutation that reads the observer"):
+        observer_folds.main(["--campaign", str(campaign), "--physics", str(physics), "--out", str(tmp_path),
+                             "--permutations", "12"])
