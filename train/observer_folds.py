@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -39,7 +40,9 @@ def fold_physics(physics: dict[str, Any], runs: Sequence[Any], held: Sequence[in
     """``physics`` with its observer calibrated on the runs not in ``held`` (symbolic links to them
     in ``work/campaign``); the calibration is kept in ``work/physics.json``."""
     camp = work / "campaign"
-    camp.mkdir(parents=True, exist_ok=True)
+    if camp.exists():  # a run before this one into the same --out: its links go
+        shutil.rmtree(camp)
+    camp.mkdir(parents=True)
     held_set = set(int(i) for i in held)
     for i, run in enumerate(runs):
         if i not in held_set:

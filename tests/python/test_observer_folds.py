@@ -29,6 +29,10 @@ def test_each_fold_calibrates_its_observer_on_its_training_runs_alone(
         own = json.loads((out / f"fold-{f}" / "physics.json").read_text())["observer"]
         assert own["step_per_bar_n"] != shared["step_per_bar_n"]
         assert res["folds"][f]["calibration"]["accel_clusters_mps2"] == own["accel_clusters_mps2"]
+    # run again into the same directory: the folds are made afresh
+    assert observer_folds.main(["--campaign", str(campaign), "--physics", str(physics), "--out", str(out),
+                                "--quick", "--permutations", "17"]) == 0
+    assert json.loads((out / "observer_folds.json").read_text())["permutations"] == res["permutations"]
     scores = res["permutations"]["17"]
     assert {r["run"] for r in scores["held_out_runs"]} == set(runs)
     assert scores["held_out"]["n"] > 0
