@@ -6,9 +6,10 @@ Here each fold's observer is calibrated by ``python -m train.observer fit`` on t
 runs alone; the rest is the study's (its folds, seeds, training rows, epochs and scoring; the
 physics under the observer, Kalman, thermal and force, stays the given file's, as it does for every
 permutation in the study). The observer's sd is then the fit's assumed unit tolerance: the unit and
-transfer spreads that ``make study`` measures on other units are not measured per fold. Measured
-in the fifty-fourth session (docs/history.md): 17 / 18 / 19 read 0.47 / 0.46 / 0.38 bar on the
-full campaign, against 0.22 / 0.25 / 0.25 with the shared calibration (simulated data).
+transfer spreads that ``make study`` measures on other units are not measured per fold. In the
+fifty-fourth session (docs/history.md) a script taking these steps read 17 / 18 / 19 at 0.47 /
+0.46 / 0.38 bar on the full campaign, against 0.22 / 0.25 / 0.25 with the shared calibration; this
+command itself was run there on the tests' quick campaign (simulated data).
 
     python -m train.observer_folds --campaign DIR --physics physics.json --out DIR
         [--datasheet FILE] [--permutations 17,18,19] [--quick] [--folds K] [--seed 0] [--jobs 2]
@@ -47,8 +48,13 @@ def fold_physics(physics: dict[str, Any], runs: Sequence[Any], held: Sequence[in
     for i, run in enumerate(runs):
         if i not in held_set:
             (camp / run.path.name).symlink_to(run.path.resolve())
+    # the shared observer goes, and with it the records of what was measured on it (`fit.observer`,
+    # `fit.observer_unit_spread`, ...): they describe another calibration than the fold's
+    base = {k: v for k, v in physics.items() if k != "observer"}
+    if "fit" in base:
+        base["fit"] = {k: v for k, v in base["fit"].items() if not k.startswith("observer")}
     out = work / "physics.json"
-    out.write_text(json.dumps({k: v for k, v in physics.items() if k != "observer"}, indent=2) + "\n")
+    out.write_text(json.dumps(base, indent=2) + "\n")
     argv = ["fit", "--campaign", str(camp), "--physics", str(out), "--jobs", str(jobs)]
     if datasheet is not None:
         argv += ["--datasheet", str(datasheet)]
@@ -98,6 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     preds: dict[int, list[evaluate.RunPrediction]] = {pid: [] for pid in wanted}
     fold_rows = []
     for f, held in enumerate(folds):
+        held_set = set(int(i) for i in held)
         phys = fold_physics(physics, runs, held, args.out / f"fold-{f}", args.datasheet, args.jobs)
         data = dataset.CampaignData(campaign, phys)
         tasks, prepared = [], []
@@ -105,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             tabs = data.tables(perms[pid]["groups"])
             exc = data.excited_for(tabs)
             cols = dataset.group_columns(perms[pid]["groups"])
-            masks = [np.full(len(t.t_s), i not in set(held)) for i, t in enumerate(tabs)]
+            masks = [np.full(len(t.t_s), i not in held_set) for i, t in enumerate(tabs)]
             x, y = evaluate.training_set(tabs, cols, exc, masks, cfg.per_run, seed=cfg.seed + f, augment=True)
             tasks.append((x, y, cols, cfg.seed + f))
             prepared.append((pid, tabs, exc, cols))

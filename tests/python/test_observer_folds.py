@@ -14,8 +14,13 @@ from train import observer_folds
 
 def test_each_fold_calibrates_its_observer_on_its_training_runs_alone(
         calibrated_campaign: tuple[Path, Path], tmp_path: Path) -> None:
-    campaign, physics = calibrated_campaign
-    shared = json.loads(physics.read_text())["observer"]
+    campaign, fixture = calibrated_campaign
+    # the shared calibration as `make study` leaves it: with a record of a spread measured on it
+    params = json.loads(fixture.read_text())
+    params.setdefault("fit", {})["observer_unit_spread"] = {"systematic_sd_bar": 1.4}
+    physics = tmp_path / "physics.json"
+    physics.write_text(json.dumps(params))
+    shared = params["observer"]
     out = tmp_path / "folds"
     assert observer_folds.main(["--campaign", str(campaign), "--physics", str(physics), "--out", str(out),
                                 "--quick", "--permutations", "17"]) == 0
@@ -26,7 +31,9 @@ def test_each_fold_calibrates_its_observer_on_its_training_runs_alone(
     for f, h in enumerate(held):
         # the fold's observer was fitted on the other runs only, and is not the shared one
         assert {p.name for p in (out / f"fold-{f}" / "campaign").iterdir()} == set(runs) - h
-        own = json.loads((out / f"fold-{f}" / "physics.json").read_text())["observer"]
+        fold_physics = json.loads((out / f"fold-{f}" / "physics.json").read_text())
+        assert "observer_unit_spread" not in fold_physics["fit"]  # the shared calibration's record
+        own = fold_physics["observer"]
         assert own["step_per_bar_n"] != shared["step_per_bar_n"]
         assert res["folds"][f]["calibration"]["accel_clusters_mps2"] == own["accel_clusters_mps2"]
     # run again into the same directory: the folds are made afresh
