@@ -93,7 +93,7 @@ demo: setup ## simulate the quick campaign, inspect, calibrate (physics, charge 
 	$(BIN) road --calibration $(OUT)/road.json --baseline $(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12 --out $(OUT)/road/blocks.csv $(OUT)/road-held/*.mcap
 	$(BIN) simulate --quick --road 5 --seed 2 --pressures 12 --out $(OUT)/road-slow
 	$(BIN) road --calibration $(OUT)/road.json $(OUT)/road-slow/*.mcap
-	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --out $(OUT)/study
+	$(PY) -W ignore -m train.study --quick --campaign $(CAMPAIGN) --physics $(OUT)/physics.json --datasheet $(DATASHEET) --out $(OUT)/study
 	$(PY) -m train.demo_serve --bin $(BIN) --bundle $(OUT)/study/bundles/perm-18 --out $(OUT)/serve-demo --road $(OUT)/road.json --road-run $(OUT)/road-held/p2.0-roadC60-s2.mcap --road-baseline $(OUT)/road-baseline/p12.0-roadC60-s3.mcap@12
 	@sed -n '/^## Table 2/,/^## Findings/{/^## Findings/!p}; /^## Targets/,/^Per run/{/^Per run/!p}; /^## Charge observer/,/^| set | run |/{/^| set | run |/!p}' $(OUT)/study/report.md
 	@shot=$(OUT)/serve-demo/dashboard.png; [ -f $$shot ] || shot="not taken (no chromium)"; \
@@ -108,7 +108,7 @@ study: setup ## the full study on the default campaign: physics, charge observer
 	$(PY) -m train.observer unit-spread --physics $(OUT)/full-physics.json --campaign $(OUT)/full-other-units
 	$(call transfer_units,$(OUT)/full-transfer-units,10,)
 	$(PY) -m train.observer transfer --physics $(OUT)/full-physics.json --charge-bar 12 $(call transfer_args,$(OUT)/full-transfer-units) | tail -n 2
-	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --out docs/study
+	$(PY) -W ignore -m train.study --campaign $(OUT)/full-campaign --physics $(OUT)/full-physics.json --datasheet $(DATASHEET) --out docs/study
 
 # dt-bench holds no test, and its dev-dependency criterion would be compiled for nothing:
 # `make bench` builds the benches, `make lint` checks them.

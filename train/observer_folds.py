@@ -1,15 +1,15 @@
 """Permutations that read the charge observer, held out with the observer calibrated per fold.
 
-The study's held-out column (``train.study``) shares one observer calibration, made on every run
-of the campaign, between its folds: for the permutations that read the observer (17–19) it leaks.
-Here each fold's observer is calibrated by ``python -m train.observer fit`` on that fold's training
-runs alone; the rest is the study's (its folds, seeds, training rows, epochs and scoring; the
-physics under the observer, Kalman, thermal and force, stays the given file's, as it does for every
-permutation in the study). The observer's sd is then the fit's assumed unit tolerance: the unit and
-transfer spreads that ``make study`` measures on other units are not measured per fold. In the
-fifty-fourth session (docs/history.md) a script taking these steps read 17 / 18 / 19 at 0.47 /
-0.46 / 0.38 bar on the full campaign, against 0.22 / 0.25 / 0.25 with the shared calibration; this
-command itself was run there on the tests' quick campaign (simulated data).
+A network that reads the observer, held out on whole runs, must not read an observer calibrated on
+those runs: one calibration made on every run of the campaign, shared between the folds, leaks
+(in the fifty-fourth session, docs/history.md, it made 17 / 18 / 19 read 0.22 / 0.25 / 0.25 bar
+held out on the full simulated campaign, against 0.47 / 0.46 / 0.38 calibrated per fold).
+``FoldObservers`` calibrates the observer by ``python -m train.observer fit`` on each fold's
+training runs alone; ``train.study`` holds out every permutation and suite that reads the observer
+with it. The physics under the observer (Kalman, thermal and force) stays the given file's, as it
+does for every permutation in the study. The observer's sd is then the fit's assumed unit
+tolerance: the unit and transfer spreads that ``make study`` measures on other units are not
+measured per fold. This command runs the study's held-out protocol for those permutations alone:
 
     python -m train.observer_folds --campaign DIR --physics physics.json --out DIR
         [--datasheet FILE] [--permutations 17,18,19] [--quick] [--folds K] [--seed 0] [--jobs 2]
@@ -21,25 +21,30 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import shutil
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
-
 import shocktwin
 
-from train import dataset, evaluate
+from train import dataset
 from train import observer as observer_tool
 from train.campaign import load_campaign, main_wrapper, read_json
-from train.study import fit_many, settings
+
+log = logging.getLogger("shocktwin.observer_folds")
+
+#: The observer's datasheet values (not fitted): a fold's fit keeps the given observer's.
+GEOMETRY = ("a_rod_m2", "v_gas_m3", "oil_expansion_m3_per_k")
 
 
 def fold_physics(physics: dict[str, Any], runs: Sequence[Any], held: Sequence[int], work: Path,
                  datasheet: Path | None, jobs: int) -> dict[str, Any]:
     """``physics`` with its observer calibrated on the runs not in ``held`` (symbolic links to them
-    in ``work/campaign``); the calibration is kept in ``work/physics.json``."""
+    in ``work/campaign``); the calibration is kept in ``work/physics.json``. Without a
+    ``datasheet`` the fit takes the given observer's geometry (``a_rod_m2``, ``v_gas_m3``,
+    ``oil_expansion_m3_per_k``, datasheet values, not fitted), so that only its runs differ."""
     camp = work / "campaign"
     if camp.exists():  # a run before this one into the same --out: its links go
         shutil.rmtree(camp)
@@ -55,12 +60,45 @@ def fold_physics(physics: dict[str, Any], runs: Sequence[Any], held: Sequence[in
         base["fit"] = {k: v for k, v in base["fit"].items() if not k.startswith("observer")}
     out = work / "physics.json"
     out.write_text(json.dumps(base, indent=2) + "\n")
+    if datasheet is None and physics.get("observer"):
+        geometry = {k: physics["observer"][k] for k in GEOMETRY if k in physics["observer"]}
+        datasheet = work / "datasheet.json"
+        datasheet.write_text(json.dumps(geometry, indent=2) + "\n")
     argv = ["fit", "--campaign", str(camp), "--physics", str(out), "--jobs", str(jobs)]
     if datasheet is not None:
         argv += ["--datasheet", str(datasheet)]
     if observer_tool.main(argv) != 0:
         raise SystemExit(f"{camp}: the observer fit failed")
     return read_json(out)
+
+
+class FoldObservers:
+    """The campaign's tables with the observer calibrated on each fold's training runs alone
+    (``fold_physics``), calibrated once per fold: a fold is named by its held-out runs.
+    ``train.study.evaluate_permutation_set`` takes it for the permutations that read the
+    observer; each fold's calibration is kept under ``work/fold-K`` (K in the order asked)."""
+
+    def __init__(self, data: dataset.CampaignData, work: Path, datasheet: Path | None, jobs: int) -> None:
+        self.data, self.work, self.datasheet, self.jobs = data, work, datasheet, jobs
+        self._folds: dict[tuple[int, ...], dataset.CampaignData] = {}
+
+    def __call__(self, held: Sequence[int]) -> dataset.CampaignData:
+        key = tuple(sorted(int(i) for i in held))
+        if key not in self._folds:
+            runs = self.data.campaign.runs
+            log.info("calibrating the observer without %s", ", ".join(runs[i].path.name for i in key))
+            phys = fold_physics(self.data.physics, runs, key, self.work / f"fold-{len(self._folds)}",
+                                self.datasheet, self.jobs)
+            fold = dataset.CampaignData(self.data.campaign, phys)
+            fold._excited = self.data.excited()  # the excited ticks do not read the observer
+            self._folds[key] = fold
+        return self._folds[key]
+
+    def calibrations(self) -> list[dict[str, Any]]:
+        """Per fold calibrated so far: the runs it held out and the shape its fit took."""
+        runs = self.data.campaign.runs
+        return [{"held_out": [runs[i].path.name for i in key], "calibration": shape(fold.physics)}
+                for key, fold in self._folds.items()]
 
 
 def shape(physics: dict[str, Any]) -> dict[str, Any]:
@@ -72,12 +110,15 @@ def shape(physics: dict[str, Any]) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from train import study  # which takes this module's FoldObservers
+
     p = argparse.ArgumentParser(prog="python -m train.observer_folds", description=__doc__.split("\n")[0])
     p.add_argument("--campaign", required=True, type=Path)
     p.add_argument("--physics", required=True, type=Path,
                    help="physics.json (its observer, if any, is recalibrated per fold; the rest is kept)")
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--datasheet", type=Path, help="the damper's datasheet, as for `train.observer fit`")
+    p.add_argument("--datasheet", type=Path,
+                   help="the damper's datasheet, as for `train.observer fit` (default: the observer's geometry)")
     p.add_argument("--permutations", default="17,18,19", help="permutations that read the observer")
     p.add_argument("--quick", action="store_true", help="the quick study's folds and training")
     p.add_argument("--folds", type=int, help="folds (default: the study's)")
@@ -89,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     campaign.require_labels()
     runs = campaign.runs
     physics = read_json(args.physics)
-    cfg = settings(args.quick, args.seed, args.jobs)
+    cfg = study.settings(args.quick, args.seed, args.jobs)
     k = min(args.folds or cfg.folds, len(runs))
     if k < 2:
         raise SystemExit(f"{args.campaign}: {len(runs)} run(s): per-fold calibration needs at least two folds")
@@ -98,34 +139,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     for pid in wanted:
         if pid not in perms or "observer" not in perms[pid]["groups"]:
             raise SystemExit(f"--permutations: {pid} is not a permutation that reads the observer")
-    folds = evaluate.held_out_folds(len(runs), k, cfg.seed)
     args.out.mkdir(parents=True, exist_ok=True)
 
-    preds: dict[int, list[evaluate.RunPrediction]] = {pid: [] for pid in wanted}
-    fold_rows = []
-    for f, held in enumerate(folds):
-        held_set = set(int(i) for i in held)
-        phys = fold_physics(physics, runs, held, args.out / f"fold-{f}", args.datasheet, args.jobs)
-        data = dataset.CampaignData(campaign, phys)
-        tasks, prepared = [], []
-        for pid in wanted:
-            tabs = data.tables(perms[pid]["groups"])
-            exc = data.excited_for(tabs)
-            cols = dataset.group_columns(perms[pid]["groups"])
-            masks = [np.full(len(t.t_s), i not in held_set) for i, t in enumerate(tabs)]
-            x, y = evaluate.training_set(tabs, cols, exc, masks, cfg.per_run, seed=cfg.seed + f, augment=True)
-            tasks.append((x, y, cols, cfg.seed + f))
-            prepared.append((pid, tabs, exc, cols))
-        for (pid, tabs, exc, cols), trained in zip(prepared, fit_many(cfg, tasks, cfg.max_iter)):
-            preds[pid].extend(evaluate.predict_run(trained, tabs[i], cols, exc[i]) for i in held)
-        fold_rows.append({"held_out": [runs[i].path.name for i in held], "calibration": shape(phys)})
-        print(f"fold {f + 1}/{k}: held out {', '.join(runs[i].path.name for i in held)}")
-
+    data = dataset.CampaignData(campaign, physics)
+    folds = FoldObservers(data, args.out, args.datasheet, args.jobs)
+    rows, _ = study.evaluate_permutation_set(data, [dict(perms[pid], key=pid) for pid in wanted], cfg, folds=k,
+                                             per_run=cfg.per_run, max_iter=cfg.max_iter, paper=False,
+                                             in_sample=False, fold_observers=folds)
     result = {
         "note": "observer calibrated per fold on its training runs (simulated data when made from shocktwin simulate)",
-        "campaign": str(args.campaign), "folds": fold_rows,
-        "permutations": {str(pid): {"held_out": evaluate.score_runs(preds[pid]).as_dict(),
-                                    "held_out_runs": evaluate.per_run(preds[pid])} for pid in wanted},
+        "campaign": str(args.campaign), "folds": folds.calibrations(),
+        "permutations": {str(r["perm"]["id"]): {"held_out": r["held_out"], "held_out_runs": r["held_out_runs"]}
+                         for r in rows},
     }
     (args.out / "observer_folds.json").write_text(json.dumps(result, indent=2) + "\n")
     for pid in wanted:

@@ -55,3 +55,34 @@ def test_a_permutation_without_the_observer_is_refused_by_name(
     with pytest.raises(SystemExit, match="12 is not a permutation that reads the observer"):
         observer_folds.main(["--campaign", str(campaign), "--physics", str(physics), "--out", str(tmp_path),
                              "--permutations", "12"])
+
+
+def test_the_study_holds_out_only_what_reads_the_observer_on_the_folds_calibrations(
+        calibrated_campaign: tuple[Path, Path]) -> None:
+    """`train.study` asks the per-fold calibrations for the tables of each held-out fold of a
+    permutation or suite that reads the observer, and only for those: the others, and the paper
+    split and in-sample fit, read the campaign's tables."""
+    import shocktwin
+
+    from train import dataset, evaluate, study
+    from train.campaign import load_campaign
+
+    campaign, physics = calibrated_campaign
+    data = dataset.CampaignData(load_campaign(campaign), json.loads(physics.read_text()))
+    asked: list[tuple[int, ...]] = []
+
+    def folds(held):  # the campaign's own tables, each fold's request recorded
+        asked.append(tuple(sorted(int(i) for i in held)))
+        return data
+
+    cfg = study.settings(True, 0, 2)
+    perms = [dict(p, key=p["id"]) for p in shocktwin.extra_permutations() if p["id"] == 17]
+    perms += [dict(p, key=p["id"]) for p in shocktwin.permutations() if p["id"] == 3]
+    rows, models = study.evaluate_permutation_set(data, perms, cfg, folds=3, per_run=200, max_iter=3, paper=True,
+                                                  in_sample=True, fold_observers=folds)
+    expected = [tuple(sorted(int(i) for i in held)) for held in evaluate.held_out_folds(10, 3, cfg.seed)]
+    assert asked == expected, "once per fold, for the observer's permutation alone"
+    assert set(models) == {17, 3}
+    for row in rows:
+        assert {r["run"] for r in row["held_out_runs"]} == {p.name for p in campaign.glob("*.mcap")}
+        assert row["paper"]["n"] > 0 and row["in_sample"]["n"] > 0
