@@ -1,6 +1,6 @@
 """train.observer_folds: permutations that read the charge observer, held out with the observer
-calibrated on each fold's training runs alone (the study's held-out column shares one calibration
-made on every run)."""
+calibrated on each fold's training runs alone, as `train.study` holds them out (never a calibration
+made on every run, which leaks)."""
 from __future__ import annotations
 
 import json
