@@ -145,6 +145,13 @@ class CampaignData:
             return None
         return self.tables(lean)
 
+    def recalibrated(self, physics: dict[str, Any]) -> "CampaignData":
+        """The same campaign under ``physics`` that differs from this one's in the observer alone
+        (``train.observer_folds``): the excited ticks, which do not read the observer, are kept."""
+        other = CampaignData(self.campaign, physics)
+        other._excited = self.excited()
+        return other
+
     def excited(self) -> list[np.ndarray]:
         """Per run, the excited ticks (full-suite Kalman velocity; see the module doc)."""
         if self._excited is None:

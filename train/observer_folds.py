@@ -89,9 +89,7 @@ class FoldObservers:
             log.info("calibrating the observer without %s", ", ".join(runs[i].path.name for i in key))
             phys = fold_physics(self.data.physics, runs, key, self.work / f"fold-{len(self._folds)}",
                                 self.datasheet, self.jobs)
-            fold = dataset.CampaignData(self.data.campaign, phys)
-            fold._excited = self.data.excited()  # the excited ticks do not read the observer
-            self._folds[key] = fold
+            self._folds[key] = self.data.recalibrated(phys)
         return self._folds[key]
 
     def calibrations(self) -> list[dict[str, Any]]:
