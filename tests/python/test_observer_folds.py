@@ -18,6 +18,8 @@ def test_each_fold_calibrates_its_observer_on_its_training_runs_alone(
     # the shared calibration as `make study` leaves it: with a record of a spread measured on it
     params = json.loads(fixture.read_text())
     params.setdefault("fit", {})["observer_unit_spread"] = {"systematic_sd_bar": 1.4}
+    # a datasheet's geometry other than the defaults, which each fold must keep
+    params["observer"]["v_gas_m3"] = params["observer"]["v_gas_m3"] * 1.05
     physics = tmp_path / "physics.json"
     physics.write_text(json.dumps(params))
     shared = params["observer"]
@@ -35,6 +37,9 @@ def test_each_fold_calibrates_its_observer_on_its_training_runs_alone(
         assert "observer_unit_spread" not in fold_physics["fit"]  # the shared calibration's record
         own = fold_physics["observer"]
         assert own["step_per_bar_n"] != shared["step_per_bar_n"]
+        # without --datasheet the fold keeps the given observer's geometry (datasheet values, not fitted)
+        for k in observer_folds.GEOMETRY:
+            assert own[k] == shared[k], k
         assert res["folds"][f]["calibration"]["accel_clusters_mps2"] == own["accel_clusters_mps2"]
     # run again into the same directory: the folds are made afresh
     assert observer_folds.main(["--campaign", str(campaign), "--physics", str(physics), "--out", str(out),
