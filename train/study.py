@@ -438,7 +438,7 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
              "trained and scored on all samples — not an information bound: with one label per run it can "
              "memorise runs by their temperatures (the study's bound is the oracle under *Targets*).\n")
     if ctx.get("observer_folds"):
-        L.extend(observer_folds_note(ctx["observer_folds"]))
+        L.extend(observer_folds_note(ctx["observer_folds"], bool(ctx["suites"])))
     L.append("| id | inputs | paper (Table 2) | paper split | paper split, 1 s avg | held out | held out, 1 s avg | held out, plain | in-sample | leak factor |")
     L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for row in t2:
@@ -533,20 +533,33 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
     return path
 
 
-def observer_folds_note(folds: list[dict[str, Any]]) -> list[str]:
-    """How the permutations and suites that read the observer were held out."""
+def observer_folds_note(folds: list[dict[str, Any]], suites: bool) -> list[str]:
+    """How the permutations and suites that read the observer were held out, and what each fold's
+    calibration made of the campaign's excitations."""
     shapes = {json.dumps(f["calibration"], sort_keys=True) for f in folds}
     fastest = [max(f["calibration"]["accel_clusters_mps2"]) for f in folds]
-    return [
+    L = [
         "*Held out*, the permutations and suites that read the charge observer were each given an observer "
         f"calibrated on the fold's training runs alone (`train.observer_folds`; {len(folds)} calibrations for "
-        "Table 2's folds and the suites' folds, not the campaign's calibration, which saw the held-out runs). "
+        + ("Table 2's folds and the suites' folds" if suites else "Table 2's folds")
+        + ", not the campaign's calibration, which saw the held-out runs). "
         "Its interval's unit and transfer spreads are not measured per fold: there the sd is the fit's assumed "
         "unit tolerance. Their paper split and in-sample fit read the campaign's calibration. "
         f"The fits took {len(shapes)} different shapes over the {len(folds)} folds; the fastest excitation "
         f"they calibrated ranged {min(fastest):.1f}–{max(fastest):.1f} m/s² at the reversal "
-        "(`results.json`, `observer_folds`).\n",
+        "(`results.json`, `observer_folds`). An excitation a fold's fit does not calibrate is skipped by its "
+        "observer, which then holds its prior on the held-out runs at that excitation:\n",
+        "| fold's held-out runs | excitations calibrated (\\|ÿ\\| at the reversal, m/s²; *own*: a model of its own) |",
+        "| --- | --- |",
     ]
+    for f in folds:
+        c = f["calibration"]
+        own = c.get("own") or []
+        cal = [f"{a:.1f}" + (" *own*" if k < len(own) and own[k] else "")
+               for k, a in enumerate(c["accel_clusters_mps2"]) if a > 0]
+        L.append(f"| {', '.join(n.removesuffix('.mcap') for n in f['held_out'])} | {', '.join(cal)} |")
+    L.append("")
+    return L
 
 
 TARGETS_BAR = {11: 1.40, 12: 1.40, 13: 0.85, 14: 1.40, 15: 0.85, 16: 0.85, 17: 1.40, 18: 1.40, 19: 0.85}

@@ -91,3 +91,19 @@ def test_the_study_holds_out_only_what_reads_the_observer_on_the_folds_calibrati
     for row in rows:
         assert {r["run"] for r in row["held_out_runs"]} == {p.name for p in campaign.glob("*.mcap")}
         assert row["paper"]["n"] > 0 and row["in_sample"]["n"] > 0
+
+
+def test_the_reports_note_names_each_folds_calibrated_excitations() -> None:
+    """The study report's note under Table 2: each fold with the excitations its calibration kept
+    (an excitation it dropped is one its observer skips), and the suites' folds only when searched."""
+    from train import study
+
+    folds = [{"held_out": ["p4.0-f2.0-s1.mcap", "p7.0-f4.0-s1.mcap"],
+              "calibration": {"accel_clusters_mps2": [1.52, 6.07, 24.1, 0.0], "own": [False, False, True, False]}},
+             {"held_out": ["p0.5-f2.0-s1.mcap"], "calibration": {"accel_clusters_mps2": [1.52, 0.0, 0.0, 0.0],
+                                                                 "own": None}}]
+    note = "\n".join(study.observer_folds_note(folds, suites=False))
+    assert "suites' folds" not in note and "2 calibrations for Table 2's folds" in note
+    assert "| p4.0-f2.0-s1, p7.0-f4.0-s1 | 1.5, 6.1, 24.1 *own* |" in note
+    assert "| p0.5-f2.0-s1 | 1.5 |" in note
+    assert "Table 2's folds and the suites' folds" in "\n".join(study.observer_folds_note(folds, suites=True))
