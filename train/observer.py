@@ -187,14 +187,14 @@ def coef_of(o: dict[str, Any]) -> np.ndarray:
 
 
 def fit_measurement(revs: Sequence[dict[str, Any]], obs: dict[str, Any],
-                    with_accel: bool = True) -> tuple[np.ndarray, float]:
+                    with_accel: bool = True, common_gain: bool = False) -> tuple[np.ndarray, float]:
     """Robust LS of ``alpha`` on ``[1, sgn a, |a|, p_g, |a| p_g, x(T) |a|]`` (without the ``|a|``
-    terms, which one excitation cannot identify, when not ``with_accel``; without the cold
-    term when no reversal is colder than ``cold_ref_c``); returns the six coefficients and
-    the MAD spread."""
+    terms, which one excitation cannot identify, when not ``with_accel``; without ``|a| p_g``, one
+    gain for every excitation, when ``common_gain``; without the cold term when no reversal is
+    colder than ``cold_ref_c``); returns the six coefficients and the MAD spread."""
     x = np.vstack([design(r, r["label_bar"], obs) for r in revs])
     y = np.concatenate([r["alpha_n"] for r in revs])
-    cols = [0, 1, 2, 3, 4] if with_accel else [0, 1, 3]
+    cols = ([0, 1, 2, 3] if common_gain else [0, 1, 2, 3, 4]) if with_accel else [0, 1, 3]
     if np.count_nonzero(x[:, 5]) >= MIN_CLUSTER_REVERSALS:
         cols.append(5)
     sol, mad = robust_lstsq(x[:, cols], y)
@@ -298,6 +298,7 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
                     "observer's ±%.0f %%: some calibration reversals will be skipped", 100 * spread,
                     100 * spacing_rel)
     dropped: list[dict[str, float]] = []
+    common = False
     while True:
         centres = np.array([c[0] for c in clusters])
 
@@ -307,24 +308,19 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
 
         used = [inside(r) for r in revs]
         with_accel = len(clusters) > 1
-        coef, sd_n = fit_measurement(used, obs, with_accel)
-        loro = []
-        for i, r in enumerate(used):
-            others = [q for j, q in enumerate(used) if j != i]
-            c_i, sd_i = fit_measurement(others, obs, with_accel)
-            p_hat, p_sd = charge_from(r, c_i, sd_i, obs)
-            a_med = float(np.median(np.abs(r["accel_mps2"]))) if len(r["accel_mps2"]) else np.nan
-            loro.append({"run": r["run"], "truth_bar": r["truth_bar"], "estimate_bar": p_hat, "stat_sd_bar": p_sd,
-                         "error_bar": p_hat - r["truth_bar"], "reversals": int(len(r["alpha_n"])),
-                         "accel_mps2": a_med,
-                         "cluster": int(np.argmin(np.abs(centres - a_med))) if np.isfinite(a_med) else -1})
-        per_cluster = []
-        for k in range(len(clusters)):
-            e = np.array([row["error_bar"] for row in loro if row["cluster"] == k])
-            e = e[np.isfinite(e)]
-            per_cluster.append(float(np.sqrt(np.mean(e ** 2))) if len(e) else np.inf)
+        coef, sd_n, loro, per_cluster = validated(used, obs, centres, with_accel, common_gain=False)
         worst = int(np.argmax(per_cluster))
         if len(clusters) == 1 or per_cluster[worst] <= CLUSTER_MAX_LORO_BAR:
+            break
+        # An excitation with few runs cannot validate a gain of its own (two runs: one left to
+        # fit it on, at one charge); one gain for every excitation, each its own offset, may.
+        c_g = validated(used, obs, centres, with_accel, common_gain=True)
+        if max(c_g[3]) <= CLUSTER_MAX_LORO_BAR:
+            print(f"one gain for every excitation (|a| = {', '.join(f'{c:.2f}' for c in centres)} m/s²): "
+                  f"leave-one-run-out RMS {', '.join(f'{v:.2f}' for v in c_g[3])} bar; with a gain each, "
+                  f"{', '.join(f'{v:.2f}' for v in per_cluster)}")
+            coef, sd_n, loro, per_cluster = c_g
+            common = True
             break
         log.warning("reversals at |a| = %.2f m/s², %.3f s apart do not calibrate (leave-one-run-out RMS %.1f bar "
                     "> %.1f): the observer will skip them", *clusters[worst], per_cluster[worst], CLUSTER_MAX_LORO_BAR)
@@ -352,7 +348,31 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
     out["single_end_sd_bar"] = single_end_sd(used, out)
     return {"observer": out, "loro": loro, "loro_rms_bar": float(np.sqrt(np.mean(err[ok] ** 2))),
             "loro_rms_per_cluster_bar": [v if np.isfinite(v) else None for v in per_cluster], "dropped_clusters": dropped,
-            "systematic_loro_bar": sys_sd, "spacing_spread_rel": spread}
+            "systematic_loro_bar": sys_sd, "spacing_spread_rel": spread, "common_gain": common}
+
+
+def validated(used: Sequence[dict[str, Any]], obs: dict[str, Any], centres: np.ndarray, with_accel: bool,
+              common_gain: bool) -> tuple[np.ndarray, float, list[dict[str, Any]], list[float]]:
+    """``fit_measurement`` on ``used`` (each run's reversals at the excitations ``centres``), and
+    each run's charge read by the model fitted without it: the coefficients, their MAD spread,
+    the leave-one-run-out rows and their RMS per excitation (infinite for one no run read)."""
+    coef, sd_n = fit_measurement(used, obs, with_accel, common_gain)
+    loro = []
+    for i, r in enumerate(used):
+        others = [q for j, q in enumerate(used) if j != i]
+        c_i, sd_i = fit_measurement(others, obs, with_accel, common_gain)
+        p_hat, p_sd = charge_from(r, c_i, sd_i, obs)
+        a_med = float(np.median(np.abs(r["accel_mps2"]))) if len(r["accel_mps2"]) else np.nan
+        loro.append({"run": r["run"], "truth_bar": r["truth_bar"], "estimate_bar": p_hat, "stat_sd_bar": p_sd,
+                     "error_bar": p_hat - r["truth_bar"], "reversals": int(len(r["alpha_n"])),
+                     "accel_mps2": a_med,
+                     "cluster": int(np.argmin(np.abs(centres - a_med))) if np.isfinite(a_med) else -1})
+    per_cluster = []
+    for k in range(len(centres)):
+        e = np.array([row["error_bar"] for row in loro if row["cluster"] == k])
+        e = e[np.isfinite(e)]
+        per_cluster.append(float(np.sqrt(np.mean(e ** 2))) if len(e) else np.inf)
+    return coef, sd_n, loro, per_cluster
 
 
 def _end_bins(rev: dict[str, np.ndarray], keep: np.ndarray) -> Iterator[np.ndarray]:

@@ -393,6 +393,57 @@ def test_calibration_records_each_excitations_spacing() -> None:
                                   [True, False, False, True, False, False])
 
 
+def synthetic_reversals(charges_by_accel: dict[float, list[float]], gains: dict[float, float], seed: int) -> list[dict]:
+    """Reversal records of runs at known charges, as ``reversals`` gives them, with the measurement
+    model ``alpha = offset(|a|) + gain(|a|) p_g``, a per-run offset of 0.2 bar sd and the window
+    noise; warm (no cold term), the reversals at the stroke's ends (±30 mm)."""
+    rng = np.random.default_rng(seed)
+    obs = observer_physics()["observer"]
+    revs = []
+    for accel, charges in charges_by_accel.items():
+        spacing = 0.5 if accel < 3 else 0.25
+        for p in charges:
+            n = 200
+            sign = np.where(np.arange(n) % 2, 1.0, -1.0)
+            rev = {"run": f"p{p}-a{accel}", "truth_bar": p, "label_bar": np.full(n, p),
+                   "accel_mps2": accel * sign * (1 + 0.005 * rng.standard_normal(n)),
+                   "spacing_s": np.r_[np.nan, np.full(n - 1, spacing)], "gas_temp_c": np.full(n, 80.0),
+                   "extension_m": -0.03 * sign, "residual_mps2": np.full(n, 0.1)}
+            pg = (p + obs_tool.P_ATM_BAR) * obs_tool.theta(rev, obs) - obs_tool.P_ATM_BAR
+            run_offset = 0.2 * rng.standard_normal() * gains[accel]
+            rev["alpha_n"] = (30.0 - 0.2 * accel + 2.0 * sign + gains[accel] * pg + run_offset
+                              + 1.2 * rng.standard_normal(n))
+            revs.append(rev)
+    return revs
+
+
+def test_an_excitation_of_two_runs_is_read_with_one_gain_when_that_validates() -> None:
+    """Two runs at an excitation leave one to fit its own gain on, at one charge: the
+    leave-one-run-out check cannot pass, and the excitation was dropped. One gain for every
+    excitation (each its own offset) validates where the gain is common, and is refused where it
+    is not (a third lower at the fast excitation: its two runs, 10 bar apart, then read 5 bar off)."""
+    obs = observer_physics()["observer"]
+    slow = [0.5, 4.0, 7.0, 10.0, 12.0]
+    common = obs_tool.calibrate(synthetic_reversals({1.5: slow, 6.0: [0.5, 10.0]}, {1.5: 1.45, 6.0: 1.45}, 0),
+                                obs, 10.0)
+    assert common["common_gain"] and not common["dropped_clusters"]
+    o = common["observer"]
+    assert [round(c, 1) for c in o["accel_clusters_mps2"][:2]] == [1.5, 6.0] and o["accel_clusters_mps2"][2] == 0.0
+    assert o["step_per_bar_accel"] == 0.0 and abs(o["step_per_bar_n"] - 1.45) < 0.05
+    assert max(common["loro_rms_per_cluster_bar"]) < 1.0
+    # the same runs, the fast excitation's gain a third lower: no common gain, the excitation goes
+    apart = obs_tool.calibrate(synthetic_reversals({1.5: slow, 6.0: [0.5, 10.0]}, {1.5: 1.45, 6.0: 0.97}, 0),
+                               obs, 10.0)
+    assert not apart["common_gain"]
+    assert [round(d["accel_mps2"], 1) for d in apart["dropped_clusters"]] == [6.0]
+    assert apart["observer"]["accel_clusters_mps2"][1] == 0.0
+    # three runs at each: a gain each validates, and stays
+    each = obs_tool.calibrate(synthetic_reversals({1.5: slow, 6.0: [0.5, 7.0, 12.0]}, {1.5: 1.45, 6.0: 0.97}, 0),
+                              obs, 10.0)
+    assert not each["common_gain"] and not each["dropped_clusters"]
+    assert each["observer"]["step_per_bar_accel"] < -0.05
+
+
 def test_one_ends_spread_is_the_warm_bins_offsets() -> None:
     """``single_end_sd``: runs whose two ends read the charge off by known amounts (warm, so no
     cold term) give back the RMS of those offsets, the bins' noise taken off."""
