@@ -32,7 +32,10 @@ The per-reversal spread ``step_sd_n`` is the robust (MAD) spread of the residual
 Each reversal's slope ``ÿ_r`` is read from the accelerometers, the rod end's own acceleration
 (``--reversal-accel accelerometers``, the default; ``velocity-chord``: the Kalman velocity's
 chord, biased by end and frequency: docs/history.md, "Twenty-fifth session").
-An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
+Each excitation is validated leave one run out; one that fails with a gain of its own (``s + h |a|``:
+with two runs, one is left to fit it on, at a single charge) is tried with one gain for every
+excitation (``h = 0``, each its own offset) before it is dropped (docs/history.md, "Fifty-sixth
+session"). An excitation of the campaign that this one model misses (the simulated dyno's 4 Hz) gets a
 model of its own per end of the stroke, with a drift in the gas temperature, when it validates
 leave one run out; its reversals are then read at that excitation only (``--no-own-excitations``:
 skipped as before; docs/history.md, "4 Hz, read").
