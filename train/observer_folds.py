@@ -103,8 +103,10 @@ def shape(physics: dict[str, Any]) -> dict[str, Any]:
     """What a calibration made of the campaign's excitations."""
     o = physics["observer"]
     own = (o.get("excitations") or {}).get("own")
+    fit = (physics.get("fit") or {}).get("observer") or {}
     return {"accel_clusters_mps2": o["accel_clusters_mps2"], "own": own, "held_sd_bar": o.get("held_sd_bar", 0.0),
-            "cold_ref_c": o.get("cold_ref_c"), "max_residual_mps2": o.get("max_residual_mps2")}
+            "cold_ref_c": o.get("cold_ref_c"), "max_residual_mps2": o.get("max_residual_mps2"),
+            "common_gain": bool(fit.get("common_gain", False))}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

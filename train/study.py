@@ -549,7 +549,8 @@ def observer_folds_note(folds: list[dict[str, Any]], suites: bool) -> list[str]:
         f"they calibrated ranged {min(fastest):.1f}–{max(fastest):.1f} m/s² at the reversal "
         "(`results.json`, `observer_folds`). An excitation a fold's fit does not calibrate is skipped by its "
         "observer, which then holds its prior on the held-out runs at that excitation:\n",
-        "| fold's held-out runs | excitations calibrated (\\|ÿ\\| at the reversal, m/s²; *own*: a model of its own) |",
+        "| fold's held-out runs | excitations calibrated (\\|ÿ\\| at the reversal, m/s²; *own*: a model of its own; "
+        "*one gain for all*: the shared model's excitations hold one gain) |",
         "| --- | --- |",
     ]
     for f in folds:
@@ -557,7 +558,8 @@ def observer_folds_note(folds: list[dict[str, Any]], suites: bool) -> list[str]:
         own = c.get("own") or []
         cal = [f"{a:.1f}" + (" *own*" if k < len(own) and own[k] else "")
                for k, a in enumerate(c["accel_clusters_mps2"]) if a > 0]
-        L.append(f"| {', '.join(n.removesuffix('.mcap') for n in f['held_out'])} | {', '.join(cal)} |")
+        one = " (one gain for all)" if c.get("common_gain") else ""
+        L.append(f"| {', '.join(n.removesuffix('.mcap') for n in f['held_out'])} | {', '.join(cal)}{one} |")
     L.append("")
     return L
 

@@ -101,9 +101,12 @@ def test_the_reports_note_names_each_folds_calibrated_excitations() -> None:
     folds = [{"held_out": ["p4.0-f2.0-s1.mcap", "p7.0-f4.0-s1.mcap"],
               "calibration": {"accel_clusters_mps2": [1.52, 6.07, 24.1, 0.0], "own": [False, False, True, False]}},
              {"held_out": ["p0.5-f2.0-s1.mcap"], "calibration": {"accel_clusters_mps2": [1.52, 0.0, 0.0, 0.0],
-                                                                 "own": None}}]
+                                                                 "own": None}},
+             {"held_out": ["p7.0-f2.0-s1.mcap"], "calibration": {"accel_clusters_mps2": [1.52, 6.07, 0.0, 0.0],
+                                                                 "own": None, "common_gain": True}}]
     note = "\n".join(study.observer_folds_note(folds, suites=False))
-    assert "suites' folds" not in note and "2 calibrations for Table 2's folds" in note
+    assert "suites' folds" not in note and "3 calibrations for Table 2's folds" in note
     assert "| p4.0-f2.0-s1, p7.0-f4.0-s1 | 1.5, 6.1, 24.1 *own* |" in note
     assert "| p0.5-f2.0-s1 | 1.5 |" in note
+    assert "| p7.0-f2.0-s1 | 1.5, 6.1 (one gain for all) |" in note
     assert "Table 2's folds and the suites' folds" in "\n".join(study.observer_folds_note(folds, suites=True))
