@@ -325,6 +325,8 @@ def calibrate(revs: Sequence[dict[str, Any]], obs: dict[str, Any], unit_tol_pct:
             coef, sd_n, loro, per_cluster = c_g
             common = True
             break
+        log.warning("one gain for every excitation (|a| = %s m/s²) does not validate either: leave-one-run-out "
+                    "RMS %s bar", ", ".join(f"{c:.2f}" for c in centres), ", ".join(f"{v:.1f}" for v in c_g[3]))
         log.warning("reversals at |a| = %.2f m/s², %.3f s apart do not calibrate (leave-one-run-out RMS %.1f bar "
                     "> %.1f): the observer will skip them", *clusters[worst], per_cluster[worst], CLUSTER_MAX_LORO_BAR)
         dropped.append({"accel_mps2": clusters[worst][0], "spacing_s": clusters[worst][1],
