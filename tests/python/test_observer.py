@@ -421,7 +421,7 @@ def test_an_excitation_of_two_runs_is_read_with_one_gain_when_that_validates() -
     """Two runs at an excitation leave one to fit its own gain on, at one charge: the
     leave-one-run-out check cannot pass, and the excitation was dropped. One gain for every
     excitation (each its own offset) validates where the gain is common, and is refused where it
-    is not (a third lower at the fast excitation: its two runs, 10 bar apart, then read 5 bar off)."""
+    is not (a third lower at the fast excitation, whose two runs are 10 bar apart)."""
     obs = observer_physics()["observer"]
     slow = [0.5, 4.0, 7.0, 10.0, 12.0]
     common = obs_tool.calibrate(synthetic_reversals({1.5: slow, 6.0: [0.5, 10.0]}, {1.5: 1.45, 6.0: 1.45}, 0),
