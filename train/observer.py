@@ -778,7 +778,7 @@ def own_model_on_the_line(cal: dict[str, Any], alt: dict[str, Any], fastest: flo
 
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    per_run: int, min_span_k: float, beta_per_k: float | None = None,
-                   form: str = "hinges", loadcell: bool = False, widen: bool = False) -> dict[str, Any] | None:
+                   form: str = "hinges", loadcell: bool = False) -> dict[str, Any] | None:
     """The window model's damping law, fitted on the nominal runs' reversal windows
     (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
@@ -786,15 +786,14 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
     (``fit_valve_law_windows``, started from the hinges' fit); ``valves``: that one refined
     with a compression valve too (``fit_valves_law_windows``); ``twin-tube``: that one with
-    the compression valve split in two, base and piston (``fit_twin_law_windows``). ``widen``:
-    the windows as ``law_windows`` widens them when they come from one excitation."""
+    the compression valve split in two, base and piston (``fit_twin_law_windows``)."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_twin_law_windows,
                                    fit_valve_law_windows, fit_valves_law_windows, loadcell_law_rows,
                                    reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
-    wins = law_windows(reversal_windows(runs, physics, obs, per_run), obs["accel_cluster_rel"], widen,
-                       LAW_WINDOW_MAX_RESIDUAL_MPS2)
+    wins = [w for w in reversal_windows(runs, physics, obs, per_run)
+            if w["residual0"] <= LAW_WINDOW_MAX_RESIDUAL_MPS2]
     if not wins:
         log.warning("no reversal window on the nominal runs: no damping law")
         return None
@@ -833,31 +832,6 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
           f"{'fitted' if beta_per_k is None else 'the datasheet oil'})")
     return fit["law"]
-
-
-def law_windows(wins: Sequence[dict[str, Any]], rel: float, widen: bool, cut: float) -> list[dict[str, Any]]:
-    """The nominal runs' reversal windows the damping law is fitted on: those the linear law
-    misses by ``cut`` (``LAW_WINDOW_MAX_RESIDUAL_MPS2``) or less. With ``widen``, when those
-    come from one excitation only (their ``|ÿ_r|`` within ``rel`` of each other), every window
-    up to ``OWN_MAX_RESIDUAL_MPS2``: a law fitted at one excitation knows the stroke's
-    velocities only near rest (±0.05 m/s at the simulated dyno's 1 Hz) and is extrapolated at
-    the faster ones, where the observer's window fit then fails. In the fifty-seventh session
-    (docs/history.md) a fold of the full simulated campaign without the 2 Hz nominal run fitted
-    its law on the 1 Hz windows alone; no 4 Hz reversal then fitted at the ÿ < 0 end and its
-    model of its own could not be made (`n/a`); with the 4 Hz nominal run's windows up to
-    1.5 m/s² (27 of 40) both ends fitted and that model validated at 0.06 bar."""
-    kept = [w for w in wins if w["residual0"] <= cut]
-    if not widen or not kept:
-        return kept
-    acc = [abs(w["accel"]) for w in kept]
-    if max(acc) > (1.0 + rel) * min(acc):
-        return kept
-    wide = [w for w in wins if w["residual0"] <= OWN_MAX_RESIDUAL_MPS2]
-    if len(wide) > len(kept):
-        print(f"damping law: its windows under {cut:g} m/s² come from one excitation (|ÿ_r| ≈ "
-              f"{np.median(acc):.2f} m/s²); the nominal runs' windows up to {OWN_MAX_RESIDUAL_MPS2:g} m/s² "
-              f"join them ({len(wide) - len(kept)} more)")
-    return wide
 
 
 def law_min_span_k(damping: str, beta_per_k: float | None) -> float:
@@ -1015,7 +989,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows, law_min_span_k(args.damping, beta_per_k),
                              beta_per_k,
-                             args.law_form, args.law_loadcell == "auto", args.widen_law)
+                             args.law_form, args.law_loadcell == "auto")
         if law is None and args.damping == "law":
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
     if law is not None:
@@ -1951,11 +1925,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "\"Thirtieth session\")")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
-    f.add_argument("--widen-law", action="store_true",
-                   help="when the nominal windows the damping law is fitted on come from one excitation only, "
-                        f"let the other nominal windows up to {OWN_MAX_RESIDUAL_MPS2:g} m/s² join (a law fitted at "
-                        "one excitation is extrapolated at the faster ones; docs/history.md, \"Fifty-seventh "
-                        "session\")")
     f.add_argument("--scale-prior-sd", type=float, default=SCALE_PRIOR_SD,
                    help="with a damping law, a prior sd on each window's per-side law scales about 1 "
                         "(dt-core ObserverParams::scale_prior_sd; 0: none)")

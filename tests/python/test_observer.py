@@ -417,25 +417,6 @@ def synthetic_reversals(charges_by_accel: dict[float, list[float]], gains: dict[
     return revs
 
 
-def test_a_law_fitted_at_one_excitation_takes_the_faster_windows_only_when_widened() -> None:
-    """The damping law's windows: those under the law's cut, and with ``widen`` every nominal
-    window up to the own-excitation cut when the ones under it come from one excitation only
-    (a law fitted near rest alone is extrapolated at the faster excitations). With two
-    excitations under the cut, or without ``widen``, nothing changes; no window over the
-    own-excitation cut ever joins."""
-    cut, rel = 0.8, 0.2
-    slow = [{"accel": s * 1.5, "residual0": 0.07} for s in (1, -1) * 10]
-    fast = [{"accel": s * 24.0, "residual0": r} for s in (1, -1) for r in (0.9, 1.4, 1.6)]
-    mid = [{"accel": s * 6.0, "residual0": 0.5} for s in (1, -1)]
-
-    assert obs_tool.law_windows(slow + fast, rel, False, cut) == slow
-    widened = obs_tool.law_windows(slow + fast, rel, True, cut)
-    assert widened == slow + [w for w in fast if w["residual0"] <= obs_tool.OWN_MAX_RESIDUAL_MPS2]
-    assert len(widened) == len(slow) + 4
-    assert obs_tool.law_windows(slow + mid + fast, rel, True, cut) == slow + mid
-    assert obs_tool.law_windows(fast, rel, True, cut) == []
-
-
 def test_an_excitation_of_two_runs_is_read_with_one_gain_when_that_validates() -> None:
     """Two runs at an excitation leave one to fit its own gain on, at one charge: the
     leave-one-run-out check cannot pass, and the excitation was dropped. One gain for every
