@@ -778,7 +778,7 @@ def own_model_on_the_line(cal: dict[str, Any], alt: dict[str, Any], fastest: flo
 
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    per_run: int, min_span_k: float, beta_per_k: float | None = None,
-                   form: str = "hinges", loadcell: bool = False) -> dict[str, Any] | None:
+                   form: str = "hinges", loadcell: bool = False, complete: bool = False) -> dict[str, Any] | None:
     """The window model's damping law, fitted on the nominal runs' reversal windows
     (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
@@ -786,12 +786,19 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
     (``fit_valve_law_windows``, started from the hinges' fit); ``valves``: that one refined
     with a compression valve too (``fit_valves_law_windows``); ``twin-tube``: that one with
-    the compression valve split in two, base and piston (``fit_twin_law_windows``)."""
+    the compression valve split in two, base and piston (``fit_twin_law_windows``). ``complete``:
+    the nominal runs completed by ``law_runs``."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_twin_law_windows,
                                    fit_valve_law_windows, fit_valves_law_windows, loadcell_law_rows,
                                    reversal_windows)
 
     runs = campaign.nominal(physics.get("nominal_bar", 12.0))
+    if complete:
+        more = law_runs(campaign.runs, runs)
+        if more:
+            print("damping law: the nominal runs lack " + ", ".join(f"{r.frequency_hz:g} Hz" for r in more)
+                  + "; the highest charge's run there stands in: " + ", ".join(r.name for r in more))
+        runs = runs + more
     wins = [w for w in reversal_windows(runs, physics, obs, per_run)
             if w["residual0"] <= LAW_WINDOW_MAX_RESIDUAL_MPS2]
     if not wins:
@@ -832,6 +839,27 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
           f"{'fitted' if beta_per_k is None else 'the datasheet oil'})")
     return fit["law"]
+
+
+def law_runs(runs: Sequence[Run], nominal: Sequence[Run]) -> list[Run]:
+    """The runs that stand in for the nominal runs the campaign lacks, for the damping law: at
+    each excitation frequency of ``runs`` that no ``nominal`` run has, the run of the highest
+    charge (runs without a frequency are not matched). Each law window has an amplitude of its
+    own, so the charge does not enter the law; the highest charge cavitates least. A law
+    fitted on one excitation's windows knows the stroke speeds near rest only: in the
+    fifty-seventh session (docs/history.md) a fold of the full simulated campaign without its
+    2 Hz nominal run fitted its law on the 1 Hz windows alone (the 4 Hz ones miss its cut),
+    and its observer then read neither 2 nor 4 Hz; with the 10 bar 2 Hz run standing in it
+    calibrated 1, 2 and 4 Hz and read the fold's held-out runs at 0.37 bar RMSE, not 2.20."""
+    have = {r.frequency_hz for r in nominal}
+    best: dict[float, Run] = {}
+    for r in runs:
+        f = r.frequency_hz
+        if f is None or f in have or r.label_bar is None:
+            continue
+        if f not in best or r.label_bar > best[f].label_bar:  # type: ignore[operator]
+            best[f] = r
+    return list(best.values())  # in the campaign's order of the frequencies' first runs
 
 
 def law_min_span_k(damping: str, beta_per_k: float | None) -> float:
@@ -989,7 +1017,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.damping in ("law", "auto"):
         law = damping_law_of(campaign, physics, obs, args.law_windows, law_min_span_k(args.damping, beta_per_k),
                              beta_per_k,
-                             args.law_form, args.law_loadcell == "auto")
+                             args.law_form, args.law_loadcell == "auto", args.law_runs == "complete")
         if law is None and args.damping == "law":
             raise SystemExit("--damping law: no reversal window on the nominal runs to fit the law on")
     if law is not None:
@@ -1925,6 +1953,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "\"Thirtieth session\")")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
+    f.add_argument("--law-runs", choices=("nominal", "complete"), default="nominal",
+                   help="the runs the damping law is fitted on: the nominal runs, or (complete) those plus, at each "
+                        "excitation frequency they lack, the run of the highest charge (docs/history.md, "
+                        "\"Fifty-seventh session\"; not yet the default: the study was not rerun with it)")
     f.add_argument("--scale-prior-sd", type=float, default=SCALE_PRIOR_SD,
                    help="with a damping law, a prior sd on each window's per-side law scales about 1 "
                         "(dt-core ObserverParams::scale_prior_sd; 0: none)")

@@ -13,6 +13,7 @@ measured per fold. This command runs the study's held-out protocol for those per
 
     python -m train.observer_folds --campaign DIR --physics physics.json --out DIR
         [--datasheet FILE] [--permutations 17,18,19] [--quick] [--folds K] [--seed 0] [--jobs 2]
+        [--law-runs nominal|complete]
 
 Writes ``DIR/observer_folds.json`` (per permutation its held-out scores and runs, per fold the
 runs held out and the shape the fit took) and each fold's calibration under ``DIR/fold-K/``.
@@ -40,11 +41,12 @@ GEOMETRY = ("a_rod_m2", "v_gas_m3", "oil_expansion_m3_per_k")
 
 
 def fold_physics(physics: dict[str, Any], runs: Sequence[Any], held: Sequence[int], work: Path,
-                 datasheet: Path | None, jobs: int) -> dict[str, Any]:
+                 datasheet: Path | None, jobs: int, fit_args: Sequence[str] = ()) -> dict[str, Any]:
     """``physics`` with its observer calibrated on the runs not in ``held`` (symbolic links to them
     in ``work/campaign``); the calibration is kept in ``work/physics.json``. Without a
     ``datasheet`` the fit takes the given observer's geometry (``a_rod_m2``, ``v_gas_m3``,
-    ``oil_expansion_m3_per_k``, datasheet values, not fitted), so that only its runs differ."""
+    ``oil_expansion_m3_per_k``, datasheet values, not fitted), so that only its runs differ.
+    ``fit_args``: more options of ``observer fit``."""
     camp = work / "campaign"
     if camp.exists():  # a run before this one into the same --out: its links go
         shutil.rmtree(camp)
@@ -64,7 +66,7 @@ def fold_physics(physics: dict[str, Any], runs: Sequence[Any], held: Sequence[in
         geometry = {k: physics["observer"][k] for k in GEOMETRY if k in physics["observer"]}
         datasheet = work / "datasheet.json"
         datasheet.write_text(json.dumps(geometry, indent=2) + "\n")
-    argv = ["fit", "--campaign", str(camp), "--physics", str(out), "--jobs", str(jobs)]
+    argv = ["fit", "--campaign", str(camp), "--physics", str(out), "--jobs", str(jobs), *fit_args]
     if datasheet is not None:
         argv += ["--datasheet", str(datasheet)]
     if observer_tool.main(argv) != 0:
@@ -78,8 +80,10 @@ class FoldObservers:
     ``train.study.evaluate_permutation_set`` takes it for the permutations that read the
     observer; each fold's calibration is kept under ``work/fold-K`` (K in the order asked)."""
 
-    def __init__(self, data: dataset.CampaignData, work: Path, datasheet: Path | None, jobs: int) -> None:
+    def __init__(self, data: dataset.CampaignData, work: Path, datasheet: Path | None, jobs: int,
+                 fit_args: Sequence[str] = ()) -> None:
         self.data, self.work, self.datasheet, self.jobs = data, work, datasheet, jobs
+        self.fit_args = tuple(fit_args)
         self._folds: dict[tuple[int, ...], dataset.CampaignData] = {}
 
     def __call__(self, held: Sequence[int]) -> dataset.CampaignData:
@@ -88,7 +92,7 @@ class FoldObservers:
             runs = self.data.campaign.runs
             log.info("calibrating the observer without %s", ", ".join(runs[i].path.name for i in key))
             phys = fold_physics(self.data.physics, runs, key, self.work / f"fold-{len(self._folds)}",
-                                self.datasheet, self.jobs)
+                                self.datasheet, self.jobs, self.fit_args)
             self._folds[key] = self.data.recalibrated(phys)
         return self._folds[key]
 
@@ -124,6 +128,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--folds", type=int, help="folds (default: the study's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--law-runs", choices=("nominal", "complete"), default="nominal",
+                   help="each fold's `observer fit --law-runs`")
     args = p.parse_args(argv)
 
     campaign = load_campaign(args.campaign)
@@ -142,7 +148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
 
     data = dataset.CampaignData(campaign, physics)
-    folds = FoldObservers(data, args.out, args.datasheet, args.jobs)
+    folds = FoldObservers(data, args.out, args.datasheet, args.jobs, ["--law-runs", args.law_runs])
     rows, _ = study.evaluate_permutation_set(data, [dict(perms[pid], key=pid) for pid in wanted], cfg, folds=k,
                                              per_run=cfg.per_run, max_iter=cfg.max_iter, paper=False,
                                              in_sample=False, fold_observers=folds)

@@ -417,6 +417,23 @@ def synthetic_reversals(charges_by_accel: dict[float, list[float]], gains: dict[
     return revs
 
 
+def test_the_law_takes_the_highest_charge_run_at_each_excitation_the_nominal_runs_lack() -> None:
+    """``--law-runs complete``: at each frequency no nominal run has, the run of the highest
+    charge stands in (its windows' amplitudes are free, so the charge does not enter the law);
+    frequencies the nominal runs have, and runs without a frequency, add nothing."""
+    from types import SimpleNamespace
+
+    def run(bar: float | None, hz: float | None) -> SimpleNamespace:
+        return SimpleNamespace(label_bar=bar, frequency_hz=hz, name=f"p{bar}-f{hz}")
+
+    runs = [run(0.5, 1.0), run(0.5, 2.0), run(10.0, 2.0), run(4.0, 2.0), run(7.0, 4.0), run(12.0, 1.0),
+            run(12.0, 4.0), run(11.0, None), run(None, 3.0)]
+    nominal = [r for r in runs if r.label_bar == 12.0]
+    assert [r.name for r in obs_tool.law_runs(runs, nominal)] == ["p10.0-f2.0"]
+    assert [r.name for r in obs_tool.law_runs(runs, nominal[:1])] == ["p10.0-f2.0", "p12.0-f4.0"]
+    assert obs_tool.law_runs(runs, runs[:7]) == []
+
+
 def test_an_excitation_of_two_runs_is_read_with_one_gain_when_that_validates() -> None:
     """Two runs at an excitation leave one to fit its own gain on, at one charge: the
     leave-one-run-out check cannot pass, and the excitation was dropped. One gain for every
