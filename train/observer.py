@@ -834,8 +834,8 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                   "with the loadcell rows:")
             fit = fit_twin_law_windows(wins, physics, obs, start=fit, loadcell=rows)
             print(f"damping law with the loadcell rows: the loadcell {fit['loadcell_rms_n']:.1f} N RMS")
-    print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} nominal runs "
-          f"(simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
+    print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} "
+          f"{'runs' if complete else 'nominal runs'} (simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
           f"{'fitted' if beta_per_k is None else 'the datasheet oil'})")
     return fit["law"]
