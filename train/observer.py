@@ -1953,10 +1953,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "\"Thirtieth session\")")
     f.add_argument("--law-windows", type=int, default=40,
                    help="reversal windows per nominal run the damping law is fitted on")
-    f.add_argument("--law-runs", choices=("nominal", "complete"), default="nominal",
-                   help="the runs the damping law is fitted on: the nominal runs, or (complete) those plus, at each "
-                        "excitation frequency they lack, the run of the highest charge (docs/history.md, "
-                        "\"Fifty-seventh session\"; not yet the default: the study was not rerun with it)")
+    f.add_argument("--law-runs", choices=("nominal", "complete"), default="complete",
+                   help="the runs the damping law is fitted on: the nominal runs, or (complete, the default) those "
+                        "plus, at each excitation frequency they lack, the run of the highest charge (docs/history.md, "
+                        "\"Fifty-seventh session\")")
     f.add_argument("--scale-prior-sd", type=float, default=SCALE_PRIOR_SD,
                    help="with a damping law, a prior sd on each window's per-side law scales about 1 "
                         "(dt-core ObserverParams::scale_prior_sd; 0: none)")

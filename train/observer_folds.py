@@ -128,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--folds", type=int, help="folds (default: the study's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
-    p.add_argument("--law-runs", choices=("nominal", "complete"), default="nominal",
+    p.add_argument("--law-runs", choices=("nominal", "complete"), default="complete",
                    help="each fold's `observer fit --law-runs`")
     args = p.parse_args(argv)
 
