@@ -778,7 +778,7 @@ def own_model_on_the_line(cal: dict[str, Any], alt: dict[str, Any], fastest: flo
 
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    per_run: int, min_span_k: float, beta_per_k: float | None = None,
-                   form: str = "hinges", loadcell: bool = False, complete: bool = False) -> dict[str, Any] | None:
+                   form: str = "hinges", loadcell: bool = False, complete: bool = True) -> dict[str, Any] | None:
     """The window model's damping law, fitted on the nominal runs' reversal windows
     (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
