@@ -779,15 +779,14 @@ def own_model_on_the_line(cal: dict[str, Any], alt: dict[str, Any], fastest: flo
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    per_run: int, min_span_k: float, beta_per_k: float | None = None,
                    form: str = "hinges", loadcell: bool = False, complete: bool = True) -> dict[str, Any] | None:
-    """The window model's damping law, fitted on the nominal runs' reversal windows
-    (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
+    """The window model's damping law, fitted on the reversal windows of the nominal runs, with
+    ``complete`` (the default) those completed by ``law_runs`` (``train.damping_law``; ``beta_per_k``: the oil's viscosity coefficient from the
     datasheet, held); None (with the reason) without nominal windows or when they span less
     than ``min_span_k`` of oil temperature. The hinges' law is fitted in stages
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
     (``fit_valve_law_windows``, started from the hinges' fit); ``valves``: that one refined
     with a compression valve too (``fit_valves_law_windows``); ``twin-tube``: that one with
-    the compression valve split in two, base and piston (``fit_twin_law_windows``). ``complete``:
-    the nominal runs completed by ``law_runs``."""
+    the compression valve split in two, base and piston (``fit_twin_law_windows``)."""
     from train.damping_law import (LAW_WINDOW_MAX_RESIDUAL_MPS2, fit_law_staged, fit_twin_law_windows,
                                    fit_valve_law_windows, fit_valves_law_windows, loadcell_law_rows,
                                    reversal_windows)
