@@ -146,6 +146,13 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
     // Files still changing: (size, modification time) when first seen so, and when.
     let mut unsettled: HashMap<PathBuf, ((u64, Option<SystemTime>), Instant)> = HashMap::new();
     loop {
+        // The names renamed in *before* the listing: only those can be judged
+        // by it (a rename reported between the listing and now is kept for
+        // the next pass, which its event wakes).
+        let reported = renamed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
         let files = match pending_files(&src.dir) {
             Ok(f) => f,
             Err(e) => {
@@ -155,11 +162,14 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             }
         };
         let complete = {
-            let mut set = renamed.lock().unwrap_or_else(PoisonError::into_inner);
             let present: HashSet<&std::ffi::OsStr> =
                 files.iter().filter_map(|p| p.file_name()).collect();
-            set.retain(|n| present.contains(n.as_os_str()));
-            set.clone()
+            forget_gone(
+                &mut renamed.lock().unwrap_or_else(PoisonError::into_inner),
+                &reported,
+                &present,
+            );
+            reported
         };
         for path in files {
             if ctx.cancel.is_cancelled() {
@@ -194,6 +204,18 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             () = tokio::time::sleep(next) => {}
         }
     }
+}
+
+/// Forgets the names of `renamed` that were `reported` before a listing and
+/// are not `present` in it (renamed in, then away). A name reported after the
+/// listing is kept whatever the listing says: its file may have arrived just
+/// after it (forgetting it made a renamed file wait to settle).
+fn forget_gone(
+    renamed: &mut HashSet<OsString>,
+    reported: &HashSet<OsString>,
+    present: &HashSet<&std::ffi::OsStr>,
+) {
+    renamed.retain(|n| present.contains(n.as_os_str()) || !reported.contains(n));
 }
 
 /// Paths renamed into the inbox remembered at most (a directory flooded with
@@ -364,4 +386,25 @@ async fn move_to(from: &Path, to: &Path) -> Result<(), String> {
     tokio::fs::rename(from, to)
         .await
         .map_err(|e| format!("cannot move {} to {}: {e}", from.display(), to.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(v: &[&str]) -> HashSet<OsString> {
+        v.iter().map(OsString::from).collect()
+    }
+
+    #[test]
+    fn a_rename_reported_after_the_listing_is_not_forgotten() {
+        // The listing ran before `late.mcap` was renamed in; its event came
+        // before the names were pruned: it must survive to the next pass.
+        let mut renamed = names(&["gone.mcap", "here.mcap", "late.mcap"]);
+        let reported = names(&["gone.mcap", "here.mcap"]);
+        let listed = names(&["here.mcap"]);
+        let present: HashSet<&std::ffi::OsStr> = listed.iter().map(OsString::as_os_str).collect();
+        forget_gone(&mut renamed, &reported, &present);
+        assert_eq!(renamed, names(&["here.mcap", "late.mcap"]));
+    }
 }
