@@ -272,11 +272,14 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
         return true;
     };
     let source = format!("inbox {name}");
+    // The file read, to move only that one (not another renamed over it since).
+    let mut read = None;
     let report = if completed_before_restart(ctx, path, &source).await {
         None
     } else {
         let report = match tokio::fs::File::open(path).await {
             Ok(file) => {
+                read = file.metadata().await.ok().map(|m| file_id(&m));
                 ctx.ingest
                     .ingest_stream(SourceKind::Inbox, source.clone(), file, &ctx.cancel, None)
                     .await
@@ -302,6 +305,20 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
     };
     let m = ctx.ingest.metrics();
     let done = report.as_ref().is_none_or(RunReport::ok);
+    if read.is_some() {
+        match tokio::fs::metadata(path).await.ok().map(|m| file_id(&m)) {
+            // Gone since it was read (someone else took it): nothing to move.
+            None => return true,
+            // Another file was renamed over it while it was read: that one
+            // is new and waits for the next pass (its rename woke it).
+            Some(now) if Some(now) != read => {
+                tracing::warn!(file = %path.display(),
+                    "replaced while it was read: the new file is left for the next pass");
+                return true;
+            }
+            Some(_) => {}
+        }
+    }
     let moved = match &report {
         Some(report) if !report.ok() => {
             let reason_path = dir.join(FAILED_DIR).join(format!("{name}.reason.txt"));
@@ -380,6 +397,20 @@ async fn run_of(path: &Path) -> Option<(String, String)> {
         }
     }
     None
+}
+
+/// What tells one file from another at the same path.
+#[cfg(unix)]
+fn file_id(m: &std::fs::Metadata) -> (u64, u64) {
+    use std::os::unix::fs::MetadataExt as _;
+    (m.dev(), m.ino())
+}
+
+/// What tells one file from another at the same path (the size and
+/// modification time, where no inode number is at hand).
+#[cfg(not(unix))]
+fn file_id(m: &std::fs::Metadata) -> (u64, Option<SystemTime>) {
+    (m.len(), m.modified().ok())
 }
 
 async fn move_to(from: &Path, to: &Path) -> Result<(), String> {

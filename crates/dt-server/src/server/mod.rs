@@ -408,6 +408,8 @@ pub async fn run(
         .http
         .local_addr()
         .map_or_else(|e| e.to_string(), |a| a.to_string());
+    // Ready before the API is served, so that its first `/readyz` says so.
+    ready.store(true, Ordering::Relaxed);
     let http_task = match tls.map(|t| t.http) {
         None => tokio::spawn(
             axum::serve(listeners.http, app)
@@ -416,7 +418,6 @@ pub async fn run(
         ),
         Some(tls) => spawn_https(listeners.http, app, tls, http_stop.clone())?,
     };
-    ready.store(true, Ordering::Relaxed);
     tracing::info!(http = %http_addr, twin = %twins.describe(), "serving");
 
     shutdown.await;

@@ -242,9 +242,11 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
                     }
                 }
             }
-            ingest.metrics().connections_active.dec();
+            // The slots first: once the gauge reads the connection gone, a
+            // new one finds its slot free.
             drop(permit);
             drop(slot);
+            ingest.metrics().connections_active.dec();
         });
     }
 }

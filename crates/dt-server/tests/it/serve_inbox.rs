@@ -73,6 +73,13 @@ async fn inbox_files_are_processed_once_and_moved() {
             && mcap_in(&inbox.join("failed")) == 3
     })
     .await;
+    // A file is counted just after its move.
+    wait_until("the files counted", || async {
+        let m = d.metrics().await;
+        metric(&m, "shocktwin_inbox_files_total{kind=\"done\"}") == Some(2.0)
+            && metric(&m, "shocktwin_inbox_files_total{kind=\"failed\"}") == Some(3.0)
+    })
+    .await;
 
     assert_eq!(names(&inbox.join("done")), ["a.mcap", "b.mcap"]);
     assert_eq!(
@@ -172,7 +179,9 @@ async fn a_file_still_being_copied_waits_until_it_settles() {
     // later; both halves used to end in failed/.
     let root = tempfile::tempdir().unwrap();
     let inbox = root.path().join("inbox");
-    let d = daemon_on_inbox(&inbox, 2.0).await;
+    // 3.8 s to spare after the 1.2 s pause: a loaded CI machine may stall
+    // the test that long.
+    let d = daemon_on_inbox(&inbox, 5.0).await;
     let run = good_stream("inb-slow", "rslow", 0, 1500);
     let (head, tail) = run.bytes.split_at(run.bytes.len() / 2);
     let path = inbox.join("slow.mcap");
@@ -227,6 +236,47 @@ async fn a_file_renamed_into_the_inbox_is_taken_at_once() {
     assert!(
         inbox.join("in-place.mcap").exists(),
         "a file written in place was taken before it settled"
+    );
+    assert!(files_in(&inbox.join("failed")).is_empty());
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_file_renamed_over_one_being_read_is_processed_not_moved_unread() {
+    // The file being read is replaced (renamed over) before it ends: the new
+    // one must be processed, not moved to done/ in the old one's place.
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    let d = daemon_on_inbox(&inbox, 600.0).await;
+    wait_until("the daemon's /readyz", || async {
+        d.get("/readyz").await.status() == 200
+    })
+    .await;
+    let first = good_stream("inb-first", "rfirst", 0, 300_000);
+    let second = good_stream("inb-second", "rsecond", 0, 1500);
+    drop_file(&inbox, "run.mcap", &first.bytes);
+    wait_until("the first file being read", || async {
+        d.asset_ticks("inb-first").await > 0
+    })
+    .await;
+    drop_file(&inbox, "run.mcap", &second.bytes);
+    let read_then = d.asset_ticks("inb-first").await;
+    assert!(
+        read_then < first.ticks,
+        "the first file was read to its end before the second came ({read_then} ticks): \
+         the test did not try what it is for"
+    );
+    wait_until("the second file's run", || async {
+        d.asset_ticks("inb-second").await == second.ticks
+    })
+    .await;
+    wait_until("the second file done", || async {
+        names(&inbox.join("done")) == ["run.mcap"]
+    })
+    .await;
+    assert_eq!(
+        std::fs::read(inbox.join("done").join("run.mcap")).unwrap(),
+        second.bytes
     );
     assert!(files_in(&inbox.join("failed")).is_empty());
     d.stop().await;
