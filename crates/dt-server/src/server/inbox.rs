@@ -8,7 +8,10 @@
 //! are deterministic, so that rewrites the same recordings. Nothing is done
 //! twice either: a file whose run the fleet store already holds as completed
 //! from this inbox name (the daemon stopped between the store's commit and
-//! the move) is moved to `done/` without being processed again.
+//! the move) is moved to `done/` without being processed again. A file
+//! renamed over the one being read is not moved unread in its place: the move
+//! checks that the path still holds the file read (device and inode), and
+//! leaves a new one for the next pass.
 //!
 //! Only `*.mcap` files not starting with `.` are taken: write a file under
 //! another name (e.g. `run.mcap.part`) and rename it when complete; a file
