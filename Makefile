@@ -21,7 +21,7 @@ DATASHEET ?= docs/datasheet.example.toml
 RUST_SRC := $(shell find crates benches -name '*.rs' -o -name Cargo.toml 2>/dev/null) $(shell find crates/dt-server/assets -type f 2>/dev/null) Cargo.toml
 PY_EXT_SRC := $(shell find crates/dt-core crates/dt-py crates/workspace-hack -name '*.rs' -o -name Cargo.toml -o -name '*.py' -o -name '*.pyi' -o -name pyproject.toml 2>/dev/null)
 
-.PHONY: help setup build wheel browser demo test test-rust test-python lint fuzz bench bench-python load-test bench-nats study clean
+.PHONY: help setup build wheel browser demo test test-rust test-python lint fuzz bench bench-python load-test bench-nats study pgo clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -157,6 +157,27 @@ bench: ## criterion benches (see README for the figures)
 
 bench-python: $(VENV)/.deps $(BIN) ## the Python reference (mcap, filterpy, scipy, onnxruntime) beside `shocktwin replay` on a 1 h log
 	$(PY) benches/python_reference.py
+
+# Profile-guided optimisation (the rustc book's recipe, with rustup's llvm-tools): an
+# instrumented build replays a simulated quick campaign, then the profile guides a second build.
+# Opt-in: two more compilations of everything (≈ 17 min on 2 cores); docs/perf.md has the figures.
+PGO_DIR       := target/pgo
+PGO_PROFDATA  = $(shell rustc --print sysroot)/lib/rustlib/$(shell rustc -vV | sed -n 's/^host: //p')/bin/llvm-profdata
+pgo: ## opt-in: `shocktwin` built with profile-guided optimisation into target/pgo/release (≈ 17 min; see docs/perf.md)
+	@command -v rustup >/dev/null || { echo "make pgo needs rustup (for its llvm-tools component)" >&2; exit 1; }
+	rustup component add llvm-tools
+	rm -rf $(PGO_DIR)/profiles $(PGO_DIR)/campaign && mkdir -p $(PGO_DIR)/profiles
+	RUSTFLAGS="-Cprofile-generate=$(abspath $(PGO_DIR)/profiles)" \
+	  $(CARGO) build --release --target-dir $(PGO_DIR)/instrumented -p dt-server --bin shocktwin
+	@# What the build scripts wrote is not the workload.
+	rm -rf $(PGO_DIR)/profiles && mkdir -p $(PGO_DIR)/profiles
+	$(PGO_DIR)/instrumented/release/shocktwin simulate --quick --out $(PGO_DIR)/campaign >/dev/null
+	$(PGO_DIR)/instrumented/release/shocktwin replay --model crates/dt-core/tests/fixtures/bundle-mlp13 \
+	  $(PGO_DIR)/campaign/*.mcap --out $(PGO_DIR)/campaign/estimates.csv | tail -n 1
+	"$(PGO_PROFDATA)" merge -o $(PGO_DIR)/merged.profdata $(PGO_DIR)/profiles
+	RUSTFLAGS="-Cprofile-use=$(abspath $(PGO_DIR)/merged.profdata)" \
+	  $(CARGO) build --release --target-dir $(PGO_DIR) -p dt-server --bin shocktwin
+	@echo "built $(PGO_DIR)/release/shocktwin (profile-guided; the default build is $(BIN))"
 
 LOAD_ASSETS ?= 100,200,300,400,500
 bench-nats: $(VENV)/.deps $(BIN) ## throughput of the NATS worker group, 1 vs 2 workers, on a real nats-server (a bench, minutes; simulated data)
