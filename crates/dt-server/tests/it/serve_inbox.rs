@@ -252,7 +252,10 @@ async fn a_file_renamed_over_one_being_read_is_processed_not_moved_unread() {
         d.get("/readyz").await.status() == 200
     })
     .await;
-    let first = good_stream("inb-first", "rfirst", 0, 300_000);
+    // Fifteen minutes, so that it is still being read when the second
+    // comes: of a five-minute run, a release build had read 1-23 % by then
+    // (five tries on a loaded machine).
+    let first = good_stream("inb-first", "rfirst", 0, 900_000);
     let second = good_stream("inb-second", "rsecond", 0, 1500);
     drop_file(&inbox, "run.mcap", &first.bytes);
     wait_until("the first file being read", || async {
