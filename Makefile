@@ -160,10 +160,10 @@ bench-python: $(VENV)/.deps $(BIN) ## the Python reference (mcap, filterpy, scip
 
 # Profile-guided optimisation (the rustc book's recipe, with rustup's llvm-tools): an
 # instrumented build replays a simulated quick campaign, then the profile guides a second build.
-# Opt-in: two more compilations of everything (≈ 17 min on 2 cores); docs/perf.md has the figures.
+# Opt-in: two more compilations of everything (18 min on 2 cores); docs/perf.md has the figures.
 PGO_DIR       := target/pgo
 PGO_PROFDATA  = $(shell rustc --print sysroot)/lib/rustlib/$(shell rustc -vV | sed -n 's/^host: //p')/bin/llvm-profdata
-pgo: ## opt-in: `shocktwin` built with profile-guided optimisation into target/pgo/release (≈ 17 min; see docs/perf.md)
+pgo: ## opt-in: `shocktwin` built with profile-guided optimisation into target/pgo/release (≈ 18 min; see docs/perf.md)
 	@command -v rustup >/dev/null || { echo "make pgo needs rustup (for its llvm-tools component)" >&2; exit 1; }
 	rustup component add llvm-tools
 	rm -rf $(PGO_DIR)/profiles $(PGO_DIR)/campaign && mkdir -p $(PGO_DIR)/profiles
