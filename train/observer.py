@@ -781,8 +781,9 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    form: str = "hinges", loadcell: bool = False, complete: bool = True) -> dict[str, Any] | None:
     """The window model's damping law, fitted on the reversal windows of the nominal runs, with
     ``complete`` (the default) those completed by ``law_runs`` (``train.damping_law``;
-    ``beta_per_k``: the oil's viscosity coefficient from the datasheet, held); None (with the reason) without nominal windows or when they span less
-    than ``min_span_k`` of oil temperature. The hinges' law is fitted in stages
+    ``beta_per_k``: the oil's viscosity coefficient from the datasheet, held); None (with the
+    reason) without nominal windows or when they span less than ``min_span_k`` of oil
+    temperature. The hinges' law is fitted in stages
     (``fit_law_staged``); ``form`` ``valve``: that law refined with an extension valve
     (``fit_valve_law_windows``, started from the hinges' fit); ``valves``: that one refined
     with a compression valve too (``fit_valves_law_windows``); ``twin-tube``: that one with
