@@ -163,7 +163,7 @@ bench-python: $(VENV)/.deps $(BIN) ## the Python reference (mcap, filterpy, scip
 # Opt-in: two more compilations of everything (18 min on 2 cores); docs/perf.md has the figures.
 PGO_DIR       := target/pgo
 PGO_PROFDATA  = $(shell rustc --print sysroot)/lib/rustlib/$(shell rustc -vV | sed -n 's/^host: //p')/bin/llvm-profdata
-pgo: $(BIN) ## opt-in: `shocktwin` built with profile-guided optimisation into target/pgo/release (≈ 20 min; see docs/perf.md)
+pgo: $(BIN) ## opt-in: `shocktwin` built with profile-guided optimisation into target/pgo/release (16–18 min on 2 cores; see docs/perf.md)
 	@command -v rustup >/dev/null || { echo "make pgo needs rustup (for its llvm-tools component)" >&2; exit 1; }
 	rustup component add llvm-tools
 	rm -rf $(PGO_DIR)/profiles $(PGO_DIR)/campaign && mkdir -p $(PGO_DIR)/profiles
