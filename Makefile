@@ -160,7 +160,7 @@ bench-python: $(VENV)/.deps $(BIN) ## the Python reference (mcap, filterpy, scip
 
 # Profile-guided optimisation (the rustc book's recipe, with rustup's llvm-tools): an
 # instrumented build replays a simulated quick campaign, then the profile guides a second build.
-# Opt-in: two more compilations of everything (18 min on 2 cores); docs/perf.md has the figures.
+# Opt-in: two more compilations of everything (16–18 min on 2 cores); docs/perf.md has the figures.
 PGO_DIR       := target/pgo
 PGO_PROFDATA  = $(shell rustc --print sysroot)/lib/rustlib/$(shell rustc -vV | sed -n 's/^host: //p')/bin/llvm-profdata
 pgo: $(BIN) ## opt-in: `shocktwin` built with profile-guided optimisation into target/pgo/release (16–18 min on 2 cores; see docs/perf.md)
