@@ -449,6 +449,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.road and not (args.road_run and args.road_baseline):
         p.error("--road needs --road-run and --road-baseline")
+    if args.out.exists() and any(args.out.iterdir()):
+        # The daemon would open the last demo's fleet store and inbox there and take the
+        # drives dropped in again as runs it has read, so a service's baseline never comes.
+        p.error(f"--out {args.out} is not empty (a demo ran there before): remove it or give another directory")
 
     run_dir = args.out / "run"
     unit = ["--unit", str(args.unit)] if args.unit else []
