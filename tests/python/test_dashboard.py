@@ -10,8 +10,11 @@ with their content types and equal the files in `crates/dt-server/assets`; the
 fleet table lists the assets (`data-asset-id`), riskiest first; the live
 estimate counter (`#live-count`, fed by Server-Sent Events) grows while runs
 stream, and an asset first seen while the page is open appears without a
-reload; a click selects an asset; the browser console holds no error or
-warning. A screenshot is saved to `out/dashboard.png` and to the test's tmp
+reload; a click selects an asset; each asset and run whose log says it is
+simulated (`simulated = true` in its metadata, as `shocktwin simulate` writes) is
+marked so, one by one: dyno-unit-U3's run is streamed with `simulated = false`, as
+a real dyno's log would say, and stays unmarked; the browser console holds no
+error or warning. A screenshot is saved to `out/dashboard.png` and to the test's tmp
 directory. Simulated data throughout.
 """
 
@@ -119,13 +122,14 @@ def daemon(tmp_path: Path) -> Iterator[tuple[str, str]]:
                 proc.wait(10)
 
 
-def stream_run(addr: str, path: Path) -> dict[str, Any]:
-    """Re-encodes ``path`` onto the ingest socket; returns the daemon's one-line report."""
+def stream_run(addr: str, path: Path, run_meta: dict[str, str] | None = None) -> dict[str, Any]:
+    """Re-encodes ``path`` onto the ingest socket (``run_meta`` updates its ``shocktwin.run``
+    metadata); returns the daemon's one-line report."""
     host, port = addr.rsplit(":", 1)
     with socket.create_connection((host, int(port)), timeout=120) as sock, open(path, "rb") as fh:
         writer = Writer(cast(IO[bytes], SocketStream(sock)), compression=CompressionType.ZSTD, chunk_size=64 * 1024)
         writer.start(profile="", library="shocktwin dashboard test (python mcap)")
-        copy_log(make_reader(fh), writer)
+        copy_log(make_reader(fh), writer, run_meta)
         writer.finish()
         sock.shutdown(socket.SHUT_WR)
         reply = b""
@@ -134,9 +138,11 @@ def stream_run(addr: str, path: Path) -> dict[str, Any]:
     return cast(dict[str, Any], json.loads(reply.decode().strip().splitlines()[-1]))
 
 
-def stream_concurrently(addr: str, paths: list[Path]) -> tuple[list[threading.Thread], list[dict[str, Any]]]:
+def stream_concurrently(addr: str, paths: list[Path], metas: dict[Path, dict[str, str]] | None = None
+                        ) -> tuple[list[threading.Thread], list[dict[str, Any]]]:
     reports: list[dict[str, Any]] = []
-    threads = [threading.Thread(target=lambda p=p: reports.append(stream_run(addr, p))) for p in paths]
+    threads = [threading.Thread(target=lambda p=p: reports.append(stream_run(addr, p, (metas or {}).get(p))))
+               for p in paths]
     for t in threads:
         t.start()
     return threads, reports
@@ -206,7 +212,8 @@ def test_dashboard_in_chromium(daemon: tuple[str, str], driver: Any, fleet: dict
     before = live_count()
 
     # Two more runs while the page is open; dyno-unit-U3 is new to the daemon.
-    threads, reports = stream_concurrently(listen, [fleet[3][3.0], fleet[1][3.0]])
+    threads, reports = stream_concurrently(listen, [fleet[3][3.0], fleet[1][3.0]],
+                                           {fleet[3][3.0]: {"simulated": "false"}})
 
     def grown() -> str | None:  # "streaming" or "ended" once the counter has grown
         if live_count() <= before:
@@ -235,6 +242,21 @@ def test_dashboard_in_chromium(daemon: tuple[str, str], driver: Any, fleet: dict
     healths = [r["health"] for r in rows()]
     assert [rank[h] for h in healths] == sorted(rank[h] for h in healths), healths
     assert sorted(row_ids()) == ["dyno-unit-U1", "dyno-unit-U2", "dyno-unit-U3"], row_ids()
+
+    # Simulated assets and runs are marked one by one; U3's log said it was not simulated.
+    marked = cast(dict[str, bool], driver.execute_script(
+        "return Object.fromEntries([...document.querySelectorAll('#fleet tr[data-asset-id]')]"
+        ".map((tr) => [tr.dataset.assetId, !!tr.querySelector('.pill.sim')]))"))
+    assert marked == {"dyno-unit-U1": True, "dyno-unit-U2": True, "dyno-unit-U3": False}, marked
+    assert driver.find_element(By.ID, "asset-sub").text.startswith("simulated data · run "), \
+        driver.find_element(By.ID, "asset-sub").text
+    runs_marked = driver.execute_script(
+        "return [...document.querySelectorAll('#runs tr[data-run-id]')].map((tr) => !!tr.querySelector('.pill.sim'))")
+    assert runs_marked and all(runs_marked), runs_marked
+    u3 = httpx.get(f"{base}/v1/assets/dyno-unit-U3/runs", timeout=10).json()
+    assert [r["simulated"] for r in u3["runs"]] == [False], u3
+    fleet_json = {a["asset_id"]: a["simulated"] for a in httpx.get(f"{base}/v1/assets", timeout=10).json()["assets"]}
+    assert fleet_json == {"dyno-unit-U1": True, "dyno-unit-U2": True, "dyno-unit-U3": False}, fleet_json
 
     out = ROOT / "out"
     out.mkdir(exist_ok=True)

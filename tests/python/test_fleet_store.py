@@ -195,6 +195,9 @@ def test_trend_history_and_restart(world: dict[str, Path], tmp_path: Path, daemo
     d2 = Daemon(world["bundle"], db, tmp_path / "inbox")
     daemons.append(d2)
     assert [a["asset_id"] for a in d2.get("/v1/assets")["assets"]] == ["dyno-unit-A"]
+    # The simulator's logs say so, and the mark survives the restart with the rest.
+    assert [a["simulated"] for a in d2.get("/v1/assets")["assets"]] == [True]
+    assert before["runs"] and all(r["simulated"] is True for r in before["runs"]), before["runs"]
     assert d2.get("/v1/assets/dyno-unit-A/runs")["runs"] == before["runs"]
     assert d2.get("/v1/assets/dyno-unit-A/history", since=start, until=end, step_s=1)["points"] == before["hist"]
     again = d2.get("/v1/assets/dyno-unit-A/trend")

@@ -43,6 +43,11 @@ function duration(t0, t1) {
   const s = t1 - t0;
   return s < 120 ? `${s.toFixed(0)} s` : s < 7200 ? `${(s / 60).toFixed(1)} min` : `${(s / 3600).toFixed(1)} h`;
 }
+// A run whose log says it is simulated (its metadata's `simulated` key), marked one by one:
+// a fleet may mix simulated runs with real ones.
+const simPill = (simulated, text = "simulated") => simulated === true
+  ? ` <span class="pill sim" title="the log says it is simulated (its metadata's simulated key): not a measurement of a real damper">${text}</span>`
+  : "";
 const badge = (h) => `<span class="badge ${esc(h || "unknown")}">${esc(h || "unknown")}</span>`;
 
 // With bearer tokens on (docs/daemon.md, "Exposing the daemon"), open the dashboard as
@@ -129,6 +134,7 @@ function renderFleet() {
   $("fleet").hidden = rows.length === 0;
   $("fleet").tBodies[0].innerHTML = rows.map((a) => {
     const run = a.active_runs > 0 ? `<span class="pill">● streaming</span>` : "";
+    const sim = simPill(a.simulated);
     const b = a.baseline;   // the unit's baseline narrows its interval (read at a known charge)
     const read = b?.kind === "road"
       ? `seal read over ${b.blocks} blocks of drive (offset ${num(b.offset_n, 2)} N) at a known ${num(b.charge_bar, 1)} bar`
@@ -147,7 +153,7 @@ function renderFleet() {
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
     return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
-      <td class="id">${esc(a.asset_id)}${run}${road}${base}${svc}${obs}${rn}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
+      <td class="id">${esc(a.asset_id)}${sim}${run}${road}${base}${svc}${obs}${rn}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td class="fault">${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");
@@ -204,7 +210,7 @@ function select(id) {
 
 function headline(a) {
   $("asset-health").outerHTML = `<span id="asset-health">${badge(a.health)}</span>`;
-  $("asset-sub").textContent = `run ${a.run_id || DASH} · nominal ${num(a.expected_bar, 1)} bar · ` +
+  $("asset-sub").textContent = `${a.simulated ? "simulated data · " : ""}run ${a.run_id || DASH} · nominal ${num(a.expected_bar, 1)} bar · ` +
     `warn ${num(a.warn_bar, 1)} · fault ${num(a.fault_bar, 1)} bar · ${a.ticks ?? 0} estimates`;
 }
 
@@ -275,7 +281,7 @@ function renderRuns(runs) {
   const tb = $("runs").tBodies[0];
   if (!runs.length) { tb.innerHTML = `<tr><td colspan="7" class="muted">no runs recorded</td></tr>`; return; }
   tb.innerHTML = runs.slice(0, 20).map((r) => `<tr data-run-id="${esc(r.run_id)}">
-    <td>${esc(r.run_id)}</td><td class="small src" title="${esc(r.source || "")}">${esc(r.source || DASH)}</td>
+    <td>${esc(r.run_id)}${simPill(r.simulated, "sim")}</td><td class="small src" title="${esc(r.source || "")}">${esc(r.source || DASH)}</td>
     <td>${fmtTime(tsec(r.start))}</td><td>${duration(tsec(r.start), tsec(r.end))}</td><td>${r.ticks ?? DASH}</td>
     <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td>${r.road ? roadCell(r.road) : observerCell(r.observer)}</tr>` +
     (r.reason ? `<tr><td></td><td colspan="6" class="reason">${esc(r.reason)}</td></tr>` : "") +

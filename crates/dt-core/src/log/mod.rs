@@ -358,6 +358,19 @@ pub fn is_valid_id(s: &str) -> bool {
 }
 
 impl RunMetadata {
+    /// Whether the run says it is simulated: the `simulated` key (`true` or
+    /// `false`, as `shocktwin simulate` writes it and `shocktwin import
+    /// --meta simulated=true` does); `None` when the key is absent or holds
+    /// anything else.
+    #[must_use]
+    pub fn simulated(&self) -> Option<bool> {
+        match self.extra.get("simulated").map(|v| v.trim()) {
+            Some("true") => Some(true),
+            Some("false") => Some(false),
+            _ => None,
+        }
+    }
+
     /// The `shocktwin.run` string map of this metadata (floats in Rust's
     /// shortest round-trip form).
     #[must_use]

@@ -173,6 +173,23 @@ fn metadata_is_written_before_the_first_message() {
 }
 
 #[test]
+fn the_simulated_key_is_read_only_when_it_says_true_or_false() {
+    let with = |v: Option<&str>| {
+        let mut m = meta();
+        if let Some(v) = v {
+            m.extra.insert("simulated".into(), v.into());
+        }
+        RunMetadata::from_map("x.mcap", &m.to_map())
+            .unwrap()
+            .simulated()
+    };
+    assert_eq!(with(Some("true")), Some(true));
+    assert_eq!(with(Some("false")), Some(false));
+    assert_eq!(with(Some("yes")), None);
+    assert_eq!(with(None), None);
+}
+
+#[test]
 fn nan_is_written_as_null() {
     let bytes = write_bytes(
         &[Sample::Force {

@@ -909,6 +909,7 @@ async fn runs(State(app): State<AppState>, Path(id): Path<String>) -> Response {
                         "summary_sd_bar": r.summary.map(|s| s.sd_bar),
                         "observer": r.observer,
                         "road": r.road,
+                        "simulated": r.simulated,
                     })
                 })
                 .collect();

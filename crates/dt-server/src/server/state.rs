@@ -109,6 +109,11 @@ pub struct AssetSummary {
     /// with `why_none`, why a driven asset stays `unknown`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub last_run_road: Option<RoadRead>,
+    /// Whether the run it shows says it is simulated (its log's metadata
+    /// `simulated` key); null: the log does not say. The dashboard marks
+    /// simulated assets one by one, so that a fleet mixing real and
+    /// simulated runs cannot pass one for the other.
+    pub simulated: Option<bool>,
 }
 
 /// [`AssetSummary`] with the recent estimates, oldest first.
@@ -223,6 +228,7 @@ impl LiveState {
                 last_run_reason: st.last_run_reason.clone(),
                 last_run_observer: st.last_run_observer,
                 last_run_road: st.last_run_road.clone(),
+                simulated: st.simulated,
             };
             assets.insert(
                 st.asset_id.clone(),
@@ -272,6 +278,7 @@ impl LiveState {
                     last_run_reason: None,
                     last_run_observer: None,
                     last_run_road: None,
+                    simulated: run.meta.simulated(),
                 },
                 history: VecDeque::with_capacity(self.history_len.min(4096)),
                 shown_ms: i64::MIN,
@@ -363,6 +370,7 @@ impl Sink for LiveSink {
             let Some(last) = newest else { return };
             *shown_any = true;
             s.run_id.clone_from(&run.meta.run_id);
+            s.simulated = run.meta.simulated();
             s.pressure_bar = finite(last.pressure_bar);
             s.pressure_avg_bar = finite(last.pressure_avg_bar);
             s.pressure_lo_bar = finite(last.pressure_lo_bar);

@@ -107,6 +107,9 @@ pub struct RunRecord {
     pub observer: Option<crate::server::sink::ObserverRead>,
     /// What the road observer made of its blocks, if the asset is a road one.
     pub road: Option<crate::server::sink::RoadRead>,
+    /// Whether the log says it is simulated (its metadata's `simulated`
+    /// key, [`dt_core::log::RunMetadata::simulated`]); null: it does not say.
+    pub simulated: Option<bool>,
 }
 
 /// A unit's baseline: what the dyno observer read of the unit at a known
@@ -246,6 +249,8 @@ pub struct AssetState {
     pub last_run_observer: Option<crate::server::sink::ObserverRead>,
     /// What the road observer made of the latest run, if a road asset's.
     pub last_run_road: Option<crate::server::sink::RoadRead>,
+    /// Whether the latest run's log says it is simulated.
+    pub simulated: Option<bool>,
 }
 
 /// One write of the daemon, applied in order by the writer thread.
@@ -263,6 +268,8 @@ pub enum StoreOp {
         source: String,
         /// Calendar start, ms.
         start_ms: i64,
+        /// Whether its log says it is simulated ([`RunRecord::simulated`]).
+        simulated: Option<bool>,
     },
     /// One 1 s bin.
     Sample {

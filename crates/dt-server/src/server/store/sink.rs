@@ -390,6 +390,7 @@ impl Sink for StoreSink {
                     run_id: run.meta.run_id.clone(),
                     source: run.source.clone(),
                     start_ms: clock.ms(e.t_ns),
+                    simulated: run.meta.simulated(),
                 });
                 clock
             });
@@ -442,6 +443,7 @@ impl Sink for StoreSink {
                 run_id: run.meta.run_id.clone(),
                 source: run.source.clone(),
                 start_ms,
+                simulated: run.meta.simulated(),
             });
         }
         self.send(StoreOp::RunEnded {

@@ -25,7 +25,7 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 11;
+pub const SCHEMA_VERSION: i64 = 12;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
 const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
@@ -131,6 +131,11 @@ ALTER TABLE baselines ADD COLUMN runs_averaged REAL NOT NULL DEFAULT 1.0;
     // (`dt_core::charge::UnitBaseline::split_bar`), bar; NULL: not read.
     r"
 ALTER TABLE baselines ADD COLUMN split_bar REAL;
+",
+    // Whether the run's log says it is simulated (its metadata's `simulated`
+    // key): 1, 0, or NULL when it does not say.
+    r"
+ALTER TABLE runs ADD COLUMN simulated INTEGER;
 ",
 ];
 
@@ -369,13 +374,15 @@ impl SqliteStore {
                 run_id,
                 source,
                 start_ms,
+                simulated,
                 ..
             } => {
                 tx.prepare_cached(&format!(
-                    "INSERT OR REPLACE INTO runs (key, asset, run_id, source, start_ms, status) \
-                     VALUES (?2, {ASSET}, ?3, ?4, ?5, 'running')"
+                    "INSERT OR REPLACE INTO runs \
+                     (key, asset, run_id, source, start_ms, status, simulated) \
+                     VALUES (?2, {ASSET}, ?3, ?4, ?5, 'running', ?6)"
                 ))?
-                .execute(params![asset_id, key, run_id, source, start_ms])?;
+                .execute(params![asset_id, key, run_id, source, start_ms, simulated])?;
             }
             StoreOp::Sample { point: p, .. } => {
                 tx.prepare_cached(&format!(
@@ -489,7 +496,7 @@ impl FleetStore for SqliteStore {
                 "SELECT a.asset_id, r.run_id, r.status, r.reason, \
                    (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
                    s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited, \
-                   r.observer, r.road \
+                   r.observer, r.road, r.simulated \
                  FROM assets a \
                  LEFT JOIN runs r ON r.key = \
                    (SELECT key FROM runs WHERE asset = a.id ORDER BY start_ms DESC LIMIT 1) \
@@ -508,6 +515,7 @@ impl FleetStore for SqliteStore {
                     last_run_reason: r.get(3)?,
                     last_run_observer: observer_from(r.get(11)?),
                     last_run_road: road_from(r.get(12)?),
+                    simulated: r.get(13)?,
                     ticks: r.get::<_, i64>(4)?.max(0) as u64,
                     last: if t_ms.is_some() {
                         Some(point_from_row(r, 5)?)
@@ -578,7 +586,7 @@ impl FleetStore for SqliteStore {
         self.with_reader(|c| {
             let mut stmt = c.prepare_cached(&format!(
                 "SELECT run_id, source, start_ms, end_ms, ticks, status, reason, \
-                   summary_t_ms, summary_bar, summary_sd_bar, observer, road \
+                   summary_t_ms, summary_bar, summary_sd_bar, observer, road, simulated \
                  FROM runs WHERE asset = {ASSET} ORDER BY start_ms DESC LIMIT ?2"
             ))?;
             let limit = i64::try_from(limit).unwrap_or(i64::MAX);
@@ -606,6 +614,7 @@ impl FleetStore for SqliteStore {
                     summary,
                     observer: observer_from(r.get(10)?),
                     road: road_from(r.get(11)?),
+                    simulated: r.get(12)?,
                 })
             })?;
             rows.collect()
@@ -802,6 +811,7 @@ mod tests {
                     run_id: key.into(),
                     source: "test".into(),
                     start_ms,
+                    simulated: None,
                 },
                 StoreOp::RunEnded {
                     key: key.into(),
@@ -856,6 +866,7 @@ mod tests {
             run_id: "r1".into(),
             source: "test".into(),
             start_ms: 0,
+            simulated: Some(true),
         }];
         ops.extend((0..10).map(|i| sample(i * 1000, 12.0 - f64::from(i as i32))));
         ops.push(StoreOp::RunEnded {
@@ -902,6 +913,10 @@ mod tests {
         assert!(o.not_calibrated_here);
         assert_eq!(store.asset_states().unwrap()[0].last_run_observer, Some(o));
         assert_eq!(runs[0].road, None);
+        // Whether the log said it is simulated comes back per run and for
+        // the asset's latest run.
+        assert_eq!(runs[0].simulated, Some(true));
+        assert_eq!(store.asset_states().unwrap()[0].simulated, Some(true));
         assert_eq!(store.newest_ms("a1").unwrap(), Some(9000));
         assert_eq!(store.prune(5000).unwrap(), 5);
         drop(store);
@@ -928,6 +943,8 @@ mod tests {
         }
         let store = SqliteStore::open(&path).unwrap();
         assert_eq!(store.runs("a1", 5).unwrap()[0].ticks, 7);
+        // A run from before the column: its log's word is unknown.
+        assert_eq!(store.runs("a1", 5).unwrap()[0].simulated, None);
         assert!(store.baselines().unwrap().is_empty());
         let b = StoredBaseline {
             baseline: AssetBaseline::Observer(UnitBaseline {
@@ -1065,10 +1082,12 @@ mod tests {
                 run_id: "r".into(),
                 source: "s".into(),
                 start_ms: 1,
+                simulated: Some(false),
             }])
             .unwrap();
         let runs = SqliteStore::open(&path).unwrap().runs("a1", 5).unwrap();
         assert_eq!(runs[0].status, "interrupted");
+        assert_eq!(runs[0].simulated, Some(false));
     }
 
     #[test]
