@@ -54,6 +54,8 @@ pub enum LiveEvent {
         /// Why it failed.
         #[serde(skip_serializing_if = "Option::is_none")]
         reason: Option<String>,
+        /// Whether its log says it is simulated ([`AssetSummary::simulated`]).
+        simulated: Option<bool>,
     },
 }
 
@@ -293,6 +295,7 @@ impl LiveState {
             source: run.source.clone(),
             status,
             reason,
+            simulated: run.meta.simulated(),
         }
     }
 }

@@ -1,6 +1,8 @@
 //! The HTTP API read with a real HTTP client: the live event stream.
 
-use crate::common::{good_stream, send, test_config, Daemon, WAIT};
+use crate::common::{
+    chunked, good_stream, meta, run_samples, send, test_config, write_stream, Daemon, WAIT,
+};
 
 /// One parsed Server-Sent Event.
 #[derive(Debug)]
@@ -49,7 +51,10 @@ async fn event_stream_carries_every_estimate_and_the_run_lifecycle() {
         .unwrap()
         .starts_with("text/event-stream"));
 
-    let s = good_stream("sse-1", "r7", 40_000_000_000, 1000);
+    // A log that says it is simulated, as `shocktwin simulate` writes them.
+    let mut m = meta("sse-1", "r7");
+    m.extra.insert("simulated".into(), "true".into());
+    let s = write_stream(&m, &run_samples(40_000_000_000, 1000), chunked());
     let addr = d.ingest;
     let bytes = s.bytes.clone();
     let sender = tokio::spawn(async move { send(addr, &bytes, 1200).await });
@@ -78,6 +83,8 @@ async fn event_stream_carries_every_estimate_and_the_run_lifecycle() {
     assert_eq!(seen[0].name, "run");
     assert_eq!(seen[0].data["status"], "started");
     assert_eq!(seen[0].data["asset_id"], "sse-1");
+    let ends: Vec<_> = seen.iter().filter(|e| e.name == "run").collect();
+    assert!(ends.iter().all(|e| e.data["simulated"] == true), "{ends:?}");
     let estimates: Vec<_> = seen.iter().filter(|e| e.name == "estimate").collect();
     assert_eq!(estimates.len() as u64, s.ticks, "one event per tick");
     for (k, e) in estimates.iter().enumerate() {

@@ -131,6 +131,8 @@ async fn concurrent_streams_good_and_bad() {
         "placeholder twin: no pressure"
     );
     assert_eq!(pump2["last_run_status"], "completed");
+    // Its log does not say whether it is simulated: neither does the API.
+    assert!(pump2["simulated"].is_null(), "{pump2}");
     assert_eq!(
         pump2["last_t_ns"].as_i64().unwrap(),
         good2.t0_ns + good2.ticks as i64 * TICK_NS
