@@ -4,6 +4,7 @@
 //! reason (with the first line) and left out.
 
 use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
 use std::path::Path;
 
 use anyhow::{bail, Context as _};
@@ -50,6 +51,62 @@ impl Table {
     }
 }
 
+/// Line numbers of byte offsets of a file, whatever its line ends: `\n`,
+/// `\r\n`, or a lone `\r` ("CSV (Macintosh)" exports). The `csv` crate
+/// counts `\n` alone, so a file of `\r` ends was all "line 1" in errors.
+/// Reads the file a second time, alongside the CSV reader, never more than
+/// once through.
+struct LineCounter {
+    input: BufReader<std::fs::File>,
+    /// Bytes consumed.
+    at: u64,
+    /// Line ends passed (a `\r\n` counts once).
+    ends: u64,
+    /// The last byte consumed was a `\r`.
+    after_cr: bool,
+}
+
+impl LineCounter {
+    fn open(path: &Path) -> std::io::Result<Self> {
+        Ok(Self {
+            input: BufReader::new(std::fs::File::open(path)?),
+            at: 0,
+            ends: 0,
+            after_cr: false,
+        })
+    }
+
+    /// The 1-based line of the record that starts at byte offset `byte`:
+    /// the line of its first byte after any blank lines, which the `csv`
+    /// crate counts into the record that follows them (offsets must not
+    /// decrease; the file's end stops the count).
+    fn line_at(&mut self, byte: u64) -> std::io::Result<u64> {
+        loop {
+            let buf = self.input.fill_buf()?;
+            let Some(&next) = buf.first() else { break };
+            let n = if self.at < byte {
+                buf.len()
+                    .min(usize::try_from(byte - self.at).unwrap_or(usize::MAX))
+            } else if matches!(next, b'\r' | b'\n') {
+                1 // a blank line before the record's first byte
+            } else {
+                break;
+            };
+            for &b in &buf[..n] {
+                match b {
+                    b'\r' => self.ends += 1,
+                    b'\n' if !self.after_cr => self.ends += 1,
+                    _ => {}
+                }
+                self.after_cr = b == b'\r';
+            }
+            self.input.consume(n);
+            self.at += n as u64;
+        }
+        Ok(self.ends + 1)
+    }
+}
+
 /// Reads `path` with `map`; `skip_bad` counts bad rows instead of failing.
 #[allow(clippy::too_many_lines)] // header search, then the row loop with its two error paths
 pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table> {
@@ -61,6 +118,13 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         .trim(csv::Trim::All)
         .from_path(path)
         .with_context(|| format!("{file}: cannot open"))?;
+    let mut lines = LineCounter::open(path).with_context(|| format!("{file}: cannot open"))?;
+    let mut line_of = |record: &csv::StringRecord| -> anyhow::Result<u64> {
+        let byte = record.position().map_or(0, csv::Position::byte);
+        lines
+            .line_at(byte)
+            .with_context(|| format!("{file}: cannot read"))
+    };
     let wanted = map.columns();
     let mut records = reader.records();
     // The row naming the most mapped columns, should none name them all:
@@ -89,7 +153,7 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             }
         };
         let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
-        let line = record.position().map_or(0, csv::Position::line);
+        let line = line_of(&record)?;
         let found = if let Some(n) = map.header_line {
             line as usize == n
         } else {
@@ -129,7 +193,7 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
     let mut row = vec![0.0; wanted.len() - 1];
     for record in records {
         let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
-        let line = record.position().map_or(0, csv::Position::line);
+        let line = line_of(&record)?;
         if record.iter().all(str::is_empty) {
             continue; // blank line
         }
@@ -348,6 +412,57 @@ mod tests {
             err.contains(":3: column \"x\": \"1e308\" is out of range"),
             "{err}"
         );
+    }
+
+    /// Found by the fuzzer (`make fuzz`, sixty-first session): a lone `\r`
+    /// in a row left two rows on one "line", since the `csv` crate counts
+    /// `\n` alone; an export with `\r` line ends (Excel's "CSV
+    /// (Macintosh)") named line 1 in every error.
+    #[test]
+    fn lines_are_counted_whatever_the_line_ends() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        let map = Mapping {
+            header_line: None,
+            delimiter: b',',
+            time: "t".into(),
+            time_format: TimeFormat::ElapsedS,
+            position: Some(super::super::map::Column {
+                name: "x".into(),
+                scale: 1.0,
+                offset: 0.0,
+            }),
+            force: None,
+            temp_shock: None,
+            temp_ambient: None,
+            acceleration: None,
+            asset_id: None,
+            run_id: None,
+            charge: super::super::map::Charge::None,
+            frequency_hz: None,
+            stroke_pp_m: None,
+            metadata: BTreeMap::new(),
+        };
+        let rows = ["# export", "t,x", "0.1,1", "0.2,2", "", "0.3,oops", "0.4,4"];
+        for (ends, bom) in [("\n", ""), ("\r\n", ""), ("\r", ""), ("\r", "\u{feff}")] {
+            let text = format!("{bom}{}{ends}", rows.join(ends));
+            std::fs::write(&path, &text).unwrap();
+            let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+            assert!(err.contains(":6: column \"x\""), "{ends:?}: {err}");
+            let t = read(&path, &map, true).unwrap();
+            assert_eq!(t.lines, [3, 4, 7], "{ends:?}");
+            assert_eq!(t.skipped.values().next(), Some(&(1, 6)), "{ends:?}");
+        }
+        // Ends mixed in one file, and a quoted cell across two lines before the header.
+        std::fs::write(&path, "\"a\nb\"\r\nt,x\r0.1,1\n0.2,2\r\n0.3,3\r").unwrap();
+        assert_eq!(read(&path, &map, false).unwrap().lines, [4, 5, 6]);
+        // The header by its line, in a `\r` file.
+        std::fs::write(&path, "t,x\rt,x\r0.1,1\r0.2,2\r").unwrap();
+        let by_line = Mapping {
+            header_line: Some(2),
+            ..map
+        };
+        assert_eq!(read(&path, &by_line, false).unwrap().lines, [3, 4]);
     }
 
     #[test]
