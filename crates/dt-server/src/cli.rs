@@ -208,6 +208,10 @@ pub struct ImportArgs {
     /// Field delimiter (default `,`).
     #[arg(long)]
     pub delimiter: Option<char>,
+    /// Decimal separator of the numbers: `.` (default) or `,` (exports
+    /// written `1,5`; then another delimiter, e.g. `--delimiter ';'`).
+    #[arg(long)]
+    pub decimal: Option<char>,
     /// Time column.
     #[arg(long)]
     pub time: Option<String>,

@@ -5,6 +5,7 @@
 //! ```toml
 //! # header_line = 3        # 1-based; default: the first row naming every mapped column
 //! # delimiter = ","
+//! # decimal = "."          # "," for numbers written 1,5 (then another delimiter, e.g. ";")
 //! [time]
 //! column = "Timestamp"
 //! format = "iso8601"       # iso8601 (UTC) | epoch_s | epoch_ms | elapsed_s | elapsed_ms | auto (default)
@@ -51,6 +52,8 @@ pub struct MapFile {
     pub header_line: Option<usize>,
     /// Field delimiter (one character).
     pub delimiter: Option<char>,
+    /// Decimal separator of the numbers: `.` (default) or `,`.
+    pub decimal: Option<char>,
     /// The time column.
     pub time: Option<TimeMap>,
     /// Displacement / position.
@@ -216,6 +219,8 @@ pub struct Mapping {
     pub header_line: Option<usize>,
     /// Field delimiter.
     pub delimiter: u8,
+    /// Decimal separator of the numbers, `b'.'` or `b','`.
+    pub decimal: u8,
     /// Time column name.
     pub time: String,
     /// Time format.
@@ -320,6 +325,7 @@ fn overlay(f: &mut MapFile, a: &ImportArgs) {
     }
     set(&mut f.header_line, a.header_line.as_ref());
     set(&mut f.delimiter, a.delimiter.as_ref());
+    set(&mut f.decimal, a.decimal.as_ref());
     let t = f.time.get_or_insert_with(TimeMap::default);
     set(&mut t.column, a.time.as_ref());
     set(&mut t.format, a.time_format.as_ref());
@@ -466,6 +472,17 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         Some(c) if c.is_ascii() => c as u8,
         Some(c) => bail!("delimiter {c:?}: must be one ASCII character"),
     };
+    let decimal = match f.decimal {
+        None | Some('.') => b'.',
+        Some(',') => b',',
+        Some(c) => bail!("decimal {c:?}: must be \".\" or \",\""),
+    };
+    if decimal == delimiter {
+        bail!(
+            "decimal {:?} is also the field delimiter: give another delimiter (e.g. delimiter = \";\", --delimiter ';')",
+            char::from(decimal)
+        );
+    }
     let stroke_pp_m = match run.stroke_pp_mm {
         Some(mm) if !(mm.is_finite() && mm > 0.0) => {
             bail!("stroke_pp_mm = {mm}: must be a stroke above 0 mm")
@@ -475,6 +492,7 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
     Ok(Mapping {
         header_line: f.header_line,
         delimiter,
+        decimal,
         time: time_column,
         time_format,
         position,
@@ -650,6 +668,20 @@ mod tests {
     /// The error a mapping is refused with.
     fn refused(toml_text: &str) -> String {
         format!("{:#}", mapped(toml_text).unwrap_err())
+    }
+
+    /// A decimal comma needs another delimiter; only `.` and `,` are
+    /// decimal separators.
+    #[test]
+    fn a_decimal_comma_takes_another_delimiter() {
+        let time = "[time]\ncolumn = \"t\"\n";
+        let m = mapped(&format!("decimal = \",\"\ndelimiter = \";\"\n{time}")).unwrap();
+        assert_eq!((m.decimal, m.delimiter), (b',', b';'));
+        assert_eq!(mapped(time).unwrap().decimal, b'.');
+        let err = refused(&format!("decimal = \",\"\n{time}"));
+        assert!(err.contains("also the field delimiter"), "{err}");
+        let err = refused(&format!("decimal = \"'\"\ndelimiter = \";\"\n{time}"));
+        assert!(err.contains("decimal '\\''"), "{err}");
     }
 
     /// A unit in the header's brackets or parentheses must agree with the

@@ -3,6 +3,7 @@
 //! and the column, unless rows may be skipped — then it is counted by
 //! reason (with the first line) and left out.
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -203,6 +204,7 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             &wanted,
             &index,
             &scales,
+            map.decimal,
             &mut time_format,
             &mut row,
         ) {
@@ -248,6 +250,37 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
     Ok(table)
 }
 
+/// `text` with its decimal separator `decimal` (`.` or `,`) read as a
+/// point. With a decimal comma, a point is refused unless `point_ok`: in
+/// `1.234,5` it separates thousands, and `1.234` read as a decimal would be
+/// a thousand times off without a word.
+fn with_point(text: &str, decimal: u8, point_ok: bool) -> Result<Cow<'_, str>, String> {
+    if decimal == b'.' {
+        return Ok(Cow::Borrowed(text));
+    }
+    if !point_ok && text.contains('.') {
+        return Err(format!(
+            "{text:?} has a \".\" while the decimal separator is \",\" (thousands separators are not read)"
+        ));
+    }
+    Ok(if text.contains(',') {
+        Cow::Owned(text.replace(',', "."))
+    } else {
+        Cow::Borrowed(text)
+    })
+}
+
+/// A hint for a number that reads with a decimal comma when the mapping
+/// expects a point (a European export, mapped without `decimal`).
+fn comma_hint(text: &str, decimal: u8) -> &'static str {
+    let reads = || text.replace(',', ".").trim().parse::<f64>().is_ok();
+    if decimal == b'.' && text.contains(',') && reads() {
+        " (written with a decimal comma? give decimal = \",\" in the mapping, or --decimal ',')"
+    } else {
+        ""
+    }
+}
+
 /// Why a row was rejected: a full message and a short reason to count.
 struct BadRow {
     message: String,
@@ -259,6 +292,7 @@ fn parse_row(
     names: &[&str],
     index: &[usize],
     scales: &[(f64, f64)],
+    decimal: u8,
     time_format: &mut TimeFormat,
     row: &mut [f64],
 ) -> Result<i64, BadRow> {
@@ -274,18 +308,32 @@ fn parse_row(
         })
     };
     let time_text = cell(0)?;
-    let t_ns = parse_time(time_text, time_format).map_err(|why| BadRow {
-        message: format!("column {:?}: {why}", names[0]),
-        reason: format!("column {:?}: unreadable time", names[0]),
-    })?;
+    // An ISO-8601 time keeps its point whatever the numbers' separator.
+    let iso = time_text.contains(':');
+    let t_ns = with_point(time_text, decimal, iso)
+        .and_then(|text| {
+            parse_time(&text, time_format).map_err(|why| match text {
+                // named as the file writes it
+                Cow::Owned(read) => format!("{why} (the cell {time_text:?} read as {read:?})"),
+                Cow::Borrowed(_) => format!("{why}{}", comma_hint(time_text, decimal)),
+            })
+        })
+        .map_err(|why| BadRow {
+            message: format!("column {:?}: {why}", names[0]),
+            reason: format!("column {:?}: unreadable time", names[0]),
+        })?;
     for k in 1..names.len() {
-        let text = cell(k)?;
+        let raw = cell(k)?;
+        let text = with_point(raw, decimal, false).map_err(|why| BadRow {
+            message: format!("column {:?}: {why}", names[k]),
+            reason: format!("column {:?}: a point in a decimal-comma number", names[k]),
+        })?;
         let v: f64 = text.parse().unwrap_or(f64::NAN);
         if !v.is_finite() {
-            let what = if text.is_empty() {
+            let what = if raw.is_empty() {
                 "empty".to_owned()
             } else {
-                format!("{text:?} is not a finite number")
+                format!("{raw:?} is not a finite number{}", comma_hint(raw, decimal))
             };
             return Err(BadRow {
                 message: format!("column {:?}: {what}", names[k]),
@@ -298,7 +346,7 @@ fn parse_row(
             // e.g. 1e308 kN, or a non-finite mid_stroke in the mapping (found by fuzzing)
             return Err(BadRow {
                 message: format!(
-                    "column {:?}: {text:?} is out of range in SPEC units",
+                    "column {:?}: {raw:?} is out of range in SPEC units",
                     names[k]
                 ),
                 reason: format!("column {:?}: out of range", names[k]),
@@ -359,6 +407,7 @@ mod tests {
         let map = Mapping {
             header_line: None,
             delimiter: b',',
+            decimal: b'.',
             time: "t".into(),
             time_format: TimeFormat::ElapsedS,
             position: Some(super::super::map::Column {
@@ -425,6 +474,7 @@ mod tests {
         let map = Mapping {
             header_line: None,
             delimiter: b',',
+            decimal: b'.',
             time: "t".into(),
             time_format: TimeFormat::ElapsedS,
             position: Some(super::super::map::Column {
@@ -463,6 +513,74 @@ mod tests {
             ..map
         };
         assert_eq!(read(&path, &by_line, false).unwrap().lines, [3, 4]);
+    }
+
+    /// Exports written with a decimal comma (`;` between the fields) read
+    /// as with a point; a point there is refused, not read as a decimal.
+    #[test]
+    fn a_decimal_comma_is_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        let map = Mapping {
+            header_line: None,
+            delimiter: b';',
+            decimal: b',',
+            time: "t".into(),
+            time_format: TimeFormat::Auto,
+            position: Some(super::super::map::Column {
+                name: "x".into(),
+                scale: 1e-3,
+                offset: 0.0,
+            }),
+            force: None,
+            temp_shock: None,
+            temp_ambient: None,
+            acceleration: None,
+            asset_id: None,
+            run_id: None,
+            charge: super::super::map::Charge::None,
+            frequency_hz: None,
+            stroke_pp_m: None,
+            metadata: BTreeMap::new(),
+        };
+        std::fs::write(&path, "t;x\n0,25;1,5\n0,5;-2\n0,75;3,25e1\n").unwrap();
+        let t = read(&path, &map, false).unwrap();
+        assert_eq!(t.t_ns, [250_000_000, 500_000_000, 750_000_000]);
+        assert_eq!(t.values[0], [1.5e-3, -2e-3, 32.5e-3]);
+        // ISO times keep their point
+        std::fs::write(
+            &path,
+            "t;x\n2024-05-01T10:00:00.25Z;1,5\n2024-05-01T10:00:00.5Z;2\n",
+        )
+        .unwrap();
+        let t = read(&path, &map, false).unwrap();
+        assert_eq!(t.t_ns[1] - t.t_ns[0], 250_000_000);
+        // a thousands point is refused, named as the file writes it
+        std::fs::write(&path, "t;x\n0,25;1,5\n0,5;1.234,5\n").unwrap();
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(
+            err.contains(":3: column \"x\": \"1.234,5\" has a \".\""),
+            "{err}"
+        );
+        std::fs::write(&path, "t;x\n0,25;1,5\n0,5x;2\n").unwrap();
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(err.contains("the cell \"0,5x\" read as \"0.5x\""), "{err}");
+        // the same file mapped without the decimal comma: a hint
+        std::fs::write(&path, "t;x\n0,25;1,5\n0,5;2\n").unwrap();
+        let point = Mapping {
+            decimal: b'.',
+            ..map
+        };
+        let err = format!("{:#}", read(&path, &point, false).unwrap_err());
+        assert!(err.contains("--decimal ','"), "{err}");
+        std::fs::write(&path, "t;x\n0.25;1,5\n0.5;2\n").unwrap();
+        let err = format!("{:#}", read(&path, &point, false).unwrap_err());
+        assert!(
+            err.contains(
+                ":2: column \"x\": \"1,5\" is not a finite number (written with a decimal comma?"
+            ),
+            "{err}"
+        );
     }
 
     #[test]

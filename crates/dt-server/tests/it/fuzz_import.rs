@@ -69,6 +69,24 @@ fn mappings() -> &'static [Mapping] {
                 "150 psi",
             ],
             &[
+                "--delimiter",
+                ";",
+                "--decimal",
+                ",",
+                "--time",
+                "t",
+                "--time-format",
+                "elapsed_s",
+                "--position",
+                "x",
+                "--force",
+                "F",
+                "--temp-shock",
+                "T",
+                "--charge",
+                "150 psi",
+            ],
+            &[
                 "--time-format",
                 "epoch_ms",
                 "--a1",
@@ -91,6 +109,7 @@ fn csv_seeds() -> Vec<(usize, String)> {
         "Test,p12.0-f2.0-s1 (simulated crank dyno; dt-sim)\nStroke [mm],80.0\nTimestamp,Force [N],Displacement [mm],Temperature [°C]\n",
     );
     let mut elapsed = String::from("t;x;F;T\n");
+    let mut comma = String::from("t;x;F;T\n");
     let mut epoch = String::from(
         "Timestamp,Force [N],Displacement [mm],Temperature [°C],Accel rod [g],Accel body [g]\n",
     );
@@ -106,6 +125,11 @@ fn csv_seeds() -> Vec<(usize, String)> {
             25.0 + 0.01 * x
         );
         let _ = writeln!(elapsed, "{:.3};{:.4};{:.2};\"{:.1}\"", x, x.cos(), -x, 30.0);
+        let _ = writeln!(
+            comma,
+            "{}",
+            format!("{:.3};{:.4};{:.2};\"{:.1}\"", x, x.cos(), -x, 30.0).replace('.', ",")
+        );
         let _ = writeln!(
             epoch,
             "{},{:.1},{:.2},25.0,{:.3},{:.3}",
@@ -124,7 +148,8 @@ fn csv_seeds() -> Vec<(usize, String)> {
         (1, iso.clone()),
         (2, iso),
         (3, elapsed),
-        (4, epoch),
+        (4, comma),
+        (5, epoch),
     ]
 }
 
@@ -302,6 +327,7 @@ fn map_line() -> impl Strategy<Value = String> {
             "a2",
             "header_line",
             "delimiter",
+            "decimal",
             "asset_id",
             "run_id",
             "frequency_hz",
