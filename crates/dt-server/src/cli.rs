@@ -212,6 +212,11 @@ pub struct ImportArgs {
     /// written `1,5`; then another delimiter, e.g. `--delimiter ';'`).
     #[arg(long)]
     pub decimal: Option<char>,
+    /// The files' text encoding, a WHATWG label such as `windows-1252`
+    /// (Excel's CSV on Western-European Windows), `iso-8859-15` or
+    /// `utf-16le` (default: UTF-8, or what a byte-order mark says).
+    #[arg(long)]
+    pub encoding: Option<String>,
     /// Time column.
     #[arg(long)]
     pub time: Option<String>,

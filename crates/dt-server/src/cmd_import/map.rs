@@ -6,6 +6,7 @@
 //! # header_line = 3        # 1-based; default: the first row naming every mapped column
 //! # delimiter = ","
 //! # decimal = "."          # "," for numbers written 1,5 (then another delimiter, e.g. ";")
+//! # encoding = "utf-8"     # or any WHATWG label: "windows-1252", "iso-8859-15", "utf-16le", "shift_jis" …
 //! [time]
 //! column = "Timestamp"
 //! format = "iso8601"       # iso8601 (UTC) | epoch_s | epoch_ms | elapsed_s | elapsed_ms | auto (default)
@@ -54,6 +55,9 @@ pub struct MapFile {
     pub delimiter: Option<char>,
     /// Decimal separator of the numbers: `.` (default) or `,`.
     pub decimal: Option<char>,
+    /// The file's text encoding, a WHATWG label (default: UTF-8, or what
+    /// a byte-order mark says).
+    pub encoding: Option<String>,
     /// The time column.
     pub time: Option<TimeMap>,
     /// Displacement / position.
@@ -221,6 +225,8 @@ pub struct Mapping {
     pub delimiter: u8,
     /// Decimal separator of the numbers, `b'.'` or `b','`.
     pub decimal: u8,
+    /// The files' encoding; `None`: UTF-8, or what a byte-order mark says.
+    pub encoding: Option<&'static encoding_rs::Encoding>,
     /// Time column name.
     pub time: String,
     /// Time format.
@@ -326,6 +332,7 @@ fn overlay(f: &mut MapFile, a: &ImportArgs) {
     set(&mut f.header_line, a.header_line.as_ref());
     set(&mut f.delimiter, a.delimiter.as_ref());
     set(&mut f.decimal, a.decimal.as_ref());
+    set(&mut f.encoding, a.encoding.as_ref());
     let t = f.time.get_or_insert_with(TimeMap::default);
     set(&mut t.column, a.time.as_ref());
     set(&mut t.format, a.time_format.as_ref());
@@ -477,6 +484,17 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         Some(',') => b',',
         Some(c) => bail!("decimal {c:?}: must be \".\" or \",\""),
     };
+    let encoding = match f.encoding.as_deref() {
+        None => None,
+        Some(label) => match encoding_rs::Encoding::for_label(label.trim().as_bytes()) {
+            // UTF-16 and ASCII-compatible single- and multi-byte encodings
+            // transcode; a replacement or the x-user-defined label do not make sense here
+            Some(e) if e != encoding_rs::REPLACEMENT && e != encoding_rs::X_USER_DEFINED => Some(e),
+            _ => bail!(
+                "encoding {label:?}: not an encoding label (e.g. \"utf-8\", \"windows-1252\", \"iso-8859-15\", \"utf-16le\")"
+            ),
+        },
+    };
     if decimal == delimiter {
         bail!(
             "decimal {:?} is also the field delimiter: give another delimiter (e.g. delimiter = \";\", --delimiter ';')",
@@ -493,6 +511,7 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         header_line: f.header_line,
         delimiter,
         decimal,
+        encoding,
         time: time_column,
         time_format,
         position,
@@ -668,6 +687,20 @@ mod tests {
     /// The error a mapping is refused with.
     fn refused(toml_text: &str) -> String {
         format!("{:#}", mapped(toml_text).unwrap_err())
+    }
+
+    /// An encoding by its WHATWG label; anything else is refused, named.
+    #[test]
+    fn an_encoding_by_its_label() {
+        let time = "[time]\ncolumn = \"t\"\n";
+        let m = mapped(&format!("encoding = \"latin1\"\n{time}")).unwrap();
+        assert_eq!(m.encoding, Some(encoding_rs::WINDOWS_1252));
+        assert_eq!(mapped(time).unwrap().encoding, None);
+        let err = refused(&format!("encoding = \"klingon\"\n{time}"));
+        assert!(
+            err.contains("encoding \"klingon\": not an encoding label"),
+            "{err}"
+        );
     }
 
     /// A decimal comma needs another delimiter; only `.` and `,` are

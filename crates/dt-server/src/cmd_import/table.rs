@@ -58,7 +58,7 @@ impl Table {
 /// Reads the file a second time, alongside the CSV reader, never more than
 /// once through.
 struct LineCounter {
-    input: BufReader<std::fs::File>,
+    input: BufReader<Text>,
     /// Bytes consumed.
     at: u64,
     /// Line ends passed (a `\r\n` counts once).
@@ -68,9 +68,12 @@ struct LineCounter {
 }
 
 impl LineCounter {
-    fn open(path: &Path) -> std::io::Result<Self> {
+    fn open(
+        path: &Path,
+        encoding: Option<&'static encoding_rs::Encoding>,
+    ) -> std::io::Result<Self> {
         Ok(Self {
-            input: BufReader::new(std::fs::File::open(path)?),
+            input: BufReader::new(open_text(path, encoding)?),
             at: 0,
             ends: 0,
             after_cr: false,
@@ -108,6 +111,33 @@ impl LineCounter {
     }
 }
 
+/// A file's text as UTF-8: transcoded from `encoding`, or without one from
+/// what a byte-order mark says (UTF-8, UTF-16), else passed through as UTF-8.
+type Text = encoding_rs_io::DecodeReaderBytes<std::fs::File, Vec<u8>>;
+
+fn open_text(
+    path: &Path,
+    encoding: Option<&'static encoding_rs::Encoding>,
+) -> std::io::Result<Text> {
+    Ok(encoding_rs_io::DecodeReaderBytesBuilder::new()
+        .encoding(encoding)
+        .build(std::fs::File::open(path)?))
+}
+
+/// A record the CSV reader could not read; text that is not UTF-8 when no
+/// encoding was given says how to give it.
+fn unreadable(file: &str, err: csv::Error, map: &Mapping) -> anyhow::Error {
+    let hint = match err.kind() {
+        csv::ErrorKind::Utf8 { pos, .. } if map.encoding.is_none() => format!(
+            ": line {} is not UTF-8; give the file's encoding, e.g. encoding = \"windows-1252\" \
+             in the mapping or --encoding windows-1252 for a CSV of Excel on Windows",
+            pos.as_ref().map_or(0, csv::Position::line)
+        ),
+        _ => String::new(),
+    };
+    anyhow::Error::new(err).context(format!("{file}: not readable as CSV{hint}"))
+}
+
 /// Reads `path` with `map`; `skip_bad` counts bad rows instead of failing.
 #[allow(clippy::too_many_lines)] // header search, then the row loop with its two error paths
 pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table> {
@@ -117,9 +147,11 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         .flexible(true)
         .delimiter(map.delimiter)
         .trim(csv::Trim::All)
-        .from_path(path)
-        .with_context(|| format!("{file}: cannot open"))?;
-    let mut lines = LineCounter::open(path).with_context(|| format!("{file}: cannot open"))?;
+        .from_reader(
+            open_text(path, map.encoding).with_context(|| format!("{file}: cannot open"))?,
+        );
+    let mut lines =
+        LineCounter::open(path, map.encoding).with_context(|| format!("{file}: cannot open"))?;
     let mut line_of = |record: &csv::StringRecord| -> anyhow::Result<u64> {
         let byte = record.position().map_or(0, csv::Position::byte);
         lines
@@ -153,7 +185,7 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
                 ),
             }
         };
-        let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
+        let record = record.map_err(|e| unreadable(&file, e, map))?;
         let line = line_of(&record)?;
         let found = if let Some(n) = map.header_line {
             line as usize == n
@@ -193,7 +225,7 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
     let mut time_format = map.time_format;
     let mut row = vec![0.0; wanted.len() - 1];
     for record in records {
-        let record = record.with_context(|| format!("{file}: not readable as CSV"))?;
+        let record = record.map_err(|e| unreadable(&file, e, map))?;
         let line = line_of(&record)?;
         if record.iter().all(str::is_empty) {
             continue; // blank line
@@ -408,6 +440,7 @@ mod tests {
             header_line: None,
             delimiter: b',',
             decimal: b'.',
+            encoding: None,
             time: "t".into(),
             time_format: TimeFormat::ElapsedS,
             position: Some(super::super::map::Column {
@@ -475,6 +508,7 @@ mod tests {
             header_line: None,
             delimiter: b',',
             decimal: b'.',
+            encoding: None,
             time: "t".into(),
             time_format: TimeFormat::ElapsedS,
             position: Some(super::super::map::Column {
@@ -525,6 +559,7 @@ mod tests {
             header_line: None,
             delimiter: b';',
             decimal: b',',
+            encoding: None,
             time: "t".into(),
             time_format: TimeFormat::Auto,
             position: Some(super::super::map::Column {
@@ -580,6 +615,83 @@ mod tests {
                 ":2: column \"x\": \"1,5\" is not a finite number (written with a decimal comma?"
             ),
             "{err}"
+        );
+    }
+
+    /// Exports in a Windows code page or in UTF-16 read as their UTF-8
+    /// twin, lines and all; a code page read as UTF-8 says how to give it.
+    #[test]
+    fn other_encodings_read_as_utf8() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        let map = Mapping {
+            header_line: None,
+            delimiter: b';',
+            decimal: b',',
+            encoding: None,
+            time: "t".into(),
+            time_format: TimeFormat::ElapsedS,
+            position: None,
+            force: None,
+            temp_shock: Some(super::super::map::Column {
+                name: "T [°C]".into(),
+                scale: 1.0,
+                offset: 0.0,
+            }),
+            temp_ambient: None,
+            acceleration: None,
+            asset_id: None,
+            run_id: None,
+            charge: super::super::map::Charge::None,
+            frequency_hz: None,
+            stroke_pp_m: None,
+            metadata: BTreeMap::new(),
+        };
+        let text = "Prüfstand µ-Test\r\nt;T [°C]\r\n0;25,5\r\n0,5;oops\r\n1;26\r\n";
+        std::fs::write(&path, text).unwrap();
+        let want = read(&path, &map, true).unwrap();
+        assert_eq!(
+            (want.lines.as_slice(), want.values[0].as_slice()),
+            ([3, 5].as_slice(), [25.5, 26.0].as_slice())
+        );
+        let cp1252: Vec<u8> = text
+            .chars()
+            .map(|c| match c {
+                'ü' => 0xFC,
+                'µ' => 0xB5,
+                '°' => 0xB0,
+                c => u8::try_from(c).unwrap(),
+            })
+            .collect();
+        std::fs::write(&path, &cp1252).unwrap();
+        let err = format!("{:#}", read(&path, &map, true).unwrap_err());
+        assert!(
+            err.contains("line 1 is not UTF-8") && err.contains("--encoding windows-1252"),
+            "{err}"
+        );
+        let latin = Mapping {
+            encoding: Some(encoding_rs::WINDOWS_1252),
+            ..map.clone()
+        };
+        let got = read(&path, &latin, true).unwrap();
+        assert_eq!(
+            format!("{:?}", (&got.t_ns, &got.values, &got.lines, &got.skipped)),
+            format!(
+                "{:?}",
+                (&want.t_ns, &want.values, &want.lines, &want.skipped)
+            )
+        );
+        // UTF-16 with its byte-order mark: found without being told
+        let mut utf16 = vec![0xFF, 0xFE];
+        utf16.extend(text.encode_utf16().flat_map(u16::to_le_bytes));
+        std::fs::write(&path, &utf16).unwrap();
+        let got = read(&path, &map, true).unwrap();
+        assert_eq!(
+            format!("{:?}", (&got.t_ns, &got.values, &got.lines, &got.skipped)),
+            format!(
+                "{:?}",
+                (&want.t_ns, &want.values, &want.lines, &want.skipped)
+            )
         );
     }
 

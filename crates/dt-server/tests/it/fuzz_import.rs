@@ -96,6 +96,7 @@ fn mappings() -> &'static [Mapping] {
                 "--accel-unit",
                 "g",
             ],
+            &["--encoding", "windows-1252"],
         ]
         .iter()
         .map(|flags| resolve(&example, flags).unwrap())
@@ -146,7 +147,8 @@ fn csv_seeds() -> Vec<(usize, String)> {
     vec![
         (0, iso.clone()),
         (1, iso.clone()),
-        (2, iso),
+        (2, iso.clone()),
+        (6, iso),
         (3, elapsed),
         (4, comma),
         (5, epoch),
@@ -328,6 +330,7 @@ fn map_line() -> impl Strategy<Value = String> {
             "header_line",
             "delimiter",
             "decimal",
+            "encoding",
             "asset_id",
             "run_id",
             "frequency_hz",
