@@ -205,9 +205,9 @@ pub struct ImportArgs {
     /// 1-based line of the header row (default: the first row naming every mapped column).
     #[arg(long)]
     pub header_line: Option<usize>,
-    /// Field delimiter (default `,`).
+    /// Field delimiter: one character (default `,`), or `tab`.
     #[arg(long)]
-    pub delimiter: Option<char>,
+    pub delimiter: Option<String>,
     /// Decimal separator of the numbers: `.` (default) or `,` (exports
     /// written `1,5`; then another delimiter, e.g. `--delimiter ';'`).
     #[arg(long)]

@@ -51,8 +51,8 @@ const ATM_BAR: f64 = 1.013_25;
 pub struct MapFile {
     /// 1-based line of the header row.
     pub header_line: Option<usize>,
-    /// Field delimiter (one character).
-    pub delimiter: Option<char>,
+    /// Field delimiter: one ASCII character, or `tab` (`\t`).
+    pub delimiter: Option<String>,
     /// Decimal separator of the numbers: `.` (default) or `,`.
     pub decimal: Option<char>,
     /// The file's text encoding, a WHATWG label (default: UTF-8, or what
@@ -474,11 +474,16 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
             Charge::Label(label.to_owned())
         }
     };
-    let delimiter = match f.delimiter {
+    let delimiter = match f.delimiter.as_deref() {
         None => b',',
-        Some(c) if c.is_ascii() => c as u8,
-        Some(c) => bail!("delimiter {c:?}: must be one ASCII character"),
+        // a tab is hard to give on a command line: by name or escaped
+        Some("tab" | "TAB" | "\\t" | "\t") => b'\t',
+        Some(d) if d.len() == 1 && d.is_ascii() => d.as_bytes()[0],
+        Some(d) => bail!("delimiter {d:?}: must be one ASCII character, or \"tab\""),
     };
+    if f.header_line == Some(0) {
+        bail!("header_line = 0: lines are counted from 1 (the file's first line is 1)");
+    }
     let decimal = match f.decimal {
         None | Some('.') => b'.',
         Some(',') => b',',
@@ -592,44 +597,51 @@ fn same(a: f64, b: f64) -> bool {
     a.to_bits() == b.to_bits()
 }
 
+// Units are read whatever their case (`[MM]`, `[KN]` from a DAQ that
+// writes capitals were taken for units of no quantity, and the column read
+// in the default unit: a factor of 1000 without a word), with the other
+// spellings exports use.
+
 /// m/s² per unit.
 fn accel_unit(unit: &str) -> Option<f64> {
-    match unit {
+    match unit.trim().to_lowercase().as_str() {
         "g" => Some(G_MPS2),
-        "m/s2" | "m/s^2" | "m/s²" | "mps2" => Some(1.0),
+        "m/s2" | "m/s^2" | "m/s²" | "mps2" | "m s-2" => Some(1.0),
         _ => None,
     }
 }
 
 /// Metres per unit.
 fn length_unit(unit: &str) -> anyhow::Result<f64> {
-    Ok(match unit {
+    Ok(match unit.trim().to_lowercase().as_str() {
         "m" => 1.0,
         "mm" => 1e-3,
         "cm" => 1e-2,
-        "in" => 0.0254,
-        other => bail!("position unit {other:?}: not one of mm, cm, m, in"),
+        "µm" | "μm" | "um" => 1e-6,
+        "in" | "inch" | "inches" => 0.0254,
+        _ => bail!("position unit {unit:?}: not one of mm, cm, m, µm, in"),
     })
 }
 
 /// Newtons per unit.
 fn force_unit(unit: &str) -> anyhow::Result<f64> {
-    Ok(match unit {
-        "N" => 1.0,
-        "kN" => 1e3,
-        "lbf" => 4.448_221_615_260_5,
-        "kgf" => G_MPS2,
-        other => bail!("force unit {other:?}: not one of N, kN, lbf, kgf"),
+    Ok(match unit.trim().to_lowercase().as_str() {
+        "n" => 1.0,
+        "kn" => 1e3,
+        "dan" => 10.0,
+        "lbf" | "lb" | "lbs" => 4.448_221_615_260_5,
+        "kgf" | "kp" => G_MPS2,
+        _ => bail!("force unit {unit:?}: not one of N, daN, kN, lbf, kgf"),
     })
 }
 
 /// `(scale, offset)` to °C.
 fn temperature_unit(unit: &str) -> anyhow::Result<(f64, f64)> {
-    Ok(match unit {
-        "C" | "°C" | "degC" => (1.0, 0.0),
-        "F" | "°F" | "degF" => (5.0 / 9.0, -32.0 * 5.0 / 9.0),
-        "K" => (1.0, -273.15),
-        other => bail!("temperature unit {other:?}: not one of C, F, K"),
+    Ok(match unit.trim().to_lowercase().as_str() {
+        "c" | "°c" | "degc" | "deg c" => (1.0, 0.0),
+        "f" | "°f" | "degf" | "deg f" => (5.0 / 9.0, -32.0 * 5.0 / 9.0),
+        "k" => (1.0, -273.15),
+        _ => bail!("temperature unit {unit:?}: not one of C, F, K"),
     })
 }
 
@@ -667,10 +679,12 @@ pub fn charge_bar(label: &str) -> anyhow::Result<f64> {
 /// Never: the pattern is a constant that compiles.
 #[must_use]
 pub fn charge_in_name(name: &str) -> Option<(String, f64)> {
-    let pattern = regex::Regex::new(r"(?i)(\d+(?:\.\d+)?)\s*(psia|psig|psi|bara|barg|bar|kpa|mpa)")
-        .expect("a valid pattern");
+    // A decimal comma too: `unit_10,3bar` is 10.3 bar, not 3.
+    let pattern =
+        regex::Regex::new(r"(?i)(\d+(?:[.,]\d+)?)\s*(psia|psig|psi|bara|barg|bar|kpa|mpa)")
+            .expect("a valid pattern");
     let found = pattern.captures_iter(name).find_map(|c| {
-        let label = format!("{} {}", &c[1], &c[2]);
+        let label = format!("{} {}", c[1].replace(',', "."), &c[2]);
         charge_bar(&label).ok().map(|bar| (label, bar))
     });
     found
@@ -715,6 +729,15 @@ mod tests {
         assert!(err.contains("also the field delimiter"), "{err}");
         let err = refused(&format!("decimal = \"'\"\ndelimiter = \";\"\n{time}"));
         assert!(err.contains("decimal '\\''"), "{err}");
+        // a tab by name or escaped; lines counted from 1
+        for tab in ["tab", "\\\\t", "\\t"] {
+            let m = mapped(&format!("delimiter = \"{tab}\"\n{time}")).unwrap();
+            assert_eq!(m.delimiter, b'\t', "{tab}");
+        }
+        let err = refused(&format!("delimiter = \"ab\"\n{time}"));
+        assert!(err.contains("or \"tab\""), "{err}");
+        let err = refused(&format!("header_line = 0\n{time}"));
+        assert!(err.contains("counted from 1"), "{err}");
     }
 
     /// A unit in the header's brackets or parentheses must agree with the
@@ -756,6 +779,27 @@ mod tests {
             "{time}[acceleration]\na1 = \"a1 [m/s2]\"\na2 = \"a2 [m/s2]\"\nunit = \"g\""
         ));
         assert!(err.contains("\"a1 [m/s2]\""), "{err}");
+        // units in capitals, or spelt otherwise, are units: read in the
+        // default they were a factor of 1000 (or 10⁶, 39, 10, 4.45) off
+        for (key, column) in [
+            ("position", "Disp [MM]"),
+            ("position", "Disp [µm]"),
+            ("position", "Disp [um]"),
+            ("position", "Disp [inch]"),
+            ("force", "Force [KN]"),
+            ("force", "Force [daN]"),
+            ("force", "Force [lb]"),
+        ] {
+            let err = refused(&format!("{time}[{key}]\ncolumn = \"{column}\""));
+            assert!(err.contains("the default"), "{column}: {err}");
+        }
+        let m = mapped(&format!(
+            "{time}[position]\ncolumn = \"Disp [µm]\"\nunit = \"um\"\n\
+             [force]\ncolumn = \"Force [daN]\"\nunit = \"DAN\""
+        ))
+        .unwrap();
+        assert!(same(m.position.unwrap().scale, 1e-6));
+        assert!(same(m.force.unwrap().scale, 10.0));
         // agreeing, another spelling of the same unit, or not a unit of the
         // quantity (left to the mapping): read as mapped
         let m = mapped(&format!(
@@ -790,6 +834,8 @@ mod tests {
         assert_eq!(label, "101.5 psi");
         assert!((bar - 7.0).abs() < 0.01);
         assert_eq!(charge_in_name("run_12bar").unwrap().0, "12 bar");
+        // a decimal comma, as a European file name writes it (it read 3 bar)
+        assert_eq!(charge_in_name("unit_10,3bar_2Hz").unwrap().0, "10.3 bar");
         assert!(charge_in_name("run_2Hz").is_none());
     }
 

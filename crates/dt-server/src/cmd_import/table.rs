@@ -211,6 +211,21 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
                 header.iter().collect::<Vec<_>>()
             )
         })?;
+        // Two columns of one name (a spare channel copied): the first was
+        // read without a word, whichever held the data.
+        let fields: Vec<usize> = (0..header.len()).filter(|&k| &header[k] == *w).collect();
+        if fields.len() > 1 {
+            bail!(
+                "{file}:{header_line}: column {w:?} is in the header {} times (fields {}): \
+                 which one to read is not for the import to guess; rename them in the file",
+                fields.len(),
+                fields
+                    .iter()
+                    .map(|k| (k + 1).to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
         index.push(i);
     }
     let scales: Vec<(f64, f64)> = map
@@ -307,7 +322,8 @@ fn with_point(text: &str, decimal: u8, point_ok: bool) -> Result<Cow<'_, str>, S
 fn comma_hint(text: &str, decimal: u8) -> &'static str {
     let reads = || text.replace(',', ".").trim().parse::<f64>().is_ok();
     if decimal == b'.' && text.contains(',') && reads() {
-        " (written with a decimal comma? give decimal = \",\" in the mapping, or --decimal ',')"
+        " (written with a decimal comma? give decimal = \",\" in the mapping, or --decimal ',', \
+         with the file's own delimiter, e.g. ';')"
     } else {
         ""
     }
@@ -392,13 +408,28 @@ fn parse_row(
 /// Parses one time cell; `Auto` settles on the first row's format.
 fn parse_time(text: &str, format: &mut TimeFormat) -> Result<i64, String> {
     if *format == TimeFormat::Auto {
-        *format = match text.parse::<f64>() {
+        // Settled by the first cell that reads: a units row under the
+        // header (`s`) must not settle it (it settled on ISO-8601, and every
+        // numeric row after it failed).
+        let mut guess = match text.parse::<f64>() {
+            // beyond 1e11 s is the year 5138: milliseconds since the epoch
+            Ok(x) if x.abs() > 1e11 => TimeFormat::EpochMs,
             Ok(x) if x > 1e8 => TimeFormat::EpochS,
             Ok(_) => TimeFormat::ElapsedS,
             Err(_) => TimeFormat::Iso8601,
         };
+        let t = parse_time(text, &mut guess)?;
+        *format = guess;
+        return Ok(t);
     }
     let number = |scale: f64| -> Result<i64, String> {
+        // An integer count (epoch milliseconds: 1.8e12 ms is 1.8e18 ns,
+        // beyond f64's exact integers) is converted exactly.
+        if let Ok(n) = text.trim().parse::<i64>() {
+            if let Some(ns) = n.checked_mul(scale as i64) {
+                return Ok(ns);
+            }
+        }
         let x: f64 = text
             .parse()
             .map_err(|_| format!("{text:?} is not a number ({} time)", format.key()))?;
@@ -410,18 +441,54 @@ fn parse_time(text: &str, format: &mut TimeFormat) -> Result<i64, String> {
     match format {
         TimeFormat::EpochS | TimeFormat::ElapsedS => number(1e9),
         TimeFormat::EpochMs | TimeFormat::ElapsedMs => number(1e6),
-        TimeFormat::Iso8601 | TimeFormat::Auto => {
-            let t = humantime::parse_rfc3339_weak(text).map_err(|e| {
-                format!(
-                    "{text:?} is not an ISO-8601 UTC time ({e}; offsets other than Z are not read)"
-                )
-            })?;
-            let d = t
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_err(|_| format!("{text:?} is before 1970"))?;
-            i64::try_from(d.as_nanos()).map_err(|_| format!("{text:?} is out of range"))
-        }
+        TimeFormat::Iso8601 | TimeFormat::Auto => parse_iso(text),
     }
+}
+
+/// An ISO-8601 time: with `Z` or no zone (taken as UTC; `humantime`'s weak
+/// RFC 3339, which takes a space for the `T`), or with a numeric UTC offset
+/// (`+01:00`, `-0500`, `+01`), converted to UTC (the `time` crate's RFC
+/// 3339). `humantime` never sees an offset: it read `12:00:00.000+01:00` as
+/// 12:00 UTC without a word (sixty-first session, trying exports).
+fn parse_iso(text: &str) -> Result<i64, String> {
+    let ns = if let Some(rfc3339) = with_offset(text) {
+        time::OffsetDateTime::parse(&rfc3339, &time::format_description::well_known::Rfc3339)
+            .map_err(|e| format!("{text:?} is not an ISO-8601 time with a UTC offset ({e})"))?
+            .unix_timestamp_nanos()
+    } else {
+        let t = humantime::parse_rfc3339_weak(text)
+            .map_err(|e| format!("{text:?} is not an ISO-8601 time ({e})"))?;
+        let d = t
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_err(|_| format!("{text:?} is before 1970"))?;
+        i128::try_from(d.as_nanos()).unwrap_or(i128::MAX)
+    };
+    if ns < 0 {
+        return Err(format!("{text:?} is before 1970"));
+    }
+    i64::try_from(ns).map_err(|_| format!("{text:?} is out of range"))
+}
+
+/// `text` as RFC 3339 (`T` between date and time, `±HH:MM`) when it ends
+/// in a numeric UTC offset after its time of day; `None` otherwise.
+fn with_offset(text: &str) -> Option<String> {
+    let t = text.trim();
+    let (date, rest) = (t.get(..10)?, t.get(11..)?);
+    if !matches!(t.as_bytes()[10], b'T' | b't' | b' ') {
+        return None;
+    }
+    let at = rest.rfind(['+', '-'])?;
+    let (clock, offset) = rest.split_at(at);
+    let digits = &offset[1..];
+    if !digits.bytes().all(|b| b.is_ascii_digit() || b == b':') {
+        return None;
+    }
+    let hhmm = match digits.len() {
+        2 => format!("{digits}:00"),
+        4 if !digits.contains(':') => format!("{}:{}", &digits[..2], &digits[2..]),
+        _ => digits.to_owned(),
+    };
+    Some(format!("{date}T{clock}{}{hhmm}", &offset[..1]))
 }
 
 #[cfg(test)]
@@ -537,6 +604,13 @@ mod tests {
             assert_eq!(t.lines, [3, 4, 7], "{ends:?}");
             assert_eq!(t.skipped.values().next(), Some(&(1, 6)), "{ends:?}");
         }
+        // A mapped column named twice is refused, naming its fields.
+        std::fs::write(&path, "t,x,y,x\n0.1,0,1,2\n0.2,0,1,2\n").unwrap();
+        let err = format!("{:#}", read(&path, &map, false).unwrap_err());
+        assert!(
+            err.contains(":1: column \"x\" is in the header 2 times (fields 2, 4)"),
+            "{err}"
+        );
         // Ends mixed in one file, and a quoted cell across two lines before the header.
         std::fs::write(&path, "\"a\nb\"\r\nt,x\r0.1,1\n0.2,2\r\n0.3,3\r").unwrap();
         assert_eq!(read(&path, &map, false).unwrap().lines, [4, 5, 6]);
@@ -713,9 +787,42 @@ mod tests {
         assert_eq!(parse_time("0.25", &mut f), Ok(250_000_000));
         let mut f = TimeFormat::ElapsedMs;
         assert_eq!(parse_time("3", &mut f), Ok(3_000_000));
+        // A UTC offset is converted, with or without a fraction, a `T` or a
+        // colon (the fraction's form was read as UTC, the offset dropped).
+        let noon_utc = 1_772_366_400_000_000_000_i64; // 2026-03-01T12:00:00Z
+        for (text, hours) in [
+            ("2026-03-01T12:00:00.000+01:00", -1),
+            ("2026-03-01T12:00:00+01:00", -1),
+            ("2026-03-01 12:00:00.5+09:00", -9),
+            ("2026-03-01T12:00:00-05:00", 5),
+            ("2026-03-01T12:00:00.000-0500", 5),
+            ("2026-03-01T12:00:00+01", -1),
+            ("2026-03-01T12:00:00Z", 0),
+            ("2026-03-01 12:00:00", 0),
+        ] {
+            let mut f = TimeFormat::Auto;
+            let half = if text.contains(".5") { 500_000_000 } else { 0 };
+            assert_eq!(
+                parse_time(text, &mut f),
+                Ok(noon_utc + hours * 3_600_000_000_000 + half),
+                "{text}"
+            );
+            assert_eq!(f, TimeFormat::Iso8601);
+        }
         let mut f = TimeFormat::Iso8601;
-        assert!(parse_time("2023-11-14T22:13:20+02:00", &mut f)
-            .unwrap_err()
-            .contains("offsets"));
+        assert!(parse_time("2026-03-01T12:00:00+1:0", &mut f).is_err());
+        // Milliseconds since the epoch, found by their size.
+        let mut f = TimeFormat::Auto;
+        assert_eq!(
+            parse_time("1772366400002", &mut f),
+            Ok(noon_utc + 2_000_000)
+        );
+        assert_eq!(f, TimeFormat::EpochMs);
+        // A cell that reads as no time (a units row) leaves the format open.
+        let mut f = TimeFormat::Auto;
+        assert!(parse_time("s", &mut f).is_err());
+        assert_eq!(f, TimeFormat::Auto);
+        assert_eq!(parse_time("0.5", &mut f), Ok(500_000_000));
+        assert_eq!(f, TimeFormat::ElapsedS);
     }
 }
