@@ -275,3 +275,48 @@ def test_positions_beyond_the_stated_stroke_are_refused(tmp_path: Path) -> None:
     assert done.returncode == 1 and "spans 50.8 mm" in done.stderr, done.stderr
     done = run("in", "0")
     assert done.returncode == 1 and "stroke_pp_mm = 0" in done.stderr, done.stderr
+
+
+def test_a_european_windows_export_reads_as_its_plain_twin(tmp_path: Path) -> None:
+    """The same run written two ways: as a Western-European Windows DAQ writes it (Windows-1252,
+    `;` between fields, decimal commas, `\\r\\n`, a preamble, a units row, units in capitals and
+    daN, time in ms starting 0.5 s before the trigger) and as plain UTF-8 CSV in SI-ish units.
+    Both import to the same log, read back with Python's `mcap`; nothing is left half-written."""
+    n = 1500
+    t_s = np.arange(n) / 500.0  # 500 Hz
+    pos_mm = 40.0 + 20.0 * np.sin(2 * np.pi * 2 * t_s)
+    force_n = 300.0 * np.cos(2 * np.pi * 2 * t_s)
+    temp_c = 25.0 + 0.001 * np.arange(n)
+    plain = tmp_path / "plain.csv"
+    plain.write_text("t [s],pos [mm],force [N],T [°C]\n" + "".join(
+        f"{t:.3f},{p:.4f},{f:.3f},{c:.3f}\n" for t, p, f, c in zip(t_s, pos_mm, force_n, temp_c)), encoding="utf-8")
+    de = tmp_path / "prüfstand.csv"
+    rows = ["Prüfstand 3;Stoßdämpfer µ-Serie", "Zeit [ms];Weg [MM];Kraft [daN];Temperatur [°C]", "ms;mm;daN;°C"]
+    rows += [f"{1000 * t - 500:.0f};{p:.4f};{f / 10:.4f};{c:.3f}".replace(".", ",")
+             for t, p, f, c in zip(t_s, pos_mm, force_n, temp_c)]
+    de.write_bytes(("\r\n".join(rows) + "\r\n").encode("cp1252"))
+    common = ("--asset-id", "u1", "--charge", "10 bar", "--skip-bad-rows")
+    shocktwin("import", *common, "--run-id", "plain", "--time", "t [s]", "--position", "pos [mm]",
+              "--position-unit", "mm", "--force", "force [N]", "--temp-shock", "T [°C]", "--temp-unit", "C",
+              "--out", tmp_path / "out", plain)
+    # Without the encoding: refused, naming the line and the option; nothing written.
+    refused = shocktwin("import", *common, "--run-id", "de", "--delimiter", ";", "--decimal", ",",
+                        "--time", "Zeit [ms]", "--out", tmp_path / "out", de, check=False)
+    assert refused.returncode == 1 and "line 1 is not UTF-8" in refused.stderr and "--encoding" in refused.stderr
+    done = shocktwin("import", *common, "--run-id", "de", "--encoding", "windows-1252", "--delimiter", ";",
+                     "--decimal", ",", "--time", "Zeit [ms]", "--position", "Weg [MM]", "--position-unit", "MM",
+                     "--force", "Kraft [daN]", "--force-unit", "daN", "--temp-shock", "Temperatur [°C]",
+                     "--temp-unit", "C", "--out", tmp_path / "out", de)
+    assert "skipped 1 rows" in done.stdout and "(first at line 3)" in done.stdout, done.stdout
+    assert "moved by +0.500000 s" in done.stdout, done.stdout
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["de.mcap", "plain.mcap"]
+    _, a = read_mcap(tmp_path / "out" / "plain.mcap")
+    _, b = read_mcap(tmp_path / "out" / "de.mcap")
+    assert a.keys() == b.keys()
+    for topic, (t, rows) in a.items():
+        tb, rows_b = b[topic]
+        assert np.array_equal(t, tb), topic
+        for key in rows[0]:
+            va = np.array([r[key] for r in rows])
+            vb = np.array([r[key] for r in rows_b])
+            assert np.allclose(va, vb, rtol=0, atol=1e-9), (topic, key)

@@ -396,6 +396,20 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
             "[time] format = {other:?}: not one of iso8601, epoch_s, epoch_ms, elapsed_s, elapsed_ms, auto"
         ),
     };
+    // A time column whose header names its unit is read in it: `Time [ms]`
+    // read as seconds (auto, or a format given) stretched the run a
+    // thousandfold without a word. Epoch and elapsed milliseconds convert alike.
+    let stated = header_unit(&time_column).map(str::to_lowercase);
+    let time_format = match (stated.as_deref(), time_format) {
+        (Some("ms" | "msec"), TimeFormat::Auto) => TimeFormat::ElapsedMs,
+        (Some(u @ ("ms" | "msec")), f @ (TimeFormat::EpochS | TimeFormat::ElapsedS))
+        | (Some(u @ ("s" | "sec")), f @ (TimeFormat::EpochMs | TimeFormat::ElapsedMs)) => bail!(
+            "[time] column {time_column:?} names its unit {u:?}, but the format reads it as {:?}: \
+             give [time] format (--time-format) in {u}, or the unit the times are really in",
+            f.key()
+        ),
+        (_, f) => f,
+    };
     let position = match &f.position {
         None => None,
         Some(p) => {
@@ -715,6 +729,23 @@ mod tests {
             err.contains("encoding \"klingon\": not an encoding label"),
             "{err}"
         );
+    }
+
+    /// A time header naming milliseconds is read in them, and a format
+    /// that says otherwise is refused.
+    #[test]
+    fn a_time_header_naming_its_unit_is_read_in_it() {
+        let m = mapped("[time]\ncolumn = \"Time [ms]\"\n").unwrap();
+        assert_eq!(m.time_format, TimeFormat::ElapsedMs);
+        let m = mapped("[time]\ncolumn = \"t (s)\"\n").unwrap();
+        assert_eq!(m.time_format, TimeFormat::Auto);
+        let err = refused("[time]\ncolumn = \"Time [ms]\"\nformat = \"elapsed_s\"\n");
+        assert!(
+            err.contains("names its unit \"ms\"") && err.contains("\"elapsed_s\""),
+            "{err}"
+        );
+        let err = refused("[time]\ncolumn = \"t [s]\"\nformat = \"epoch_ms\"\n");
+        assert!(err.contains("names its unit \"s\""), "{err}");
     }
 
     /// A decimal comma needs another delimiter; only `.` and `,` are

@@ -116,9 +116,19 @@ fn import_file(
             other.display()
         );
     }
-    let table = table::read(path, map, args.skip_bad_rows)?;
+    let mut table = table::read(path, map, args.skip_bad_rows)?;
     if table.t_ns.len() < 2 {
         bail!("{file}: fewer than two data rows: nothing to import");
+    }
+    // Elapsed times before 0 (a pre-trigger stretch): the log's clock
+    // starts at 0, so the run is moved to start there, and the report says
+    // so (it failed only when written, naming neither line nor column, and
+    // left its `.part` behind).
+    let shifted_ns = (table.t_ns[0] < 0).then(|| -table.t_ns[0]);
+    if let Some(dt) = shifted_ns {
+        for t in &mut table.t_ns {
+            *t += dt;
+        }
     }
     if let (Some(stroke), Some(position)) = (map.stroke_pp_m, &map.position) {
         // the position is the first value column (`Mapping::value_columns`)
@@ -136,18 +146,25 @@ fn import_file(
     let part = args.out.join(format!("{}.mcap.part", metadata.run_id));
     let t0 = table.t_ns[0];
     samples.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
-    let mut writer = LogWriter::create(&part, &metadata, WriteOptions::default())
-        .with_context(|| format!("{file}: writing {}", part.display()))?;
-    for s in &samples {
-        writer
-            .write_sample(s)
+    let written = (|| -> anyhow::Result<()> {
+        let mut writer = LogWriter::create(&part, &metadata, WriteOptions::default())
             .with_context(|| format!("{file}: writing {}", part.display()))?;
+        for s in &samples {
+            writer
+                .write_sample(s)
+                .with_context(|| format!("{file}: writing {}", part.display()))?;
+        }
+        writer
+            .finish()
+            .with_context(|| format!("{file}: writing {}", part.display()))?;
+        std::fs::rename(&part, &out)
+            .with_context(|| format!("{file}: renaming to {}", out.display()))
+    })();
+    if let Err(err) = written {
+        // no half-written log is left behind
+        let _ = std::fs::remove_file(&part);
+        return Err(err);
     }
-    writer
-        .finish()
-        .with_context(|| format!("{file}: writing {}", part.display()))?;
-    std::fs::rename(&part, &out)
-        .with_context(|| format!("{file}: renaming to {}", out.display()))?;
 
     let duration_s = (table.t_ns[table.t_ns.len() - 1] - t0) as f64 * 1e-9;
     let kept = table.t_ns.len();
@@ -179,6 +196,14 @@ fn import_file(
             .get("charge_label")
             .map_or("", String::as_str);
         let _ = write!(report, "; charge {label} = {bar:.3} bar");
+    }
+    if let Some(dt) = shifted_ns {
+        let _ = write!(
+            report,
+            "\n  its times start at {:.6} s: moved by +{:.6} s to start at 0 (a log's clock does not go below 0)",
+            -(dt as f64) * 1e-9,
+            dt as f64 * 1e-9
+        );
     }
     for (reason, (n, first)) in &table.skipped {
         let _ = write!(
