@@ -125,14 +125,23 @@ fn open_text(
 }
 
 /// A record the CSV reader could not read; text that is not UTF-8 when no
-/// encoding was given says how to give it.
-fn unreadable(file: &str, err: csv::Error, map: &Mapping) -> anyhow::Error {
+/// encoding was given says how to give it, naming the line (`line_at`: the
+/// line of a byte offset, [`LineCounter::line_at`]).
+fn unreadable(
+    file: &str,
+    err: csv::Error,
+    map: &Mapping,
+    line_at: impl FnOnce(u64) -> anyhow::Result<u64>,
+) -> anyhow::Error {
     let hint = match err.kind() {
-        csv::ErrorKind::Utf8 { pos, .. } if map.encoding.is_none() => format!(
-            ": line {} is not UTF-8; give the file's encoding, e.g. encoding = \"windows-1252\" \
-             in the mapping or --encoding windows-1252 for a CSV of Excel on Windows",
-            pos.as_ref().map_or(0, csv::Position::line)
-        ),
+        csv::ErrorKind::Utf8 { pos, .. } if map.encoding.is_none() => {
+            let line = line_at(pos.as_ref().map_or(0, csv::Position::byte));
+            format!(
+                ": line {} is not UTF-8; give the file's encoding, e.g. encoding = \"windows-1252\" \
+                 in the mapping or --encoding windows-1252 for a CSV of Excel on Windows",
+                line.map_or_else(|_| "?".to_owned(), |l| l.to_string())
+            )
+        }
         _ => String::new(),
     };
     anyhow::Error::new(err).context(format!("{file}: not readable as CSV{hint}"))
@@ -152,12 +161,12 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         );
     let mut lines =
         LineCounter::open(path, map.encoding).with_context(|| format!("{file}: cannot open"))?;
-    let mut line_of = |record: &csv::StringRecord| -> anyhow::Result<u64> {
-        let byte = record.position().map_or(0, csv::Position::byte);
+    let mut line_at = |byte: u64| -> anyhow::Result<u64> {
         lines
             .line_at(byte)
             .with_context(|| format!("{file}: cannot read"))
     };
+    let byte_of = |record: &csv::StringRecord| record.position().map_or(0, csv::Position::byte);
     let wanted = map.columns();
     let mut records = reader.records();
     // The row naming the most mapped columns, should none name them all:
@@ -185,8 +194,8 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
                 ),
             }
         };
-        let record = record.map_err(|e| unreadable(&file, e, map))?;
-        let line = line_of(&record)?;
+        let record = record.map_err(|e| unreadable(&file, e, map, &mut line_at))?;
+        let line = line_at(byte_of(&record))?;
         let found = if let Some(n) = map.header_line {
             line as usize == n
         } else {
@@ -240,8 +249,8 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
     let mut time_format = map.time_format;
     let mut row = vec![0.0; wanted.len() - 1];
     for record in records {
-        let record = record.map_err(|e| unreadable(&file, e, map))?;
-        let line = line_of(&record)?;
+        let record = record.map_err(|e| unreadable(&file, e, map, &mut line_at))?;
+        let line = line_at(byte_of(&record))?;
         if record.iter().all(str::is_empty) {
             continue; // blank line
         }
@@ -495,15 +504,10 @@ fn with_offset(text: &str) -> Option<String> {
 mod tests {
     use super::*;
 
-    /// Found by the fuzzer: an elapsed time of -7.7e18 s saturates to
-    /// `i64::MIN` ns, and the "earlier by" figure overflowed (a panic in a
-    /// debug build, a negative number in release).
-    #[test]
-    fn a_saturated_time_going_backwards_is_reported_without_overflow() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("run.csv");
-        std::fs::write(&path, "t,x\n0.1,1\n-7742193463672171491,2\n").unwrap();
-        let map = Mapping {
+    /// `t` (elapsed seconds) and `x` (metres, as written), comma-separated,
+    /// UTF-8 with decimal points; tests change what they need.
+    fn base_map() -> Mapping {
+        Mapping {
             header_line: None,
             delimiter: b',',
             decimal: b'.',
@@ -525,7 +529,18 @@ mod tests {
             frequency_hz: None,
             stroke_pp_m: None,
             metadata: BTreeMap::new(),
-        };
+        }
+    }
+
+    /// Found by the fuzzer: an elapsed time of -7.7e18 s saturates to
+    /// `i64::MIN` ns, and the "earlier by" figure overflowed (a panic in a
+    /// debug build, a negative number in release).
+    #[test]
+    fn a_saturated_time_going_backwards_is_reported_without_overflow() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        std::fs::write(&path, "t,x\n0.1,1\n-7742193463672171491,2\n").unwrap();
+        let map = base_map();
         let err = format!("{:#}", read(&path, &map, false).unwrap_err());
         assert!(
             err.contains(":3: column \"t\"") && err.contains("(9223372036.954"),
@@ -571,29 +586,7 @@ mod tests {
     fn lines_are_counted_whatever_the_line_ends() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run.csv");
-        let map = Mapping {
-            header_line: None,
-            delimiter: b',',
-            decimal: b'.',
-            encoding: None,
-            time: "t".into(),
-            time_format: TimeFormat::ElapsedS,
-            position: Some(super::super::map::Column {
-                name: "x".into(),
-                scale: 1.0,
-                offset: 0.0,
-            }),
-            force: None,
-            temp_shock: None,
-            temp_ambient: None,
-            acceleration: None,
-            asset_id: None,
-            run_id: None,
-            charge: super::super::map::Charge::None,
-            frequency_hz: None,
-            stroke_pp_m: None,
-            metadata: BTreeMap::new(),
-        };
+        let map = base_map();
         let rows = ["# export", "t,x", "0.1,1", "0.2,2", "", "0.3,oops", "0.4,4"];
         for (ends, bom) in [("\n", ""), ("\r\n", ""), ("\r", ""), ("\r", "\u{feff}")] {
             let text = format!("{bom}{}{ends}", rows.join(ends));
@@ -630,27 +623,15 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run.csv");
         let map = Mapping {
-            header_line: None,
             delimiter: b';',
             decimal: b',',
-            encoding: None,
-            time: "t".into(),
             time_format: TimeFormat::Auto,
             position: Some(super::super::map::Column {
                 name: "x".into(),
                 scale: 1e-3,
                 offset: 0.0,
             }),
-            force: None,
-            temp_shock: None,
-            temp_ambient: None,
-            acceleration: None,
-            asset_id: None,
-            run_id: None,
-            charge: super::super::map::Charge::None,
-            frequency_hz: None,
-            stroke_pp_m: None,
-            metadata: BTreeMap::new(),
+            ..base_map()
         };
         std::fs::write(&path, "t;x\n0,25;1,5\n0,5;-2\n0,75;3,25e1\n").unwrap();
         let t = read(&path, &map, false).unwrap();
@@ -699,27 +680,15 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run.csv");
         let map = Mapping {
-            header_line: None,
             delimiter: b';',
             decimal: b',',
-            encoding: None,
-            time: "t".into(),
-            time_format: TimeFormat::ElapsedS,
             position: None,
-            force: None,
             temp_shock: Some(super::super::map::Column {
                 name: "T [°C]".into(),
                 scale: 1.0,
                 offset: 0.0,
             }),
-            temp_ambient: None,
-            acceleration: None,
-            asset_id: None,
-            run_id: None,
-            charge: super::super::map::Charge::None,
-            frequency_hz: None,
-            stroke_pp_m: None,
-            metadata: BTreeMap::new(),
+            ..base_map()
         };
         let text = "Prüfstand µ-Test\r\nt;T [°C]\r\n0;25,5\r\n0,5;oops\r\n1;26\r\n";
         std::fs::write(&path, text).unwrap();
@@ -743,6 +712,11 @@ mod tests {
             err.contains("line 1 is not UTF-8") && err.contains("--encoding windows-1252"),
             "{err}"
         );
+        // the line is counted as everywhere else: `\r` ends, the `°` on line 2
+        let cr = dir.path().join("cr.csv");
+        std::fs::write(&cr, b"preamble\rt;T [\xB0C]\r0;25,5\r1;26\r").unwrap();
+        let err = format!("{:#}", read(&cr, &map, true).unwrap_err());
+        assert!(err.contains("line 2 is not UTF-8"), "{err}");
         let latin = Mapping {
             encoding: Some(encoding_rs::WINDOWS_1252),
             ..map.clone()
