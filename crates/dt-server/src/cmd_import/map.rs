@@ -9,7 +9,7 @@
 //! # encoding = "utf-8"     # or any WHATWG label: "windows-1252", "iso-8859-15", "utf-16le", "shift_jis" …
 //! [time]
 //! column = "Timestamp"
-//! format = "iso8601"       # iso8601 (UTC) | epoch_s | epoch_ms | elapsed_s | elapsed_ms | auto (default)
+//! format = "iso8601"       # iso8601 (Z or no zone: UTC; an offset is converted) | epoch_s | epoch_ms | elapsed_s | elapsed_ms | auto (default)
 //! [position]
 //! column = "Displacement [mm]"
 //! unit = "mm"              # mm | m | in
