@@ -320,3 +320,29 @@ def test_a_european_windows_export_reads_as_its_plain_twin(tmp_path: Path) -> No
             va = np.array([r[key] for r in rows])
             vb = np.array([r[key] for r in rows_b])
             assert np.allclose(va, vb, rtol=0, atol=1e-9), (topic, key)
+
+
+def test_a_slow_logger_keeps_its_rate_and_a_stub_is_refused(tmp_path: Path) -> None:
+    """A logger every 2 s is written every 2 s, its rows as they are (it was interpolated onto
+    1 Hz while the report said "not upsampled"); three rows are refused by name (they made a
+    log of one message), and the file beside them is still imported."""
+    header = "t [s],travel [mm],case [C]\n"
+    slow = tmp_path / "slow.csv"
+    slow.write_text(header + "".join(f"{2 * k},{40 + k % 7},{25 + 0.5 * k}\n" for k in range(30)))
+    stub = tmp_path / "stub.csv"
+    stub.write_text(header + "".join(f"{k / 300:.5f},{40 + k},25\n" for k in range(3)))
+    flags = ("--time", "t [s]", "--time-format", "elapsed_s", "--position", "travel [mm]", "--position-unit",
+             "mm", "--mid-stroke", "40", "--temp-shock", "case [C]", "--asset-id", "u1", "--out", tmp_path / "out")
+    done = shocktwin("import", *flags, stub, slow, check=False)
+    assert done.returncode == 1
+    assert "stub.csv: 3 rows over 0.007 s give no topic two samples (/position 1 at 100 Hz, " \
+        "/temperature/shock 0 at 1 Hz): too short to import" in done.stderr, done.stderr
+    assert "58.0 s at 0.5 Hz; /position 0.5 Hz (source slower than the nominal 100 Hz: not upsampled), " \
+        "/temperature/shock 0.5 Hz (source slower than the nominal 1 Hz: not upsampled)" in done.stdout, done.stdout
+    assert "imported 1 of 2 files" in done.stdout
+    _, topics = read_mcap(tmp_path / "out" / "slow.mcap")
+    for topic, field, want in [("/position", "position_m", [1e-3 * (k % 7) for k in range(30)]),
+                               ("/temperature/shock", "temperature_c", [25 + 0.5 * k for k in range(30)])]:
+        t, rows = topics[topic]
+        assert np.array_equal(t, np.arange(30) * 2_000_000_000), (topic, t[:5])
+        assert np.allclose([r[field] for r in rows], want, rtol=0, atol=1e-12), topic

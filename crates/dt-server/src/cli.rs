@@ -220,7 +220,7 @@ pub struct ImportArgs {
     /// Time column.
     #[arg(long)]
     pub time: Option<String>,
-    /// Time format: iso8601 (`Z` or no zone: UTC; a `±HH:MM` offset is converted), `epoch_s`, `epoch_ms`, `elapsed_s`, `elapsed_ms`, auto (by the first cell that reads; `[ms]` in the header: milliseconds).
+    /// Time format: iso8601 (`Z` or no zone: UTC; a `±HH:MM` offset is converted), `epoch_s`, `epoch_ms`, `elapsed_s`, `elapsed_ms`, auto (by the first cell that reads; `[ms]` in the header: milliseconds), or the file's own layout in the `time` crate's syntax, e.g. `'[day].[month].[year] [hour]:[minute]:[second],[subsecond]'` (no offset: UTC; a time of day alone: since midnight).
     #[arg(long)]
     pub time_format: Option<String>,
     /// Position / displacement column.

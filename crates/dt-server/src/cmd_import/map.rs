@@ -10,6 +10,7 @@
 //! [time]
 //! column = "Timestamp"
 //! format = "iso8601"       # iso8601 (Z or no zone: UTC; an offset is converted) | epoch_s | epoch_ms | elapsed_s | elapsed_ms | auto (default)
+//!                          # or the file's own layout: "[day].[month].[year] [hour]:[minute]:[second],[subsecond]"
 //! [position]
 //! column = "Displacement [mm]"
 //! unit = "mm"              # mm | m | in
@@ -152,7 +153,7 @@ pub struct RunMap {
 }
 
 /// How the time column is written.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub enum TimeFormat {
     /// RFC 3339 / ISO-8601 in UTC (`2024-05-01T10:00:00.125Z`, `T` or space, `Z` optional).
     Iso8601,
@@ -167,13 +168,88 @@ pub enum TimeFormat {
     /// Decided from the first data row: a number above 1e8 is epoch seconds,
     /// another number elapsed seconds, anything else ISO-8601.
     Auto,
+    /// A layout of the file's own (`06.12.2026 12:30:15,125`).
+    Layout(TimeLayout),
+}
+
+/// A time column's own layout, in the `time` crate's format description
+/// syntax (version 2): `[day].[month].[year] [hour]:[minute]:[second],[subsecond]`
+/// for `06.12.2026 12:30:15,125`. A layout with a UTC offset
+/// (`[offset_hour]:[offset_minute]`) is converted to UTC; a date and time
+/// without one is taken as UTC; a time of day alone is read as the time
+/// since midnight (a run across midnight then goes back in time, and is
+/// refused as such).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TimeLayout {
+    /// The layout as given.
+    pub text: String,
+    items: time::format_description::OwnedFormatItem,
+    kind: LayoutKind,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum LayoutKind {
+    WithOffset,
+    Utc,
+    TimeOfDay,
+}
+
+impl TimeLayout {
+    /// `text` as a layout, refused naming it if the syntax is wrong or it
+    /// has no hour.
+    pub fn new(text: &str) -> anyhow::Result<Self> {
+        let items = time::format_description::parse_owned::<2>(text).map_err(|e| {
+            anyhow::anyhow!(
+                "[time] format = {text:?}: not a layout ({e}); write it as \
+                 \"[day].[month].[year] [hour]:[minute]:[second],[subsecond]\" (the `time` \
+                 crate's format description)"
+            )
+        })?;
+        if !text.contains("[hour") {
+            bail!("[time] format = {text:?}: a layout needs an [hour] (a date alone is no sample time)");
+        }
+        let kind = if text.contains("[offset_hour") {
+            LayoutKind::WithOffset
+        } else if text.contains("[year") {
+            LayoutKind::Utc
+        } else {
+            LayoutKind::TimeOfDay
+        };
+        Ok(Self {
+            text: text.to_owned(),
+            items,
+            kind,
+        })
+    }
+
+    /// One cell in ns: since the epoch (UTC), or since midnight for a time
+    /// of day.
+    pub fn parse(&self, cell: &str) -> Result<i64, String> {
+        let ns = match self.kind {
+            LayoutKind::WithOffset => time::OffsetDateTime::parse(cell, &self.items)
+                .map(time::OffsetDateTime::unix_timestamp_nanos),
+            LayoutKind::Utc => time::PrimitiveDateTime::parse(cell, &self.items)
+                .map(|t| t.assume_utc().unix_timestamp_nanos()),
+            LayoutKind::TimeOfDay => time::Time::parse(cell, &self.items).map(|t| {
+                let (h, m, s, ns) = t.as_hms_nano();
+                ((i128::from(h) * 60 + i128::from(m)) * 60 + i128::from(s)) * 1_000_000_000
+                    + i128::from(ns)
+            }),
+        }
+        .map_err(|e| format!("{cell:?} does not match the layout {:?} ({e})", self.text))?;
+        if ns < 0 {
+            return Err(format!("{cell:?} is before 1970"));
+        }
+        i64::try_from(ns).map_err(|_| format!("{cell:?} is out of range"))
+    }
 }
 
 impl TimeFormat {
     /// The format's name in the mapping (`[time] format`, `--time-format`).
     #[must_use]
-    pub fn key(self) -> &'static str {
+    pub fn key(&self) -> &str {
         match self {
+            TimeFormat::Layout(l) => &l.text,
             TimeFormat::Iso8601 => "iso8601",
             TimeFormat::EpochS => "epoch_s",
             TimeFormat::EpochMs => "epoch_ms",
@@ -392,8 +468,10 @@ fn resolve_file(f: &MapFile) -> anyhow::Result<Mapping> {
         "elapsed_s" => TimeFormat::ElapsedS,
         "elapsed_ms" => TimeFormat::ElapsedMs,
         "auto" => TimeFormat::Auto,
+        layout if layout.contains('[') => TimeFormat::Layout(TimeLayout::new(layout)?),
         other => bail!(
-            "[time] format = {other:?}: not one of iso8601, epoch_s, epoch_ms, elapsed_s, elapsed_ms, auto"
+            "[time] format = {other:?}: not one of iso8601, epoch_s, epoch_ms, elapsed_s, \
+             elapsed_ms, auto, or a layout such as \"[day].[month].[year] [hour]:[minute]:[second]\""
         ),
     };
     // A time column whose header names its unit is read in it: `Time [ms]`
@@ -729,6 +807,28 @@ mod tests {
             err.contains("encoding \"klingon\": not an encoding label"),
             "{err}"
         );
+    }
+
+    /// A layout of the file's own is checked when the mapping is read.
+    #[test]
+    fn a_time_layout_is_checked_when_read() {
+        let m = mapped(
+            "[time]\ncolumn = \"t\"\nformat = \"[day].[month].[year] [hour]:[minute]:[second]\"\n",
+        )
+        .unwrap();
+        assert_eq!(
+            m.time_format.key(),
+            "[day].[month].[year] [hour]:[minute]:[second]"
+        );
+        let err = refused("[time]\ncolumn = \"t\"\nformat = \"[day].[mnth].[year]\"\n");
+        assert!(
+            err.contains("format = \"[day].[mnth].[year]\": not a layout"),
+            "{err}"
+        );
+        let err = refused("[time]\ncolumn = \"t\"\nformat = \"[day].[month].[year]\"\n");
+        assert!(err.contains("a layout needs an [hour]"), "{err}");
+        let err = refused("[time]\ncolumn = \"t\"\nformat = \"dd.mm.yyyy\"\n");
+        assert!(err.contains("or a layout such as"), "{err}");
     }
 
     /// A time header naming milliseconds is read in them, and a format

@@ -89,7 +89,7 @@ struct Imported {
 /// A topic's series at its output rate.
 struct Series {
     topic: &'static str,
-    rate_hz: u32,
+    rate: resample::GridRate,
     nominal_hz: u32,
     /// Time of sample 0 after the file's first row, s.
     start_s: f64,
@@ -179,8 +179,8 @@ fn import_file(
     };
     let _ = write!(report, ", {duration_s:.1} s at {rate} Hz;");
     for s in &series {
-        let _ = write!(report, " {} {} Hz", s.topic, s.rate_hz);
-        if s.rate_hz < s.nominal_hz {
+        let _ = write!(report, " {} {} Hz", s.topic, s.rate);
+        if s.rate.hz() < f64::from(s.nominal_hz) {
             let _ = write!(
                 report,
                 " (source slower than the nominal {} Hz: not upsampled)",
@@ -308,7 +308,7 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
 /// grid rate (the longest stretch's).
 struct Resampled {
     stretches: Vec<std::ops::Range<usize>>,
-    rate: u32,
+    rate: resample::GridRate,
     samples: Vec<Sample>,
     /// The first stretch's series (their rates; the report's).
     series: Vec<Series>,
@@ -329,7 +329,7 @@ fn resample_stretches(
         .max_by_key(|r| r.len())
         .cloned()
         .unwrap_or(0..table.t_ns.len());
-    let rate = resample::grid_rate_hz(&table.t_ns[longest]);
+    let rate = resample::grid_rate(&table.t_ns[longest]);
     let mut samples_out = Vec::new();
     let mut series = None;
     let mut left_out = Vec::new();
@@ -410,7 +410,15 @@ fn stretches(table: &table::Table) -> Vec<std::ops::Range<usize>> {
     out
 }
 
-fn resample_topics(map: &Mapping, table: &table::Table, rate: u32) -> anyhow::Result<Vec<Series>> {
+/// Each mapped topic of `table` (one stretch, two rows or more) on the grid
+/// at `rate`, then at its nominal rate if the grid is faster. A stretch that
+/// leaves no topic two samples is refused: two or three rows made a log of
+/// one position message.
+fn resample_topics(
+    map: &Mapping,
+    table: &table::Table,
+    rate: resample::GridRate,
+) -> anyhow::Result<Vec<Series>> {
     let topics: Vec<(&'static str, u32, usize)> = {
         let mut v = Vec::new();
         for (present, topic, nominal, width) in [
@@ -434,33 +442,56 @@ fn resample_topics(map: &Mapping, table: &table::Table, rate: u32) -> anyhow::Re
         for _ in 0..width {
             let grid = resample::to_grid(&table.t_ns, &table.values[column], rate);
             column += 1;
-            values.push(if rate > nominal_hz {
-                let d = resample::downsample(&grid, rate, nominal_hz)
+            values.push(if rate.faster_than(nominal_hz) {
+                // the rate change num/den -> nominal, as integers
+                let d = resample::downsample(&grid, rate.num, nominal_hz * rate.den)
                     .with_context(|| format!("topic {topic}"))?;
-                start_s = -d.lag_in_samples / f64::from(rate);
+                start_s = -rate.time_s(d.lag_in_samples);
                 d.values
             } else {
                 grid
             });
         }
+        let rate_out = if rate.faster_than(nominal_hz) {
+            resample::GridRate::whole(nominal_hz)
+        } else {
+            rate
+        };
         out.push(Series {
             topic,
-            rate_hz: rate.min(nominal_hz),
+            rate: rate_out,
             nominal_hz,
             start_s,
             values,
         });
     }
+    if out.iter().all(|s| s.len() < 2) {
+        let span_s = (table.t_ns[table.t_ns.len() - 1] - table.t_ns[0]) as f64 * 1e-9;
+        let counts: Vec<String> = out
+            .iter()
+            .map(|s| format!("{} {} at {} Hz", s.topic, s.len(), s.rate))
+            .collect();
+        bail!(
+            "{} rows over {span_s:.3} s give no topic two samples ({}): too short to import",
+            table.t_ns.len(),
+            counts.join(", ")
+        );
+    }
     Ok(out)
+}
+
+impl Series {
+    /// Samples (of every column).
+    fn len(&self) -> usize {
+        self.values.iter().map(Vec::len).min().unwrap_or(0)
+    }
 }
 
 fn samples(series: &[Series], t0_ns: i64) -> Vec<Sample> {
     let mut out = Vec::new();
     for s in series {
-        let at =
-            |j: usize| t0_ns + ((s.start_s + j as f64 / f64::from(s.rate_hz)) * 1e9).round() as i64;
-        let n = s.values.iter().map(Vec::len).min().unwrap_or(0);
-        for j in 0..n {
+        let at = |j: usize| t0_ns + ((s.start_s + s.rate.time_s(j as f64)) * 1e9).round() as i64;
+        for j in 0..s.len() {
             let t_ns = at(j);
             let v = s.values[0][j];
             out.push(match s.topic {

@@ -3,7 +3,9 @@
 //! 1. **Uniform grid.** Dyno loggers stamp samples on a coarse clock (a
 //!    300 Hz logger on a 1 ms clock steps 3, 3, 4 ms). The rows are
 //!    interpolated linearly onto a uniform grid at the file's mean rate,
-//!    rounded to a whole hertz (so the rate change below is rational).
+//!    rounded to a whole hertz or its mean step to a whole millisecond,
+//!    whichever is nearer ([`grid_rate`]; so the rate change below is
+//!    rational, and a logger every 2 s stays at 0.5 Hz).
 //! 2. **Anti-aliased rate change** to each topic's nominal rate with
 //!    rubato's synchronous FFT resampler (band-limited: the spectrum is cut
 //!    at the output's Nyquist frequency under a Blackman–Harris window, the
@@ -24,25 +26,91 @@ use rubato::audioadapter::Adapter as _;
 use rubato::audioadapter_buffers::direct::SequentialSliceOfVecs;
 use rubato::{Fft, FixedSync, Resampler as _};
 
-/// The grid rate of sample times `t_ns` (whole hertz, at least 1).
-#[must_use]
-pub fn grid_rate_hz(t_ns: &[i64]) -> u32 {
-    let (first, last) = (t_ns[0], t_ns[t_ns.len() - 1]);
-    let mean_step_s = (last - first) as f64 * 1e-9 / (t_ns.len() - 1) as f64;
-    ((1.0 / mean_step_s).round() as u32).max(1)
+/// A uniform grid's rate, `num / den` Hz exactly: whole hertz (`den` 1) or
+/// a whole-millisecond step (`num` 1000), integers so that the rate changes
+/// below are rational.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GridRate {
+    /// Samples per `den` seconds.
+    pub num: u32,
+    /// Seconds per `num` samples.
+    pub den: u32,
 }
 
-/// `x(t_ns)` linearly interpolated at `t0 + k / rate_hz`, `k = 0..` up to the
+impl GridRate {
+    /// A whole number of hertz.
+    #[must_use]
+    pub fn whole(hz: u32) -> Self {
+        Self { num: hz, den: 1 }
+    }
+
+    /// The rate, Hz.
+    #[must_use]
+    pub fn hz(self) -> f64 {
+        f64::from(self.num) / f64::from(self.den)
+    }
+
+    /// Faster than `hz` (exactly, in integers).
+    #[must_use]
+    pub fn faster_than(self, hz: u32) -> bool {
+        u64::from(self.num) > u64::from(hz) * u64::from(self.den)
+    }
+
+    /// Seconds from sample 0 to sample `k`.
+    #[must_use]
+    pub fn time_s(self, k: f64) -> f64 {
+        k * f64::from(self.den) / f64::from(self.num)
+    }
+}
+
+impl std::fmt::Display for GridRate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.num % self.den == 0 {
+            write!(f, "{}", self.num / self.den)
+        } else {
+            let text = format!("{:.4}", self.hz());
+            write!(f, "{}", text.trim_end_matches('0'))
+        }
+    }
+}
+
+/// The grid rate of sample times `t_ns` (strictly increasing, two or
+/// more): the file's mean rate rounded to whole hertz or its mean step to a
+/// whole millisecond, whichever is nearer. A 300 Hz logger on a 1 ms clock
+/// (3, 3, 4 ms steps) is 300 Hz, not a 3 ms step's 333 Hz; a logger every
+/// 2 s or 1.5 s is 0.5 Hz or 0.667 Hz, not upsampled to 1 or 2 Hz.
+#[must_use]
+pub fn grid_rate(t_ns: &[i64]) -> GridRate {
+    let (first, last) = (t_ns[0], t_ns[t_ns.len() - 1]);
+    let mean_step_s = (last - first) as f64 * 1e-9 / (t_ns.len() - 1) as f64;
+    let mean_hz = 1.0 / mean_step_s;
+    // `as u32` saturates: a step beyond 49 days is 49 days.
+    let whole_hz = mean_hz.round().max(1.0);
+    let whole_ms = (mean_step_s * 1e3).round().max(1.0);
+    if (whole_hz - mean_hz).abs() <= (1e3 / whole_ms - mean_hz).abs() {
+        GridRate::whole(whole_hz as u32)
+    } else {
+        GridRate {
+            num: 1000,
+            den: whole_ms as u32,
+        }
+    }
+}
+
+/// `x(t_ns)` linearly interpolated at `t0 + k / rate`, `k = 0..` up to the
 /// last sample.
 #[must_use]
-pub fn to_grid(t_ns: &[i64], x: &[f64], rate_hz: u32) -> Vec<f64> {
+pub fn to_grid(t_ns: &[i64], x: &[f64], rate: GridRate) -> Vec<f64> {
     let t0 = t_ns[0];
     let span_ns = t_ns[t_ns.len() - 1] - t0;
-    let n = (span_ns as f64 * 1e-9 * f64::from(rate_hz)).floor() as usize + 1;
+    // in integers: a row on the grid's last point is on it
+    let n = (i128::from(span_ns) * i128::from(rate.num) / (i128::from(rate.den) * 1_000_000_000))
+        as usize
+        + 1;
     let mut out = Vec::with_capacity(n);
     let mut i = 0;
     for k in 0..n {
-        let t = t0 as f64 + k as f64 * 1e9 / f64::from(rate_hz);
+        let t = t0 as f64 + rate.time_s(k as f64) * 1e9;
         while i + 2 < t_ns.len() && (t_ns[i + 1] as f64) < t {
             i += 1;
         }
@@ -149,13 +217,41 @@ mod tests {
         let t: Vec<i64> = (0..3001)
             .map(|k: i32| ((f64::from(k) * 1000.0 / 300.0).round() as i64) * 1_000_000)
             .collect();
-        assert_eq!(grid_rate_hz(&t), 300);
+        assert_eq!(grid_rate(&t), GridRate::whole(300));
         let x: Vec<f64> = t.iter().map(|&t| 2.0 + 3.0 * t as f64 * 1e-9).collect();
-        let g = to_grid(&t, &x, 300);
+        let g = to_grid(&t, &x, GridRate::whole(300));
         assert_eq!(g.len(), 3001);
         for (k, v) in g.iter().enumerate() {
             assert!((v - (2.0 + 3.0 * k as f64 / 300.0)).abs() < 1e-9);
         }
+    }
+
+    #[test]
+    fn a_logger_slower_than_a_few_hertz_keeps_its_step() {
+        let every = |step_ms: i64, n: i64| -> Vec<i64> {
+            (0..n).map(|k| k * step_ms * 1_000_000).collect()
+        };
+        // every 2 s and every 1.5 s: not 1 Hz and 2 Hz
+        let slow = grid_rate(&every(2000, 20));
+        assert_eq!(
+            slow,
+            GridRate {
+                num: 1000,
+                den: 2000
+            }
+        );
+        assert_eq!(slow.to_string(), "0.5");
+        assert!(!slow.faster_than(1));
+        let r = grid_rate(&every(1500, 20));
+        assert_eq!((r.to_string(), r.hz()), ("0.6667".to_owned(), 1.0 / 1.5));
+        // whole-hertz loggers stay whole hertz (30 Hz is no 33 ms step)
+        let t30: Vec<i64> = (0..300).map(|k| k * 1_000_000_000 / 30).collect();
+        assert_eq!(grid_rate(&t30), GridRate::whole(30));
+        assert_eq!(grid_rate(&every(1000, 10)), GridRate::whole(1));
+        // the grid lands on the rows, 2 s apart
+        let t = every(2000, 5);
+        let x: Vec<f64> = (0..5).map(f64::from).collect();
+        assert_eq!(to_grid(&t, &x, slow), x);
     }
 
     #[test]

@@ -128,12 +128,16 @@ fn open_text(
 /// encoding was given says how to give it, naming the line (`line_at`: the
 /// line of a byte offset, [`LineCounter::line_at`]).
 fn unreadable(
-    file: &str,
+    path: &Path,
     err: csv::Error,
     map: &Mapping,
     line_at: impl FnOnce(u64) -> anyhow::Result<u64>,
 ) -> anyhow::Error {
+    let file = path.display();
     let hint = match err.kind() {
+        csv::ErrorKind::Utf8 { .. } if map.encoding.is_none() && utf16_of(path).is_some() => {
+            utf16_hint(utf16_of(path).unwrap_or_default())
+        }
         csv::ErrorKind::Utf8 { pos, .. } if map.encoding.is_none() => {
             let line = line_at(pos.as_ref().map_or(0, csv::Position::byte));
             format!(
@@ -145,6 +149,100 @@ fn unreadable(
         _ => String::new(),
     };
     anyhow::Error::new(err).context(format!("{file}: not readable as CSV{hint}"))
+}
+
+/// The first bytes of a file read for a hint (never more).
+const HINT_BYTES: u64 = 64 * 1024;
+
+/// `"utf-16le"` or `"utf-16be"` when the file's first bytes are text in it
+/// without a byte-order mark: ASCII in UTF-16 has a NUL in every other
+/// byte, which passes as UTF-8 (and names no column).
+fn utf16_of(path: &Path) -> Option<&'static str> {
+    use std::io::Read as _;
+    let mut head = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(HINT_BYTES).read_to_end(&mut head))
+        .ok()?;
+    if head.len() < 4 || head.starts_with(&[0xFF, 0xFE]) || head.starts_with(&[0xFE, 0xFF]) {
+        return None;
+    }
+    let pairs = head.len() / 2;
+    let (mut even, mut odd) = (0, 0);
+    for pair in head.chunks_exact(2) {
+        even += usize::from(pair[0] == 0);
+        odd += usize::from(pair[1] == 0);
+    }
+    if odd * 2 > pairs && even * 10 < pairs {
+        Some("utf-16le")
+    } else if even * 2 > pairs && odd * 10 < pairs {
+        Some("utf-16be")
+    } else {
+        None
+    }
+}
+
+fn utf16_hint(label: &str) -> String {
+    format!(
+        ": it reads as {} without a byte-order mark; give encoding = \"{label}\" in the mapping \
+         or --encoding {label}",
+        label.to_uppercase()
+    )
+}
+
+/// Why no row named every mapped column, when the file's start says: text
+/// in UTF-16 without a byte-order mark, or a row that another delimiter
+/// splits into the mapped names (a `;` export read at `,`). Empty if
+/// neither.
+fn header_hint(path: &Path, map: &Mapping, wanted: &[&str]) -> String {
+    use std::io::Read as _;
+    if map.encoding.is_none() {
+        if let Some(label) = utf16_of(path) {
+            return utf16_hint(label);
+        }
+    }
+    let mut head = Vec::new();
+    if std::fs::File::open(path)
+        .and_then(|f| f.take(HINT_BYTES).read_to_end(&mut head))
+        .is_err()
+    {
+        return String::new();
+    }
+    let (text, _, _) = map.encoding.unwrap_or(encoding_rs::UTF_8).decode(&head);
+    for delimiter in [b',', b';', b'\t', b'|'] {
+        if delimiter == map.delimiter {
+            continue;
+        }
+        let mut reader = csv::ReaderBuilder::new()
+            .has_headers(false)
+            .flexible(true)
+            .delimiter(delimiter)
+            .trim(csv::Trim::All)
+            .from_reader(text.as_bytes());
+        for record in reader.records() {
+            let Ok(record) = record else { break };
+            if wanted.iter().all(|w| record.iter().any(|c| c == *w)) {
+                let byte = record.position().map_or(0, csv::Position::byte);
+                let before = &text.as_bytes()[..usize::try_from(byte).unwrap_or(0).min(text.len())];
+                // line ends before it: `\n`, `\r\n` or a lone `\r`
+                let (mut line, mut prev) = (1, 0u8);
+                for &b in before {
+                    if b == b'\r' || (b == b'\n' && prev != b'\r') {
+                        line += 1;
+                    }
+                    prev = b;
+                }
+                let (toml, flag) = match delimiter {
+                    b'\t' => ("\\t".to_owned(), "tab".to_owned()),
+                    d => (char::from(d).to_string(), format!("'{}'", char::from(d))),
+                };
+                return format!(
+                    ": line {line} names them all when split at {flag}; give delimiter = \"{toml}\" \
+                     in the mapping or --delimiter {flag}"
+                );
+            }
+        }
+    }
+    String::new()
 }
 
 /// Reads `path` with `map`; `skip_bad` counts bad rows instead of failing.
@@ -186,15 +284,18 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
                     bail!(
                         "{file}: no header row names all the mapped columns {wanted:?}: line {line}, \
                          the nearest, has no {missing:?} (its columns: {cells:?}; give header_line \
-                         if the names differ)"
+                         if the names differ){}",
+                        header_hint(path, map, &wanted)
                     )
                 }
                 (None, None) => bail!(
-                    "{file}: no row names any of the mapped columns {wanted:?} (give header_line if the names differ)"
+                    "{file}: no row names any of the mapped columns {wanted:?} (give header_line \
+                     if the names differ){}",
+                    header_hint(path, map, &wanted)
                 ),
             }
         };
-        let record = record.map_err(|e| unreadable(&file, e, map, &mut line_at))?;
+        let record = record.map_err(|e| unreadable(path, e, map, &mut line_at))?;
         let line = line_at(byte_of(&record))?;
         let found = if let Some(n) = map.header_line {
             line as usize == n
@@ -246,10 +347,10 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         values: vec![Vec::new(); wanted.len() - 1],
         ..Table::default()
     };
-    let mut time_format = map.time_format;
+    let mut time_format = map.time_format.clone();
     let mut row = vec![0.0; wanted.len() - 1];
     for record in records {
-        let record = record.map_err(|e| unreadable(&file, e, map, &mut line_at))?;
+        let record = record.map_err(|e| unreadable(path, e, map, &mut line_at))?;
         let line = line_at(byte_of(&record))?;
         if record.iter().all(str::is_empty) {
             continue; // blank line
@@ -365,20 +466,24 @@ fn parse_row(
         })
     };
     let time_text = cell(0)?;
-    // An ISO-8601 time keeps its point whatever the numbers' separator.
-    let iso = time_text.contains(':');
-    let t_ns = with_point(time_text, decimal, iso)
-        .and_then(|text| {
+    let t_ns = if let TimeFormat::Layout(layout) = time_format {
+        // a layout says itself how its fraction is written
+        layout.parse(time_text)
+    } else {
+        // An ISO-8601 time keeps its point whatever the numbers' separator.
+        let iso = time_text.contains(':');
+        with_point(time_text, decimal, iso).and_then(|text| {
             parse_time(&text, time_format).map_err(|why| match text {
                 // named as the file writes it
                 Cow::Owned(read) => format!("{why} (the cell {time_text:?} read as {read:?})"),
                 Cow::Borrowed(_) => format!("{why}{}", comma_hint(time_text, decimal)),
             })
         })
-        .map_err(|why| BadRow {
-            message: format!("column {:?}: {why}", names[0]),
-            reason: format!("column {:?}: unreadable time", names[0]),
-        })?;
+    }
+    .map_err(|why| BadRow {
+        message: format!("column {:?}: {why}", names[0]),
+        reason: format!("column {:?}: unreadable time", names[0]),
+    })?;
     for k in 1..names.len() {
         let raw = cell(k)?;
         let text = with_point(raw, decimal, false).map_err(|why| BadRow {
@@ -451,6 +556,7 @@ fn parse_time(text: &str, format: &mut TimeFormat) -> Result<i64, String> {
         TimeFormat::EpochS | TimeFormat::ElapsedS => number(1e9),
         TimeFormat::EpochMs | TimeFormat::ElapsedMs => number(1e6),
         TimeFormat::Iso8601 | TimeFormat::Auto => parse_iso(text),
+        TimeFormat::Layout(layout) => layout.parse(text),
     }
 }
 
@@ -743,6 +849,73 @@ mod tests {
         );
     }
 
+    /// UTF-16 without a byte-order mark passes as UTF-8 (its NULs are valid)
+    /// and named no column; `;` exports read at `,` named none either. Both
+    /// now say what to give, and the file reads once it is given.
+    #[test]
+    fn a_header_not_found_says_what_the_file_looks_like() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        let text = "Prüfstand\r\nt;x\r\n0;1\r\n0.5;2\r\n1;3\r\n";
+        let semi = Mapping {
+            delimiter: b';',
+            ..base_map()
+        };
+        // `ü` is not UTF-8 in UTF-16 (the reader's error); ASCII alone is
+        // (no header found)
+        let ascii = text.replace("Prüfstand", "Pruefstand");
+        for (label, bytes) in [
+            (
+                "utf-16le",
+                text.encode_utf16()
+                    .flat_map(u16::to_le_bytes)
+                    .collect::<Vec<u8>>(),
+            ),
+            (
+                "utf-16be",
+                text.encode_utf16().flat_map(u16::to_be_bytes).collect(),
+            ),
+            (
+                "utf-16le",
+                ascii.encode_utf16().flat_map(u16::to_le_bytes).collect(),
+            ),
+        ] {
+            std::fs::write(&path, &bytes).unwrap();
+            let err = format!("{:#}", read(&path, &semi, false).unwrap_err());
+            assert!(
+                err.contains(&format!(
+                    "without a byte-order mark; give encoding = \"{label}\""
+                )),
+                "{label}: {err}"
+            );
+            let given = Mapping {
+                encoding: encoding_rs::Encoding::for_label(label.as_bytes()),
+                ..semi.clone()
+            };
+            assert_eq!(read(&path, &given, false).unwrap().lines, [3, 4, 5]);
+        }
+        // `;` read at `,`: the line that splits into the names
+        std::fs::write(&path, text).unwrap();
+        let err = format!("{:#}", read(&path, &base_map(), false).unwrap_err());
+        assert!(
+            err.contains("line 2 names them all when split at ';'; give delimiter = \";\""),
+            "{err}"
+        );
+        std::fs::write(&path, text.replace(';', "\t")).unwrap();
+        let err = format!("{:#}", read(&path, &base_map(), false).unwrap_err());
+        assert!(
+            err.contains("split at tab; give delimiter = \"\\t\""),
+            "{err}"
+        );
+        // nothing to say: no hint
+        std::fs::write(&path, "a,b\n0,1\n1,2\n").unwrap();
+        let err = format!("{:#}", read(&path, &base_map(), false).unwrap_err());
+        assert!(
+            err.ends_with("(give header_line if the names differ)"),
+            "{err}"
+        );
+    }
+
     #[test]
     fn times_in_every_format() {
         let mut f = TimeFormat::Auto;
@@ -798,5 +971,51 @@ mod tests {
         assert_eq!(f, TimeFormat::Auto);
         assert_eq!(parse_time("0.5", &mut f), Ok(500_000_000));
         assert_eq!(f, TimeFormat::ElapsedS);
+    }
+
+    /// A file's own layout: a European date with a decimal comma in the
+    /// seconds, one with a UTC offset, and a time of day alone.
+    #[test]
+    fn times_in_a_layout_of_the_files_own() {
+        let noon_utc = 1_772_366_400_000_000_000_i64; // 2026-03-01T12:00:00Z
+        let layout =
+            |text: &str| TimeFormat::Layout(super::super::map::TimeLayout::new(text).unwrap());
+        let mut f = layout("[day].[month].[year] [hour]:[minute]:[second],[subsecond]");
+        assert_eq!(
+            parse_time("01.03.2026 12:00:00,125", &mut f),
+            Ok(noon_utc + 125_000_000)
+        );
+        let err = parse_time("2026-03-01 12:00:00", &mut f).unwrap_err();
+        assert!(
+            err.contains("does not match the layout \"[day].[month]"),
+            "{err}"
+        );
+        let mut f =
+            layout("[month]/[day]/[year] [hour]:[minute]:[second] [offset_hour]:[offset_minute]");
+        assert_eq!(
+            parse_time("03/01/2026 13:00:00 +01:00", &mut f),
+            Ok(noon_utc)
+        );
+        let mut f = layout("[hour]:[minute]:[second].[subsecond]");
+        assert_eq!(parse_time("12:30:15.5", &mut f), Ok(45_015_500_000_000));
+        // read through a whole file with a decimal comma and `;`: the
+        // layout's comma is its own, not the numbers'
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        std::fs::write(
+            &path,
+            "Datum Zeit;x\r\n01.03.2026 12:00:00,000;1,5\r\n01.03.2026 12:00:00,010;2,5\r\n",
+        )
+        .unwrap();
+        let map = Mapping {
+            delimiter: b';',
+            decimal: b',',
+            time: "Datum Zeit".into(),
+            time_format: layout("[day].[month].[year] [hour]:[minute]:[second],[subsecond]"),
+            ..base_map()
+        };
+        let got = read(&path, &map, false).unwrap();
+        assert_eq!(got.t_ns, [noon_utc, noon_utc + 10_000_000]);
+        assert_eq!(got.values[0], [1.5, 2.5]);
     }
 }
