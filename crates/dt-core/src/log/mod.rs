@@ -56,7 +56,7 @@ pub const RUN_METADATA_NAME: &str = "shocktwin.run";
 /// The `shocktwin.run` metadata of a run (SPEC §2).
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct RunMetadata {
-    /// Unit identifier, `[A-Za-z0-9._-]{1,64}`.
+    /// Unit identifier, `[A-Za-z0-9._-]{1,64}`, not `.` or `..`.
     pub asset_id: String,
     /// Run identifier, same charset.
     pub run_id: String,
@@ -349,10 +349,18 @@ pub fn json_schema(spec: &TopicSpec) -> String {
     )
 }
 
-/// Whether `s` is a valid `asset_id` / `run_id`: `[A-Za-z0-9._-]{1,64}`.
+/// What an `asset_id` / `run_id` may be, for error messages.
+pub const ID_FORMAT: &str = "[A-Za-z0-9._-]{1,64}, not \".\" or \"..\"";
+
+/// Whether `s` is a valid `asset_id` / `run_id`: `[A-Za-z0-9._-]{1,64}`
+/// (SPEC §2), and not `.` or `..`: ids name the daemon's recording
+/// directories and files, and an asset `..` wrote its recording outside
+/// `record_dir` (sixty-second session, a helper trying the daemon).
 #[must_use]
 pub fn is_valid_id(s: &str) -> bool {
     (1..=64).contains(&s.len())
+        && s != "."
+        && s != ".."
         && s.bytes()
             .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
 }
@@ -408,10 +416,7 @@ impl RunMetadata {
             if is_valid_id(value) {
                 Ok(value.clone())
             } else {
-                Err(invalid(
-                    key,
-                    format!("value {value:?} is not [A-Za-z0-9._-]{{1,64}}"),
-                ))
+                Err(invalid(key, format!("value {value:?} is not {ID_FORMAT}")))
             }
         };
         let number = |key: &str| -> Result<Option<f64>, LogError> {

@@ -126,7 +126,7 @@ impl<W: Write + Seek> LogWriter<W> {
                 return Err(LogError::InvalidMetadata {
                     file,
                     key: key.into(),
-                    reason: format!("value {value:?} is not [A-Za-z0-9._-]{{1,64}}"),
+                    reason: format!("value {value:?} is not {}", super::ID_FORMAT),
                 });
             }
         }

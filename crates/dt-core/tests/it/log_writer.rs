@@ -246,6 +246,33 @@ fn invalid_ids_and_negative_times_are_refused() {
         matches!(err, LogError::InvalidMetadata { ref key, .. } if key == "run_id"),
         "{err}"
     );
+    // `.` and `..` name directories: an asset `..` recorded outside the
+    // daemon's record_dir (sixty-second session)
+    for (key, id) in [("asset_id", ".."), ("run_id", "."), ("run_id", "..")] {
+        let mut bad = meta();
+        if key == "asset_id" {
+            bad.asset_id = id.into();
+        } else {
+            bad.run_id = id.into();
+        }
+        let err = LogWriter::new(Cursor::new(Vec::new()), &bad, WriteOptions::default())
+            .err()
+            .unwrap();
+        assert!(
+            err.to_string()
+                .contains(r#"not [A-Za-z0-9._-]{1,64}, not "." or "..""#),
+            "{err}"
+        );
+    }
+    assert!(dt_core::log::is_valid_id("...") && dt_core::log::is_valid_id(".a"));
+    // a log another writer made is refused as it is read, by key
+    let mut map = meta().to_map();
+    map.insert("asset_id".into(), "..".into());
+    let err = RunMetadata::from_map("x.mcap", &map).unwrap_err();
+    assert!(
+        matches!(err, LogError::InvalidMetadata { ref key, .. } if key == "asset_id"),
+        "{err}"
+    );
 
     let mut w = LogWriter::new(Cursor::new(Vec::new()), &meta(), WriteOptions::default()).unwrap();
     let err = w

@@ -250,7 +250,7 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
         bail!("{file}: no asset id: give --asset-id or [run] asset_id");
     };
     if !is_valid_id(&asset_id) {
-        bail!("asset id {asset_id:?}: must be 1-64 of [A-Za-z0-9._-]");
+        bail!("asset id {asset_id:?}: must be {}", dt_core::log::ID_FORMAT);
     }
     let run_id = match &map.run_id {
         Some(id) => id.clone(),
@@ -267,7 +267,10 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
             .collect(),
     };
     if !is_valid_id(&run_id) {
-        bail!("{file}: run id {run_id:?}: must be 1-64 of [A-Za-z0-9._-]");
+        bail!(
+            "{file}: run id {run_id:?}: must be {}",
+            dt_core::log::ID_FORMAT
+        );
     }
     let (label, bar) = match &map.charge {
         Charge::None => (None, None),

@@ -105,7 +105,7 @@ pub enum PayloadError {
     #[error("payload version {0}, this worker reads {PAYLOAD_VERSION}")]
     Version(u32),
     /// An id outside SPEC §2's charset.
-    #[error("field `{field}`: {value:?} is not [A-Za-z0-9._-]{{1,64}}")]
+    #[error("field `{field}`: {value:?} is not {}", dt_core::log::ID_FORMAT)]
     BadId {
         /// `asset_id` or `run_id`.
         field: &'static str,

@@ -525,10 +525,10 @@ impl Config {
         }
         check_asset("defaults", &self.defaults)?;
         for id in self.assets.keys() {
-            if !valid_id(id) {
+            if !dt_core::log::is_valid_id(id) {
                 return Err(invalid(
                     &format!("assets.{id}"),
-                    "asset id must match [A-Za-z0-9._-]{1,64}",
+                    &format!("asset id must be {}", dt_core::log::ID_FORMAT),
                 ));
             }
             check_asset(&format!("assets.{id}"), &self.asset(id))?;
@@ -626,15 +626,6 @@ fn check_asset(key: &str, a: &AssetConfig) -> Result<(), ServeError> {
         })?;
     }
     Ok(())
-}
-
-/// SPEC §2 identifier charset `[A-Za-z0-9._-]{1,64}`.
-#[must_use]
-pub fn valid_id(id: &str) -> bool {
-    (1..=64).contains(&id.len())
-        && id
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
 }
 
 #[cfg(test)]

@@ -459,7 +459,10 @@ fn bad_asset_id(id: &str) -> Option<Response> {
     (!dt_core::log::is_valid_id(id)).then(|| {
         error(
             StatusCode::BAD_REQUEST,
-            format!("asset id {id:?} is not [A-Za-z0-9._-]{{1,64}} (SPEC §2)"),
+            format!(
+                "asset id {id:?} is not {} (SPEC §2)",
+                dt_core::log::ID_FORMAT
+            ),
         )
     })
 }
