@@ -220,6 +220,12 @@ pub struct RawDecoder {
     scratch: Vec<u8>,
     /// A size-limit or magic error the scanner found ahead of the reader.
     deferred: Option<LogError>,
+    /// A record head the scanner has begun and not finished (a chunk's is
+    /// 37 bytes and more), kept from the reader until it is checked: fed
+    /// byte by byte, the reader read into a chunk whose declared sizes the
+    /// scanner then refused, and reported another error than the file fed
+    /// whole (found by the fuzzer, sixty-second session).
+    held: Vec<u8>,
     eof: bool,
     eof_notified: bool,
     failed: bool,
@@ -272,6 +278,7 @@ impl RawDecoder {
             channels: Vec::new(),
             scratch: Vec::new(),
             deferred: None,
+            held: Vec::new(),
             eof: false,
             eof_notified: false,
             failed: false,
@@ -337,6 +344,13 @@ impl RawDecoder {
                 }
                 Some(Ok(LinearReadEvent::ReadRequest(need))) => {
                     if input.is_empty() {
+                        if self.eof && !self.held.is_empty() {
+                            // a head cut by the end: the reader says how
+                            let held = std::mem::take(&mut self.held);
+                            self.reader.insert(held.len()).copy_from_slice(&held);
+                            self.reader.notify_read(held.len());
+                            continue;
+                        }
                         if self.eof && !self.eof_notified {
                             self.eof_notified = true;
                             self.reader.notify_read(0);
@@ -349,21 +363,48 @@ impl RawDecoder {
                         return Some(Err(err));
                     }
                     let mut n = need.max(FEED_STEP).min(input.len());
-                    if let Err((before, err)) =
-                        self.scanner.scan(&self.file, &input[..n], &self.limits)
-                    {
-                        // Reported when the reader asks for the record at
-                        // fault, after every record before it: the same
-                        // events whatever the pieces the input came in.
-                        self.deferred = Some(err);
-                        n = before;
+                    // The held head, then these bytes, up to the first of a
+                    // record head still unfinished (held in its turn) or of
+                    // the record at fault.
+                    let held = self.held.len();
+                    let (from_held, from_input) =
+                        match self.scanner.scan(&self.file, &input[..n], &self.limits) {
+                            Ok(()) => {
+                                let keep = self.scanner.unfinished_head();
+                                let total = held + n;
+                                (
+                                    (total - keep).min(held),
+                                    (total - keep).saturating_sub(held),
+                                )
+                            }
+                            Err((before, err)) => {
+                                // Reported when the reader asks for the record
+                                // at fault, after every record before it: the
+                                // same events whatever the pieces the input
+                                // came in.
+                                self.deferred = Some(err);
+                                n = before;
+                                // At 0 the fault is the held head's own record
+                                // (no record starts inside an unfinished head):
+                                // none of it is fed.
+                                (if before > 0 { held } else { 0 }, before)
+                            }
+                        };
+                    let fed = from_held + from_input;
+                    if fed > 0 {
+                        let buf = self.reader.insert(fed);
+                        buf[..from_held].copy_from_slice(&self.held[..from_held]);
+                        buf[from_held..].copy_from_slice(&input[..from_input]);
+                        self.reader.notify_read(fed);
                     }
-                    if n > 0 {
-                        let (head, rest) = input.split_at(n);
-                        self.reader.insert(n).copy_from_slice(head);
-                        self.reader.notify_read(n);
-                        *input = rest;
+                    // what is left of the held bytes and the new ones not fed
+                    self.held.drain(..from_held);
+                    if self.deferred.is_none() {
+                        self.held.extend_from_slice(&input[from_input..n]);
+                    } else {
+                        self.held.clear();
                     }
+                    *input = &input[n..];
                 }
                 Some(Ok(LinearReadEvent::Record { opcode, data })) => {
                     match parse(&self.file, opcode, data, &mut self.scratch) {
@@ -645,6 +686,15 @@ const CHUNK_FIXED: usize = 8 + 8 + 8 + 4 + 4;
 const MAX_COMPRESSION_NAME: usize = 64;
 
 impl Scanner {
+    /// Bytes of a record head begun and not finished.
+    fn unfinished_head(&self) -> usize {
+        if self.state == ScanState::Head {
+            self.head.len()
+        } else {
+            0
+        }
+    }
+
     fn at_boundary(&self) -> bool {
         match self.state {
             ScanState::Head | ScanState::StartMagic => self.head.is_empty(),

