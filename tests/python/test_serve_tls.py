@@ -64,7 +64,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     config.write_text(
         f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\nclient_ca = "{pki.client_ca}"\n'
         f'[auth]\nread_tokens_file = "{root / "read.tokens"}"\ningest_tokens_file = "{root / "ingest.tokens"}"\n'
-        "[limits]\nidle_timeout_s = 10.0\n"
+        "[limits]\nidle_timeout_s = 120.0\n"
     )
     sim = root / "sim"
     done = subprocess.run([str(BIN), "simulate", "--quick", "--pressures", "7", "--frequencies", "2", "--out", str(sim)],
@@ -127,8 +127,10 @@ def test_vehicles_stream_over_mtls(daemon: ServeProcess, setup: dict[str, Any]) 
     pki = setup["pki"]
     vehicle = ssl.create_default_context(cafile=str(pki.ca_pem))
     pki.vehicle.configure_cert(vehicle)
+    # The client sends its file and waits, without a half-close (Python's `ssl` has none): the
+    # file's footer completes the run (it waited for the idle timeout and ended `failed`).
     report = stream_tls(daemon.listen, setup["run"], vehicle, "tls-unit-1")
-    assert report["ticks"] > 1000, report
+    assert report["status"] == "completed" and report["ticks"] > 1000, report
 
     # A client without a certificate, or with one from an unknown CA, is refused at the handshake.
     for name, ctx in [("no certificate", ssl.create_default_context(cafile=str(pki.ca_pem))),

@@ -261,8 +261,9 @@ impl Ingest {
             .await
     }
 
-    /// Reads one MCAP stream to its end (or error, idle timeout, or `cancel`)
-    /// and processes it as one run. Every outcome is logged once here and
+    /// Reads one MCAP stream to its end — the file's footer, or the
+    /// stream's end (or an error, the idle timeout, or `cancel`) — and
+    /// processes it as one run. Every outcome is logged once here and
     /// counted in the metrics.
     pub async fn ingest_stream<R: AsyncRead + Unpin>(
         &self,
@@ -311,17 +312,26 @@ impl Ingest {
             }
             let arrived = Instant::now();
             decoder.feed(&buf[..n]);
-            if let Err(outcome) = self
+            let ended = match self
                 .handle_events(kind, &source, &mut decoder, &mut run, &mut unknown_topics)
                 .await
             {
-                break Some(outcome);
-            }
+                Ok(ended) => ended,
+                Err(outcome) => break Some(outcome),
+            };
             if let Some(r) = &mut run {
                 r.set_arrival(arrived);
                 if r.flush().await.is_err() {
                     break Some(sink_closed_outcome());
                 }
+            }
+            if ended {
+                // The file's footer: the run is whole, whether or not the
+                // client closes its side. Over TLS a half-close is not to be
+                // had from every client (Python's `ssl` drops the session on
+                // `shutdown(SHUT_WR)`), and a client that waited for the
+                // report waited for the idle timeout instead.
+                break None;
             }
         };
         let outcome = match outcome {
@@ -345,7 +355,8 @@ impl Ingest {
         decoder: &mut LogDecoder,
         run: &mut Option<RunHandle>,
         unknown_topics: &mut HashSet<String>,
-    ) -> Result<(), RunOutcome> {
+    ) -> Result<bool, RunOutcome> {
+        let mut ended = false;
         while let Some(event) = decoder.next_event() {
             match event {
                 Ok(LogEvent::Metadata(meta)) => {
@@ -383,7 +394,7 @@ impl Ingest {
                         tracing::warn!(source, topic, "ignoring unknown topic");
                     }
                 }
-                Ok(LogEvent::End) => {}
+                Ok(LogEvent::End) => ended = true,
                 Err(e) if !e.is_fatal() => {
                     // One undecodable message: skipped, the stream goes on.
                     self.inner.metrics.error("message");
@@ -392,7 +403,7 @@ impl Ingest {
                 Err(e) => return Err(failed(&e)),
             }
         }
-        Ok(())
+        Ok(ended)
     }
 
     async fn end(&self, source: String, run: Option<RunHandle>, outcome: RunOutcome) -> RunReport {

@@ -28,9 +28,10 @@ async fn shutdown_ends_open_runs_and_finishes_rotating_recordings() {
     });
     let s = write_stream(&meta("rig-9", "long"), &samples, chunked());
     assert_eq!(s.ticks, 175);
-    // Send the whole file but keep the connection open (no end of stream).
+    // Send the whole file but its footer (29 bytes, which would end the run)
+    // and end magic (8), and keep the connection open.
     let mut c = TcpStream::connect(d.ingest).await.unwrap();
-    c.write_all(&s.bytes).await.unwrap();
+    c.write_all(&s.bytes[..s.bytes.len() - 37]).await.unwrap();
     wait_until("the data to be processed", || async {
         d.asset_ticks("rig-9").await == s.ticks - 1
     })
