@@ -17,8 +17,8 @@ use dt_core::estimate::{Estimate, Health};
 use dt_core::trend::RunPoint;
 
 use super::{
-    health_code, CalendarClock, FleetStore, HealthChange, HistoryPoint, StoreOp, TrendView,
-    SUMMARY_MIN_BINS, SUMMARY_SETTLE_S,
+    health_code, CalendarClock, FleetStore, HealthChange, HistoryPoint, RunRecord, StoreOp,
+    TrendView, SUMMARY_MIN_BINS, SUMMARY_SETTLE_S,
 };
 use crate::server::config::Config;
 use crate::server::metrics::Metrics;
@@ -122,16 +122,38 @@ impl Trends {
             .unwrap_or_else(PoisonError::into_inner)
             .get(asset_id)
             .copied();
-        let points: Vec<(String, RunPoint)> = runs
-            .into_iter()
-            .filter(|r| since.is_none_or(|t| r.start_ms >= t))
-            .filter_map(|r| r.summary.map(|s| (r.run_id, s)))
-            .collect();
+        let points = one_point_per_run(
+            runs.into_iter()
+                .filter(|r| since.is_none_or(|t| r.start_ms >= t)),
+        );
         let a = config.asset(asset_id);
         let view = TrendView::compute(&points, a.warn_bar, a.fault_bar).since(since);
         metrics.set_trend(asset_id, view.leak_rate_bar_per_day, view.days_to_fault);
         self.set(asset_id, view);
     }
+}
+
+/// The trend's points: one per run id. A run sent again (a vehicle retrying,
+/// a file copied into the inbox under another name, a failed attempt then a
+/// whole one) weighed once per copy: three copies of one run narrowed the
+/// leak rate's interval and moved the fault date (sixty-second session, a
+/// helper trying the daemon). A completed copy wins, then the newest.
+fn one_point_per_run(runs: impl Iterator<Item = RunRecord>) -> Vec<(String, RunPoint)> {
+    let mut best: std::collections::BTreeMap<String, (bool, i64, RunPoint)> =
+        std::collections::BTreeMap::new();
+    for r in runs {
+        let Some(point) = r.summary else { continue };
+        let key = (r.status == "completed", r.start_ms);
+        match best.get(&r.run_id) {
+            Some((done, start, _)) if (*done, *start) >= key => {}
+            _ => {
+                best.insert(r.run_id, (key.0, key.1, point));
+            }
+        }
+    }
+    best.into_iter()
+        .map(|(run_id, (_, _, point))| (run_id, point))
+        .collect()
 }
 
 #[derive(Debug, Default)]
@@ -576,5 +598,53 @@ fn commit(
     pending.clear();
     for asset in ended {
         trends.refresh(store, config, metrics, &asset);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(run_id: &str, status: &str, start_ms: i64, bar: Option<f64>) -> RunRecord {
+        RunRecord {
+            run_id: run_id.into(),
+            source: "tcp 127.0.0.1:1".into(),
+            start_ms,
+            end_ms: Some(start_ms + 70_000),
+            ticks: 3500,
+            status: status.into(),
+            reason: None,
+            summary: bar.map(|pressure_bar| RunPoint {
+                t_unix_s: start_ms as f64 * 1e-3,
+                pressure_bar,
+                sd_bar: 0.1,
+            }),
+            observer: None,
+            road: None,
+            simulated: Some(true),
+        }
+    }
+
+    /// A run sent three times (a failed attempt, two whole copies) is one
+    /// point: its completed copy, the newest of them.
+    #[test]
+    fn a_run_sent_again_is_one_point() {
+        let day = 86_400_000;
+        let points = one_point_per_run(
+            [
+                run("d7", "failed", 7 * day, Some(9.0)),
+                run("d7", "completed", 7 * day + 10, Some(8.0)),
+                run("d7", "completed", 7 * day + 20, Some(8.1)),
+                run("d6", "completed", 6 * day, Some(8.5)),
+                run("d5", "failed", 5 * day, Some(9.5)),
+                run("d4", "completed", 4 * day, None),
+            ]
+            .into_iter(),
+        );
+        let got: Vec<(&str, f64)> = points
+            .iter()
+            .map(|(id, p)| (id.as_str(), p.pressure_bar))
+            .collect();
+        assert_eq!(got, [("d5", 9.5), ("d6", 8.5), ("d7", 8.1)]);
     }
 }
