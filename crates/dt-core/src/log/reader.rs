@@ -497,6 +497,14 @@ impl LogDecoder {
         }
     }
 
+    /// Whether every byte fed so far has been decoded and ends at a record
+    /// boundary or after the end magic: a stream that stopped here would
+    /// [`finish`](Self::finish) without being truncated.
+    #[must_use]
+    pub fn at_record_boundary(&self) -> bool {
+        self.pos >= self.pending.len() && self.raw.at_record_boundary()
+    }
+
     /// Ends the stream: drains what is left (discarding events the caller
     /// did not take) and fails if the stream stopped in the middle of a
     /// record, or on a fatal error found in what was left. A stream that

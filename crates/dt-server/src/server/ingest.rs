@@ -281,6 +281,8 @@ impl Ingest {
         let mut buf = vec![0u8; READ_BUF_BYTES];
         let mut run: Option<RunHandle> = None;
         let mut unknown_topics = HashSet::new();
+        // The file's footer came: the run ends with its end magic.
+        let mut footer = false;
         // `None`: the stream ended; `finish` judges how.
         let outcome = loop {
             let read = async {
@@ -312,22 +314,23 @@ impl Ingest {
             }
             let arrived = Instant::now();
             decoder.feed(&buf[..n]);
-            let ended = match self
+            match self
                 .handle_events(kind, &source, &mut decoder, &mut run, &mut unknown_topics)
                 .await
             {
-                Ok(ended) => ended,
+                Ok(ended) => footer |= ended,
                 Err(outcome) => break Some(outcome),
-            };
+            }
             if let Some(r) = &mut run {
                 r.set_arrival(arrived);
                 if r.flush().await.is_err() {
                     break Some(sink_closed_outcome());
                 }
             }
-            if ended {
-                // The file's footer: the run is whole, whether or not the
-                // client closes its side. Over TLS a half-close is not to be
+            if footer && decoder.at_record_boundary() {
+                // The file's footer and end magic (which may come in a
+                // later read: `finish` took the run for truncated): the run
+                // is whole, whether or not the client closes its side. Over TLS a half-close is not to be
                 // had from every client (Python's `ssl` drops the session on
                 // `shutdown(SHUT_WR)`), and a client that waited for the
                 // report waited for the idle timeout instead.

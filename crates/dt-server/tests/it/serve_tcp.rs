@@ -463,3 +463,27 @@ async fn a_peer_over_its_byte_rate_is_slowed_not_cut_off() {
     );
     d.stop().await;
 }
+
+/// A run ends at its file's footer and end magic, without a half-close (a
+/// TLS client may have none): the end magic arriving in a later read than
+/// the footer completes it too (the run was taken for truncated when the
+/// daemon ended it at the footer before the magic came).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_ends_at_its_end_magic_without_a_half_close() {
+    let d = Daemon::start(test_config()).await;
+    let s = good_stream("whole", "r1", 0, 3000);
+    let mut c = TcpStream::connect(d.ingest).await.unwrap();
+    c.write_all(&s.bytes[..s.bytes.len() - 8]).await.unwrap();
+    // the last chunk is read, and the footer with it (one write)
+    crate::common::wait_until("the last chunk to be read", || async {
+        d.asset_ticks("whole").await >= s.ticks - 1
+    })
+    .await;
+    c.write_all(&s.bytes[s.bytes.len() - 8..]).await.unwrap();
+    let mut reply = String::new();
+    c.read_to_string(&mut reply).await.unwrap();
+    let r: serde_json::Value = serde_json::from_str(reply.trim()).unwrap();
+    assert_eq!(r["status"], "completed", "{r}");
+    assert_eq!(r["ticks"], s.ticks, "{r}");
+    d.stop().await;
+}
