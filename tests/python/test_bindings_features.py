@@ -304,3 +304,33 @@ def test_long_calls_release_the_gil(name):
     """While a long call runs in a thread, this thread keeps running Python:
     the largest pause it sees is far shorter than the call."""
     assert_releases_gil(name, _long_calls()[name])
+
+
+def test_replay_of_a_log_without_a_sensor_the_model_reads_fails_naming_it(tmp_path: Path):
+    """The command line agrees with the bindings: a log without the loadcell replayed with a
+    loadcell model (13) fails naming `/force` and exits 1; it printed `final NaN` and exited 0.
+    A complete log beside it is still replayed."""
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[2]
+    topics = [t for t in ALL_TOPICS if t != "/force"]
+    cheap = write_mcap_log(tmp_path / "cheap.mcap", META | {"run_id": "cheap"}, synthetic_run(duration_s=3.0, topics=topics))
+    whole = write_mcap_log(tmp_path / "whole.mcap", META | {"run_id": "whole"}, synthetic_run(duration_s=3.0))
+    done = subprocess.run([str(repo / "target" / "release" / "shocktwin"), "replay", "--model",
+                           str(repo / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"),
+                           str(cheap), str(whole), "--out", str(tmp_path / "out.csv")],
+                          capture_output=True, text=True, env={"CI": "true"})
+    assert done.returncode == 1, done
+    assert 'cheap.mcap: lacks topics ["/force"] needed by the model' in done.stderr, done.stderr
+    assert "replayed 1 run(s)" in done.stdout, done.stdout
+
+
+def test_the_road_observer_refuses_a_dyno_sine_run(tmp_path: Path):
+    """A dyno run (its metadata's excitation a sine) is not read as a road drive: a healthy
+    6 bar unit's 1 Hz sine was read `leak` without a word."""
+    repo = Path(__file__).resolve().parents[2]
+    cal = (repo / "crates" / "dt-core" / "tests" / "fixtures" / "road.json").read_text()
+    sine = write_mcap_log(tmp_path / "sine.mcap", META | {"excitation": "sine 1 Hz 80 mm p-p"},
+                          synthetic_run(duration_s=3.0, frequency_hz=1.0))
+    with pytest.raises(shocktwin.InputError, match=r"run-1.*is a dyno run \(excitation \"sine 1 Hz 80 mm p-p\"\)"):
+        shocktwin.road_blocks(str(sine), cal)

@@ -84,4 +84,18 @@ pub enum PhysicsError {
     /// A filter event of a kind the filter's mode does not take.
     #[error("{0}")]
     WrongMode(&'static str),
+
+    /// A dyno run (its metadata's excitation is a sine) given to the road
+    /// observer, which reads road drives: it read a healthy 6 bar unit's
+    /// 1 Hz sine as `leak` without a word (sixty-second session).
+    #[error(
+        "run `{run_id}` is a dyno run (excitation {excitation:?}): the road observer reads road \
+         drives; read it with the charge observer (a bundle with the `observer` group)"
+    )]
+    NotARoadRun {
+        /// `shocktwin.run` `run_id` of the log.
+        run_id: String,
+        /// Its metadata's `excitation`.
+        excitation: String,
+    },
 }

@@ -408,6 +408,9 @@ struct EstimatorState {
     /// ([`Estimator::with_road`]).
     #[serde(default)]
     road: Option<RoadLane>,
+    /// The sensor topics samples have come on (all segments).
+    #[serde(default)]
+    seen: TopicSet,
 }
 
 /// The road observer beside the pipeline: fed the released samples, its
@@ -493,6 +496,7 @@ impl Estimator {
                 seg_missing: 0,
                 seg_gaps: 0,
                 road: None,
+                seen: TopicSet::default(),
             },
         })
     }
@@ -600,6 +604,15 @@ impl Estimator {
         c
     }
 
+    /// The topics the bundle's groups need that no sample has come on so
+    /// far, in the order the groups name them: a run without a sensor its
+    /// model reads has a NaN pressure throughout (the batch path refuses it
+    /// upfront, `compute_features`; a stream can only tell at its end).
+    #[must_use]
+    pub fn missing_topics(&self) -> Vec<&'static str> {
+        self.s.seen.missing_for(&self.bundle.groups)
+    }
+
     /// The settings.
     #[must_use]
     pub fn config(&self) -> &EstimatorConfig {
@@ -623,6 +636,7 @@ impl Estimator {
     /// numerical failure of the twin or the network.
     pub fn push(&mut self, sample: Sample) -> Result<(), EstimatorError> {
         self.s.counters.samples += 1;
+        self.s.seen = self.s.seen.with(&sample);
         let t = sample.t_ns();
         if self.s.newest_ns != i64::MIN
             && t.saturating_sub(self.s.newest_ns) > self.s.cfg.max_gap_ns

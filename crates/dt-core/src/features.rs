@@ -679,6 +679,21 @@ impl TopicSet {
         }
     }
 
+    /// The set with `sample`'s topic in it (truth topics are no sensor's).
+    #[must_use]
+    pub fn with(mut self, sample: &crate::log::Sample) -> Self {
+        use crate::log::Sample;
+        match sample {
+            Sample::Position { .. } => self.position = true,
+            Sample::Acceleration { .. } => self.acceleration = true,
+            Sample::Force { .. } => self.force = true,
+            Sample::TempShock { .. } => self.temp_shock = true,
+            Sample::TempAmbient { .. } => self.temp_ambient = true,
+            Sample::TruthPressure { .. } | Sample::TruthVelocity { .. } => {}
+        }
+        self
+    }
+
     /// Whether `topic` (a SPEC §2 sensor topic name) is in the set.
     #[must_use]
     pub fn contains(&self, name: &str) -> bool {

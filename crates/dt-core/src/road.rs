@@ -1125,7 +1125,8 @@ fn lfilter_step(b: &[f64], a: &[f64], zi: &mut [Vec<f64>], f: &[f64], out: &mut 
 ///
 /// # Errors
 /// The run lacks `/acceleration`, `/position` or `/temperature/shock`
-/// (named); the calibration is out of its domain.
+/// (named); its metadata says it is a dyno sine run (`excitation`
+/// `sine …`); the calibration is out of its domain.
 pub fn read_run(
     log: &RunLog,
     cal: &RoadCalibration,
@@ -1144,6 +1145,17 @@ pub fn read_run_counted(
     cal: &RoadCalibration,
     health: HealthConfig,
 ) -> Result<(Vec<RoadBlock>, RoadCounters), PhysicsError> {
+    if let Some(excitation) = log
+        .metadata
+        .excitation
+        .as_deref()
+        .filter(|e| e.trim_start().to_ascii_lowercase().starts_with("sine"))
+    {
+        return Err(PhysicsError::NotARoadRun {
+            run_id: log.metadata.run_id.clone(),
+            excitation: excitation.to_owned(),
+        });
+    }
     let missing: Vec<String> = [
         ("/acceleration", log.acceleration.is_empty()),
         ("/position", log.position.is_empty()),

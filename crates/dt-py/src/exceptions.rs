@@ -159,6 +159,7 @@ fn physics_error(err: &PhysicsError) -> PyErr {
         | PhysicsError::LengthMismatch { .. }
         | PhysicsError::NotMonotonic { .. }
         | PhysicsError::UnknownGroup(_)
-        | PhysicsError::WrongMode(_) => py::InputError::new_err(message),
+        | PhysicsError::WrongMode(_)
+        | PhysicsError::NotARoadRun { .. } => py::InputError::new_err(message),
     }
 }

@@ -675,11 +675,27 @@ fn replay_events(
     if !complete || est.finish().is_err() {
         return Ok(None);
     }
+    check_topics(file, &est)?;
     take_estimates(&mut est, writer.as_mut(), None, &mut rows)?;
     if let Some(w) = writer {
         w.finish()?;
     }
     Ok(Some(rows.replayed(file, est.counters(), samples, started)))
+}
+
+/// Fails a run that lacked a sensor its model reads: its pressure was NaN
+/// throughout, and the replay said `final NaN` with exit status 0 (the
+/// bindings refuse such a log upfront, naming the topics).
+fn check_topics(file: &Path, est: &Estimator) -> Result<()> {
+    let missing = est.missing_topics();
+    if !missing.is_empty() {
+        let groups: Vec<&str> = est.bundle().groups.iter().map(|g| g.name()).collect();
+        anyhow::bail!(
+            "{}: lacks topics {missing:?} needed by the model's feature groups {groups:?}: no estimate",
+            file.display()
+        );
+    }
+    Ok(())
 }
 
 /// Replays `file` read whole: the samples sorted by `(t_ns, topic rank)`,
@@ -719,6 +735,7 @@ fn replay_whole(
     }
     est.finish()
         .with_context(|| format!("{}", file.display()))?;
+    check_topics(file, &est)?;
     take_estimates(&mut est, writer.as_mut(), None, &mut rows)?;
     if let Some(w) = writer {
         w.finish()?;

@@ -187,6 +187,16 @@ impl AssetTwin for EstimatorTwin {
     fn finish(&mut self, out: &mut Vec<Estimate>) -> Result<(), TwinError> {
         self.est.finish()?;
         self.drain_into(out);
+        // A vehicle without a sensor its model reads (a loadcell unplugged):
+        // every estimate was NaN, and the run ended `completed`.
+        let missing = self.est.missing_topics();
+        if !missing.is_empty() {
+            let groups: Vec<&str> = self.est.bundle().groups.iter().map(|g| g.name()).collect();
+            return Err(format!(
+                "the run lacks topics {missing:?} needed by the model's feature groups {groups:?}: no estimate"
+            )
+            .into());
+        }
         Ok(())
     }
 
