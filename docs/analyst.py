@@ -18,11 +18,13 @@
 # made by `shocktwin simulate` (`dt-sim`, the project's dyno simulator), not measured on a
 # real damper.
 #
-# The notebook makes its own data, so it runs anywhere the `shocktwin` Python package
-# and the `shocktwin` command line are (under a minute on two cores):
+# The notebook makes its own data. It runs in a checkout of the shocktwin repository
+# (it trains with the repository's `train` package; elsewhere set `SHOCKTWIN_ROOT` to
+# one), with the `shocktwin` Python package and command line (about a minute on two cores):
 #
 # 1. simulate a small labelled campaign (4, 8 and 12 bar, 1 Hz, 60 s each) and one
-#    held-out run at 6 bar, a charge the campaign does not have;
+#    held-out run at 10 bar, a charge the campaign does not have (and not the observer's
+#    6 bar prior, which an estimate that never left it would match);
 # 2. read the held-out log with `shocktwin.read_log`: topics, rates, metadata;
 # 3. train the cheapest bundle that gives a 95 % interval: permutation 17, the charge
 #    observer on the cheap suite (potentiometer, accelerometers, thermocouples; no
@@ -34,7 +36,8 @@
 # 6. a vehicle on roads: fit a road calibration on simulated drives and read a held-out
 #    drive with `shocktwin.road_blocks` (the road observer the daemon runs).
 #
-# Open it with `jupytext --to notebook docs/analyst.py` (or the jupytext plugin of
+# Open it with `jupytext --to notebook docs/analyst.py -o /tmp/analyst.ipynb` (a copy out of
+# the repository; or the jupytext plugin of
 # Jupyter), or run it as a script. Environment variables: `SHOCKTWIN_BIN` (the CLI;
 # default `target/release/shocktwin`, then `shocktwin` on `PATH`), `SHOCKTWIN_ROOT` (the
 # repository, for `train/`; default: found from the working directory),
@@ -105,7 +108,7 @@ CAMPAIGN, HELD_OUT = OUT / "campaign", OUT / "held-out"
 for d in (CAMPAIGN, HELD_OUT):
     shutil.rmtree(d, ignore_errors=True)
 print(run(BIN, "simulate", "--quick", "--pressures", "4,8,12", "--frequencies", "1", "--out", CAMPAIGN).splitlines()[-1])
-print(run(BIN, "simulate", "--quick", "--pressures", "6", "--frequencies", "1", "--seed", "7",
+print(run(BIN, "simulate", "--quick", "--pressures", "10", "--frequencies", "1", "--seed", "7",
           "--out", HELD_OUT).splitlines()[-1])
 (RUN,) = sorted(HELD_OUT.glob("*.mcap"))
 

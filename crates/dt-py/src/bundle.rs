@@ -10,7 +10,7 @@ use dt_core::estimator::{estimate_log, EstimatorConfig};
 use dt_core::features::TopicSet;
 use dt_core::log::RunLog;
 use numpy::{AllowTypeChange, PyArray1, PyArrayLike2};
-use pyo3::exceptions::PyTypeError;
+use pyo3::exceptions::{PyRuntimeWarning, PyTypeError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyString};
 
@@ -276,7 +276,9 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// ``force_model_n``, ``oil_temp_c`` (float64, NaN where the estimator has
 /// no value) and ``health`` (str: ``ok``, ``low``, ``leak``, ``unknown``).
 /// Raises ``MissingTopicsError`` when the log lacks a topic the bundle's
-/// groups need.
+/// groups need. Warns (``RuntimeWarning``) when the charge observer read
+/// none of the run's reversals because the calibration does not cover its
+/// excitation: the estimate is then the observer's prior.
 ///
 /// >>> import shocktwin
 /// >>> shocktwin.estimate("no/such/run.mcap", "no/such/bundle")
@@ -327,8 +329,20 @@ pub(crate) fn estimate<'py>(
         cfg.observer_baseline = Some(b);
     }
     let origin_ns = run.t0_ns().unwrap_or(0);
-    let (estimates, _counters) =
+    let (estimates, counters) =
         without_gil(py, move || estimate_log(bundle, cfg, &run)).map_err(CoreError::from)?;
+    let o = &counters.observer;
+    if o.not_calibrated_here() {
+        // `shocktwin replay` says so; a notebook got the prior without a word
+        let text = format!(
+            "charge observer: {} reversals, none read, {} at an excitation the calibration does \
+             not cover: the estimate kept its prior (calibrate the observer at this excitation, \
+             `python -m train.observer fit`)",
+            o.detected, o.uncalibrated
+        );
+        let msg = std::ffi::CString::new(text).unwrap_or_default();
+        PyErr::warn(py, &py.get_type::<PyRuntimeWarning>(), &msg, 1)?;
+    }
     let column = |f: fn(&dt_core::estimate::Estimate) -> f64| -> Vec<f64> {
         estimates.iter().map(f).collect()
     };

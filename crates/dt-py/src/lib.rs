@@ -26,6 +26,12 @@ use pyo3::prelude::*;
 /// The native module behind the `shocktwin` package.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    // NumPy's C API, imported now rather than by the first call that returns
+    // an array: a Ctrl-C pending then (the call had run without the GIL)
+    // made that import fail, and rust-numpy panicked (`PanicException`, which
+    // `except KeyboardInterrupt` does not catch) instead of the interrupt.
+    m.py().import("numpy")?;
+    let _ = numpy::PyArray1::<f64>::zeros(m.py(), [0], false);
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<kalman::PyKalmanFilter>()?;
     m.add_class::<thermal::PyThermalModel>()?;
