@@ -361,7 +361,7 @@ impl Config {
     pub fn from_file(path: &Path) -> Result<Config, ServeError> {
         let text = std::fs::read_to_string(path).map_err(|source| ServeError::Io {
             path: path.to_owned(),
-            source,
+            error: source,
         })?;
         Self::from_toml(&text).map_err(|reason| ServeError::Config {
             file: path.to_owned(),

@@ -90,20 +90,21 @@ pub enum ServeError {
         reason: String,
     },
     /// A listener cannot be bound.
-    #[error("cannot listen on {addr}: {source}")]
+    #[error("cannot listen on {addr}: {error}")]
     Bind {
         /// The address.
         addr: SocketAddr,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not a `source()`: `{:#}` printed
+        /// it twice).
+        error: std::io::Error,
     },
     /// A file or directory operation failed.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The path.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not a `source()`).
+        error: std::io::Error,
     },
     /// The model bundle cannot be loaded.
     #[error("model bundle {}: {reason}", path.display())]
@@ -139,7 +140,10 @@ impl Listeners {
         let bind = |addr: SocketAddr| async move {
             TcpListener::bind(addr)
                 .await
-                .map_err(|source| ServeError::Bind { addr, source })
+                .map_err(|source| ServeError::Bind {
+                    addr,
+                    error: source,
+                })
         };
         Ok(Self {
             ingest: bind(config.server.listen).await?,
@@ -197,7 +201,7 @@ fn secure(
     let addr = |l: &TcpListener| {
         l.local_addr().map_err(|source| ServeError::Io {
             path: PathBuf::from("<listener>"),
-            source,
+            error: source,
         })
     };
     security::check_exposure(
@@ -220,7 +224,7 @@ fn spawn_https(
 ) -> Result<tokio::task::JoinHandle<std::io::Result<()>>, ServeError> {
     let io = |source| ServeError::Io {
         path: PathBuf::from("<https listener>"),
-        source,
+        error: source,
     };
     let listener = listener.into_std().map_err(io)?;
     let handle = axum_server::Handle::new();
@@ -266,7 +270,7 @@ fn open_store(
     )
     .map_err(|source| ServeError::Io {
         path: PathBuf::from("<store writer thread>"),
-        source,
+        error: source,
     })?;
     sinks.push(Box::new(sink));
     Ok((Some(store), baselines))
@@ -307,7 +311,7 @@ fn spawn_sinks(
         })
         .map_err(|source| ServeError::Io {
             path: PathBuf::from("<sink thread>"),
-            source,
+            error: source,
         })?;
     Ok(done)
 }

@@ -71,7 +71,7 @@ impl Tokens {
             };
             let text = std::fs::read_to_string(path).map_err(|source| ServeError::Io {
                 path: path.clone(),
-                source,
+                error: source,
             })?;
             let tokens: Vec<[u8; 32]> = text
                 .lines()
