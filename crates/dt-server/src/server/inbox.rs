@@ -332,7 +332,11 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
     }
     let moved = match &report {
         Some(report) if !report.ok() => {
-            let reason_path = dir.join(FAILED_DIR).join(format!("{name}.reason.txt"));
+            let to = free_path(&dir.join(FAILED_DIR), &name).await;
+            let reason_path = to.with_file_name(format!(
+                "{}.reason.txt",
+                to.file_name().unwrap_or_default().to_string_lossy()
+            ));
             let text = format!(
                 "{}\nkind: {}\nsamples: {}\nestimates: {}\n",
                 report.reason.as_deref().unwrap_or("failed"),
@@ -341,11 +345,11 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
                 report.ticks
             );
             match tokio::fs::write(&reason_path, text).await {
-                Ok(()) => move_to(path, &dir.join(FAILED_DIR).join(&name)).await,
+                Ok(()) => move_to(path, &to).await,
                 Err(e) => Err(format!("cannot write {}: {e}", reason_path.display())),
             }
         }
-        _ => move_to(path, &dir.join(DONE_DIR).join(&name)).await,
+        _ => move_to(path, &free_path(&dir.join(DONE_DIR), &name).await).await,
     };
     match moved {
         Ok(()) => {
@@ -379,7 +383,8 @@ async fn completed_before_restart(ctx: &SourceContext, path: &Path, source: &str
         .await;
     if completed {
         tracing::info!(file = %path.display(), asset = %asset_id, run = %run_id,
-            "inbox file already processed to completion before a restart: moved, not redone");
+            "inbox file's run already processed to completion from this name (the store holds \
+             it; a restart before the move, or the file dropped again): moved to done/, not redone");
     }
     completed
 }
@@ -422,6 +427,30 @@ fn file_id(m: &std::fs::Metadata) -> (u64, u64) {
 #[cfg(not(unix))]
 fn file_id(m: &std::fs::Metadata) -> (u64, Option<SystemTime>) {
     (m.len(), m.modified().ok())
+}
+
+/// `dir/name`, or `dir/<stem>~<k>.<ext>` with the first `k` free when a
+/// file of that name is there already: a file dropped again under a name
+/// the inbox had processed replaced the earlier one in `done/` (its only
+/// copy when the two differed).
+async fn free_path(dir: &Path, name: &str) -> PathBuf {
+    let first = dir.join(name);
+    if !tokio::fs::try_exists(&first).await.unwrap_or(false) {
+        return first;
+    }
+    let name = Path::new(name);
+    let stem = name.file_stem().unwrap_or_default().to_string_lossy();
+    let ext = name
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_default();
+    for k in 1.. {
+        let candidate = dir.join(format!("{stem}~{k}{ext}"));
+        if !tokio::fs::try_exists(&candidate).await.unwrap_or(false) {
+            return candidate;
+        }
+    }
+    unreachable!("an unbounded range ends only by returning")
 }
 
 async fn move_to(from: &Path, to: &Path) -> Result<(), String> {

@@ -284,3 +284,53 @@ async fn a_file_renamed_over_one_being_read_is_processed_not_moved_unread() {
     assert!(files_in(&inbox.join("failed")).is_empty());
     d.stop().await;
 }
+
+/// A file dropped under a name the inbox has processed (another run) is
+/// kept beside the first in `done/`, which it replaced; a failed one's
+/// reason likewise.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_name_dropped_again_does_not_replace_the_first_file() {
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    let d = daemon_on_inbox(&inbox, 10.0).await;
+    let first = good_stream("inb-again", "r1", 0, 1500);
+    let second = good_stream("inb-again", "r2", 100_000_000_000, 1500);
+    drop_file(&inbox, "day.mcap", &first.bytes);
+    wait_until("the first file", || async {
+        names(&inbox.join("done")).len() == 1
+    })
+    .await;
+    drop_file(&inbox, "day.mcap", &second.bytes);
+    wait_until("the second file", || async {
+        names(&inbox.join("done")).len() == 2
+    })
+    .await;
+    let mut done = names(&inbox.join("done"));
+    done.sort();
+    assert_eq!(done, ["day.mcap", "day~1.mcap"]);
+    assert_eq!(
+        std::fs::read(inbox.join("done/day.mcap")).unwrap(),
+        first.bytes
+    );
+    assert_eq!(
+        std::fs::read(inbox.join("done/day~1.mcap")).unwrap(),
+        second.bytes
+    );
+    drop_file(&inbox, "bad.mcap", b"not an MCAP file");
+    drop_file(&inbox, "bad2.mcap", b"not one either");
+    wait_until("the bad file", || async {
+        names(&inbox.join("failed")).len() == 4
+    })
+    .await;
+    drop_file(&inbox, "bad.mcap", b"still not one");
+    wait_until("the bad file again", || async {
+        names(&inbox.join("failed")).len() == 6
+    })
+    .await;
+    assert!(inbox.join("failed/bad~1.mcap.reason.txt").exists());
+    assert_eq!(
+        std::fs::read(inbox.join("failed/bad~1.mcap")).unwrap(),
+        b"still not one"
+    );
+    d.stop().await;
+}
