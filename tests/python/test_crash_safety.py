@@ -251,7 +251,7 @@ def test_a_file_completed_in_the_store_but_not_yet_moved_is_not_processed_again(
     rows = store_runs(tmp_path / "fleet.sqlite")
     by_source = {src: [s for _, so, s, _ in rows if so == src] for src in {r[1] for r in rows}}
     assert by_source == {f"inbox {first.name}": ["completed"], "inbox renamed.mcap": ["completed"]}, rows
-    assert "already processed to completion before a restart" in p.text()
+    assert "already processed to completion from this name" in p.text()
 
 
 # --- recordings cut by kill -9 ---
