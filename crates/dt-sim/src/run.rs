@@ -651,6 +651,8 @@ pub fn simulate_leak_history(
             })?;
             writer.finish().map_err(log_err)?;
             summary.run_id = run_id;
+            // the asset the file names (`simulate --asset-id` printed the unit's)
+            summary.asset_id.clone_from(&meta.asset_id);
             summary.path = Some(path);
             on_run(&summary);
             Ok(summary)

@@ -205,3 +205,25 @@ fn a_rig_seed_reads_the_same_run_on_another_rig() {
     assert_eq!(rest_pos(&run4_rig6), rest_pos(&run4));
     assert_ne!(rest_pos(&run4_rig6), rest_pos(&run6));
 }
+
+/// A leak history under an asset id of its own reports that asset, as its
+/// files name it (it reported the unit's default).
+#[test]
+fn a_leak_history_reports_the_asset_its_files_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = dt_sim::LeakHistorySpec {
+        start_bar: 12.0,
+        leak_bar_per_day: 0.6,
+        days: 1,
+        frequency_hz: 2.0,
+        seed: 1,
+        quick: true,
+        unit: None,
+        asset_id: Some("van-07".into()),
+        road: None,
+    };
+    let runs = dt_sim::simulate_leak_history(&spec, dir.path(), &|_| {}).unwrap();
+    let path = runs[0].path.as_ref().unwrap();
+    assert_eq!(read_log(path).unwrap().metadata.asset_id, "van-07");
+    assert_eq!(runs[0].asset_id, "van-07");
+}
