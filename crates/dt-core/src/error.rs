@@ -78,7 +78,7 @@ pub enum PhysicsError {
     },
 
     /// A name that is not a feature group.
-    #[error("unknown feature group `{0}` (expected one of force, position, acceleration, velocity, mechanical, thermal)")]
+    #[error("unknown feature group `{0}` (expected one of force, position, acceleration, velocity, mechanical, thermal, signature, residual, observer)")]
     UnknownGroup(String),
 
     /// A filter event of a kind the filter's mode does not take.

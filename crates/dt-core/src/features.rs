@@ -1964,6 +1964,16 @@ mod tests {
         );
     }
 
+    /// The error for a name that is no group lists every group (it listed
+    /// the paper's six, not `signature`, `residual`, `observer`).
+    #[test]
+    fn an_unknown_group_lists_every_group() {
+        let text = PhysicsError::UnknownGroup("forcee".into()).to_string();
+        for g in Group::ALL {
+            assert!(text.contains(g.name()), "{text} lacks {}", g.name());
+        }
+    }
+
     #[test]
     fn missing_topics_are_named() {
         let log = synth_log(
