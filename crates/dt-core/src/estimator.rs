@@ -613,6 +613,19 @@ impl Estimator {
         self.s.seen.missing_for(&self.bundle.groups)
     }
 
+    /// [`missing_topics`](Self::missing_topics) as the reason a run has no
+    /// estimate (naming the bundle's groups), `None` when none is missing.
+    #[must_use]
+    pub fn missing_topics_reason(&self) -> Option<String> {
+        let missing = self.missing_topics();
+        (!missing.is_empty()).then(|| {
+            let groups: Vec<&str> = self.bundle.groups.iter().map(|g| g.name()).collect();
+            format!(
+                "lacks topics {missing:?} needed by the model's feature groups {groups:?}: no estimate"
+            )
+        })
+    }
+
     /// The settings.
     #[must_use]
     pub fn config(&self) -> &EstimatorConfig {

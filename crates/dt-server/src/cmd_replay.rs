@@ -687,15 +687,10 @@ fn replay_events(
 /// throughout, and the replay said `final NaN` with exit status 0 (the
 /// bindings refuse such a log upfront, naming the topics).
 fn check_topics(file: &Path, est: &Estimator) -> Result<()> {
-    let missing = est.missing_topics();
-    if !missing.is_empty() {
-        let groups: Vec<&str> = est.bundle().groups.iter().map(|g| g.name()).collect();
-        anyhow::bail!(
-            "{}: lacks topics {missing:?} needed by the model's feature groups {groups:?}: no estimate",
-            file.display()
-        );
+    match est.missing_topics_reason() {
+        Some(reason) => anyhow::bail!("{}: {reason}", file.display()),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 /// Replays `file` read whole: the samples sorted by `(t_ns, topic rank)`,

@@ -189,15 +189,10 @@ impl AssetTwin for EstimatorTwin {
         self.drain_into(out);
         // A vehicle without a sensor its model reads (a loadcell unplugged):
         // every estimate was NaN, and the run ended `completed`.
-        let missing = self.est.missing_topics();
-        if !missing.is_empty() {
-            let groups: Vec<&str> = self.est.bundle().groups.iter().map(|g| g.name()).collect();
-            return Err(format!(
-                "the run lacks topics {missing:?} needed by the model's feature groups {groups:?}: no estimate"
-            )
-            .into());
+        match self.est.missing_topics_reason() {
+            Some(reason) => Err(format!("the run {reason}").into()),
+            None => Ok(()),
         }
-        Ok(())
     }
 
     fn service_baseline(&self) -> Option<Result<AssetBaseline, String>> {

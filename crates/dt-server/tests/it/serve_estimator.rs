@@ -114,3 +114,35 @@ async fn daemon_output_against_the_estimator(base: Config) -> Vec<u8> {
     assert_same(&got, &want);
     std::fs::read(path).unwrap()
 }
+
+/// A vehicle without a sensor its model reads (here the loadcell of model
+/// 13): the run fails naming the topic; it ended `completed` with every
+/// pressure NaN.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_without_a_sensor_the_model_reads_fails_naming_it() {
+    let factory = EstimatorFactory::load(&bundle_dir(), None).unwrap();
+    let samples: Vec<Sample> = run_samples(1_000_000_000, 3000)
+        .into_iter()
+        .filter(|s| !matches!(s, Sample::Force { .. }))
+        .collect();
+    let stream = write_stream(&meta("unit-2", "no-loadcell"), &samples, chunked());
+    let ingest = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let http = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = ingest.local_addr().unwrap();
+    let (stop, stopped) = oneshot::channel::<()>();
+    let daemon = tokio::spawn(server::run(
+        test_config(),
+        Listeners { ingest, http },
+        Arc::new(factory),
+        async move {
+            let _ = stopped.await;
+        },
+    ));
+    let r = send(addr, &stream.bytes, 1500).await;
+    assert_eq!(r["status"], "failed", "{r}");
+    assert_eq!(r["kind"], "twin", "{r}");
+    let reason = r["reason"].as_str().unwrap();
+    assert!(reason.contains(r#"lacks topics ["/force"]"#), "{r}");
+    stop.send(()).unwrap();
+    daemon.await.unwrap().unwrap();
+}
