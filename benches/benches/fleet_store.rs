@@ -82,6 +82,8 @@ fn populate(path: &std::path::Path, assets: i64, days: i64, hours: i64) {
                 run_id: format!("d{d:03}"),
                 source: "bench".into(),
                 start_ms: start,
+                // the bench's fleet is simulated
+                simulated: Some(true),
             });
             for s in 0..per_day {
                 ops.push(StoreOp::Sample {
