@@ -334,3 +334,20 @@ def test_the_road_observer_refuses_a_dyno_sine_run(tmp_path: Path):
                           synthetic_run(duration_s=3.0, frequency_hz=1.0))
     with pytest.raises(shocktwin.InputError, match=r"run-1.*is a dyno run \(excitation \"sine 1 Hz 80 mm p-p\"\)"):
         shocktwin.road_blocks(str(sine), cal)
+
+
+def test_road_blocks_takes_the_calibration_as_text_or_path(tmp_path: Path):
+    """The calibration as JSON text or as a path (str or Path), like every other argument."""
+    repo = Path(__file__).resolve().parents[2]
+    cal = repo / "crates" / "dt-core" / "tests" / "fixtures" / "road.json"
+    run = write_mcap_log(tmp_path / "drive.mcap", META, synthetic_run(duration_s=3.0))
+    by_text = shocktwin.road_blocks(str(run), cal.read_text())
+    for given in (cal, str(cal)):
+        got = shocktwin.road_blocks(str(run), given)
+        assert got.keys() == by_text.keys()
+        for k in by_text:
+            np.testing.assert_array_equal(np.asarray(got[k]), np.asarray(by_text[k]))
+    with pytest.raises(OSError, match="no-such.json"):
+        shocktwin.road_blocks(str(run), tmp_path / "no-such.json")
+    with pytest.raises(TypeError, match="calibration: expected JSON text or a path, got int"):
+        shocktwin.road_blocks(str(run), 42)

@@ -441,7 +441,8 @@ pub(crate) fn add_constants(m: &Bound<'_, PyModule>) -> PyResult<()> {
 
 /// The road observer (dt-core ``road``) over a recorded run, as the daemon
 /// would stream it: ``log`` a ``shocktwin.Log`` or a path, ``calibration``
-/// the JSON text of ``python -m train.road_observer fit``'s output. Returns a
+/// the JSON text of ``python -m train.road_observer fit``'s output or a path
+/// to that file (text starting with ``{`` is JSON). Returns a
 /// dict of float64 arrays, one entry per block read: ``t_s`` (block end, s
 /// since the run's first message), ``alpha_n``, ``alpha_sd_n``,
 /// ``residual_mps2``, ``temp_c``, ``stroke_rms_mps``, ``reading_bar``,
@@ -455,12 +456,35 @@ pub(crate) fn add_constants(m: &Bound<'_, PyModule>) -> PyResult<()> {
 pub(crate) fn road_blocks<'py>(
     py: Python<'py>,
     log: &Bound<'py, PyAny>,
-    calibration: &str,
+    calibration: &Bound<'py, PyAny>,
     baseline: Option<&Bound<'py, PyAny>>,
     baseline_bar: Option<f64>,
 ) -> PyResult<Bound<'py, PyDict>> {
     use dt_core::road::{read_run, RoadCalibration};
-    let mut cal = RoadCalibration::from_json("calibration", calibration)
+    // JSON text, or a path to it: every other argument takes a path, and a
+    // path given here was "not JSON: expected value at line 1 column 1"
+    let text: Option<String> = calibration
+        .extract::<String>()
+        .ok()
+        .filter(|t| t.trim_start().starts_with('{'));
+    let (name, json) = if let Some(json) = text {
+        ("calibration".to_owned(), json)
+    } else {
+        let path: PathBuf = calibration.extract().map_err(|_| {
+            PyTypeError::new_err(format!(
+                "calibration: expected JSON text or a path, got {}",
+                calibration
+                    .get_type()
+                    .name()
+                    .map_or_else(|_| "?".into(), |n| n.to_string())
+            ))
+        })?;
+        let json = std::fs::read_to_string(&path).map_err(|e| {
+            pyo3::exceptions::PyOSError::new_err(format!("calibration {}: {e}", path.display()))
+        })?;
+        (format!("calibration {}", path.display()), json)
+    };
+    let mut cal = RoadCalibration::from_json(&name, &json)
         .map_err(pyo3::exceptions::PyValueError::new_err)?;
     let health = dt_core::bundle::HealthConfig::default();
     if let Some(base) = baseline {

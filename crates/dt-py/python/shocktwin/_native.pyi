@@ -150,7 +150,7 @@ def charge_reversals(
 ) -> dict[str, Any]: ...
 def road_blocks(
     log: Log | _Path,
-    calibration: str,
+    calibration: str | _Path,
     baseline: Log | _Path | None = None,
     baseline_bar: float | None = None,
 ) -> dict[str, Any]: ...
