@@ -183,6 +183,28 @@ def test_runs_upload_over_https_with_the_ingest_role(daemon: ServeProcess, setup
     assert report["asset_id"] in {a["asset_id"] for a in assets}
 
 
+def test_a_refused_upload_is_seen_over_http2(daemon: ServeProcess, setup: dict[str, Any]) -> None:
+    """A client that sends its whole body before reading (httpx and curl over HTTP/2) sees
+    the refusal of an upload that is refused before or while its body is read: the daemon
+    reads the rest and drops it. Before, the stream was reset under the client (curl: exit 92,
+    "Stream error in the HTTP/2 framing layer"; httpx waited for a flow-control window)."""
+    url = f"https://{daemon.http}/v1/runs"
+    body = setup["run"].read_bytes()
+    cut = body[:100_000] + b"\0garbage" * 100_000  # a run that goes bad after 100 kB, 0.9 MB left
+    ctx = ssl.create_default_context(cafile=str(setup["pki"].ca_pem))
+    with httpx.Client(http2=True, verify=ctx, timeout=20) as http:
+        r = http.post(url, content=body)
+        assert (r.http_version, r.status_code) == ("HTTP/2", 401), r.text
+        r = http.post(url, content=body, headers={"Authorization": f"Bearer {setup['read']}"})
+        assert (r.http_version, r.status_code) == ("HTTP/2", 403), r.text
+        r = http.post(url, content=cut, headers={"Authorization": f"Bearer {setup['ingest']}"})
+        assert (r.http_version, r.status_code) == ("HTTP/2", 422), r.text
+        assert r.json()["status"] == "failed" and r.json()["kind"] == "invalid_mcap", r.text
+        # The connection is still good for the next request.
+        ok = http.get(f"https://{daemon.http}/healthz")
+        assert ok.status_code == 200
+
+
 def test_baselines_are_set_with_the_ingest_role(daemon: ServeProcess, setup: dict[str, Any]) -> None:
     """`PUT /v1/assets/{id}/baseline` changes what the daemon computes: the ingest role's, as
     uploads are; the read role only sees it. This daemon's model (the paper's model 13) has

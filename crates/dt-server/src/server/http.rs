@@ -137,18 +137,19 @@ impl Uploads {
 /// `POST /v1/runs`: the body is one run's MCAP stream.
 async fn post_run(State(app): State<AppState>, body: axum::body::Body) -> Response {
     let Some(ingest) = app.uploads.get() else {
+        // Not drained: the daemon is stopping and waits for no upload.
         return (StatusCode::SERVICE_UNAVAILABLE, "the daemon is stopping\n").into_response();
     };
     let stream = body
         .into_data_stream()
         .map(|r| r.map_err(std::io::Error::other));
-    let reader = tokio_util::io::StreamReader::new(stream);
+    let mut reader = tokio_util::io::StreamReader::new(stream);
     let idle = std::time::Duration::from_secs_f64(app.config.limits.idle_timeout_s);
     let report = ingest
         .ingest_stream(
             super::sink::SourceKind::Http,
             "http upload".to_owned(),
-            reader,
+            &mut reader,
             &app.uploads.cancel,
             Some(idle),
         )
@@ -158,7 +159,45 @@ async fn post_run(State(app): State<AppState>, body: axum::body::Body) -> Respon
     } else {
         StatusCode::UNPROCESSABLE_ENTITY
     };
+    // A refused stream stops being read where it went wrong; what the
+    // client still sends is read and dropped, so that it reaches the answer.
+    drain(&mut reader).await;
     (status, Json(report)).into_response()
+}
+
+/// At most this much of a refused request's body is read (and dropped)
+/// before the refusal is sent …
+const DRAIN_MAX_BYTES: u64 = 64 << 20;
+/// … and for at most this long.
+const DRAIN_MAX_TIME: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Reads and drops what is left of a request body, within
+/// [`DRAIN_MAX_BYTES`] and [`DRAIN_MAX_TIME`].
+///
+/// A client that sends its whole body before it reads the answer (curl and
+/// httpx over HTTP/2, most HTTP/1.1 clients without `Expect: 100-continue`)
+/// otherwise never sees a refusal sent before the body is read: over HTTP/2
+/// the stream is reset under it (curl: "Stream error in the HTTP/2 framing
+/// layer"; httpx waits on a flow-control window that never opens), over
+/// HTTP/1.1 the connection closes under its write. Past the bounds the
+/// answer is sent anyway, so an unauthenticated client costs the daemon at
+/// most this much reading, and no memory.
+async fn drain<R: tokio::io::AsyncRead + Unpin>(body: R) {
+    let mut bounded = tokio::io::AsyncReadExt::take(body, DRAIN_MAX_BYTES);
+    let _ = tokio::time::timeout(
+        DRAIN_MAX_TIME,
+        tokio::io::copy(&mut bounded, &mut tokio::io::sink()),
+    )
+    .await;
+}
+
+/// [`drain`] for a request refused before its handler ran.
+async fn drain_request(req: axum::extract::Request) {
+    let stream = req
+        .into_body()
+        .into_data_stream()
+        .map(|r| r.map_err(std::io::Error::other));
+    drain(tokio_util::io::StreamReader::new(stream)).await;
 }
 
 // The dashboard, compiled in (no build step; uPlot vendored from its npm
@@ -282,27 +321,31 @@ async fn require_token(
     if !app.tokens.enabled() || is_open(req.uri().path()) {
         return next.run(req).await;
     }
-    let Some(token) = bearer(&req) else {
-        return unauthorized(None);
-    };
     let upload = is_write(req.method(), req.uri().path());
-    match (app.tokens.role(&token), upload) {
-        (Some(Role::Read), false) | (Some(Role::Ingest), true) => next.run(req).await,
-        (Some(Role::Ingest), false) => (
+    let refusal = match bearer(&req).map(|token| app.tokens.role(&token)) {
+        None => unauthorized(None),
+        Some(Some(Role::Read)) if !upload => return next.run(req).await,
+        Some(Some(Role::Ingest)) if upload => return next.run(req).await,
+        Some(Some(Role::Ingest)) => (
             StatusCode::FORBIDDEN,
             "this token may ingest runs and set baselines, not read the API\n",
         )
             .into_response(),
-        (Some(Role::Read), true) => (
+        Some(Some(Role::Read)) => (
             StatusCode::FORBIDDEN,
             "this token may read the API, not upload runs or set baselines\n",
         )
             .into_response(),
-        (None, _) => {
+        Some(None) => {
             app.metrics.error("auth");
             unauthorized(Some("invalid_token"))
         }
+    };
+    // The client of a refused upload sees the refusal (see `drain`).
+    if upload {
+        drain_request(req).await;
     }
+    refusal
 }
 
 async fn readyz(State(app): State<AppState>) -> Response {
