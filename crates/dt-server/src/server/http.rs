@@ -165,30 +165,16 @@ async fn post_run(State(app): State<AppState>, body: axum::body::Body) -> Respon
     (status, Json(report)).into_response()
 }
 
-/// At most this much of a refused request's body is read (and dropped)
-/// before the refusal is sent …
-const DRAIN_MAX_BYTES: u64 = 64 << 20;
-/// … and for at most this long.
-const DRAIN_MAX_TIME: std::time::Duration = std::time::Duration::from_secs(10);
-
-/// Reads and drops what is left of a request body, within
-/// [`DRAIN_MAX_BYTES`] and [`DRAIN_MAX_TIME`].
+/// Reads and drops what is left of a refused request's body (within the
+/// TCP ingest's bounds: 64 MiB, 2 s), so that its client sees the refusal.
 ///
 /// A client that sends its whole body before it reads the answer (curl and
-/// httpx over HTTP/2, most HTTP/1.1 clients without `Expect: 100-continue`)
+/// httpx over HTTP/2, HTTP/1.1 clients without `Expect: 100-continue`)
 /// otherwise never sees a refusal sent before the body is read: over HTTP/2
 /// the stream is reset under it (curl: "Stream error in the HTTP/2 framing
-/// layer"; httpx waits on a flow-control window that never opens), over
-/// HTTP/1.1 the connection closes under its write. Past the bounds the
-/// answer is sent anyway, so an unauthenticated client costs the daemon at
-/// most this much reading, and no memory.
+/// layer"; httpx waits on a flow-control window that never opens).
 async fn drain<R: tokio::io::AsyncRead + Unpin>(body: R) {
-    let mut bounded = tokio::io::AsyncReadExt::take(body, DRAIN_MAX_BYTES);
-    let _ = tokio::time::timeout(
-        DRAIN_MAX_TIME,
-        tokio::io::copy(&mut bounded, &mut tokio::io::sink()),
-    )
-    .await;
+    super::tcp::discard_rest(body).await;
 }
 
 /// [`drain`] for a request refused before its handler ran.

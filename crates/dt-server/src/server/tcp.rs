@@ -332,6 +332,14 @@ async fn serve_connection<S: AsyncRead + AsyncWrite + Unpin>(
     let _ = writer.shutdown().await;
     // Lingering close: a client still sending (we stopped reading at an
     // error) would otherwise get a reset and lose the report line.
+    discard_rest(reader).await;
+}
+
+/// Reads and drops what a client still sends after its stream was answered
+/// or refused, at most [`LINGER_MAX_BYTES`] for at most [`LINGER`]: a client
+/// still sending would otherwise get a reset (TCP, HTTP/1.1) or a reset
+/// stream (HTTP/2) and lose the answer. No memory is kept.
+pub(crate) async fn discard_rest<R: tokio::io::AsyncRead + Unpin>(reader: R) {
     let mut rest = reader.take(LINGER_MAX_BYTES);
     let _ = tokio::time::timeout(LINGER, tokio::io::copy(&mut rest, &mut tokio::io::sink())).await;
 }
