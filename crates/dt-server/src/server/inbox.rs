@@ -14,7 +14,9 @@
 //! leaves a new one for the next pass.
 //!
 //! Only `*.mcap` files not starting with `.` are taken: write a file under
-//! another name (e.g. `run.mcap.part`) and rename it when complete; a file
+//! another name (e.g. `run.mcap.part`) and rename it when complete (any other
+//! name than `*.part`, `*.tmp` or a hidden one is logged once as not taken,
+//! as is a sub-directory); a file
 //! renamed into the inbox is taken at once (the file-system event of the
 //! rename says it is complete). A file written in place (a plain `scp`, an
 //! upload that stalls) is taken only once it has settled: unchanged in size
@@ -89,22 +91,67 @@ impl Source for InboxSource {
     }
 }
 
-/// `*.mcap` files of `dir`, by name.
-fn pending_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
+/// What a listing of the inbox found.
+#[derive(Debug, Default)]
+struct Listing {
+    /// `*.mcap` files, by name: the runs to take.
+    files: Vec<PathBuf>,
+    /// Names the inbox does not take and does not expect (neither `*.mcap`,
+    /// nor hidden, nor a file being written under `*.part` or `*.tmp`, nor
+    /// `done/` or `failed/`): said once each, so that a `run.MCAP.gz` or a
+    /// sub-directory of runs dropped there is not waited on in silence.
+    strangers: Vec<OsString>,
+}
+
+/// Lists `dir`.
+fn pending_files(dir: &Path) -> std::io::Result<Listing> {
+    let mut out = Listing::default();
     for entry in std::fs::read_dir(dir)? {
         let entry = entry?;
-        let name = entry.file_name();
-        let name = name.to_string_lossy();
-        let is_mcap = Path::new(name.as_ref())
+        let os_name = entry.file_name();
+        let name = os_name.to_string_lossy();
+        let ext = Path::new(name.as_ref())
             .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
-        if is_mcap && !name.starts_with('.') && entry.file_type()?.is_file() {
-            files.push(entry.path());
+            .map(|e| e.to_string_lossy().to_ascii_lowercase());
+        if name.starts_with('.') {
+            continue;
+        }
+        let is_file = entry.file_type()?.is_file();
+        match ext.as_deref() {
+            Some("mcap") if is_file => out.files.push(entry.path()),
+            Some("part" | "tmp") if is_file => {}
+            _ if !is_file && (name == DONE_DIR || name == FAILED_DIR) => {}
+            _ => out.strangers.push(os_name),
         }
     }
-    files.sort();
-    Ok(files)
+    out.files.sort();
+    Ok(out)
+}
+
+/// Says once for each name of `strangers` (until it leaves the inbox) that
+/// it is not taken. `said` keeps the names said and still there.
+fn say_strangers(dir: &Path, strangers: Vec<OsString>, said: &mut HashSet<OsString>) {
+    let present: HashSet<&OsString> = strangers.iter().collect();
+    said.retain(|n| present.contains(n));
+    for name in strangers {
+        if said.len() >= MAX_RENAMED || said.contains(&name) {
+            continue;
+        }
+        let path = dir.join(&name);
+        if path.is_dir() {
+            tracing::warn!(
+                path = %path.display(),
+                "not taken: the inbox reads the *.mcap files at its top level, not sub-directories"
+            );
+        } else {
+            tracing::warn!(
+                path = %path.display(),
+                "not taken: the inbox reads *.mcap files only (write under *.part or *.tmp \
+                 and rename to *.mcap when complete)"
+            );
+        }
+        said.insert(name);
+    }
 }
 
 async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeError> {
@@ -156,6 +203,8 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
     let mut stuck: HashSet<PathBuf> = HashSet::new();
     // Files still changing: (size, modification time) when first seen so, and when.
     let mut unsettled: HashMap<PathBuf, ((u64, Option<SystemTime>), Instant)> = HashMap::new();
+    // Names not taken that were said so (`say_strangers`).
+    let mut strangers_said: HashSet<OsString> = HashSet::new();
     loop {
         // The names renamed in *before* the listing: only those can be judged
         // by it (a rename reported between the listing and now is kept for
@@ -165,7 +214,10 @@ async fn watch_loop(src: InboxSource, ctx: SourceContext) -> Result<(), ServeErr
             .unwrap_or_else(PoisonError::into_inner)
             .clone();
         let files = match pending_files(&src.dir) {
-            Ok(f) => f,
+            Ok(listing) => {
+                say_strangers(&src.dir, listing.strangers, &mut strangers_said);
+                listing.files
+            }
             Err(e) => {
                 ctx.ingest.metrics().error("inbox");
                 tracing::error!(dir = %src.dir.display(), "cannot list the inbox: {e}");
@@ -306,6 +358,8 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
                 samples: 0,
                 ticks: 0,
                 flushed: true,
+                skipped_messages: 0,
+                first_skipped: None,
             },
         };
         if report.status == "interrupted" {
@@ -337,13 +391,19 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
                 "{}.reason.txt",
                 to.file_name().unwrap_or_default().to_string_lossy()
             ));
-            let text = format!(
+            let mut text = format!(
                 "{}\nkind: {}\nsamples: {}\nestimates: {}\n",
                 report.reason.as_deref().unwrap_or("failed"),
                 report.kind.unwrap_or("unknown"),
                 report.samples,
                 report.ticks
             );
+            if let Some(first) = &report.first_skipped {
+                text.push_str(&format!(
+                    "skipped messages: {} (the first: {first})\n",
+                    report.skipped_messages
+                ));
+            }
             match tokio::fs::write(&reason_path, text).await {
                 Ok(()) => move_to(path, &to).await,
                 Err(e) => Err(format!("cannot write {}: {e}", reason_path.display())),
@@ -477,5 +537,40 @@ mod tests {
         let present: HashSet<&std::ffi::OsStr> = listed.iter().map(OsString::as_os_str).collect();
         forget_gone(&mut renamed, &reported, &present);
         assert_eq!(renamed, names(&["here.mcap", "late.mcap"]));
+    }
+
+    #[test]
+    fn files_not_taken_are_told_apart_and_said_once() {
+        let dir = tempfile::tempdir().unwrap();
+        for d in [DONE_DIR, FAILED_DIR, "more-runs"] {
+            std::fs::create_dir(dir.path().join(d)).unwrap();
+        }
+        for f in [
+            "b.mcap",
+            "A.MCAP",
+            "c.mcap.part",
+            "d.tmp",
+            ".e.mcap.x1y2",
+            "run.mcap.gz",
+            "run.csv",
+        ] {
+            std::fs::write(dir.path().join(f), b"").unwrap();
+        }
+        let listing = pending_files(dir.path()).unwrap();
+        let files: Vec<_> = listing
+            .files
+            .iter()
+            .map(|p| p.file_name().unwrap().to_owned())
+            .collect();
+        assert_eq!(files, [OsString::from("A.MCAP"), OsString::from("b.mcap")]);
+        let strangers: HashSet<OsString> = listing.strangers.iter().cloned().collect();
+        assert_eq!(strangers, names(&["more-runs", "run.mcap.gz", "run.csv"]));
+        let mut said = HashSet::new();
+        say_strangers(dir.path(), listing.strangers.clone(), &mut said);
+        assert_eq!(said, strangers);
+        // Said once: a name gone from the inbox is forgotten, and said again
+        // if it comes back.
+        say_strangers(dir.path(), vec![OsString::from("run.csv")], &mut said);
+        assert_eq!(said, names(&["run.csv"]));
     }
 }

@@ -64,6 +64,19 @@ pub struct RunReport {
     pub ticks: u64,
     /// Whether every estimate reached every sink (and is durable).
     pub flushed: bool,
+    /// Messages that could not be decoded and were skipped (the stream
+    /// went on without them).
+    pub skipped_messages: u64,
+    /// Why the first of them was skipped (topic, field, value).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub first_skipped: Option<String>,
+}
+
+/// Messages a stream skipped: how many, and why the first was.
+#[derive(Debug, Default)]
+struct Skipped {
+    count: u64,
+    first: Option<String>,
 }
 
 impl RunReport {
@@ -281,6 +294,7 @@ impl Ingest {
         let mut buf = vec![0u8; READ_BUF_BYTES];
         let mut run: Option<RunHandle> = None;
         let mut unknown_topics = HashSet::new();
+        let mut skipped = Skipped::default();
         // The file's footer came: the run ends with its end magic.
         let mut footer = false;
         // `None`: the stream ended; `finish` judges how.
@@ -315,7 +329,14 @@ impl Ingest {
             let arrived = Instant::now();
             decoder.feed(&buf[..n]);
             match self
-                .handle_events(kind, &source, &mut decoder, &mut run, &mut unknown_topics)
+                .handle_events(
+                    kind,
+                    &source,
+                    &mut decoder,
+                    &mut run,
+                    &mut unknown_topics,
+                    &mut skipped,
+                )
                 .await
             {
                 Ok(ended) => footer |= ended,
@@ -348,7 +369,7 @@ impl Ingest {
                 Ok(()) => RunOutcome::Completed,
             },
         };
-        self.end(source, run, outcome).await
+        self.end(source, run, outcome, skipped).await
     }
 
     async fn handle_events(
@@ -358,6 +379,7 @@ impl Ingest {
         decoder: &mut LogDecoder,
         run: &mut Option<RunHandle>,
         unknown_topics: &mut HashSet<String>,
+        skipped: &mut Skipped,
     ) -> Result<bool, RunOutcome> {
         let mut ended = false;
         while let Some(event) = decoder.next_event() {
@@ -402,6 +424,10 @@ impl Ingest {
                     // One undecodable message: skipped, the stream goes on.
                     self.inner.metrics.error("message");
                     tracing::warn!(source, "skipped message: {e}");
+                    skipped.count += 1;
+                    if skipped.first.is_none() {
+                        skipped.first = Some(e.to_string());
+                    }
                 }
                 Err(e) => return Err(failed(&e)),
             }
@@ -409,7 +435,13 @@ impl Ingest {
         Ok(ended)
     }
 
-    async fn end(&self, source: String, run: Option<RunHandle>, outcome: RunOutcome) -> RunReport {
+    async fn end(
+        &self,
+        source: String,
+        run: Option<RunHandle>,
+        outcome: RunOutcome,
+        skipped: Skipped,
+    ) -> RunReport {
         let m = &self.inner.metrics;
         let (outcome, asset_id, run_id, samples, ticks, sink_result) = match run {
             Some(r) => {
@@ -425,7 +457,19 @@ impl Ingest {
         }
         Metrics::add(&m.runs, outcome.status(), 1);
         if matches!(outcome, RunOutcome::Completed) {
-            tracing::info!(source, samples, ticks, "run completed");
+            if skipped.count > 0 {
+                tracing::warn!(
+                    source,
+                    samples,
+                    ticks,
+                    skipped = skipped.count,
+                    "run completed without {} undecodable message(s); the first: {}",
+                    skipped.count,
+                    skipped.first.as_deref().unwrap_or("")
+                );
+            } else {
+                tracing::info!(source, samples, ticks, "run completed");
+            }
         }
         let (kind, reason) = match &outcome {
             RunOutcome::Failed { kind, reason } => (Some(*kind), Some(reason.clone())),
@@ -441,6 +485,8 @@ impl Ingest {
             samples,
             ticks,
             flushed,
+            skipped_messages: skipped.count,
+            first_skipped: skipped.first,
         }
     }
 }

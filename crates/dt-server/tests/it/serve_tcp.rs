@@ -487,3 +487,44 @@ async fn a_run_ends_at_its_end_magic_without_a_half_close() {
     assert_eq!(r["ticks"], s.ticks, "{r}");
     d.stop().await;
 }
+
+/// Undecodable messages are skipped and the run goes on; the run's report
+/// says how many and why the first was (before, only the log said so).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_reports_the_messages_it_skipped() {
+    let d = Daemon::start(test_config()).await;
+    let samples = run_samples(0, 3000);
+    let mut w = dt_core::log::LogWriter::new(
+        std::io::Cursor::new(Vec::new()),
+        &meta("skips", "r1"),
+        crate::common::chunked(),
+    )
+    .unwrap();
+    let (_, acc) = dt_core::log::topic_spec("/acceleration").unwrap();
+    let schema = dt_core::log::json_schema(acc);
+    for (i, s) in samples.iter().enumerate() {
+        w.write_sample(s).unwrap();
+        if i % 1000 == 500 {
+            // a second `/acceleration` channel, its messages not numbers
+            let bad = serde_json::json!({"a1_mps2": "1,5", "a2_mps2": 0.0});
+            w.write_json("/acceleration", &schema, s.t_ns(), &bad)
+                .unwrap();
+        }
+    }
+    let bytes = w.finish().unwrap().into_inner();
+    let r = send(d.ingest, &bytes, 4096).await;
+    assert_eq!(r["status"], "completed", "{r}");
+    assert_eq!(r["samples"], samples.len() as u64, "{r}");
+    let skipped = (0..samples.len()).filter(|i| i % 1000 == 500).count() as u64;
+    assert_eq!(r["skipped_messages"], skipped, "{r}");
+    let first = r["first_skipped"].as_str().unwrap_or_default();
+    assert!(
+        first.contains("/acceleration") && first.contains("a1_mps2"),
+        "{r}"
+    );
+    // A run with none says 0 and no reason.
+    let r = send(d.ingest, &good_stream("clean", "r1", 0, 1000).bytes, 4096).await;
+    assert_eq!(r["skipped_messages"], 0, "{r}");
+    assert!(r.get("first_skipped").is_none(), "{r}");
+    d.stop().await;
+}
