@@ -29,6 +29,7 @@
 
 use std::collections::{HashMap, HashSet};
 use std::ffi::OsString;
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant, SystemTime};
@@ -399,10 +400,11 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
                 report.ticks
             );
             if let Some(first) = &report.first_skipped {
-                text.push_str(&format!(
-                    "skipped messages: {} (the first: {first})\n",
+                let _ = writeln!(
+                    text,
+                    "skipped messages: {} (the first: {first})",
                     report.skipped_messages
-                ));
+                );
             }
             match tokio::fs::write(&reason_path, text).await {
                 Ok(()) => move_to(path, &to).await,
