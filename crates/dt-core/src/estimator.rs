@@ -43,6 +43,14 @@
 //!   threshold, and a new state is reported only after it has been the
 //!   candidate for `dwell_s`. Without excitation or without an average (no
 //!   usable data in the last second) the candidate is `unknown`.
+//! - **The physical floor.** A gas charge does not leak below ambient, 0 bar
+//!   gauge: when the 95 % interval reaches above 0, its lower bound and the
+//!   estimate and average are reported no lower than 0 ([`at_ambient_floor`];
+//!   health is judged before, and no verdict changes, the thresholds being
+//!   above 0). A truth at or above 0 inside the interval is inside the floored
+//!   one, and a floored estimate is never further from it. An interval wholly
+//!   below 0 is reported as read: the model does not hold for the unit, and
+//!   that is shown, not hidden at 0. Without an interval nothing is floored.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -869,6 +877,8 @@ impl Estimator {
             }
             None => (pressure_bar, pressure_avg_bar, lo, hi, health),
         };
+        let [pressure_bar, pressure_avg_bar, lo] =
+            at_ambient_floor([pressure_bar, pressure_avg_bar, lo], hi);
         Ok(Estimate {
             t_ns: row.t_ns,
             pressure_bar,
@@ -881,6 +891,18 @@ impl Estimator {
             force_model_n: twin.force_model_n,
             oil_temp_c: twin.oil_temp_c,
         })
+    }
+}
+
+/// `values` (estimate, average, lower bound; bar gauge) no lower than 0 when
+/// the interval's upper bound `hi_bar` is above 0, else as they are (see the
+/// module docs). NaN stays NaN.
+#[must_use]
+pub fn at_ambient_floor(values: [f64; 3], hi_bar: f64) -> [f64; 3] {
+    if hi_bar >= 0.0 {
+        values.map(|v| if v < 0.0 { 0.0 } else { v })
+    } else {
+        values
     }
 }
 
@@ -914,5 +936,32 @@ mod tests {
         assert_eq!(m.level_interval(-3.0, -0.5), Health::Leak);
         assert_eq!(m.level_interval(-1.2, 4.9), Health::Leak);
         assert_eq!(m.level_interval(9.5, 14.0), Health::Ok);
+    }
+
+    #[test]
+    fn a_reading_reaching_above_ambient_is_shown_no_lower_than_it() {
+        // estimate, average, lower bound
+        assert_eq!(at_ambient_floor([-0.03, -0.2, -3.88], 3.59), [0.0, 0.0, 0.0]);
+        assert_eq!(at_ambient_floor([1.9, 2.1, -0.93], 4.82), [1.9, 2.1, 0.0]);
+        assert_eq!(at_ambient_floor([2.94, 2.9, 0.62], 5.37), [2.94, 2.9, 0.62]);
+        // wholly below ambient: shown as read (the model does not hold)
+        assert_eq!(
+            at_ambient_floor([-12.3, -12.4, -16.6], -8.56),
+            [-12.3, -12.4, -16.6]
+        );
+        // no interval, or no estimate: nothing floored, NaN kept
+        assert_eq!(at_ambient_floor([-0.5, -0.4, f64::NAN], f64::NAN)[..2], [-0.5, -0.4]);
+        assert!(at_ambient_floor([f64::NAN; 3], 2.0).iter().all(|v| v.is_nan()));
+        // a truth at or above 0 inside the interval stays inside, and the
+        // floored estimate is never further from it
+        for (p, lo, hi) in [(-1.0, -4.0, 2.0), (0.5, -3.0, 4.0), (-0.2, -0.4, 0.0)] {
+            let [fp, _, flo] = at_ambient_floor([p, p, lo], hi);
+            for truth in [0.0, 0.1, 1.0, 1.99] {
+                if lo <= truth && truth <= hi {
+                    assert!(flo <= truth && truth <= hi);
+                }
+                assert!((fp - truth).abs() <= (p - truth).abs());
+            }
+        }
     }
 }

@@ -642,8 +642,12 @@ fn the_road_observer_streams_and_checkpoints_bit_for_bit() {
     let whole = stream(&mut road_estimator(&b), &samples);
     let first = whole[0].estimate;
     let last = whole.last().unwrap().estimate;
-    assert!(
-        first.pressure_hi_bar - first.pressure_lo_bar > 20.0,
+    // the prior's interval, no lower than ambient (0 bar gauge)
+    let (prior_lo, prior_hi) = road_calibration().prior_interval();
+    assert!(prior_hi - prior_lo > 20.0 && prior_lo < 0.0);
+    assert_eq!(
+        (first.pressure_lo_bar, first.pressure_hi_bar),
+        (0.0, prior_hi),
         "{first:?}"
     );
     assert!(
