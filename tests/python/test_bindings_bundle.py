@@ -156,6 +156,33 @@ def test_estimate_on_a_synthetic_log(make_log):
     np.testing.assert_array_equal(t_s, out["t_s"])
 
 
+def _estimate_in_a_worker(log: shocktwin.Log, bundle: shocktwin.Bundle) -> np.ndarray:
+    return shocktwin.estimate(log, bundle)["pressure_bar"]
+
+
+def test_log_and_bundle_pickle_into_worker_processes(make_log, tmp_path: Path, monkeypatch):
+    """A notebook's ``ProcessPoolExecutor`` (spawn: a fresh interpreter, as on macOS and
+    Windows) takes ``Log`` and ``Bundle`` objects as arguments: each is pickled as its
+    absolute path and read again in the worker. Before, ``cannot pickle 'Log' object``."""
+    import concurrent.futures
+    import multiprocessing
+    import pickle
+
+    path = make_log(duration_s=4.0)
+    monkeypatch.chdir(path.parent)
+    log = shocktwin.read_log(path.name)  # relative: the pickle holds the absolute path
+    bundle = shocktwin.Bundle(MLP13)
+    log2, bundle2 = pickle.loads(pickle.dumps((log, bundle)))
+    assert isinstance(log2, shocktwin.Log) and isinstance(bundle2, shocktwin.Bundle)
+    assert log2.metadata == log.metadata and bundle2.columns == bundle.columns
+    here = shocktwin.estimate(log, bundle)["pressure_bar"]
+    monkeypatch.chdir(tmp_path.parent)  # the worker starts in another directory
+    ctx = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx) as pool:
+        there = pool.submit(_estimate_in_a_worker, log, bundle).result(timeout=120)
+    np.testing.assert_array_equal(there, here)
+
+
 def test_estimate_names_missing_topics(make_log):
     log = make_log(topics=["/position", "/acceleration"])
     with pytest.raises(shocktwin.MissingTopicsError, match="run-1.*/force") as err:

@@ -40,9 +40,12 @@ const TOPIC_ORDER: [&str; 7] = [
 #[pyfunction]
 pub(crate) fn read_log(py: Python<'_>, path: PathBuf) -> PyResult<PyLog> {
     let display = path.display().to_string();
+    // for pickling: a worker process may run in another directory
+    let source = std::path::absolute(&path).unwrap_or_else(|_| path.clone());
     let log = without_gil(py, move || core_read_log(&path)).map_err(CoreError::from)?;
     Ok(PyLog {
         path: display,
+        source,
         log: Arc::new(log),
     })
 }
@@ -51,6 +54,8 @@ pub(crate) fn read_log(py: Python<'_>, path: PathBuf) -> PyResult<PyLog> {
 #[pyclass(module = "shocktwin._native", name = "Log", frozen)]
 pub(crate) struct PyLog {
     path: String,
+    /// The file, as an absolute path (what a pickle holds).
+    source: PathBuf,
     log: Arc<RunLog>,
 }
 
@@ -195,6 +200,14 @@ impl PyLog {
             out.set_item(field, to_numpy(py, values))?;
         }
         Ok(out)
+    }
+
+    /// Pickled as the file's absolute path: unpickling reads the file again
+    /// (``read_log``), so a worker process (``multiprocessing``,
+    /// ``concurrent.futures``, joblib) needs the same file, unchanged.
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyAny>, (PathBuf,))> {
+        let read = py.import("shocktwin")?.getattr("read_log")?;
+        Ok((read, (self.source.clone(),)))
     }
 
     fn __repr__(&self) -> String {
