@@ -374,7 +374,14 @@ def test_a_network_reading_the_observer_learns_its_residual_and_every_reader_add
     est = shocktwin.estimate(log, bundle)
     feats, _, _ = shocktwin.features(log, bundle)
     finite = np.isfinite(feats).all(axis=1)
-    np.testing.assert_allclose(est["pressure_bar"][finite], bundle.predict(feats[finite]), rtol=0, atol=1e-12)
+    # the estimate is the network's output, no lower than ambient (0 bar gauge) where the
+    # interval reaches above it (README, "the interval's floor at ambient")
+    raw = bundle.predict(feats[finite])
+    reaching = est["pressure_hi_bar"][finite] >= 0
+    floored = np.where(reaching, np.maximum(raw, 0.0), raw)
+    np.testing.assert_allclose(est["pressure_bar"][finite], floored, rtol=0, atol=1e-12)
+    lo = est["pressure_lo_bar"][finite]
+    assert (lo[reaching] >= 0).all() and (raw < 0).any(), "a 0.5 bar run reads below 0 somewhere"
 
     x17, y17, columns17 = training(extra[17])
     alone = model.fit(x17, y17, columns17, seed=0, max_iter=MAX_ITER)
