@@ -52,6 +52,8 @@ import httpx
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from train.binary import find_shocktwin
+
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 
 
@@ -435,7 +437,9 @@ def read_baseline(url: str, drive: Path) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m train.demo_serve", description=__doc__.split("\n")[0])
-    p.add_argument("--bin", default="target/release/shocktwin")
+    p.add_argument("--bin", default=None,
+                   help="the shocktwin CLI (default: $SHOCKTWIN_BIN, else this workspace's "
+                        "target/release/shocktwin, else shocktwin on PATH)")
     p.add_argument("--bundle", required=True, type=Path)
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--pressure", type=float, default=2.0, help="charge pressure of the leaking unit (bar)")
@@ -447,6 +451,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--unit", type=int, default=11,
                    help="unit seed of the leaking unit (another unit of the same model; 0: the calibration's)")
     args = p.parse_args(argv)
+    try:
+        args.bin = str(find_shocktwin(args.bin))
+    except FileNotFoundError as e:
+        p.error(str(e))
     if args.road and not (args.road_run and args.road_baseline):
         p.error("--road needs --road-run and --road-baseline")
     if args.out.exists() and any(args.out.iterdir()):

@@ -44,6 +44,7 @@ import numpy as np
 import shocktwin
 
 from train import dataset, evaluate, model, observer_report
+from train.binary import find_shocktwin
 from train.campaign import Campaign, CampaignError, load_campaign, main_wrapper, read_json
 from train.fit_physics import calibrate, print_report, save_figures
 from train.observer_folds import FoldObservers
@@ -720,14 +721,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--no-suites", action="store_true", help="skip the sensor-suite search (63, or 127 with the observer)")
     p.add_argument("--no-generalisation", action="store_true", help="skip the generalisation sets")
-    p.add_argument("--shocktwin", default=os.environ.get("SHOCKTWIN_BIN", "target/release/shocktwin"),
-                   help="the shocktwin binary (for simulating the generalisation sets)")
+    p.add_argument("--shocktwin", default=None,
+                   help="the shocktwin binary, for simulating the generalisation sets (default: $SHOCKTWIN_BIN, "
+                        "else this workspace's target/release/shocktwin, else shocktwin on PATH)")
     p.add_argument("--bundles", default="12,13,16,18", help="permutations to export as model bundles")
     p.add_argument("--datasheet", type=Path,
                    help="the damper's datasheet (docs/datasheet.example.toml: geometry, oil volume, steel "
                         "mass): for the calibration when --physics is not given, and for the observer's "
                         "calibration per fold (default there: the physics' observer geometry)")
     args = p.parse_args(argv)
+    if not args.no_generalisation:
+        # needed only after every permutation is trained: found now, not an hour in
+        try:
+            args.shocktwin = str(find_shocktwin(args.shocktwin))
+        except FileNotFoundError as e:
+            p.error(f"{e} (or pass --no-generalisation)")
     started = time.perf_counter()
     cfg = settings(args.quick, args.seed, args.jobs)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -409,6 +410,25 @@ def reason(proc: subprocess.CompletedProcess[str], prog: str) -> str:
     lines = [line for line in proc.stderr.splitlines() if line.startswith(f"{prog}: ")]
     assert len(lines) == 1, proc.stderr
     return lines[0]
+
+
+def test_the_study_finds_its_cli_from_any_directory_or_says_so_at_once(tmp_path: Path) -> None:
+    """`train.study` run from a test engineer's own directory found `target/release/shocktwin`
+    relative to it, and failed only at the generalisation sets, after every permutation was
+    trained (a helper's trial). The workspace's build is found from the package, and a CLI
+    that is not there is an error before any work."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "SHOCKTWIN_BIN": str(tmp_path / "no-such-shocktwin")}
+    proc = subprocess.run([sys.executable, "-m", "train.study", "--campaign", str(tmp_path / "none"),
+                           "--out", str(tmp_path / "out")], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 2 and "no-such-shocktwin" in proc.stderr and "--no-generalisation" in proc.stderr, \
+        proc.stderr
+    assert not (tmp_path / "out").exists()
+    env.pop("SHOCKTWIN_BIN")
+    found = subprocess.run([sys.executable, "-c", "from train.binary import find_shocktwin; print(find_shocktwin())"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert found.returncode == 0, found.stderr
+    assert Path(found.stdout.strip()).samefile(ROOT / "target" / "release" / "shocktwin")
 
 
 META = {"asset_id": "unit-1", "frequency_hz": "2"}
