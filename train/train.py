@@ -51,16 +51,20 @@ def find_permutation(spec: str) -> dict[str, Any]:
 PREFERENCE = [19, 16, 13, 11, 15, 9, 18, 17, 12, 10, 14, 8, 7, 6, 5, 3, 2, 1, 4]
 
 
-def permutation_for_sensors(spec: str) -> dict[str, Any]:
-    """The best built-in permutation whose sensors are all in ``spec`` (comma separated)."""
+def permutation_for_sensors(spec: str, observer_ok: bool = True) -> dict[str, Any]:
+    """The best built-in permutation whose sensors are all in ``spec`` (comma separated);
+    without ``observer_ok`` (the physics has no calibrated charge observer) the best of those
+    that do not read it."""
     known = list(shocktwin.SENSOR_COSTS_AUD)
     sensors = [s.strip() for s in spec.split(",") if s.strip()]
+    if not sensors:
+        raise CampaignError(f"--sensors {spec!r} names no sensor (known: {', '.join(known)})")
     unknown = [s for s in sensors if s not in known]
-    if unknown or not sensors:
-        raise CampaignError(f"unknown sensors {unknown} in --sensors {spec!r} (known: {', '.join(known)})")
+    if unknown:
+        raise CampaignError(f"unknown sensors {', '.join(unknown)} in --sensors {spec!r} (known: {', '.join(known)})")
     perms = {p["id"]: p for p in [*shocktwin.permutations(), *shocktwin.extra_permutations()]}
     for pid in PREFERENCE:
-        if set(perms[pid]["sensors"]) <= set(sensors):
+        if set(perms[pid]["sensors"]) <= set(sensors) and (observer_ok or "observer" not in perms[pid]["groups"]):
             return perms[pid]
     raise CampaignError(f"no model uses only {', '.join(sensors)}")
 
@@ -119,7 +123,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     campaign = load_campaign(args.campaign)
     campaign.require_labels()
-    perm = find_permutation(args.permutation) if args.permutation else permutation_for_sensors(args.sensors)
+    # by --sensors: chosen once the physics says whether the observer is calibrated; the
+    # sensors' errors now, before any calibration
+    perm = find_permutation(args.permutation) if args.permutation else None
+    if perm is None:
+        permutation_for_sensors(args.sensors)
     nominal_bar = args.nominal_bar
     if args.nominal is not None:
         try:
@@ -131,8 +139,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if nominal_bar is None or args.physics is None or abs(nominal_bar - calibrated_bar) <= 0.05:
         # the charge the physics was calibrated at (the bundle's expected_bar, SPEC §6)
         nominal_bar = calibrated_bar
-    if "observer" in perm["groups"] and not (physics.get("observer") or {}).get("step_per_bar_n"):
-        raise CampaignError(f"permutation {perm['id']} reads the charge observer, which the physics "
+    observer_ok = bool((physics.get("observer") or {}).get("step_per_bar_n"))
+    if perm is None:
+        perm = permutation_for_sensors(args.sensors, observer_ok)
+        best = permutation_for_sensors(args.sensors)
+        if best["id"] != perm["id"]:
+            print(f"--sensors {args.sensors}: permutation {perm['id']} ({perm['name']}); permutation "
+                  f"{best['id']} ({best['name']}) would read the charge observer too, which the physics "
+                  f"{args.physics or '(calibrated now)'} has not calibrated (`python -m train.observer fit`)")
+    if "observer" in perm["groups"] and not observer_ok:
+        which = f"permutation {perm['id']}" if perm["id"] else f"the permutation {perm['name']!r}"
+        raise CampaignError(f"{which} reads the charge observer, which the physics "
                             f"{args.physics or '(calibrated now)'} has not calibrated: run "
                             "`python -m train.observer fit --campaign DIR --physics physics.json` first")
     data = dataset.CampaignData(campaign, physics)

@@ -431,6 +431,25 @@ def test_the_study_finds_its_cli_from_any_directory_or_says_so_at_once(tmp_path:
     assert Path(found.stdout.strip()).samefile(ROOT / "target" / "release" / "shocktwin")
 
 
+def test_sensors_choose_the_best_model_the_physics_can_train() -> None:
+    """`--sensors` chose an observer hybrid (18/19) whatever the physics, and a physics
+    without a calibrated observer then failed: it now takes the best model without it."""
+    from train.campaign import CampaignError
+    from train.train import permutation_for_sensors
+
+    cheap = "potentiometer,accelerometers,thermocouples"
+    everything = "loadcell," + cheap
+    assert permutation_for_sensors(cheap)["id"] == 18 and permutation_for_sensors(everything)["id"] == 19
+    for spec in (cheap, everything):
+        perm = permutation_for_sensors(spec, observer_ok=False)
+        assert "observer" not in perm["groups"], perm
+        assert set(perm["sensors"]) <= set(spec.split(","))
+    with pytest.raises(CampaignError, match="names no sensor"):
+        permutation_for_sensors(" , ")
+    with pytest.raises(CampaignError, match="unknown sensors strain-gauge"):
+        permutation_for_sensors("potentiometer,strain-gauge")
+
+
 META = {"asset_id": "unit-1", "frequency_hz": "2"}
 
 
