@@ -132,8 +132,19 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     let results: Mutex<Vec<Done>> = Mutex::new(Vec::new());
     // The table (CSV, JSONL), created before any work: one input's rows go
     // straight into it, several inputs' into a part each ([`write_table`]).
+    // A table file is written beside `out` and renamed over it once a run
+    // is in it: a replay of which no run could be read left an earlier
+    // output truncated to its header. A pipe or device is written directly.
+    let staged = match format {
+        Format::Jsonl | Format::Csv => staged_table(&args.out)?,
+        Format::Mcap => None,
+    };
     let mut table = match format {
-        Format::Jsonl | Format::Csv => Some(Part::output(&args.out, format)?),
+        Format::Jsonl | Format::Csv => Some(Part::output(
+            staged.as_deref().unwrap_or(&args.out),
+            &args.out,
+            format,
+        )?),
         Format::Mcap => None,
     };
     let direct = Mutex::new(if several { None } else { table.take() });
@@ -185,6 +196,19 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     }
     if let Some(table) = table {
         write_table(table, &parts)?;
+    }
+    if let Some(staged) = staged {
+        if ok.is_empty() {
+            drop(staged);
+            eprintln!(
+                "shocktwin replay: no run replayed: {} left as it was",
+                args.out.display()
+            );
+        } else {
+            staged
+                .persist(&args.out)
+                .with_context(|| format!("writing {}", args.out.display()))?;
+        }
     }
     print_summary(&ok, wall_s, &args.out, several && format == Format::Mcap);
     Ok(if failed > 0 {
@@ -336,11 +360,34 @@ struct Part {
 /// writes that was 4 % of a one-core replay).
 const TABLE_BUFFER: usize = 1 << 20;
 
+/// The file a table output `out` is written to before it is renamed over
+/// `out`: hidden, beside it, with the permissions a new `out` would get. None
+/// when `out` exists and is not a regular file (a pipe, `/dev/stdout`),
+/// which is written directly.
+fn staged_table(out: &Path) -> Result<Option<TempPath>> {
+    if std::fs::metadata(out).is_ok_and(|m| !m.is_file()) {
+        return Ok(None);
+    }
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".replay-").suffix(".part");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt as _;
+        // as `File::create` would (the umask applies)
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let file = builder
+        .tempfile_in(dir_of(out))
+        .with_context(|| format!("creating {} (a file beside it first)", out.display()))?;
+    Ok(Some(file.into_temp_path()))
+}
+
 impl Part {
-    /// The output `out` itself, created with its header. Not sought: `out`
-    /// may be a pipe (rows dropped there are an error).
-    fn output(out: &Path, format: Format) -> Result<Self> {
-        let (file, start) = create_table(out, format)?;
+    /// The output `out`, created at `path` (`out` itself, or the file it is
+    /// staged in) with its header. Not sought: `out` may be a pipe (rows
+    /// dropped there are an error).
+    fn output(path: &Path, out: &Path, format: Format) -> Result<Self> {
+        let (file, start) = create_table(path, out, format)?;
         Ok(Part {
             w: BufWriter::with_capacity(TABLE_BUFFER, file),
             start,
@@ -403,8 +450,8 @@ fn dir_of(out: &Path) -> &Path {
 
 /// The table `out` (CSV, JSONL), created with its header; the header's
 /// length.
-fn create_table(out: &Path, format: Format) -> Result<(File, u64)> {
-    let mut file = File::create(out).with_context(|| format!("creating {}", out.display()))?;
+fn create_table(path: &Path, out: &Path, format: Format) -> Result<(File, u64)> {
+    let mut file = File::create(path).with_context(|| format!("creating {}", out.display()))?;
     let header = match format {
         Format::Csv => format!("{}\n", FIELDS.join(",")),
         _ => String::new(),
@@ -1174,6 +1221,36 @@ mod tests {
     }
 
     #[test]
+    fn a_table_is_staged_beside_a_file_not_a_pipe() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe.csv");
+        assert!(std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success());
+        assert!(staged_table(&fifo).unwrap().is_none());
+        for out in [dir.path().join("new.csv"), dir.path().join("old.csv")] {
+            if out.ends_with("old.csv") {
+                std::fs::write(&out, b"kept").unwrap();
+            }
+            let staged = staged_table(&out).unwrap().unwrap();
+            assert_eq!(staged.parent(), Some(dir.path()));
+            let name = staged.file_name().unwrap().to_string_lossy().into_owned();
+            assert!(name.starts_with(".replay-") && name.ends_with(".part"), "{name}");
+            drop(staged);
+        }
+        // dropped unpersisted: nothing left beside, the old output as it was
+        let mut names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert_eq!(names, ["old.csv", "pipe.csv"]);
+        assert_eq!(std::fs::read(dir.path().join("old.csv")).unwrap(), b"kept");
+    }
+
+    #[test]
     fn the_output_may_be_a_pipe() {
         let dir = tempfile::tempdir().unwrap();
         let fifo = dir.path().join("est.csv");
@@ -1183,7 +1260,7 @@ mod tests {
             let fifo = fifo.clone();
             std::thread::spawn(move || std::fs::read_to_string(fifo).unwrap())
         };
-        let mut part = Part::output(&fifo, Format::Csv).unwrap();
+        let mut part = Part::output(&fifo, &fifo, Format::Csv).unwrap();
         part.w.write_all(b"r1,unit-a,0.020,12\n").unwrap();
         assert!(part.done(true).unwrap().is_none());
         let header = FIELDS.join(",");
@@ -1199,7 +1276,7 @@ mod tests {
         let out = dir.path().join("est.csv");
         let row = b"r1,unit-a,0.020,12\n";
         for ok in [true, false] {
-            let mut part = Part::output(&out, Format::Csv).unwrap();
+            let mut part = Part::output(&out, &out, Format::Csv).unwrap();
             part.w.write_all(row).unwrap();
             assert!(part.done(ok).unwrap().is_none());
             let text = std::fs::read_to_string(&out).unwrap();
