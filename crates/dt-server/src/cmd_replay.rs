@@ -198,17 +198,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
         write_table(table, &parts)?;
     }
     if let Some(staged) = staged {
-        if ok.is_empty() {
-            drop(staged);
-            eprintln!(
-                "shocktwin replay: no run replayed: {} left as it was",
-                args.out.display()
-            );
-        } else {
-            staged
-                .persist(&args.out)
-                .with_context(|| format!("writing {}", args.out.display()))?;
-        }
+        finish_staged(staged, !ok.is_empty(), &args.out)?;
     }
     print_summary(&ok, wall_s, &args.out, several && format == Format::Mcap);
     Ok(if failed > 0 {
@@ -380,6 +370,23 @@ fn staged_table(out: &Path) -> Result<Option<TempPath>> {
         .tempfile_in(dir_of(out))
         .with_context(|| format!("creating {} (a file beside it first)", out.display()))?;
     Ok(Some(file.into_temp_path()))
+}
+
+/// Renames a staged table over `out` when a run is in it (`any`); else
+/// drops it and says `out` was left as it was.
+fn finish_staged(staged: TempPath, any: bool, out: &Path) -> Result<()> {
+    if any {
+        staged
+            .persist(out)
+            .with_context(|| format!("writing {}", out.display()))?;
+    } else {
+        drop(staged);
+        eprintln!(
+            "shocktwin replay: no run replayed: {} left as it was",
+            out.display()
+        );
+    }
+    Ok(())
 }
 
 impl Part {
@@ -1237,7 +1244,11 @@ mod tests {
             let staged = staged_table(&out).unwrap().unwrap();
             assert_eq!(staged.parent(), Some(dir.path()));
             let name = staged.file_name().unwrap().to_string_lossy().into_owned();
-            assert!(name.starts_with(".replay-") && name.ends_with(".part"), "{name}");
+            assert!(
+                name.starts_with(".replay-")
+                    && Path::new(&name).extension().is_some_and(|e| e == "part"),
+                "{name}"
+            );
             drop(staged);
         }
         // dropped unpersisted: nothing left beside, the old output as it was
