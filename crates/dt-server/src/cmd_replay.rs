@@ -132,21 +132,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     let results: Mutex<Vec<Done>> = Mutex::new(Vec::new());
     // The table (CSV, JSONL), created before any work: one input's rows go
     // straight into it, several inputs' into a part each ([`write_table`]).
-    // A table file is written beside `out` and renamed over it once a run
-    // is in it: a replay of which no run could be read left an earlier
-    // output truncated to its header. A pipe or device is written directly.
-    let staged = match format {
-        Format::Jsonl | Format::Csv => staged_table(&args.out)?,
-        Format::Mcap => None,
-    };
-    let mut table = match format {
-        Format::Jsonl | Format::Csv => Some(Part::output(
-            staged.as_deref().unwrap_or(&args.out),
-            &args.out,
-            format,
-        )?),
-        Format::Mcap => None,
-    };
+    let (staged, mut table) = table_output(&args.out, format)?;
     let direct = Mutex::new(if several { None } else { table.take() });
     let started = Instant::now();
     let bar = crate::progress::bar(args.files.len() as u64, "replay");
@@ -370,6 +356,19 @@ fn staged_table(out: &Path) -> Result<Option<TempPath>> {
         .tempfile_in(dir_of(out))
         .with_context(|| format!("creating {} (a file beside it first)", out.display()))?;
     Ok(Some(file.into_temp_path()))
+}
+
+/// The table output (CSV, JSONL; none for MCAP), and the file it is staged
+/// in: written beside `out` and renamed over it once a run is in it (a
+/// replay of which no run could be read left an earlier output truncated to
+/// its header). A pipe or device is written directly.
+fn table_output(out: &Path, format: Format) -> Result<(Option<TempPath>, Option<Part>)> {
+    if format == Format::Mcap {
+        return Ok((None, None));
+    }
+    let staged = staged_table(out)?;
+    let part = Part::output(staged.as_deref().unwrap_or(out), out, format)?;
+    Ok((staged, Some(part)))
 }
 
 /// Renames a staged table over `out` when a run is in it (`any`); else
