@@ -202,6 +202,11 @@ pub struct ImportArgs {
     /// and reported by reason, instead of failing the file.
     #[arg(long)]
     pub skip_bad_rows: bool,
+    /// Replace a log already in `--out` under the same run id that was
+    /// imported from other data (without it such a file is an error; a log
+    /// imported from the same bytes is replaced either way).
+    #[arg(long)]
+    pub overwrite: bool,
     /// 1-based line of the header row (default: the first row naming every mapped column).
     #[arg(long)]
     pub header_line: Option<usize>,

@@ -143,6 +143,9 @@ fn import_file(
     } = resample_stretches(&file, map, &table)?;
 
     let out = args.out.join(format!("{}.mcap", metadata.run_id));
+    if !args.overwrite {
+        check_replaces_the_same(&file, &out, &metadata)?;
+    }
     let part = args.out.join(format!("{}.mcap.part", metadata.run_id));
     let t0 = table.t_ns[0];
     samples.sort_by_key(|s| (s.t_ns(), s.topic_rank()));
@@ -300,11 +303,58 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
     meta.extra.insert("source_file".into(), name);
+    let bytes = std::fs::read(path).with_context(|| format!("{}: reading", path.display()))?;
+    let digest = sha2::Digest::finalize(<sha2::Sha256 as sha2::Digest>::new_with_prefix(&bytes));
+    meta.extra.insert(SOURCE_SHA256.into(), hex(&digest));
     meta.extra.insert(
         "imported_by".into(),
         format!("shocktwin {}", env!("CARGO_PKG_VERSION")),
     );
     Ok(meta)
+}
+
+/// The metadata key of the source file's SHA-256 (hex): a log imported
+/// again from the same bytes replaces the first, one from other bytes does
+/// not (`--overwrite`).
+const SOURCE_SHA256: &str = "source_sha256";
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().fold(String::new(), |mut s, b| {
+        let _ = write!(s, "{b:02x}");
+        s
+    })
+}
+
+/// An earlier log at `out` is replaced only when it was imported from the
+/// same bytes (a re-import, e.g. with a corrected map): a second day's
+/// `run.csv` imported into the same directory replaced the first day's log
+/// without a word (a helper trying the import as a test engineer).
+fn check_replaces_the_same(file: &str, out: &Path, meta: &RunMetadata) -> anyhow::Result<()> {
+    if !out.exists() {
+        return Ok(());
+    }
+    let ours = meta.extra.get(SOURCE_SHA256);
+    let theirs = dt_core::log::read_log(out)
+        .ok()
+        .map(|log| log.metadata.extra);
+    let same = theirs
+        .as_ref()
+        .is_some_and(|m| m.get(SOURCE_SHA256).is_some_and(|h| Some(h) == ours));
+    if same {
+        return Ok(());
+    }
+    let from = theirs
+        .as_ref()
+        .and_then(|m| m.get("source_file"))
+        .map_or_else(
+            || "not by this import".to_owned(),
+            |f| format!("from another {f}"),
+        );
+    bail!(
+        "{file}: {} exists, imported {from}: give this file another run id (--run-id, or rename it), \
+         import into another --out, or replace it with --overwrite",
+        out.display()
+    )
 }
 
 /// The table's stretches between gaps, each resampled on its own at one
