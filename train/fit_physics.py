@@ -685,7 +685,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--campaign", required=True, type=Path, help="campaign directory of *.mcap runs")
     parser.add_argument("--out", required=True, type=Path, help="physics.json to write")
     nominal = parser.add_mutually_exclusive_group()
-    nominal.add_argument("--nominal-bar", type=float, help="nominal charge pressure, bar gauge (default 12)")
+    nominal.add_argument("--nominal-bar", type=float, help="nominal charge pressure, bar gauge (default: the "
+                         "datasheet's nominal_charge, else 12)")
     nominal.add_argument("--nominal", help='nominal charge with a unit: "150 psi", "10.3 bar", "1.03 MPa", '
                          '"1030 kPa" (gauge)')
     parser.add_argument("--datasheet", type=Path, help="damper datasheet (TOML, see docs/datasheet.example.toml): "
@@ -696,6 +697,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     datasheet = load_datasheet(args.datasheet) if args.datasheet else None
     nominal_bar, nominal_input = resolve_nominal(args, datasheet)
     campaign = load_campaign(args.campaign)
+    if args.nominal_bar is None and args.nominal is None and nominal_input is not None:
+        # the datasheet's nominal charge: say so if no run is at it (a datasheet for another
+        # campaign's unit silently replaced the default 12 bar)
+        try:
+            campaign.nominal(nominal_bar)
+        except CampaignError as err:
+            raise CampaignError(f"{err} — {nominal_bar:g} bar is the datasheet {args.datasheet}'s nominal_charge "
+                                f"{nominal_input!r}; --nominal-bar overrides it") from None
     physics = calibrate(campaign, nominal_bar=nominal_bar, datasheet=datasheet, nominal_input=nominal_input)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(physics, indent=2) + "\n")

@@ -495,6 +495,19 @@ def test_a_campaign_without_nominal_runs(tmp_path, module, prog):
     assert "a.mcap 4 bar" in line and "b.mcap 7.5 bar" in line
 
 
+def test_a_datasheets_nominal_charge_says_where_it_came_from(tmp_path):
+    """The datasheet's `nominal_charge` replaces the default 12 bar: when no run is at it the
+    error says it came from the datasheet (a helper's trial: the example datasheet's 130.5 psi
+    read as a mystery 8.99766 bar)."""
+    root = synthetic_campaign(tmp_path / "c", {"a.mcap": {"label": "12"}, "b.mcap": {"label": "4"}})
+    sheet = tmp_path / "sheet.toml"
+    sheet.write_text('[damper]\nnominal_charge = "130.5 psi"\n')
+    line = reason(run_cli("train.fit_physics", "--campaign", root, "--out", tmp_path / "p.json", "--datasheet", sheet),
+                  "fit_physics")
+    assert "no nominal runs at 8.99766 bar" in line
+    assert f"the datasheet {sheet}'s nominal_charge '130.5 psi'; --nominal-bar overrides it" in line
+
+
 def test_train_names_a_run_lacking_the_permutations_sensors(campaign, physics_json, tmp_path):
     root = tmp_path / "c"
     root.mkdir()
