@@ -192,6 +192,20 @@ TC_GAIN_BOUNDS = (0.5, 1.0)  # a surface sensor reads at most the tube's rise ab
 TC_NAMES = ["tc_lag_s", "tc_gain"]
 
 
+def held_ambient(tab: dict[str, np.ndarray]) -> np.ndarray:
+    """The ambient temperature on every tick, for the thermal model's integration: a tick
+    before the first reading (or between readings) holds the nearest one. Without it a
+    thermocouple whose first reading comes a second late (a logger's own start-up, an
+    import) made the model's state NaN throughout, and the force fit stopped on it
+    ("Residuals are not finite in the initial point")."""
+    amb = tab["temp_ambient_c"]
+    ok = np.isfinite(amb)
+    if ok.all() or not ok.any():
+        return amb
+    k = np.arange(len(amb))
+    return np.interp(k, k[ok], amb[ok])
+
+
 def heat_balance(thermal: dict[str, float]) -> Any:
     """The node model (``shocktwin.ThermalModel``) of a physics.json ``thermal`` part."""
     return shocktwin.ThermalModel(**{k: thermal[k] for k in THERMAL_NAMES})
@@ -233,7 +247,7 @@ def thermal_residuals(
     for tab in tabs:
         power = np.nan_to_num(tab["force_n"] * tab["velocity_mps"])
         t0 = tab["temp_shock_c"][np.isfinite(tab["temp_shock_c"])][0]
-        _, cyl = model.simulate(tab["t_s"], power, tab["temp_ambient_c"], t0, t0)
+        _, cyl = model.simulate(tab["t_s"], power, held_ambient(tab), t0, t0)
         read = thermocouple_reading(tab, cyl, params["tc_gain"], params["tc_lag_s"])
         r = (read - tab["temp_shock_c"])[::stride]
         res.append(r[np.isfinite(r)] / THERMAL_SIGMA_C)
@@ -273,7 +287,7 @@ def oil_temperature(tab: dict[str, np.ndarray], thermal: dict[str, float]) -> np
     power = np.nan_to_num(tab["force_n"] * tab["velocity_mps"])
     t0 = tab["temp_shock_c"][np.isfinite(tab["temp_shock_c"])][0]
     oil, _ = heat_balance(thermal).simulate(
-        tab["t_s"], power, tab["temp_ambient_c"], t0, t0
+        tab["t_s"], power, held_ambient(tab), t0, t0
     )
     return oil
 
@@ -300,7 +314,8 @@ def fit_force(
     stride = 2
     cols = []
     for tab, oil in zip(tabs, oils):
-        sel = np.isfinite(tab["force_n"]) & np.isfinite(tab["velocity_mps"])
+        sel = (np.isfinite(tab["force_n"]) & np.isfinite(tab["velocity_mps"]) & np.isfinite(tab["position_m"])
+               & np.isfinite(oil))
         idx = np.nonzero(sel)[0][::stride]
         cols.append(
             (tab["velocity_mps"][idx], tab["accel_rel_mps2"][idx], tab["position_m"][idx],

@@ -508,6 +508,48 @@ def test_a_datasheets_nominal_charge_says_where_it_came_from(tmp_path):
     assert f"the datasheet {sheet}'s nominal_charge '130.5 psi'; --nominal-bar overrides it" in line
 
 
+def test_thermocouples_that_start_late_are_calibrated(shocktwin_bin: Path, tmp_path: Path) -> None:
+    """A logger whose thermocouples give their first reading a second after the run starts
+    (an import made them so until the sixty-third session): the thermal model held NaN from
+    the first tick and the force fit stopped ("Residuals are not finite in the initial
+    point"). The ambient temperature is now held back to the start."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    sim = tmp_path / "sim"
+    done = subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--pressures", "12", "--frequencies", "2",
+                           "--out", str(sim)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    late = tmp_path / "late"
+    late.mkdir()
+    src = next(sim.glob("*.mcap"))
+    with open(src, "rb") as fh, open(late / src.name, "wb") as out:
+        reader = make_reader(fh)
+        t0 = min(m.log_time for _, _, m in reader.iter_messages())
+        fh.seek(0)
+        reader = make_reader(fh)
+        writer = Writer(out)
+        writer.start()
+        for meta in reader.iter_metadata():
+            writer.add_metadata(meta.name, dict(meta.metadata))
+        channels: dict[int, int] = {}
+        schemas: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if channel.topic.startswith("/temperature/") and message.log_time < t0 + 1_000_000_000:
+                continue
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas.get(channel.schema_id, 0))
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+        writer.finish()
+    proc = run_cli("train.fit_physics", "--campaign", late, "--out", tmp_path / "p.json", "--nominal-bar", "12")
+    assert proc.returncode == 0, proc.stderr
+    force = json.loads((tmp_path / "p.json").read_text())["force"]
+    assert all(np.isfinite(v) for v in force.values() if isinstance(v, float)), force
+
+
 def test_train_names_a_run_lacking_the_permutations_sensors(campaign, physics_json, tmp_path):
     root = tmp_path / "c"
     root.mkdir()
