@@ -62,12 +62,14 @@ pub fn mlp_f32_agrees(p32: f64, p64: f64) -> bool {
 #[derive(Debug, thiserror::Error)]
 pub enum BundleError {
     /// A file of the bundle cannot be read.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
+        /// The I/O error (in the message, not a `source`: shown as a
+        /// chain it was said twice, "No such file … (os error 2): No such
+        /// file … (os error 2)").
+        error: std::io::Error,
     },
     /// `twin.json` is not valid JSON or lacks a key.
     #[error("{path}: {message}")]
@@ -237,9 +239,9 @@ impl Bundle {
     pub fn load(dir: impl AsRef<Path>) -> Result<Self, BundleError> {
         let dir = dir.as_ref().to_path_buf();
         let json_path = dir.join(TWIN_JSON);
-        let text = std::fs::read_to_string(&json_path).map_err(|source| BundleError::Io {
+        let text = std::fs::read_to_string(&json_path).map_err(|error| BundleError::Io {
             path: json_path.clone(),
-            source,
+            error,
         })?;
         let twin: TwinJson = serde_json::from_str(&text).map_err(|e| BundleError::Json {
             path: json_path.clone(),
@@ -250,9 +252,9 @@ impl Bundle {
             message,
         })?;
         let onnx_path = dir.join(&twin.onnx.file);
-        let bytes = std::fs::read(&onnx_path).map_err(|source| BundleError::Io {
+        let bytes = std::fs::read(&onnx_path).map_err(|error| BundleError::Io {
             path: onnx_path.clone(),
-            source,
+            error,
         })?;
         if let Some(expected) = &twin.onnx.sha256 {
             let found = hex_digest(&bytes);

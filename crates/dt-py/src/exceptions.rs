@@ -113,7 +113,7 @@ impl From<CoreError> for PyErr {
             CoreError::Bundle(err @ BundleError::Io { .. }) => {
                 let missing = matches!(
                     &err,
-                    BundleError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound
+                    BundleError::Io { error, .. } if error.kind() == std::io::ErrorKind::NotFound
                 );
                 if missing {
                     py::BundleNotFoundError::new_err(err.to_string())

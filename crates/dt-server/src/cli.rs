@@ -231,7 +231,7 @@ pub struct ImportArgs {
     /// Position / displacement column.
     #[arg(long)]
     pub position: Option<String>,
-    /// Position unit: mm, cm, m, in.
+    /// Position unit: mm, cm, m, µm, in.
     #[arg(long)]
     pub position_unit: Option<String>,
     /// Which way the position column counts positive: extension (SPEC) or compression.
@@ -243,7 +243,7 @@ pub struct ImportArgs {
     /// Force column.
     #[arg(long)]
     pub force: Option<String>,
-    /// Force unit: N, kN, lbf, kgf.
+    /// Force unit: N, daN, kN, lbf, kgf.
     #[arg(long)]
     pub force_unit: Option<String>,
     /// Which way the force column counts positive: tension (SPEC) or compression.

@@ -436,7 +436,8 @@ fn check_stroke(file: &str, column: &str, positions: &[f64], stroke: f64) -> any
     if span > STROKE_SLACK * stroke {
         bail!(
             "{file}: column {column:?} spans {:.1} mm, more than the stroke of {:.1} mm \
-             (stroke_pp_mm) allows: is the position's unit (position_unit) or the stroke wrong?",
+             allows: is the position's unit (`[position] unit`, --position-unit) or the stroke \
+             (`[run] stroke_pp_mm`, --stroke-pp-mm) wrong?",
             span * 1e3,
             stroke * 1e3
         );
