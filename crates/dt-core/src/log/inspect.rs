@@ -28,9 +28,51 @@ pub struct ChannelReport {
     pub message_count: u64,
     /// First and last `log_time`, ns.
     pub log_time_range_ns: Option<(u64, u64)>,
+    /// The longest interval between consecutive messages (file order), ns.
+    pub largest_interval_ns: u64,
+    /// The previous message's `log_time`.
+    #[serde(skip)]
+    prev_ns: Option<u64>,
+    /// Intervals longer than each of [`GAP_EDGES_S`].
+    #[serde(skip)]
+    longer_than: [u64; GAP_EDGES_S.len()],
 }
 
+/// Interval lengths (s) counted, to name a channel's gaps against its own
+/// mean interval without keeping every interval.
+const GAP_EDGES_S: [f64; 10] = [0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0];
+
+/// An interval this many times the channel's mean interval (or more) is a
+/// gap.
+const GAP_TIMES_MEAN: f64 = 5.0;
+
 impl ChannelReport {
+    fn on_message(&mut self, log_time: u64) {
+        if let Some(prev) = self.prev_ns {
+            let dt = log_time.saturating_sub(prev);
+            self.largest_interval_ns = self.largest_interval_ns.max(dt);
+            let dt_s = dt as f64 * 1e-9;
+            for (edge, n) in GAP_EDGES_S.iter().zip(&mut self.longer_than) {
+                if dt_s > *edge {
+                    *n += 1;
+                }
+            }
+        }
+        self.prev_ns = Some(log_time);
+    }
+
+    /// The channel's gaps: `(edge_s, count)`, the intervals longer than the
+    /// first counted length at least [`GAP_TIMES_MEAN`] times the mean
+    /// interval; `None` without any.
+    #[must_use]
+    pub fn gaps(&self) -> Option<(f64, u64)> {
+        let mean_s = 1.0 / self.rate_hz()?;
+        let k = GAP_EDGES_S
+            .iter()
+            .position(|e| *e >= GAP_TIMES_MEAN * mean_s)?;
+        (self.longer_than[k] > 0).then(|| (GAP_EDGES_S[k], self.longer_than[k]))
+    }
+
     fn new(channel: &super::raw::RawChannel) -> Self {
         ChannelReport {
             id: channel.id,
@@ -48,6 +90,9 @@ impl ChannelReport {
                 .unwrap_or_default(),
             message_count: 0,
             log_time_range_ns: None,
+            largest_interval_ns: 0,
+            prev_ns: None,
+            longer_than: [0; GAP_EDGES_S.len()],
         }
     }
 
@@ -176,6 +221,7 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
                 if let Some(c) = channels.get_mut(&channel.id) {
                     c.message_count += 1;
                     c.log_time_range_ns = Some(widen(c.log_time_range_ns, log_time));
+                    c.on_message(log_time);
                 }
                 if let Err(err) = decoder.decode(source_name, channel, log_time, data) {
                     problems.message(&err);
@@ -251,6 +297,16 @@ fn lacks(report: &InspectReport, run_records: u32, problems: &mut Problems) {
     }
     for (topic, n) in unknown {
         problems.note(format!("ignored topic {topic} ({n} messages)"));
+    }
+    for c in &report.channels {
+        if let Some((edge_s, n)) = c.gaps() {
+            problems.note(format!(
+                "{}: {n} gap(s) longer than {edge_s} s (the longest {:.3} s); its rate above is \
+                 over the whole span, gaps included",
+                c.topic,
+                c.largest_interval_ns as f64 * 1e-9
+            ));
+        }
     }
 }
 

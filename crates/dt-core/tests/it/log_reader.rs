@@ -649,6 +649,33 @@ fn inspect_reports_counts_rates_and_a_complete_log() {
     assert!(!problems.contains("/truth/"), "{problems}");
 }
 
+/// A gap in a channel is named with its length: a 3 s gap in a 100 Hz
+/// channel read as a rate of 96 Hz and nothing else (a helper's trial).
+#[test]
+fn inspect_names_a_channels_gaps() {
+    let shifted: Vec<Sample> = samples()
+        .into_iter()
+        .map(|s| match s {
+            Sample::Position { t_ns, position_m } if t_ns >= 100_000_000 => Sample::Position {
+                t_ns: t_ns + 3_000_000_000,
+                position_m,
+            },
+            other => other,
+        })
+        .collect();
+    let bytes = write_bytes(&shifted, WriteOptions::default());
+    let report = dt_core::log::inspect_bytes("gap.mcap", &bytes).unwrap();
+    let problems = report.problems.join("\n");
+    assert!(
+        problems.contains("/position: 1 gap(s) longer than 1 s (the longest 3.010 s)"),
+        "{problems}"
+    );
+    assert_eq!(problems.lines().count(), 1, "{problems}");
+    let position = report.channels.iter().find(|c| c.topic == "/position").unwrap();
+    assert_eq!(position.largest_interval_ns, 3_010_000_000);
+    assert!(report.to_string().contains("gap(s) longer than"));
+}
+
 /// Bytes after the end magic are not read, whatever pieces they come in: the
 /// whole file and the file fed byte by byte give the same events and the same
 /// end (the fuzzer found a file whose split changed `finish` from `Ok` to
