@@ -939,9 +939,13 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::float_cmp)] // the floor is exact: 0, or the value itself
     fn a_reading_reaching_above_ambient_is_shown_no_lower_than_it() {
         // estimate, average, lower bound
-        assert_eq!(at_ambient_floor([-0.03, -0.2, -3.88], 3.59), [0.0, 0.0, 0.0]);
+        assert_eq!(
+            at_ambient_floor([-0.03, -0.2, -3.88], 3.59),
+            [0.0, 0.0, 0.0]
+        );
         assert_eq!(at_ambient_floor([1.9, 2.1, -0.93], 4.82), [1.9, 2.1, 0.0]);
         assert_eq!(at_ambient_floor([2.94, 2.9, 0.62], 5.37), [2.94, 2.9, 0.62]);
         // wholly below ambient: shown as read (the model does not hold)
@@ -950,8 +954,13 @@ mod tests {
             [-12.3, -12.4, -16.6]
         );
         // no interval, or no estimate: nothing floored, NaN kept
-        assert_eq!(at_ambient_floor([-0.5, -0.4, f64::NAN], f64::NAN)[..2], [-0.5, -0.4]);
-        assert!(at_ambient_floor([f64::NAN; 3], 2.0).iter().all(|v| v.is_nan()));
+        assert_eq!(
+            at_ambient_floor([-0.5, -0.4, f64::NAN], f64::NAN)[..2],
+            [-0.5, -0.4]
+        );
+        assert!(at_ambient_floor([f64::NAN; 3], 2.0)
+            .iter()
+            .all(|v| v.is_nan()));
         // a truth at or above 0 inside the interval stays inside, and the
         // floored estimate is never further from it
         for (p, lo, hi) in [(-1.0, -4.0, 2.0), (0.5, -3.0, 4.0), (-0.2, -0.4, 0.0)] {

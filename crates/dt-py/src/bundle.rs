@@ -210,12 +210,10 @@ impl PyBundle {
     /// Pickled as the directory's absolute path: unpickling loads the
     /// bundle again, so a worker process (``multiprocessing``,
     /// ``concurrent.futures``, joblib) needs the same directory, unchanged.
-    fn __reduce__<'py>(
-        slf: &Bound<'py, Self>,
-    ) -> PyResult<(Bound<'py, pyo3::types::PyType>, (PathBuf,))> {
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> (Bound<'py, pyo3::types::PyType>, (PathBuf,)) {
         let dir = &slf.get().bundle.dir;
         let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.clone());
-        Ok((slf.get_type(), (dir,)))
+        (slf.get_type(), (dir,))
     }
 
     fn __repr__(&self) -> String {

@@ -671,7 +671,11 @@ fn inspect_names_a_channels_gaps() {
         "{problems}"
     );
     assert_eq!(problems.lines().count(), 1, "{problems}");
-    let position = report.channels.iter().find(|c| c.topic == "/position").unwrap();
+    let position = report
+        .channels
+        .iter()
+        .find(|c| c.topic == "/position")
+        .unwrap();
     assert_eq!(position.largest_interval_ns, 3_010_000_000);
     assert!(report.to_string().contains("gap(s) longer than"));
 }
