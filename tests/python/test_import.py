@@ -234,6 +234,38 @@ def test_a_log_from_other_data_is_not_replaced_without_overwrite(tmp_path: Path)
     assert read_mcap(out / "run_150psi.mcap")[0]["source_sha256"] != meta["source_sha256"]
 
 
+def test_sign_and_mid_stroke_mistakes_are_warned(tmp_path: Path) -> None:
+    """A flipped position or force sign and a missing mid-stroke offset were imported without a
+    word (a helper's trial: a flipped position read a 12 bar unit as −17 bar). The data shows
+    them: the rod accelerometer against the position's second derivative, the force against
+    the velocity, positions that never cross mid-stroke. A correct import warns of nothing."""
+    fs, secs, w = 1000, 10, 2 * np.pi * 2.0
+    t = np.arange(secs * fs) / fs
+    ext_m = 0.04 * np.sin(w * t)  # extension positive (SPEC §2), 80 mm stroke
+    travel_mm = 40 + ext_m * 1e3  # the logger counts 0 at full compression, extension positive
+    force_n = 1500 * 0.04 * w * np.cos(w * t) + 200  # tension positive, with the velocity
+    a1 = -(w**2) * ext_m
+    csv = tmp_path / "stroke_12bar.csv"
+    csv.write_text("t,travel,F,a1,a2\n" + "".join(f"{a:.4f},{b:.5f},{c:.3f},{d:.5f},0\n"
+                                                for a, b, c, d in zip(t, travel_mm, force_n, a1)))
+
+    def run(*flags: str) -> str:
+        done = shocktwin("import", "--time", "t", "--time-format", "elapsed_s", "--position", "travel",
+                         "--position-unit", "mm", "--force", "F", "--a1", "a1", "--a2", "a2", "--accel-unit", "m/s2",
+                         "--stroke-pp-mm", "80", "--asset-id", "b", "--charge", "from-name", "--overwrite",
+                         "--out", tmp_path / "out", *flags, csv)
+        return done.stdout
+
+    assert "warning" not in run("--mid-stroke", "40")
+    flipped = run("--mid-stroke", "40", "--position-positive", "compression")
+    assert "a1) and the position's second derivative disagree in sign (correlation -1.00)" in flipped, flipped
+    assert "the force is against the velocity" in flipped
+    force = run("--mid-stroke", "40", "--force-positive", "compression")
+    assert "the force is against the velocity" in force and "second derivative" not in force, force
+    no_mid = run()
+    assert "the positions never cross mid-stroke (0.1 to 79.9 mm for a 80.0 mm stroke)" in no_mid, no_mid
+
+
 def test_missing_column_unit_and_gap_are_named(tmp_path: Path) -> None:
     export = write_export(tmp_path / "run_150psi.csv", good_rows())
     out = tmp_path / "out"

@@ -228,6 +228,9 @@ fn import_file(
     for what in &left_out {
         let _ = write!(report, "\n  left out {what}");
     }
+    for what in convention_warnings(&samples, map.stroke_pp_m) {
+        let _ = write!(report, "\n  warning: {what}");
+    }
     for (topic, what) in [
         (
             "/acceleration",
@@ -311,6 +314,124 @@ fn metadata(path: &Path, stem: &str, map: &Mapping) -> anyhow::Result<RunMetadat
         format!("shocktwin {}", env!("CARGO_PKG_VERSION")),
     );
     Ok(meta)
+}
+
+/// Below this correlation a pair of channels that physics ties together is
+/// taken to disagree in sign (a stroked damper reads +0.96 and more).
+const SIGN_CORRELATION: f64 = -0.5;
+
+/// Sign and offset mistakes the data itself shows (a helper's trial: a
+/// flipped position sign read a 12 bar unit as −17 bar, a flipped force
+/// tripled the error, a missing `mid_stroke` moved the estimate; all imported
+/// without a word):
+/// - the rod accelerometer `a1` against the position's second derivative
+///   (SPEC §2: both extension positive, they agree in sign);
+/// - the force against the velocity (positive in tension: a damper's force
+///   follows the extension velocity);
+/// - with a stated stroke, positions that never cross mid-stroke (0).
+fn convention_warnings(samples: &[Sample], stroke_pp_m: Option<f64>) -> Vec<String> {
+    let mut pos: Vec<(f64, f64)> = Vec::new();
+    let mut acc: Vec<(f64, f64)> = Vec::new();
+    let mut force: Vec<(f64, f64)> = Vec::new();
+    for s in samples {
+        match *s {
+            Sample::Position { t_ns, position_m } => pos.push((t_ns as f64 * 1e-9, position_m)),
+            Sample::Acceleration { t_ns, a1_mps2, .. } => acc.push((t_ns as f64 * 1e-9, a1_mps2)),
+            Sample::Force { t_ns, force_n } => force.push((t_ns as f64 * 1e-9, force_n)),
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    if pos.len() < 5 {
+        return out;
+    }
+    // central differences where both neighbours are one step away (no gap)
+    let step = {
+        let mut d: Vec<f64> = pos.windows(2).map(|w| w[1].0 - w[0].0).collect();
+        d.sort_by(f64::total_cmp);
+        d[d.len() / 2]
+    };
+    let mut vel = Vec::new();
+    let mut second = Vec::new();
+    for w in pos.windows(3) {
+        let (h0, h1) = (w[1].0 - w[0].0, w[2].0 - w[1].0);
+        if h0 < 1.5 * step && h1 < 1.5 * step {
+            vel.push((w[1].0, (w[2].1 - w[0].1) / (h0 + h1)));
+            second.push((w[1].0, (w[2].1 - 2.0 * w[1].1 + w[0].1) / (h0 * h1)));
+        }
+    }
+    if let Some(r) = correlation_at(&second, &acc) {
+        if r < SIGN_CORRELATION {
+            out.push(format!(
+                "the rod accelerometer (a1) and the position's second derivative disagree in \
+                 sign (correlation {r:.2}): is the position's sign (`[position] positive`) or the \
+                 accelerometers' flipped? SPEC §2 counts both positive in extension"
+            ));
+        }
+    }
+    if let Some(r) = correlation_at(&vel, &force) {
+        if r < SIGN_CORRELATION {
+            out.push(format!(
+                "the force is against the velocity (correlation {r:.2}), not with it as a \
+                 damper's is: is the force's sign (`[force] positive`) or the position's \
+                 flipped? SPEC §2 counts the force positive in tension, the position in extension"
+            ));
+        }
+    }
+    if let Some(stroke) = stroke_pp_m {
+        let (lo, hi) = pos
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+                (a.min(p.1), b.max(p.1))
+            });
+        if (lo > 0.0 || hi < 0.0) && hi - lo > 0.5 * stroke {
+            out.push(format!(
+                "the positions never cross mid-stroke ({:.1} to {:.1} mm for a {:.1} mm stroke): \
+                 is `[position] mid_stroke` (--mid-stroke) missing?",
+                lo * 1e3,
+                hi * 1e3,
+                stroke * 1e3
+            ));
+        }
+    }
+    out
+}
+
+/// Pearson's correlation of `a` with `b` linearly interpolated at `a`'s
+/// times (both in time order); `None` with too little overlap or no spread.
+fn correlation_at(a: &[(f64, f64)], b: &[(f64, f64)]) -> Option<f64> {
+    if b.len() < 2 {
+        return None;
+    }
+    let mut pairs = Vec::with_capacity(a.len());
+    let mut j = 0;
+    for &(t, x) in a {
+        while j + 2 < b.len() && b[j + 1].0 < t {
+            j += 1;
+        }
+        let (p, q) = (b[j], b[j + 1]);
+        if t < p.0 || t > q.0 || q.0 - p.0 <= 0.0 {
+            continue;
+        }
+        let y = p.1 + (q.1 - p.1) * (t - p.0) / (q.0 - p.0);
+        if x.is_finite() && y.is_finite() {
+            pairs.push((x, y));
+        }
+    }
+    if pairs.len() < 20 {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let (mx, my) = pairs
+        .iter()
+        .fold((0.0, 0.0), |(a, b), p| (a + p.0 / n, b + p.1 / n));
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for (x, y) in &pairs {
+        sxy += (x - mx) * (y - my);
+        sxx += (x - mx) * (x - mx);
+        syy += (y - my) * (y - my);
+    }
+    (sxx > 0.0 && syy > 0.0).then(|| sxy / (sxx * syy).sqrt())
 }
 
 /// The metadata key of the source file's SHA-256 (hex): a log imported
