@@ -125,10 +125,29 @@ class Datasheet:
     values: dict[str, Any] = field(default_factory=dict)
 
 
+#: What an automotive shock absorber's datasheet can say, widely: a value outside is in
+#: another unit (a helper's trial: a rod diameter in metres, a gas volume in litres, a steel
+#: mass in grams were taken as given, and the fit either failed without saying why or sat at
+#: its bounds).
+PLAUSIBLE: dict[str, tuple[float, float, str]] = {
+    "a_rod_m2": (2e-5, 3e-3, "a 5–60 mm rod"),
+    "rod_diameter_mm": (5.0, 60.0, "a piston rod"),
+    "v_gas_m3": (5e-6, 5e-3, "5–5000 cm³ of gas"),
+    "gas_volume_cm3": (5.0, 5000.0, "a damper's gas volume"),
+    "oil_volume_cm3": (20.0, 5000.0, "a damper's oil fill"),
+    "steel_mass_kg": (0.1, 50.0, "a damper's steel"),
+}
+
+
 def _positive(path: Path, table: str, key: str, value: Any) -> float:
+    unit = DATASHEET_KEYS[table][key][0]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{path}: [{table}] {key} = {value!r}: expected a positive number "
-                         f"({DATASHEET_KEYS[table][key][0]})")
+        raise ValueError(f"{path}: [{table}] {key} = {value!r}: expected a positive number ({unit})")
+    if key in PLAUSIBLE:
+        lo, hi, what = PLAUSIBLE[key]
+        if not lo <= value <= hi:
+            raise ValueError(f"{path}: [{table}] {key} = {value!r}: {what} is {lo:g}–{hi:g} {unit}; "
+                             f"is it in {unit}?")
     return float(value)
 
 

@@ -177,6 +177,13 @@ def test_datasheet_errors_name_the_key_and_the_example_reads(tmp_path):
     sheet.write_text("[geometry]\ngas_volume_cm3 = -5\n")
     with pytest.raises(ValueError, match="gas_volume_cm3 = -5: expected a positive number"):
         load_datasheet(sheet)
+    # a value in another unit (a helper's trial: all three were taken as given)
+    for table, entry, says in [("geometry", "rod_diameter_mm = 0.012", "a piston rod is 5–60 mm; is it in mm?"),
+                               ("geometry", "gas_volume_cm3 = 0.15", "is 5–5000 cm³; is it in cm³?"),
+                               ("thermal", "steel_mass_kg = 1770", "a damper's steel is 0.1–50 kg; is it in kg?")]:
+        sheet.write_text(f"[{table}]\n{entry}\n")
+        with pytest.raises(ValueError, match=f"{entry}: .*{says}"):
+            load_datasheet(sheet)
     example = load_datasheet(ROOT / "docs" / "datasheet.example.toml")
     assert example.geometry == {"a_rod": pytest.approx(np.pi * 0.012**2 / 4), "v_gas": pytest.approx(1.5e-4)}
     assert parse_pressure_bar(example.nominal_charge) == pytest.approx(NOMINAL_BAR, abs=0.05)
