@@ -11,7 +11,9 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import signal
 import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -144,11 +146,19 @@ def read_json(path: Path | str) -> Any:
         raise ValueError(f"{path}: not JSON ({err.msg} at line {err.lineno}, column {err.colno})") from None
 
 
+def _terminated(signum: int, _frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main_wrapper(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:
     """Run a CLI ``main``: exit 0 on success, non-zero with a one-line reason on stderr."""
 
     def wrapped(argv: Sequence[str] | None = None) -> int:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+        # `kill` or a timeout ends the run as Ctrl-C does, through every `finally` and
+        # temporary directory's clean-up (a killed study left its observer folds in /tmp)
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, _terminated)
         try:
             return main(argv)
         except (CampaignError, shocktwin.ShocktwinError, OSError, ValueError) as err:

@@ -431,6 +431,31 @@ def test_the_study_finds_its_cli_from_any_directory_or_says_so_at_once(tmp_path:
     assert Path(found.stdout.strip()).samefile(ROOT / "target" / "release" / "shocktwin")
 
 
+def test_a_killed_cli_cleans_up_as_on_ctrl_c(tmp_path: Path) -> None:
+    """SIGTERM (`kill`, `timeout`) ends a training CLI through its `finally` blocks: a killed
+    study had left its observer folds' directory in /tmp (a helper's trial)."""
+    import signal
+
+    script = tmp_path / "cli.py"
+    script.write_text(
+        "import sys, tempfile, time\n"
+        "from train.campaign import main_wrapper\n"
+        "def main(argv):\n"
+        "    with tempfile.TemporaryDirectory(dir=sys.argv[1]) as d:\n"
+        "        print(d, flush=True)\n"
+        "        time.sleep(60)\n"
+        "    return 0\n"
+        "raise SystemExit(main_wrapper(main)())\n")
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path)], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.stdout is not None
+    work = Path(proc.stdout.readline().strip())
+    assert work.is_dir()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 128 + signal.SIGTERM
+    assert not work.exists()
+
+
 def test_sensors_choose_the_best_model_the_physics_can_train() -> None:
     """`--sensors` chose an observer hybrid (18/19) whatever the physics, and a physics
     without a calibrated observer then failed: it now takes the best model without it."""
