@@ -208,6 +208,13 @@ fn import_file(
             dt as f64 * 1e-9
         );
     }
+    if let Some((line, cells)) = &table.units_row {
+        let _ = write!(
+            report,
+            "\n  line {line} read as a units row ({}): not data",
+            cells.join(", ")
+        );
+    }
     for (reason, (n, first)) in &table.skipped {
         let _ = write!(
             report,

@@ -26,6 +26,8 @@ pub struct Table {
     pub skipped: BTreeMap<String, (u64, u64)>,
     /// Data rows read (kept + skipped).
     pub rows: u64,
+    /// A units row under the header, passed over: its line and cells.
+    pub units_row: Option<(u64, Vec<String>)>,
 }
 
 impl Table {
@@ -42,6 +44,7 @@ impl Table {
             lines: self.lines[r.clone()].to_vec(),
             skipped: BTreeMap::new(),
             rows: r.len() as u64,
+            units_row: None,
         }
     }
 
@@ -355,6 +358,14 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         if record.iter().all(str::is_empty) {
             continue; // blank line
         }
+        if table.rows == 0 && table.units_row.is_none() {
+            if let Some(cells) = units_row(&record, &index, map.decimal) {
+                // `s, mm, N, °C` under the header: not data (it failed the file as
+                // "not an ISO-8601 time", or was a skipped bad row)
+                table.units_row = Some((line, cells));
+                continue;
+            }
+        }
         table.rows += 1;
         match parse_row(
             &record,
@@ -405,6 +416,22 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         );
     }
     Ok(table)
+}
+
+/// The mapped cells of `record` if it reads as a units row: some cell
+/// written, and not one of them a number (`s`, `[mm]`, `kN`, `°C`).
+fn units_row(record: &csv::StringRecord, index: &[usize], decimal: u8) -> Option<Vec<String>> {
+    let cells: Vec<&str> = index
+        .iter()
+        .map(|&i| record.get(i).unwrap_or("").trim())
+        .collect();
+    let number = |c: &str| with_point(c, decimal, true).is_ok_and(|t| t.parse::<f64>().is_ok());
+    let any_text = cells.iter().any(|c| !c.is_empty());
+    let letters = cells
+        .iter()
+        .all(|c| c.is_empty() || c.chars().any(char::is_alphabetic) || c.contains('°'));
+    (any_text && letters && !cells.iter().any(|c| number(c)))
+        .then(|| cells.iter().map(|c| (*c).to_owned()).collect())
 }
 
 /// `text` with its decimal separator `decimal` (`.` or `,`) read as a
