@@ -266,6 +266,34 @@ def test_sign_and_mid_stroke_mistakes_are_warned(tmp_path: Path) -> None:
     assert "the positions never cross mid-stroke (0.1 to 79.9 mm for a 80.0 mm stroke)" in no_mid, no_mid
 
 
+def test_a_time_of_day_crosses_midnight(tmp_path: Path) -> None:
+    """A logger stamping the time of day alone, from 23:59:50 to 00:00:10: the file failed at
+    midnight ("not after line …'s", a helper's trial). A time of day going back by more than
+    12 h is the next day's; the report says where."""
+    rows = []
+    for k in range(2000):  # 100 Hz, 20 s
+        s = (86390 + k / 100) % 86400
+        h, rem = divmod(s, 3600)
+        m, sec = divmod(rem, 60)
+        rows.append(f"{int(h):02d}:{int(m):02d}:{sec:06.3f},{40 + 20 * np.sin(k / 10):.4f}")
+    csv = tmp_path / "night_7bar.csv"
+    csv.write_text("clock,x\n" + "\n".join(rows) + "\n")
+    done = shocktwin("import", "--time", "clock", "--time-format", "[hour]:[minute]:[second].[subsecond]",
+                     "--position", "x", "--position-unit", "mm", "--mid-stroke", "40", "--asset-id", "n",
+                     "--charge", "from-name", "--out", tmp_path / "out", csv)
+    assert "crossed midnight at line 1002: read as the next day" in done.stdout, done.stdout
+    _, topics = read_mcap(tmp_path / "out" / "night_7bar.mcap")
+    t_ns, _ = topics["/position"]
+    assert len(t_ns) == 2000 and np.all(np.diff(t_ns) == 10_000_000)
+    # a time going back by less than 12 h is still refused
+    back = tmp_path / "back_7bar.csv"
+    back.write_text("clock,x\n10:00:00.000,1\n10:00:00.010,1\n09:59:00.000,1\n")
+    refused = shocktwin("import", "--time", "clock", "--time-format", "[hour]:[minute]:[second].[subsecond]",
+                        "--position", "x", "--position-unit", "mm", "--asset-id", "n", "--charge", "from-name",
+                        "--out", tmp_path / "out", back, check=False)
+    assert refused.returncode == 1 and "is not after line 3's" in refused.stderr, refused.stderr
+
+
 def test_missing_column_unit_and_gap_are_named(tmp_path: Path) -> None:
     export = write_export(tmp_path / "run_150psi.csv", good_rows())
     out = tmp_path / "out"

@@ -222,6 +222,12 @@ impl TimeLayout {
         })
     }
 
+    /// A time of day without a date: a run may cross midnight.
+    #[must_use]
+    pub fn is_time_of_day(&self) -> bool {
+        self.kind == LayoutKind::TimeOfDay
+    }
+
     /// One cell in ns: since the epoch (UTC), or since midnight for a time
     /// of day.
     pub fn parse(&self, cell: &str) -> Result<i64, String> {

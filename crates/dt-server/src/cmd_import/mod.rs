@@ -208,6 +208,12 @@ fn import_file(
             dt as f64 * 1e-9
         );
     }
+    for line in &table.midnights {
+        let _ = write!(
+            report,
+            "\n  the time of day crossed midnight at line {line}: read as the next day"
+        );
+    }
     if let Some((line, cells)) = &table.units_row {
         let _ = write!(
             report,

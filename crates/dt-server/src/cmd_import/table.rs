@@ -28,7 +28,14 @@ pub struct Table {
     pub rows: u64,
     /// A units row under the header, passed over: its line and cells.
     pub units_row: Option<(u64, Vec<String>)>,
+    /// Lines where a time of day without a date crossed midnight.
+    pub midnights: Vec<u64>,
 }
+
+/// A time of day going back by more than this is the next day's (a logger
+/// stamping `hh:mm:ss` runs across midnight); less is a time going back.
+const MIDNIGHT_JUMP_NS: i64 = 12 * 3600 * 1_000_000_000;
+const DAY_NS: i64 = 24 * 3600 * 1_000_000_000;
 
 impl Table {
     fn skip(&mut self, reason: String, line: u64) {
@@ -45,6 +52,7 @@ impl Table {
             skipped: BTreeMap::new(),
             rows: r.len() as u64,
             units_row: None,
+            midnights: Vec::new(),
         }
     }
 
@@ -351,6 +359,8 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         ..Table::default()
     };
     let mut time_format = map.time_format.clone();
+    let time_of_day = matches!(&map.time_format, TimeFormat::Layout(l) if l.is_time_of_day());
+    let mut day_ns = 0_i64;
     let mut row = vec![0.0; wanted.len() - 1];
     for record in records {
         let record = record.map_err(|e| unreadable(path, e, map, &mut line_at))?;
@@ -377,6 +387,14 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             &mut row,
         ) {
             Ok(t_ns) => {
+                let mut t_ns = t_ns + day_ns;
+                if let Some(&prev) = table.t_ns.last() {
+                    if time_of_day && prev - t_ns > MIDNIGHT_JUMP_NS {
+                        day_ns += DAY_NS;
+                        t_ns += DAY_NS;
+                        table.midnights.push(line);
+                    }
+                }
                 if let Some(&prev) = table.t_ns.last() {
                     if t_ns <= prev {
                         let prev_line = table.lines.last().copied().unwrap_or(0);
