@@ -451,16 +451,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--unit", type=int, default=11,
                    help="unit seed of the leaking unit (another unit of the same model; 0: the calibration's)")
     args = p.parse_args(argv)
-    try:
-        args.bin = str(find_shocktwin(args.bin))
-    except FileNotFoundError as e:
-        p.error(str(e))
     if args.road and not (args.road_run and args.road_baseline):
         p.error("--road needs --road-run and --road-baseline")
     if args.out.exists() and any(args.out.iterdir()):
         # The daemon would open the last demo's fleet store and inbox there and take the
         # drives dropped in again as runs it has read, so a service's baseline never comes.
         p.error(f"--out {args.out} is not empty (a demo ran there before): remove it or give another directory")
+    try:
+        args.bin = str(find_shocktwin(args.bin))
+    except FileNotFoundError as e:
+        p.error(str(e))
 
     run_dir = args.out / "run"
     unit = ["--unit", str(args.unit)] if args.unit else []

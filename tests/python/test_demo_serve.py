@@ -32,9 +32,12 @@ def test_a_used_output_directory_is_refused_at_once(tmp_path: Path, capsys: pyte
     assert sorted(p.name for p in out.iterdir()) == ["inbox"], "nothing written into the refused directory"
 
 
-def test_an_empty_output_directory_is_taken(tmp_path: Path) -> None:
+def test_an_empty_output_directory_is_taken(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "serve-demo"
     out.mkdir()
-    # Accepted: the demo goes on to simulate its run, which fails here on the missing binary.
-    with pytest.raises(FileNotFoundError, match="no-shocktwin"):
+    # Accepted: the demo goes on to find its CLI, which fails here on the missing binary.
+    with pytest.raises(SystemExit) as stop:
         demo_serve.main(["--bin", str(tmp_path / "no-shocktwin"), "--bundle", str(tmp_path / "b"), "--out", str(out)])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "no shocktwin CLI at" in err and "no-shocktwin" in err and "is not empty" not in err, err
