@@ -143,12 +143,16 @@ def _positive(path: Path, table: str, key: str, value: Any) -> float:
     unit = DATASHEET_KEYS[table][key][0]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{path}: [{table}] {key} = {value!r}: expected a positive number ({unit})")
+    check_plausible(f"{path}: [{table}] {key}", key, value, unit)
+    return float(value)
+
+
+def check_plausible(where: str, key: str, value: float, unit: str) -> None:
+    """Refuses a value of ``key`` outside ``PLAUSIBLE``, asking for its unit."""
     if key in PLAUSIBLE:
         lo, hi, what = PLAUSIBLE[key]
         if not lo <= value <= hi:
-            raise ValueError(f"{path}: [{table}] {key} = {value!r}: {what} is {lo:g}–{hi:g} {unit}; "
-                             f"is it in {unit}?")
-    return float(value)
+            raise ValueError(f"{where} = {value!r}: {what} is {lo:g}–{hi:g} {unit}; is it in {unit}?")
 
 
 def load_datasheet(path: str | Path) -> Datasheet:

@@ -989,7 +989,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if sheet.oil_expansion_m3_per_k is not None:
             obs["oil_expansion_m3_per_k"] = sheet.oil_expansion_m3_per_k
     elif args.datasheet:
-        obs.update(read_json(args.datasheet))
+        from train.datasheet import check_plausible
+
+        given = read_json(args.datasheet)
+        for key, unit in (("a_rod_m2", "m²"), ("v_gas_m3", "m³")):
+            if isinstance(given.get(key), (int, float)):
+                check_plausible(f"{args.datasheet}: {key}", key, float(given[key]), unit)
+        obs.update(given)
     obs["window_sd"] = bool(args.window_sd)
     obs["reversal_accel"] = args.reversal_accel.replace("-", "_")
     rod_scales = None

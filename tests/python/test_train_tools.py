@@ -575,6 +575,17 @@ def test_thermocouples_that_start_late_are_calibrated(shocktwin_bin: Path, tmp_p
     assert all(np.isfinite(v) for v in force.values() if isinstance(v, float)), force
 
 
+def test_a_json_datasheet_in_another_unit_is_refused(campaign, physics_json, tmp_path):
+    """`observer fit --datasheet X.json` took `{"a_rod_m2": 113, "v_gas_m3": 150}` (mm² and
+    cm³) as given and started fitting (a helper's trial); it is refused at once, as the TOML
+    datasheet's values are."""
+    sheet = tmp_path / "sheet.json"
+    sheet.write_text('{"a_rod_m2": 113, "v_gas_m3": 150}')
+    line = reason(run_cli("train.observer", "fit", "--campaign", campaign, "--physics", physics_json,
+                          "--datasheet", sheet), "observer")
+    assert "a_rod_m2 = 113.0: a 5–60 mm rod is 2e-05–0.003 m²; is it in m²?" in line
+
+
 def test_train_names_a_run_lacking_the_permutations_sensors(campaign, physics_json, tmp_path):
     root = tmp_path / "c"
     root.mkdir()
