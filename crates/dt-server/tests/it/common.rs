@@ -49,6 +49,11 @@ pub fn test_config() -> Config {
 impl Daemon {
     /// Binds `127.0.0.1:0` twice and runs the daemon with the placeholder twin.
     pub async fn start(config: Config) -> Daemon {
+        Self::start_with(config, Arc::new(TickCounterFactory)).await
+    }
+
+    /// As [`Daemon::start`], with the twins of `twins` (a bundle's estimator).
+    pub async fn start_with(config: Config, twins: Arc<dyn server::TwinFactory>) -> Daemon {
         let ingest = TcpListener::bind("127.0.0.1:0").await.unwrap();
         let http = TcpListener::bind("127.0.0.1:0").await.unwrap();
         let (ingest_addr, http_addr) = (ingest.local_addr().unwrap(), http.local_addr().unwrap());
@@ -56,7 +61,7 @@ impl Daemon {
         let task = tokio::spawn(server::run(
             config,
             Listeners { ingest, http },
-            Arc::new(TickCounterFactory),
+            twins,
             async move {
                 let _ = stopped.await;
             },

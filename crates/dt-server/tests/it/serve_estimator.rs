@@ -7,11 +7,11 @@ use std::sync::Arc;
 use dt_core::estimate::Estimate;
 use dt_core::estimator::Estimator;
 use dt_core::log::Sample;
-use dt_server::server::{self, Config, EstimatorFactory, Listeners};
-use tokio::net::TcpListener;
-use tokio::sync::oneshot;
+use dt_server::server::{Config, EstimatorFactory};
 
-use crate::common::{chunked, meta, read_estimates, run_samples, send, test_config, write_stream};
+use crate::common::{
+    chunked, meta, read_estimates, run_samples, send, test_config, write_stream, Daemon,
+};
 
 fn bundle_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../dt-core/tests/fixtures/bundle-mlp13")
@@ -91,23 +91,11 @@ async fn daemon_output_against_the_estimator(base: Config) -> Vec<u8> {
         "the model gives pressures"
     );
 
-    let ingest = TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let http = TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = ingest.local_addr().unwrap();
-    let (stop, stopped) = oneshot::channel::<()>();
-    let daemon = tokio::spawn(server::run(
-        config,
-        Listeners { ingest, http },
-        Arc::new(factory),
-        async move {
-            let _ = stopped.await;
-        },
-    ));
-    let r = send(addr, &stream.bytes, 1500).await;
+    let d = Daemon::start_with(config, Arc::new(factory)).await;
+    let r = send(d.ingest, &stream.bytes, 1500).await;
     assert_eq!(r["status"], "completed", "{r}");
     assert_eq!(r["ticks"], want.len());
-    stop.send(()).unwrap();
-    daemon.await.unwrap().unwrap();
+    d.stop().await;
 
     let path = record.path().join("unit-1").join("est.0000.mcap");
     let got = read_estimates(&path);
@@ -126,23 +114,11 @@ async fn a_run_without_a_sensor_the_model_reads_fails_naming_it() {
         .filter(|s| !matches!(s, Sample::Force { .. }))
         .collect();
     let stream = write_stream(&meta("unit-2", "no-loadcell"), &samples, chunked());
-    let ingest = TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let http = TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = ingest.local_addr().unwrap();
-    let (stop, stopped) = oneshot::channel::<()>();
-    let daemon = tokio::spawn(server::run(
-        test_config(),
-        Listeners { ingest, http },
-        Arc::new(factory),
-        async move {
-            let _ = stopped.await;
-        },
-    ));
-    let r = send(addr, &stream.bytes, 1500).await;
+    let d = Daemon::start_with(test_config(), Arc::new(factory)).await;
+    let r = send(d.ingest, &stream.bytes, 1500).await;
     assert_eq!(r["status"], "failed", "{r}");
     assert_eq!(r["kind"], "twin", "{r}");
     let reason = r["reason"].as_str().unwrap();
     assert!(reason.contains(r#"lacks topics ["/force"]"#), "{r}");
-    stop.send(()).unwrap();
-    daemon.await.unwrap().unwrap();
+    d.stop().await;
 }
