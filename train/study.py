@@ -344,14 +344,10 @@ def pareto(points: list[tuple[float, float, Any]]) -> list[tuple[float, float, A
     return front
 
 
-def plots(out: Path, table2: list[dict[str, Any]], suites: list[dict[str, Any]]) -> dict[str, Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
+def cost_plot(out: Path, table2: list[dict[str, Any]], note: str) -> Path:
+    """Table 3's figure: every permutation's cost against its RMSE under both protocols."""
     import matplotlib.pyplot as plt
 
-    paths = {}
-    note = "simulated dyno data (shocktwin simulate)"
     fig, ax = plt.subplots(figsize=(8, 5))
     for row in table2:
         p = row["perm"]
@@ -370,10 +366,22 @@ def plots(out: Path, table2: list[dict[str, Any]], suites: list[dict[str, Any]])
            title=f"Cost against accuracy, the permutations (paper 1–13, causal 14–16)\n{note}")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    paths["cost"] = out / "cost_vs_rmse.png"
-    fig.savefig(paths["cost"], dpi=120)
+    path = out / "cost_vs_rmse.png"
+    fig.savefig(path, dpi=120)
     plt.close(fig)
+    return path
 
+
+def plots(out: Path, table2: list[dict[str, Any]], suites: list[dict[str, Any]]) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = {}
+    note = "simulated dyno data (shocktwin simulate)"
+    if table2:
+        paths["cost"] = cost_plot(out, table2, note)
     if suites:
         fig, ax = plt.subplots(figsize=(8, 5))
         pts = [(s["cost_aud"], s["held_out"]["rmse_bar"], i) for i, s in enumerate(suites)]
@@ -399,39 +407,10 @@ def fmt(x: float | None, d: int = 2) -> str:
     return "–" if x is None or not np.isfinite(x) else f"{x:.{d}f}"
 
 
-def write_report(out: Path, ctx: dict[str, Any]) -> Path:
-    t2, suites, gen, phys, cfg = ctx["table2"], ctx["suites"], ctx["generalisation"], ctx["physics"], ctx["cfg"]
+def table2_section(ctx: dict[str, Any]) -> list[str]:
+    """Table 2, Table 3 and the paper's findings checked."""
+    t2 = ctx["table2"]
     L: list[str] = []
-    L.append("# shocktwin study report\n")
-    L.append("> **All data in this report are simulated** (`shocktwin simulate`, the dt-sim dyno "
-             "plant). Nothing here was measured on a real damper; the numbers say how the method "
-             "behaves on our simulator, not how the paper's hardware behaves.\n")
-    L.append(f"Campaign: `{ctx['campaign']}` ({ctx['n_runs']} runs, digest `{ctx['digest'][:16]}…`), "
-             f"{'quick' if ctx['quick'] else 'full'} settings: {cfg.folds}-fold held-out runs, "
-             f"at most {cfg.per_run} evenly spaced excited 50 Hz ticks per run for training, ≤ {cfg.max_iter} epochs "
-             f"(Adam, early stopping), seed {cfg.seed}, temperature-offset augmentation "
-             f"(absolute temperature inputs shifted per run copy by N(0, {evaluate.TEMP_SHIFT_SD_C:g} °C), "
-             f"see `train/evaluate.py`). "
-             f"Regenerate: `{ctx['command']}`. Wall time {ctx['seconds'] / 60:.1f} min.\n")
-    L.append("Rest periods are excluded from training and scoring: a tick counts when the causal 1 s RMS "
-             f"of the Kalman velocity is ≥ {dataset.EXCITED_MPS} m/s (the daemon reports `unknown` below it).\n")
-
-    L.append("## Calibration (nominal runs)\n")
-    if "fit" in phys:
-        L.append("| run | temperature RMSE (°C) | force RMSE (N) | velocity RMSE vs truth (m/s) |")
-        L.append("| --- | --- | --- | --- |")
-        for row in phys["fit"]["per_run"]:
-            L.append(f"| {row['run']} | {fmt(row['temperature_rmse_c'])} | {fmt(row['force_rmse_n'], 1)} | "
-                     f"{fmt(row['velocity_rmse_mps'], 4)} |")
-    else:
-        L.append("The physics came from `--physics` without calibration scores (no `fit` section); the "
-                 "figures show that physics on the nominal runs.")
-    L.append("")
-    for name, title in [("fig2_velocity.png", "Fig. 2"), ("fig3_temperature.png", "Fig. 3"),
-                        ("fig6_force.png", "Fig. 6")]:
-        L.append(f"![{title}]({name})")
-    L.append("")
-
     L.append("## Table 2 — the 13 permutations\n")
     L.append("RMSE in bar. *paper split*: random 75/25 of samples (leaks: neighbouring samples of a run "
              "on both sides). *held out*: whole runs held out. *held out, plain*: the same without the "
@@ -467,12 +446,58 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
     for line in ctx["findings"]:
         L.append(f"- {line}")
     L.append("")
+    return L
+
+
+def write_report(out: Path, ctx: dict[str, Any]) -> Path:
+    t2, suites, gen, phys, cfg = ctx["table2"], ctx["suites"], ctx["generalisation"], ctx["physics"], ctx["cfg"]
+    L: list[str] = []
+    L.append("# shocktwin study report\n")
+    L.append("> **All data in this report are simulated** (`shocktwin simulate`, the dt-sim dyno "
+             "plant). Nothing here was measured on a real damper; the numbers say how the method "
+             "behaves on our simulator, not how the paper's hardware behaves.\n")
+    L.append(f"Campaign: `{ctx['campaign']}` ({ctx['n_runs']} runs, digest `{ctx['digest'][:16]}…`), "
+             f"{'quick' if ctx['quick'] else 'full'} settings: {cfg.folds}-fold held-out runs, "
+             f"at most {cfg.per_run} evenly spaced excited 50 Hz ticks per run for training, ≤ {cfg.max_iter} epochs "
+             f"(Adam, early stopping), seed {cfg.seed}, temperature-offset augmentation "
+             f"(absolute temperature inputs shifted per run copy by N(0, {evaluate.TEMP_SHIFT_SD_C:g} °C), "
+             f"see `train/evaluate.py`). "
+             f"Regenerate: `{ctx['command']}`. Wall time {ctx['seconds'] / 60:.1f} min.\n")
+    L.append("Rest periods are excluded from training and scoring: a tick counts when the causal 1 s RMS "
+             f"of the Kalman velocity is ≥ {dataset.EXCITED_MPS} m/s (the daemon reports `unknown` below it).\n")
+
+    L.append("## Calibration (nominal runs)\n")
+    if "fit" in phys:
+        L.append("| run | temperature RMSE (°C) | force RMSE (N) | velocity RMSE vs truth (m/s) |")
+        L.append("| --- | --- | --- | --- |")
+        for row in phys["fit"]["per_run"]:
+            L.append(f"| {row['run']} | {fmt(row['temperature_rmse_c'])} | {fmt(row['force_rmse_n'], 1)} | "
+                     f"{fmt(row['velocity_rmse_mps'], 4)} |")
+    else:
+        L.append("The physics came from `--physics` without calibration scores (no `fit` section); the "
+                 "figures show that physics on the nominal runs.")
+    L.append("")
+    for name, title in [("fig2_velocity.png", "Fig. 2"), ("fig3_temperature.png", "Fig. 3"),
+                        ("fig6_force.png", "Fig. 6")]:
+        L.append(f"![{title}]({name})")
+    L.append("")
+
+    if t2:
+        L.extend(table2_section(ctx))
+    else:
+        L.append("Table 2, Table 3 and the paper's findings were not run (`--suites-only`).\n")
+        if ctx.get("observer_folds"):
+            L.extend(observer_folds_note(ctx["observer_folds"], True, table2=False))
+
 
     if suites:
         L.append(f"## Every sensor suite ({len(suites)} combinations of the input groups), whole runs held out\n")
         front = pareto([(s["cost_aud"], s["held_out"]["rmse_bar"], i) for i, s in enumerate(suites)])
         L.append(f"{cfg.suite_folds}-fold held-out runs, at most {cfg.suite_per_run} ticks per run for training, "
-                 f"≤ {cfg.suite_max_iter} epochs.\n")
+                 f"≤ {cfg.suite_max_iter} epochs: a smaller budget than Table 2's ({cfg.folds} folds, "
+                 f"{cfg.per_run} ticks, ≤ {cfg.max_iter} epochs), so a suite with a permutation's groups does not "
+                 "score that permutation's figure above. Compare the suites with each other, and a permutation "
+                 "with Table 2.\n")
         L.append("Pareto front (cheapest suite for each accuracy):\n")
         L.append("| groups | sensors | cost (AUD) | held out | held out, 1 s avg |")
         L.append("| --- | --- | --- | --- | --- |")
@@ -534,7 +559,7 @@ def write_report(out: Path, ctx: dict[str, Any]) -> Path:
     return path
 
 
-def observer_folds_note(folds: list[dict[str, Any]], suites: bool) -> list[str]:
+def observer_folds_note(folds: list[dict[str, Any]], suites: bool, table2: bool = True) -> list[str]:
     """How the permutations and suites that read the observer were held out, and what each fold's
     calibration made of the campaign's excitations."""
     shapes = {json.dumps(f["calibration"], sort_keys=True) for f in folds}
@@ -542,11 +567,11 @@ def observer_folds_note(folds: list[dict[str, Any]], suites: bool) -> list[str]:
     L = [
         "*Held out*, the permutations and suites that read the charge observer were each given an observer "
         f"calibrated on the fold's training runs alone (`train.observer_folds`; {len(folds)} calibrations for "
-        + ("Table 2's folds and the suites' folds" if suites else "Table 2's folds")
+        + " and ".join(name for name, on in (("Table 2's folds", table2), ("the suites' folds", suites)) if on)
         + ", not the campaign's calibration, which saw the held-out runs). "
         "Its interval's unit and transfer spreads are not measured per fold: there the sd is the fit's assumed "
-        "unit tolerance. Their paper split and in-sample fit read the campaign's calibration. "
-        f"The fits took {len(shapes)} different shapes over the {len(folds)} folds; the fastest excitation "
+        "unit tolerance. " + ("Their paper split and in-sample fit read the campaign's calibration. " if table2 else "")
+        + f"The fits took {len(shapes)} different shapes over the {len(folds)} folds; the fastest excitation "
         f"they calibrated ranged {min(fastest):.1f}–{max(fastest):.1f} m/s² at the reversal "
         "(`results.json`, `observer_folds`). An excitation a fold's fit does not calibrate is skipped by its "
         "observer, which then holds its prior on the held-out runs at that excitation:\n",
@@ -680,15 +705,18 @@ def service_baseline(physics: dict[str, Any], unit_dir: Path, jobs: int) -> dict
 
 def permutations_and_suites(
     data: dataset.CampaignData, perms: list[dict[str, Any]], cfg: Settings, observer_ok: bool,
-    fold_observers: FoldObservers | None, with_suites: bool,
+    fold_observers: FoldObservers | None, with_suites: bool, with_table2: bool = True,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[int, model.Trained]]:
     """Table 2 (every permutation under both protocols) and the suite search (every combination
     of the paper's groups, and the observer's when there is one, held out)."""
-    t0 = time.perf_counter()
-    table2, models = evaluate_permutation_set(data, perms, cfg, folds=cfg.folds, per_run=cfg.per_run,
-                                              max_iter=cfg.max_iter, paper=True, in_sample=True, plain=True,
-                                              fold_observers=fold_observers)
-    log.info("%d permutations: %.0f s", len(perms), time.perf_counter() - t0)
+    table2: list[dict[str, Any]] = []
+    models: dict[int, model.Trained] = {}
+    if with_table2:
+        t0 = time.perf_counter()
+        table2, models = evaluate_permutation_set(data, perms, cfg, folds=cfg.folds, per_run=cfg.per_run,
+                                                  max_iter=cfg.max_iter, paper=True, in_sample=True, plain=True,
+                                                  fold_observers=fold_observers)
+        log.info("%d permutations: %.0f s", len(perms), time.perf_counter() - t0)
     for row in table2:
         print(f"model {row['perm']['id']:>2}: paper split {row['paper']['rmse_bar']:.2f}, "
               f"held out {row['held_out']['rmse_bar']:.2f} ({row['held_out']['rmse_avg_bar']:.2f} 1 s avg), "
@@ -721,6 +749,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--no-suites", action="store_true", help="skip the sensor-suite search (63, or 127 with the observer)")
     p.add_argument("--no-generalisation", action="store_true", help="skip the generalisation sets")
+    p.add_argument("--suites-only", action="store_true",
+                   help="only the sensor-suite search: no Table 2, no model bundles, no generalisation sets")
     p.add_argument("--shocktwin", default=None,
                    help="the shocktwin binary, for simulating the generalisation sets (default: $SHOCKTWIN_BIN, "
                         "else this workspace's target/release/shocktwin, else shocktwin on PATH)")
@@ -730,6 +760,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "mass): for the calibration when --physics is not given, and for the observer's "
                         "calibration per fold (default there: the physics' observer geometry)")
     args = p.parse_args(argv)
+    if args.suites_only:
+        if args.no_suites:
+            p.error("--suites-only and --no-suites leave nothing to run")
+        args.no_generalisation = True  # it scores Table 2's networks, which are not trained
     if not args.no_generalisation:
         # needed only after every permutation is trained: found now, not an hour in
         try:
@@ -770,7 +804,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     fold_observers = FoldObservers(data, fold_work, args.datasheet, cfg.jobs) if observer_ok else None
     try:
         table2, suites, models = permutations_and_suites(data, perms, cfg, observer_ok, fold_observers,
-                                                         not args.no_suites)
+                                                         not args.no_suites, not args.suites_only)
     finally:
         shutil.rmtree(fold_work, ignore_errors=True)
     export = {int(x) for x in args.bundles.split(",") if x}
@@ -820,11 +854,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ctx = {
         "campaign": str(args.campaign), "n_runs": len(campaign.runs), "digest": campaign.digest(),
         "quick": args.quick, "cfg": cfg, "table2": table2, "suites": suites, "generalisation": gen, "oracle": oracle,
-        "physics": physics, "findings": findings(table2), "observer": observer_lines, "seconds": time.perf_counter() - started,
+        "physics": physics, "findings": findings(table2) if table2 else [], "observer": observer_lines, "seconds": time.perf_counter() - started,
         "observer_folds": fold_observers.calibrations() if fold_observers is not None else [],
         "command": "python -m train.study --campaign " + str(args.campaign) + " --out " + str(args.out)
         + (f" --physics {args.physics}" if args.physics else "") + (f" --datasheet {args.datasheet}" if args.datasheet else "")
-        + (" --quick" if args.quick else ""),
+        + (" --quick" if args.quick else "") + (" --suites-only" if args.suites_only else ""),
     }
     report = write_report(args.out, ctx)
     (args.out / "results.json").write_text(json.dumps(

@@ -726,6 +726,35 @@ def test_quick_study_reports_both_protocols_and_an_oracle_that_never_sees_test_r
     assert shocktwin.Bundle(out / "bundles" / "perm-13").permutation["id"] == 13
 
 
+def test_the_suite_search_alone(campaign, physics_json, tmp_path):
+    """A test engineer comparing sensor suites ran the whole study to get them (a helper's
+    trial): `--suites-only` runs the suite search alone, needs no CLI (no generalisation sets),
+    trains and exports no network of Table 2, and says why its figures are not Table 2's."""
+    out = tmp_path / "suites"
+    env = {**os.environ, "SHOCKTWIN_BIN": str(tmp_path / "no-such-shocktwin")}
+    proc = subprocess.run(
+        [sys.executable, "-W", "ignore", "-m", "train.study", "--quick", "--suites-only", "--campaign", str(campaign),
+         "--physics", str(physics_json), "--out", str(out)],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "model  1:" not in proc.stdout, "Table 2 was trained"
+    report = (out / "report.md").read_text()
+    assert "simulated" in report.splitlines()[2].lower()
+    assert "## Table 2" not in report and "## Generalisation" not in report and "--suites-only" in report
+    assert "a smaller budget than Table 2's (3 folds, 800 ticks, ≤ 40 epochs)" in report
+    results = json.loads((out / "results.json").read_text())
+    assert results["table2"] == [] and results["generalisation"] == []
+    # no observer in these physics: every combination of the paper's six groups, each scored
+    assert len(results["suites"]) == 63
+    assert len({tuple(s["groups"]) for s in results["suites"]}) == 63
+    assert all(np.isfinite(s["rmse_bar"]) and s["cost_aud"] > 0 for s in results["suites"])
+    assert (out / "pareto_suites.png").stat().st_size > 0 and not (out / "cost_vs_rmse.png").exists()
+    assert not (out / "bundles").exists()
+    both = run_cli("train.study", "--suites-only", "--no-suites", "--campaign", campaign, "--out", tmp_path / "x")
+    assert both.returncode == 2 and "leave nothing to run" in both.stderr
+
+
 def test_the_studys_units_are_other_units_one_run_each_at_the_charges_in_turn(shocktwin_bin, tmp_path):
     """The observer's `units` set: one 2 Hz run per unit, each another unit of the damper (its own
     asset and unit seed), the charges taken in turn, all in one directory and nothing else left."""
