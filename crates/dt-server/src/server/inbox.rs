@@ -361,6 +361,8 @@ async fn process_file(ctx: &SourceContext, dir: &Path, path: &Path) -> bool {
                 flushed: true,
                 skipped_messages: 0,
                 first_skipped: None,
+                dropped_samples: 0,
+                clock_jumps: 0,
             },
         };
         if report.status == "interrupted" {

@@ -23,7 +23,7 @@ use super::config::Config;
 use super::metrics::{AssetLabel, Metrics, SourceLabel};
 use super::sink::{ObserverRead, RoadRead, RunEnd, RunInfo, RunOutcome, SinkMsg, SourceKind};
 use super::store::{AssetBaseline, FleetStore};
-use super::twin::{AssetTwin, TwinError, TwinFactory};
+use super::twin::{AssetTwin, TwinCounters, TwinError, TwinFactory};
 
 /// Bytes read from a stream at a time.
 const READ_BUF_BYTES: usize = 64 << 10;
@@ -70,6 +70,13 @@ pub struct RunReport {
     /// Why the first of them was skipped (topic, field, value).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub first_skipped: Option<String>,
+    /// Samples decoded but not used: too late for the estimator's
+    /// reordering window (a clock that jumped back, or samples sent out of
+    /// order) or far ahead of the stream (corrupt timestamps). A run can
+    /// complete with many of them: it then says so here and in the log.
+    pub dropped_samples: u64,
+    /// Forward clock jumps, each of which restarted the asset's twin.
+    pub clock_jumps: u64,
 }
 
 /// Messages a stream skipped: how many, and why the first was.
@@ -443,14 +450,38 @@ impl Ingest {
         skipped: Skipped,
     ) -> RunReport {
         let m = &self.inner.metrics;
-        let (outcome, asset_id, run_id, samples, ticks, sink_result) = match run {
+        let (outcome, asset_id, run_id, samples, ticks, sink_result, counters) = match run {
             Some(r) => {
                 let ids = (r.info.meta.asset_id.clone(), r.info.meta.run_id.clone());
-                let (outcome, samples, ticks, result) = r.end(outcome).await;
-                (outcome, Some(ids.0), Some(ids.1), samples, ticks, result)
+                let (outcome, samples, ticks, result, counters) = r.end(outcome).await;
+                (
+                    outcome,
+                    Some(ids.0),
+                    Some(ids.1),
+                    samples,
+                    ticks,
+                    result,
+                    counters,
+                )
             }
-            None => (outcome, None, None, 0, 0, Ok(())),
+            None => (outcome, None, None, 0, 0, Ok(()), TwinCounters::default()),
         };
+        let dropped = counters.dropped_late + counters.timestamp_outliers;
+        if dropped > 0 {
+            // the fleet-wide counters alone did not say which vehicle lost data
+            tracing::warn!(
+                source,
+                asset = asset_id.as_deref().unwrap_or(""),
+                run = run_id.as_deref().unwrap_or(""),
+                dropped_late = counters.dropped_late,
+                timestamp_outliers = counters.timestamp_outliers,
+                "{dropped} of {samples} samples not used: {} too late for the reordering window \
+                 (a clock that jumped back, or samples sent out of order), {} far ahead of the \
+                 stream (corrupt timestamps)",
+                counters.dropped_late,
+                counters.timestamp_outliers
+            );
+        }
         if let RunOutcome::Failed { kind, reason } = &outcome {
             m.error(kind);
             tracing::warn!(source, kind, "stream closed: {reason}");
@@ -487,6 +518,8 @@ impl Ingest {
             flushed,
             skipped_messages: skipped.count,
             first_skipped: skipped.first,
+            dropped_samples: dropped,
+            clock_jumps: counters.clock_jumps,
         }
     }
 }
@@ -617,9 +650,12 @@ impl RunHandle {
 
     /// Ends the run: the twin's last estimates are sent, and this waits until
     /// the sinks have made everything of the run durable. Returns the
-    /// outcome (failed if the twin failed at the end), samples, ticks and the
-    /// sinks' verdict.
-    pub async fn end(mut self, outcome: RunOutcome) -> (RunOutcome, u64, u64, Result<(), String>) {
+    /// outcome (failed if the twin failed at the end), samples, ticks, the
+    /// sinks' verdict and the twin's counters.
+    pub async fn end(
+        mut self,
+        outcome: RunOutcome,
+    ) -> (RunOutcome, u64, u64, Result<(), String>, TwinCounters) {
         let mut outcome = outcome;
         if let Err(e) = self.twin.finish(&mut self.out) {
             if !matches!(outcome, RunOutcome::Failed { .. }) {
@@ -679,7 +715,7 @@ impl RunHandle {
         ) {
             complete_service(&self.ingest, &self.info, self.first_t_ns, read).await;
         }
-        (outcome, self.samples, self.ticks, result)
+        (outcome, self.samples, self.ticks, result, counters)
     }
 }
 

@@ -23,6 +23,7 @@ pub mod estimator;
 pub mod http;
 pub mod inbox;
 pub mod ingest;
+pub mod lock;
 pub mod metrics;
 pub mod record;
 pub mod security;
@@ -120,6 +121,16 @@ pub enum ServeError {
     /// The fleet store cannot be opened.
     #[error(transparent)]
     Store(#[from] store::StoreError),
+    /// Another process holds a place this daemon would write (its lock).
+    #[error("another shocktwin serve uses this {what} ({}{}): stop it, or give this daemon a {what} of its own", path.display(), if holder.is_empty() { String::new() } else { format!("; its lock says {holder}") })]
+    Locked {
+        /// `fleet store`, `inbox` or `recording directory`.
+        what: &'static str,
+        /// The lock file.
+        path: PathBuf,
+        /// What the holder wrote in it (`pid N`), if readable.
+        holder: String,
+    },
     /// A listener would be exposed without TLS and authentication.
     #[error("refusing to start: {0}. Configure TLS and authentication (see docs/daemon.md, \"Exposing the daemon\"), or give --insecure to serve anyway")]
     Insecure(String),
@@ -360,6 +371,8 @@ pub async fn run(
 ) -> Result<(), ServeError> {
     config.validate()?;
     let (tokens, tls) = secure(&config, &listeners)?;
+    // held until `run` returns: one daemon per store, inbox and recording directory
+    let _locks = lock::hold(&config)?;
     let config = Arc::new(config);
     let limits = &config.limits;
     let metrics = Arc::new(Metrics::new());

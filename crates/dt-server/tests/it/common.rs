@@ -92,6 +92,18 @@ impl Daemon {
             .expect("daemon failed");
     }
 
+    /// The error of a daemon that fails to start (within [`WAIT`]).
+    pub async fn failure(self) -> String {
+        match tokio::time::timeout(WAIT, self.task).await {
+            Ok(Ok(Err(e))) => e.to_string(),
+            Ok(Ok(Ok(()))) => panic!("the daemon ran and stopped without an error"),
+            Ok(Err(e)) => panic!("daemon task panicked: {e}"),
+            Err(tokio::time::error::Elapsed { .. }) => {
+                panic!("the daemon started (no error within {WAIT:?})")
+            }
+        }
+    }
+
     pub fn url(&self, path: &str) -> String {
         format!("http://{}{path}", self.http)
     }
@@ -392,12 +404,12 @@ pub fn read_estimates(path: &Path) -> Vec<Estimate> {
         .collect()
 }
 
-/// Files of a directory, sorted.
+/// Files of a directory, sorted; not the hidden ones (the daemon's lock).
 pub fn files_in(dir: &Path) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = match std::fs::read_dir(dir) {
         Ok(rd) => rd
             .map(|e| e.unwrap().path())
-            .filter(|p| p.is_file())
+            .filter(|p| p.is_file() && !p.file_name().unwrap().to_string_lossy().starts_with('.'))
             .collect(),
         Err(_) => Vec::new(),
     };

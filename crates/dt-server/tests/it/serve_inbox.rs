@@ -136,6 +136,49 @@ async fn inbox_files_are_processed_once_and_moved() {
     d.stop().await;
 }
 
+/// Two daemons on one inbox each took every file (a helper's trial: every
+/// run processed and stored twice). The second refuses to start, naming the
+/// place and the holder; on a store alone too; the first goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_daemon_on_the_same_inbox_or_store_refuses_to_start() {
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    let db = root.path().join("fleet.sqlite");
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.clone());
+    config.store.path = Some(db.clone());
+    let first = Daemon::start(config.clone()).await;
+    wait_until("the first daemon's lock", || async {
+        inbox.join(".shocktwin-serve.lock").exists()
+    })
+    .await;
+    for (what, second) in [
+        ("inbox", config.clone()),
+        ("fleet store", {
+            let mut c = test_config();
+            c.store.path = Some(db.clone());
+            c
+        }),
+    ] {
+        let err = Daemon::start(second).await.failure().await;
+        assert!(
+            err.contains(&format!("another shocktwin serve uses this {what}"))
+                && err.contains(&format!("pid {}", std::process::id())),
+            "{err}"
+        );
+    }
+    drop_file(
+        &inbox,
+        "a.mcap",
+        &good_stream("lock-a", "ra", 0, 1500).bytes,
+    );
+    wait_until("the file taken by the first daemon", || async {
+        mcap_in(&inbox.join("done")) == 1
+    })
+    .await;
+    first.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nothing_is_lost_across_a_restart() {
     let root = tempfile::tempdir().unwrap();
