@@ -509,7 +509,9 @@ def test_a_reported_service_is_read_from_the_next_run_into_a_baseline(
     daemons.append(d)
     url = f"http://{d.http}/v1/assets/dyno-unit-A"
     assert httpx.get(f"{url}/service").status_code == 404
-    for bad, field in (({}, "charge_bar"), ({"charge_bar": -1.0}, "charge_bar"), ({"charge_bar": 12, "x": 1}, "x"),
+    # 174: a charge in psi typed as bar (12.0 bar) was taken (a helper's trial)
+    for bad, field in (({}, "charge_bar"), ({"charge_bar": -1.0}, "charge_bar"), ({"charge_bar": 174}, "in psi"),
+                       ({"charge_bar": 12, "x": 1}, "x"),
                        ({"charge_bar": 12, "at": "soon"}, "at"), ({"charge_bar": 12, "at": "2999-01-01T00:00:00Z"}, "at")):
         r = httpx.put(f"{url}/service", json=bad)
         assert r.status_code == 422 and field in r.json()["error"], r.text
@@ -611,6 +613,10 @@ def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], 
     for run_id in open_runs:
         statuses = sorted(r["status"] for r in runs if r["run_id"] == run_id)
         assert statuses == ["completed", "interrupted"], runs
+        # what was kept of it is counted (was: 0 ticks, its history kept; a helper's trial)
+        cut = next(r for r in runs if r["run_id"] == run_id and r["status"] == "interrupted")
+        whole = next(r for r in runs if r["run_id"] == run_id and r["status"] == "completed")
+        assert 0 < cut["ticks"] < whole["ticks"] and cut["end"] > cut["start"], (cut, whole)
     assert {r["run_id"] for r in runs if r["status"] == "completed"} == {f.stem for f in files}
     d2.stop()
 

@@ -522,6 +522,14 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
         assert asset["health"] == "leak", asset
         for key in ("pressure_bar", "pressure_avg_bar", "pressure_lo_bar", "pressure_hi_bar"):
             assert asset[key] == pytest.approx(float(last[key]), abs=1e-9), key
+        # Prometheus can alert on it: one series per state, 1 at the asset's (a helper's trial
+        # found only fleet-wide counters)
+        text = httpx.get(f"http://{http}/metrics", timeout=10).text
+        states = {m.group(1): float(m.group(2)) for m in
+                  re.finditer(r'^shocktwin_asset_health\{asset="dyno-unit-A",health="(\w+)"\} (\S+)$', text, re.M)}
+        assert states == {"ok": 0.0, "low": 0.0, "leak": 1.0, "unknown": 0.0}, text
+        shown = re.search(r'^shocktwin_asset_pressure_bar\{asset="dyno-unit-A"\} (\S+)$', text, re.M)
+        assert shown and float(shown.group(1)) == pytest.approx(asset["pressure_avg_bar"], abs=1e-9), text
     finally:
         daemon.terminate()
         daemon.wait(timeout=30)

@@ -97,8 +97,10 @@ def test_https_api_needs_a_read_token(daemon: ServeProcess, setup: dict[str, Any
             r = http.get(f"{base}{path}")
             assert r.status_code == 401, path
             assert r.headers["www-authenticate"].startswith("Bearer")
+            assert "a bearer token is needed" in r.text, r.text
         r = http.get(f"{base}/v1/assets", headers={"Authorization": "Bearer not-a-token"})
         assert r.status_code == 401 and "invalid_token" in r.headers["www-authenticate"]
+        assert "not one of the daemon's" in r.text, r.text  # told apart from no token at all
         assert http.get(f"{base}/v1/assets", headers={"Authorization": f"Bearer {setup['ingest']}"}).status_code == 403
         ok = http.get(f"{base}/v1/assets", headers={"Authorization": f"Bearer {setup['read']}"})
         assert ok.status_code == 200 and "assets" in ok.json()

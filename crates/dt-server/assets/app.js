@@ -382,8 +382,16 @@ function drawTrend(t) {
   const x0 = first - 0.5 * DAY_S;
   // x values: the chart's edges (so that the thresholds span it), the runs, the fit's far end
   const xs = [x0, ...pts.map((p) => p.x), ...(t.fit && end > last ? [end] : []), xmax];
-  const fitAt = (x) => (t.fit && x >= first && x <= end
-    ? t.fit.intercept_bar + t.fit.slope_bar_per_day * (x - tsec(t.fit.t0)) / DAY_S : null);
+  if (t.fit && t.fit.onset && !xs.includes(tsec(t.fit.onset))) xs.splice(1, 0, tsec(t.fit.onset));
+  xs.sort((a, b) => a - b);
+  // the line, bent at the onset when the rate changed there
+  const onset = t.fit && t.fit.onset ? tsec(t.fit.onset) : null;
+  const fitAt = (x) => {
+    if (!t.fit || x < first || x > end) return null;
+    const after = t.fit.intercept_bar + t.fit.slope_bar_per_day * (x - tsec(t.fit.t0)) / DAY_S;
+    return onset !== null && x < onset && fin(t.fit.slope_before_bar_per_day)
+      ? after + (t.fit.slope_before_bar_per_day - t.fit.slope_bar_per_day) * (x - onset) / DAY_S : after;
+  };
   const yOf = new Map(pts.map((p) => [p.x, p]));
   const asset = S.assets.get(S.selected) || {};
   const warnBar = t.warn_bar ?? asset.warn_bar ?? null, faultBar = t.fault_bar ?? asset.fault_bar ?? null;
@@ -437,7 +445,10 @@ function trendText(t) {
     return `${name} ≈ <b>${fmtDate(tsec(x.t))}</b> [${x.t_lo ? fmtDate(tsec(x.t_lo)) : DASH} – ${hi}]`;
   };
   const since = t.since ? ` since the unit baseline or service of ${fmtDate(tsec(t.since))}` : "";
-  return `leak rate <b>${num(t.leak_rate_bar_per_day, 3)}</b>${half === null ? "" : ` ± ${num(half, 3)}`} bar/day; ` +
+  const before = t.fit && fin(t.fit.slope_before_bar_per_day) ? -t.fit.slope_before_bar_per_day : null;
+  const onset = t.onset ? ` since the rate changed on <b>${fmtDate(tsec(t.onset))}</b>` +
+    (before === null ? "" : ` (${num(before, 3)} bar/day before)`) : "";
+  return `leak rate <b>${num(t.leak_rate_bar_per_day, 3)}</b>${half === null ? "" : ` ± ${num(half, 3)}`} bar/day${onset}; ` +
     `${c("warn", t.warn)}; ${c("fault", t.fault)} <span class="small">(${t.runs_used} runs${since})</span>`;
 }
 

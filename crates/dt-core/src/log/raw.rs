@@ -475,8 +475,36 @@ impl RawDecoder {
     }
 }
 
+/// The length a writer puts in a record's head while it is still writing
+/// the record (the `mcap` crate's chunk, patched when the chunk is
+/// finished): a file cut there (`kill -9` of the writer) ends with it.
+const UNFINISHED_LEN: u64 = u64::MAX;
+
+/// A record whose writer never finished it: said as such, not as a record
+/// of 2⁶⁴ − 1 bytes over the limit (a helper's trial of `inspect` on a
+/// recording cut by `kill -9`).
+fn unfinished(file: &str, offset: u64) -> LogError {
+    LogError::Truncated {
+        file: file.to_owned(),
+        reason: format!(
+            "an unfinished record at offset {offset} (its writer stopped while writing it, \
+             e.g. killed): what comes before it is complete"
+        ),
+    }
+}
+
 fn map_mcap_error(file: &str, err: &mcap::McapError, limits: &ReadLimits) -> LogError {
     match err {
+        mcap::McapError::RecordTooLarge { len, .. } | mcap::McapError::ChunkTooLarge(len)
+            if *len == UNFINISHED_LEN =>
+        {
+            LogError::Truncated {
+                file: file.to_owned(),
+                reason: "an unfinished record (its writer stopped while writing it, e.g. \
+                         killed): what comes before it is complete"
+                    .into(),
+            }
+        }
         mcap::McapError::RecordTooLarge { opcode, len } => LogError::TooLarge {
             file: file.to_owned(),
             what: format!("record with opcode {opcode:#04x}"),
@@ -782,6 +810,9 @@ impl Scanner {
                     if self.head.len() == RECORD_HEAD {
                         let opcode = self.head[0];
                         let len = u64::from_le_bytes(self.head[1..9].try_into().unwrap_or([0; 8]));
+                        if len == UNFINISHED_LEN {
+                            return Err(unfinished(file, self.offset - RECORD_HEAD as u64));
+                        }
                         if len > limits.max_record_bytes {
                             return Err(LogError::TooLarge {
                                 file: file.to_owned(),
@@ -949,5 +980,41 @@ mod tests {
             assert_eq!(events, whole, "pieces of {piece}");
             assert!(matches!(err, Some(LogError::TooLarge { .. })), "{err:?}");
         }
+    }
+
+    /// A recording cut by `kill -9` ends in a chunk whose head still holds
+    /// the writer's placeholder length (2⁶⁴ − 1): it is a truncation after
+    /// complete records, not a record over the size limit.
+    #[test]
+    fn a_chunk_its_writer_never_finished_is_a_truncation() {
+        let meta = RunMetadata {
+            asset_id: "a".into(),
+            run_id: "r".into(),
+            ..RunMetadata::default()
+        };
+        let mut w =
+            LogWriter::new(Cursor::new(Vec::new()), &meta, WriteOptions::default()).unwrap();
+        for i in 0..5 {
+            w.write_sample(&Sample::Force {
+                t_ns: i,
+                force_n: 1.0,
+            })
+            .unwrap();
+        }
+        let mut bytes = w.finish().unwrap().into_inner();
+        let mut pos = 8;
+        while bytes[pos] != mcap::records::op::CHUNK {
+            pos += 9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+        }
+        bytes[pos + 1..pos + 9].copy_from_slice(&u64::MAX.to_le_bytes());
+        bytes.truncate(pos + 40);
+        let (_, err) = decode(&bytes, bytes.len(), ReadLimits::default());
+        let Some(LogError::Truncated { reason, .. }) = err else {
+            panic!("{err:?}")
+        };
+        assert!(
+            reason.contains(&format!("unfinished record at offset {pos}")),
+            "{reason}"
+        );
     }
 }

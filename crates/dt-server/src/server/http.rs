@@ -286,14 +286,21 @@ fn bearer(req: &axum::extract::Request) -> Option<String> {
 }
 
 fn unauthorized(error: Option<&str>) -> Response {
-    let challenge = match error {
-        Some(e) => format!("Bearer realm=\"shocktwin\", error=\"{e}\""),
-        None => "Bearer realm=\"shocktwin\"".to_owned(),
+    let (challenge, body) = match error {
+        Some(e) => (
+            format!("Bearer realm=\"shocktwin\", error=\"{e}\""),
+            // a wrong token was told the same as none (a helper's trial)
+            "this bearer token is not one of the daemon's (check the token file it was given)\n",
+        ),
+        None => (
+            "Bearer realm=\"shocktwin\"".to_owned(),
+            "a bearer token is needed (Authorization: Bearer <token>)\n",
+        ),
     };
     (
         StatusCode::UNAUTHORIZED,
         [(header::WWW_AUTHENTICATE, challenge)],
-        "a bearer token is needed (Authorization: Bearer <token>)\n",
+        body,
     )
         .into_response()
 }
@@ -357,12 +364,19 @@ async fn readyz(State(app): State<AppState>) -> Response {
 }
 
 async fn metrics(State(app): State<AppState>) -> Response {
+    let assets = app.live.summaries();
+    let text = app.metrics.encode_with_assets(
+        SystemTime::now(),
+        assets
+            .iter()
+            .map(|a| (a.asset_id.as_str(), a.health, a.pressure_avg_bar)),
+    );
     (
         [(
             header::CONTENT_TYPE,
             "application/openmetrics-text; version=1.0.0; charset=utf-8",
         )],
-        app.metrics.encode(SystemTime::now()),
+        text,
     )
         .into_response()
 }
@@ -625,6 +639,12 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
     Json(serde_json::json!({ "baseline": now })).into_response()
 }
 
+/// The highest gas charge a service may report, bar gauge (monotube dampers
+/// are charged to about 5–30 bar).
+const MAX_CHARGE_BAR: f64 = 60.0;
+/// One psi in bar.
+const PSI_BAR: f64 = 0.068_947_572_9;
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ServiceBody {
@@ -652,7 +672,21 @@ async fn put_service(
         return r;
     }
     let (charge_bar, at) = match serde_json::from_slice::<ServiceBody>(&body) {
-        Ok(b) if b.charge_bar.is_finite() && b.charge_bar >= 0.0 => (b.charge_bar, b.at),
+        Ok(b) if b.charge_bar.is_finite() && (0.0..=MAX_CHARGE_BAR).contains(&b.charge_bar) => {
+            (b.charge_bar, b.at)
+        }
+        // a charge in psi taken as bar was accepted (a helper's trial: 174)
+        Ok(b) if b.charge_bar > MAX_CHARGE_BAR && b.charge_bar.is_finite() => {
+            return error(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!(
+                    "body: charge_bar {} bar is above any damper's gas charge (≤ {MAX_CHARGE_BAR} \
+                     bar gauge); in psi it would be {:.1} bar",
+                    b.charge_bar,
+                    b.charge_bar * PSI_BAR
+                ),
+            )
+        }
         Ok(b) => {
             return error(
                 StatusCode::UNPROCESSABLE_ENTITY,

@@ -144,6 +144,16 @@ fn say_strangers(dir: &Path, strangers: Vec<OsString>, said: &mut HashSet<OsStri
                 path = %path.display(),
                 "not taken: the inbox reads the *.mcap files at its top level, not sub-directories"
             );
+        } else if Path::new(&name).extension().is_some_and(|e| {
+            ["csv", "tsv", "txt"]
+                .iter()
+                .any(|t| e.eq_ignore_ascii_case(t))
+        }) {
+            tracing::warn!(
+                path = %path.display(),
+                "not taken: the inbox reads *.mcap files only; a dyno or logger's table \
+                 becomes one with `shocktwin import` (see its --help)"
+            );
         } else {
             tracing::warn!(
                 path = %path.display(),

@@ -13,6 +13,8 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::Histogram;
 use prometheus_client::registry::Registry;
 
+use dt_core::estimate::Health;
+
 use super::twin::TwinCounters;
 
 /// Label set `{kind="..."}`.
@@ -34,6 +36,15 @@ pub struct SourceLabel {
 pub struct AssetLabel {
     /// Asset id.
     pub asset: String,
+}
+
+/// Label set `{asset="...", health="ok"|"low"|"leak"|"unknown"}`.
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct HealthLabel {
+    /// Asset id.
+    pub asset: String,
+    /// One of the four health states (SPEC §6).
+    pub health: String,
 }
 
 /// Bucket bounds of `shocktwin_estimate_delay_seconds`, s: 0.1 ms to 5 s,
@@ -86,8 +97,15 @@ pub struct Metrics {
     pub leak_rate_bar_per_day: Family<AssetLabel, Gauge<f64, AtomicU64>>,
     /// Per asset: days from its newest run to the predicted fault crossing.
     pub days_to_fault: Family<AssetLabel, Gauge<f64, AtomicU64>>,
+    /// Per asset and health state: 1 for the asset's health now, 0 for
+    /// the other three (a state set, so that an alert can fire on `leak`).
+    pub asset_health: Family<HealthLabel, Gauge>,
+    /// Per asset: the charge shown now (the 1 s average), bar gauge.
+    pub asset_pressure_bar: Family<AssetLabel, Gauge<f64, AtomicU64>>,
     /// Per asset: `log_time` of the newest sample processed, and when (wall clock).
     last_sample_ns: Mutex<HashMap<String, (i64, SystemTime)>>,
+    /// One scrape at a time sets the per-asset states and encodes them.
+    scrape: Mutex<()>,
 }
 
 /// An asset that has sent nothing for this long (wall clock) loses its
@@ -123,7 +141,10 @@ impl Metrics {
             estimate_delay_seconds: Family::new_with_constructor(delay_histogram),
             leak_rate_bar_per_day: Family::default(),
             days_to_fault: Family::default(),
+            asset_health: Family::default(),
+            asset_pressure_bar: Family::default(),
             last_sample_ns: Mutex::new(HashMap::new()),
+            scrape: Mutex::new(()),
         };
         registry.register("messages", "Sensor samples decoded", m.messages.clone());
         registry.register(
@@ -180,6 +201,16 @@ impl Metrics {
             "Days from the asset's newest run to the predicted crossing of its fault threshold",
             m.days_to_fault.clone(),
         );
+        registry.register(
+            "asset_health",
+            "1 for the asset's health now (ok, low, leak, unknown), 0 for the other states",
+            m.asset_health.clone(),
+        );
+        registry.register(
+            "asset_pressure_bar",
+            "The asset's charge now (its 1 s average), bar gauge; absent while it has none",
+            m.asset_pressure_bar.clone(),
+        );
         Self { registry, ..m }
     }
 
@@ -199,6 +230,40 @@ impl Metrics {
                 None => {
                     family.remove(&label);
                 }
+            }
+        }
+    }
+
+    /// [`Metrics::encode`], with the assets' health and charge now (from
+    /// the live view; an asset no longer in it loses its series).
+    pub fn encode_with_assets<'a>(
+        &self,
+        now: SystemTime,
+        assets: impl IntoIterator<Item = (&'a str, Health, Option<f64>)>,
+    ) -> String {
+        let _one = self.scrape.lock().unwrap_or_else(PoisonError::into_inner);
+        self.set_assets(assets);
+        self.encode(now)
+    }
+
+    fn set_assets<'a>(&self, assets: impl IntoIterator<Item = (&'a str, Health, Option<f64>)>) {
+        self.asset_health.clear();
+        self.asset_pressure_bar.clear();
+        for (asset, health, pressure) in assets {
+            for state in [Health::Ok, Health::Low, Health::Leak, Health::Unknown] {
+                self.asset_health
+                    .get_or_create(&HealthLabel {
+                        asset: asset.to_owned(),
+                        health: state.as_str().to_owned(),
+                    })
+                    .set(i64::from(state == health));
+            }
+            if let Some(p) = pressure.filter(|p| p.is_finite()) {
+                self.asset_pressure_bar
+                    .get_or_create(&AssetLabel {
+                        asset: asset.to_owned(),
+                    })
+                    .set(p);
             }
         }
     }

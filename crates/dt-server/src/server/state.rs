@@ -260,6 +260,9 @@ impl LiveState {
         if let Some(view) = assets.get_mut(run.meta.asset_id.as_str()) {
             return f(view);
         }
+        // said once, so that a mistyped asset id is seen (it joins the fleet as any other)
+        tracing::info!(asset = %run.meta.asset_id, run = %run.meta.run_id, source = %run.source,
+            "a new asset joins the fleet");
         let view = assets
             .entry(run.meta.asset_id.clone())
             .or_insert_with(|| AssetView {

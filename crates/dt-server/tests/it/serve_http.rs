@@ -111,6 +111,20 @@ async fn delay_histogram_counts_every_estimate_of_each_asset() {
     assert_eq!(ra["status"], "completed");
     assert_eq!(rb["status"], "completed");
     let text = d.metrics().await;
+    for asset in ["delay-a", "delay-b"] {
+        // the health state set: the placeholder's `unknown`, and no charge to show
+        for (state, want) in [("ok", 0.0), ("low", 0.0), ("leak", 0.0), ("unknown", 1.0)] {
+            let series = format!("shocktwin_asset_health{{asset=\"{asset}\",health=\"{state}\"}}");
+            assert_eq!(
+                crate::common::metric(&text, &series),
+                Some(want),
+                "{series}\n{text}"
+            );
+        }
+        assert!(!text.contains(&format!(
+            "shocktwin_asset_pressure_bar{{asset=\"{asset}\"}}"
+        )));
+    }
     for (asset, s) in [("delay-a", &a), ("delay-b", &b)] {
         let count = crate::common::metric(
             &text,

@@ -285,6 +285,19 @@ pub enum StoreOp {
         /// The change.
         change: HealthChange,
     },
+    /// A run in progress, at the end of one of its 1 s bins: what a
+    /// `kill -9` leaves of it (was: `interrupted` with 0 ticks, its history
+    /// kept; a helper's trial).
+    RunProgress {
+        /// The key of its `RunStarted`.
+        key: String,
+        /// Asset.
+        asset_id: String,
+        /// Calendar time of its newest estimate so far, ms.
+        end_ms: i64,
+        /// Ticks so far.
+        ticks: u64,
+    },
     /// A run ended.
     RunEnded {
         /// The key of its `RunStarted`.
@@ -473,8 +486,14 @@ pub struct TrendFit {
     pub t0: String,
     /// Charge at `t0`, bar.
     pub intercept_bar: f64,
-    /// Rate of change, bar/day.
+    /// Rate of change, bar/day (since `onset`, when there is one).
     pub slope_bar_per_day: f64,
+    /// When the rate changed (RFC 3339; dt-core `trend`: a significant
+    /// hinge): the line before it has `slope_before_bar_per_day`.
+    /// `null`: one line through every run.
+    pub onset: Option<String>,
+    /// The rate before `onset`, bar/day.
+    pub slope_before_bar_per_day: Option<f64>,
 }
 
 /// `GET /v1/assets/{id}/trend` (SPEC §9), also in `GET /v1/assets`.
@@ -512,6 +531,10 @@ pub struct TrendView {
     /// The trend uses the runs from this time on (RFC 3339): the asset's
     /// unit baseline was set then. `null`: every run.
     pub since: Option<String>,
+    /// The leak rate changed at this run (RFC 3339): the rate, the charge
+    /// now and the crossings are those of the line since then. `null`: one
+    /// rate through every run.
+    pub onset: Option<String>,
 }
 
 /// The part of a [`TrendView`] that `GET /v1/assets` gives per asset
@@ -540,6 +563,8 @@ pub struct TrendSummary<'a> {
     pub days_to_fault: Option<f64>,
     /// See [`TrendView`].
     pub since: Option<&'a str>,
+    /// See [`TrendView`].
+    pub onset: Option<&'a str>,
 }
 
 impl TrendView {
@@ -558,6 +583,7 @@ impl TrendView {
             fault: self.fault.as_ref(),
             days_to_fault: self.days_to_fault,
             since: self.since.as_deref(),
+            onset: self.onset.as_deref(),
         }
     }
 
@@ -609,6 +635,7 @@ impl TrendView {
                 points: view_points,
                 fit: None,
                 since: None,
+                onset: None,
             },
             Ok(tr) => {
                 let (lo, hi) = tr.slope_interval();
@@ -631,8 +658,11 @@ impl TrendView {
                         t0: rfc3339_s(tr.t_ref_unix_s),
                         intercept_bar: tr.intercept_bar,
                         slope_bar_per_day: tr.slope_bar_per_day,
+                        onset: tr.onset_unix_s.map(rfc3339_s),
+                        slope_before_bar_per_day: tr.slope_before_bar_per_day,
                     }),
                     since: None,
+                    onset: tr.onset_unix_s.map(rfc3339_s),
                 }
             }
         }

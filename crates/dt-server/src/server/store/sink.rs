@@ -348,6 +348,14 @@ impl StoreSink {
             asset_id: run.meta.asset_id.clone(),
             point,
         });
+        if let Some(end_ms) = acc.last_ms {
+            self.send(StoreOp::RunProgress {
+                key: acc.key.clone(),
+                asset_id: run.meta.asset_id.clone(),
+                end_ms,
+                ticks: acc.ticks,
+            });
+        }
     }
 }
 

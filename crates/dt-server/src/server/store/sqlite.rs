@@ -364,6 +364,7 @@ impl SqliteStore {
             StoreOp::RunStarted { asset_id, .. }
             | StoreOp::Sample { asset_id, .. }
             | StoreOp::Health { asset_id, .. }
+            | StoreOp::RunProgress { asset_id, .. }
             | StoreOp::RunEnded { asset_id, .. } => asset_id,
         };
         tx.prepare_cached("INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)")?
@@ -411,6 +412,18 @@ impl SqliteStore {
                     c.run_id,
                     c.from.as_str(),
                     c.to.as_str()
+                ])?;
+            }
+            StoreOp::RunProgress {
+                key, end_ms, ticks, ..
+            } => {
+                tx.prepare_cached(
+                    "UPDATE runs SET end_ms = ?2, ticks = ?3 WHERE key = ?1 AND status = 'running'",
+                )?
+                .execute(params![
+                    key,
+                    end_ms,
+                    i64::try_from(*ticks).unwrap_or(i64::MAX)
                 ])?;
             }
             StoreOp::RunEnded {
@@ -499,7 +512,8 @@ impl FleetStore for SqliteStore {
                    r.observer, r.road, r.simulated \
                  FROM assets a \
                  LEFT JOIN runs r ON r.key = \
-                   (SELECT key FROM runs WHERE asset = a.id ORDER BY start_ms DESC LIMIT 1) \
+                   (SELECT key FROM runs WHERE asset = a.id \
+                    ORDER BY coalesce(end_ms, start_ms) DESC, rowid DESC LIMIT 1) \
                  LEFT JOIN samples s ON s.asset = a.id AND s.t_ms = \
                    (SELECT max(t_ms) FROM samples WHERE asset = a.id) \
                  ORDER BY a.asset_id",
@@ -853,6 +867,48 @@ mod tests {
             store.asset_states().unwrap()[0].last_run_road,
             Some(got[0].clone())
         );
+    }
+
+    /// The live view shows as an asset's last run the one whose estimates
+    /// reach furthest (a re-sent, truncated copy of a run is a backlog); at
+    /// a restart the store chose the latest start, where the copy ties, and
+    /// the asset turned from `completed` to `failed` (a helper's trial).
+    #[test]
+    fn the_last_run_is_the_one_that_reaches_furthest_as_the_live_view_has_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = SqliteStore::open(&dir.path().join("fleet.sqlite")).unwrap();
+        let run = |key: &str, end_ms: i64, status: &str| {
+            [
+                StoreOp::RunStarted {
+                    key: key.into(),
+                    asset_id: "van-ok".into(),
+                    run_id: "d005".into(),
+                    source: "test".into(),
+                    start_ms: 1_000,
+                    simulated: None,
+                },
+                StoreOp::RunEnded {
+                    key: key.into(),
+                    asset_id: "van-ok".into(),
+                    end_ms,
+                    ticks: 100,
+                    status: status.into(),
+                    reason: None,
+                    summary: None,
+                    observer: None,
+                    road: None,
+                },
+            ]
+        };
+        store.apply(&run("whole", 71_000, "completed")).unwrap();
+        store.apply(&run("cut", 30_000, "failed")).unwrap();
+        assert_eq!(
+            store.asset_states().unwrap()[0].last_run_status,
+            "completed"
+        );
+        // a later run of the asset is its last, whatever its status
+        store.apply(&run("next", 90_000, "failed")).unwrap();
+        assert_eq!(store.asset_states().unwrap()[0].last_run_status, "failed");
     }
 
     #[test]
