@@ -891,6 +891,19 @@ struct MeasurementTerms {
 /// is a second update of the same kind (`h = [1, p₁]`, the innovation
 /// `e₁ − h û`), which separates the two.
 ///
+/// **One charge: the gain's spread is kept about it.** The update above
+/// moves the gain by `ρ² p₀ / (h Σ hᵀ + σ_b²)` per bar of the offset found,
+/// as if a unit's error at `p₀` and its seal gain were correlated as the
+/// prior says (0.58 with the committed calibration at 12 bar); on twelve
+/// simulated units they were correlated 0.21, the moved gain did not help,
+/// and what the update left of the gain's variance (0.069 per bar) fell
+/// short of the gains met (RMS 0.112 per bar): 88 % of the 95 % intervals
+/// covered the truth at the baseline's excitation, 75 % at 4 bar
+/// (docs/history.md, "Sixty-fourth session"). So with one reading the
+/// variance at `p` adds `ρ² (p − p₀)²`: the seal gain's prior spread about
+/// the one charge known, which that reading cannot narrow. A second
+/// reading measures the gain, and adds nothing.
+///
 /// The error it conditions is the shared measurement model's: once the
 /// estimate holds a reversal from an excitation with a model of its own
 /// ([`ExcitationModel::own`]), the baseline no longer applies and the
@@ -1145,6 +1158,9 @@ struct UnitCorrection {
     /// `[R₀², r²]`, a run's own error ([`ObserverParams::run_sd_bar`],
     /// [`ObserverParams::run_rel`]): `R(p)² = R₀² + r² p²`, bar².
     run_var: [f64; 2],
+    /// `[p₀, ρ²]` of a baseline read at one charge only: the gain's prior
+    /// spread kept about `p₀` (see [`UnitBaseline`]); `None` otherwise.
+    one_charge: Option<[f64; 2]>,
 }
 
 impl UnitCorrection {
@@ -1156,11 +1172,13 @@ impl UnitCorrection {
             gain_rel: 0.0,
             cov: [sff, 0.0, sss],
             run_var: [p.run_sd_bar.powi(2), p.run_rel.powi(2)],
+            one_charge: None,
         };
         let Some(b) = p.baseline else {
             return prior;
         };
-        b.readings().fold(prior, |u, r| {
+        let one_charge = b.second.is_none().then_some([b.charge_bar, sss]);
+        let updated = b.readings().fold(prior, |u, r| {
             // One reading, `e = read − charge` of `h û` with `h = [1, p₀]`:
             // Σ hᵀ, h Σ hᵀ + σ_b², the gain and the updated state.
             let p0 = r.charge_bar;
@@ -1175,7 +1193,11 @@ impl UnitCorrection {
                 cov: [sff - k_f * sh_f, sfs - k_f * sh_s, sss - k_s * sh_s],
                 ..u
             }
-        })
+        });
+        Self {
+            one_charge,
+            ..updated
+        }
     }
 
     /// The corrected mean and the systematic variance at it (the run's own
@@ -1183,9 +1205,12 @@ impl UnitCorrection {
     fn apply(&self, read_bar: f64) -> (f64, f64) {
         let mean = (read_bar - self.offset_bar) / (1.0 + self.gain_rel);
         let [sff, sfs, sss] = self.cov;
+        let held = self
+            .one_charge
+            .map_or(0.0, |[p0, rho2]| rho2 * (mean - p0).powi(2));
         (
             mean,
-            sff + 2.0 * sfs * mean + sss * mean * mean + self.run_var(mean),
+            sff + 2.0 * sfs * mean + sss * mean * mean + self.run_var(mean) + held,
         )
     }
 
@@ -4097,7 +4122,10 @@ mod tests {
         let mean = (raw.mean_bar - u[0]) / (1.0 + u[1]);
         assert!((est.mean_bar - mean).abs() < 1e-9, "{est:?} {mean}");
         let read_var = raw.sd_bar.powi(2) - sys * sys - (rel * raw.mean_bar).powi(2);
+        // one charge known: the gain's prior spread is kept about it
+        let held = |mean: f64, p0: f64, gain: f64| (rel * (mean - p0) / (1.0 + gain)).powi(2);
         let sd = delta_method_sd(read_var, &post, &u, mean);
+        let sd = (sd * sd + held(mean, b.charge_bar, u[1])).sqrt();
         assert!((est.sd_bar - sd).abs() < 1e-9, "{est:?} {sd}");
         assert!((est.mean_bar - b.charge_bar).abs() < 0.02, "{est:?} {b:?}");
         assert!(est.sd_bar < 0.25 * raw.sd_bar, "{est:?} {raw:?}");
@@ -4107,6 +4135,23 @@ mod tests {
             ..b
         }));
         assert!((agree.mean_bar - raw.mean_bar).abs() < 1e-9);
+        // 6 bar from the one charge known, the gain's spread is what remains:
+        // `ρ² (p − p₀)²` beside the update's posterior (was: the posterior
+        // alone, 88 % coverage on twelve simulated units)
+        let p0 = raw.mean_bar + 6.0;
+        let far = read(Some(UnitBaseline {
+            charge_bar: p0,
+            read_bar: p0,
+            ..b
+        }));
+        let h = RowVector2::new(1.0, p0);
+        let post = (prior.try_inverse().unwrap() + h.transpose() * h / (sd_b * sd_b))
+            .try_inverse()
+            .unwrap();
+        let bare = delta_method_sd(read_var, &post, &nalgebra::Vector2::zeros(), far.mean_bar);
+        let sd = (bare * bare + held(far.mean_bar, p0, 0.0)).sqrt();
+        assert!((far.sd_bar - sd).abs() < 1e-9, "{far:?} {sd}");
+        assert!(far.sd_bar > bare + 0.2, "{far:?} {bare}");
         // A baseline no unit of this model could give is refused, by name.
         let err = ChargeObserver::new(ObserverParams {
             baseline: Some(UnitBaseline {
