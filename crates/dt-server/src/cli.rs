@@ -306,10 +306,10 @@ pub struct ServeArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Address accepting MCAP streams (default 127.0.0.1:7410).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::server::config::socket_addr)]
     pub listen: Option<std::net::SocketAddr>,
     /// HTTP API address (default 127.0.0.1:7411).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::server::config::socket_addr)]
     pub http: Option<std::net::SocketAddr>,
     /// Model bundle directory (twin.json + mlp.onnx).
     #[arg(long)]

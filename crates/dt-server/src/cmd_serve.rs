@@ -43,11 +43,6 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     runtime.block_on(async move {
         let shutdown = shutdown_signal();
         let listeners = Listeners::bind(&config).await?;
-        tracing::info!(
-            listen = %listeners.ingest.local_addr()?,
-            http = %listeners.http.local_addr()?,
-            "listening"
-        );
         let per_connection = config.limits.connection_memory_bound();
         tracing::info!(
             per_connection_mib = per_connection >> 20,

@@ -74,8 +74,10 @@ pub struct AuthConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct ServerConfig {
     /// TCP address accepting MCAP byte streams (one run of one asset per connection).
+    #[serde(deserialize_with = "de_socket_addr")]
     pub listen: SocketAddr,
     /// HTTP API address.
+    #[serde(deserialize_with = "de_socket_addr")]
     pub http: SocketAddr,
     /// Watched inbox directory of MCAP files; none: no inbox.
     pub inbox: Option<PathBuf>,
@@ -383,8 +385,8 @@ impl Config {
                 reason,
             };
             match var {
-                "SHOCKTWIN_LISTEN" => self.server.listen = parse(&value).map_err(bad)?,
-                "SHOCKTWIN_HTTP" => self.server.http = parse(&value).map_err(bad)?,
+                "SHOCKTWIN_LISTEN" => self.server.listen = socket_addr(&value).map_err(bad)?,
+                "SHOCKTWIN_HTTP" => self.server.http = socket_addr(&value).map_err(bad)?,
                 "SHOCKTWIN_INBOX" => self.server.inbox = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_RECORD_DIR" => self.server.record_dir = Some(PathBuf::from(&value)),
                 "SHOCKTWIN_DB" => self.store.path = Some(PathBuf::from(&value)),
@@ -593,6 +595,29 @@ impl Config {
     }
 }
 
+/// An address to listen on: an IP address and a port. A host name was
+/// refused as "invalid socket address syntax" (a helper's trial with
+/// `localhost:18420`): the error now says what is wanted. Names are not
+/// resolved, so that what is bound (and whether it is loopback) is what
+/// was written.
+///
+/// # Errors
+/// Not an `IP:port`, said with examples.
+pub fn socket_addr(value: &str) -> Result<SocketAddr, String> {
+    value.trim().parse().map_err(|_| {
+        format!(
+            "{value:?} is not an IP address and port: write e.g. 127.0.0.1:7410 (this machine \
+             only), 0.0.0.0:7410 (every interface) or [::1]:7410; host names such as \
+             localhost are not resolved"
+        )
+    })
+}
+
+fn de_socket_addr<'de, D: serde::Deserializer<'de>>(d: D) -> Result<SocketAddr, D::Error> {
+    let text = <std::borrow::Cow<'de, str> as serde::Deserialize>::deserialize(d)?;
+    socket_addr(&text).map_err(serde::de::Error::custom)
+}
+
 fn parse<T: std::str::FromStr>(value: &str) -> Result<T, String>
 where
     T::Err: std::fmt::Display,
@@ -791,6 +816,25 @@ observer_baseline = { charge_bar = 12.0, read_bar = 10.84, read_sd_bar = 0.0 }
 
         let err = Config::from_toml("[limits]\nmax_conections = 3\n").unwrap_err();
         assert!(err.contains("max_conections"), "{err}");
+    }
+
+    /// A host name for a listener was "invalid socket address syntax"
+    /// (a helper's trial): each layer now says what is wanted.
+    #[test]
+    fn a_listen_address_that_is_a_host_name_says_what_is_wanted() {
+        let err = Config::from_toml("[server]\nlisten = \"localhost:18420\"\n").unwrap_err();
+        assert!(
+            err.contains("\"localhost:18420\" is not an IP address and port")
+                && err.contains("127.0.0.1:7410"),
+            "{err}"
+        );
+        let c = Config::from_toml("[server]\nhttp = \"[::1]:18421\"\n").unwrap();
+        assert_eq!(c.server.http, "[::1]:18421".parse().unwrap());
+        let err = socket_addr("localhost:1").unwrap_err();
+        assert!(
+            err.contains("host names such as localhost are not resolved"),
+            "{err}"
+        );
     }
 
     #[test]

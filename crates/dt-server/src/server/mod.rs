@@ -373,6 +373,16 @@ pub async fn run(
     let (tokens, tls) = secure(&config, &listeners)?;
     // held until `run` returns: one daemon per store, inbox and recording directory
     let _locks = lock::hold(&config)?;
+    // said once the daemon may serve (a refused exposure logged `listening` first)
+    let addr = |l: &TcpListener| {
+        l.local_addr()
+            .map_or_else(|e| e.to_string(), |a| a.to_string())
+    };
+    tracing::info!(
+        listen = %addr(&listeners.ingest),
+        http = %addr(&listeners.http),
+        "listening"
+    );
     let config = Arc::new(config);
     let limits = &config.limits;
     let metrics = Arc::new(Metrics::new());

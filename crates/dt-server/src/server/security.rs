@@ -58,6 +58,28 @@ impl std::fmt::Debug for Tokens {
     }
 }
 
+/// A token file other users can read gives them its role (the docs' recipe
+/// wrote them 0644 and the daemon said nothing; a helper's trial).
+fn warn_if_shared(path: &std::path::Path) {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt as _;
+        if let Ok(meta) = std::fs::metadata(path) {
+            let mode = meta.permissions().mode() & 0o777;
+            if mode & 0o077 != 0 {
+                tracing::warn!(
+                    file = %path.display(),
+                    mode = format!("{mode:04o}"),
+                    "this token file can be read by other users of this machine, who then have \
+                     its role: `chmod 600` it"
+                );
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = path;
+}
+
 fn digest(token: &str) -> [u8; 32] {
     Sha256::digest(token.as_bytes()).into()
 }
@@ -85,6 +107,7 @@ impl Tokens {
                     reason: format!("{}: no token in the file", path.display()),
                 });
             }
+            warn_if_shared(path);
             Ok(tokens)
         };
         Ok(Self {
