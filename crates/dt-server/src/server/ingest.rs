@@ -79,6 +79,9 @@ pub struct RunReport {
     pub clock_jumps: u64,
 }
 
+/// Skipped messages of one stream logged each; the rest are counted.
+const LOGGED_SKIPS: u64 = 5;
+
 /// Messages a stream skipped: how many, and why the first was.
 #[derive(Debug, Default)]
 struct Skipped {
@@ -430,7 +433,18 @@ impl Ingest {
                 Err(e) if !e.is_fatal() => {
                     // One undecodable message: skipped, the stream goes on.
                     self.inner.metrics.error("message");
-                    tracing::warn!(source, "skipped message: {e}");
+                    // the first few said, the rest counted: a logger that writes one field
+                    // wrong wrote a warning a message (a helper's trial); the run's end
+                    // says how many
+                    if skipped.count < LOGGED_SKIPS {
+                        tracing::warn!(source, "skipped message: {e}");
+                    } else if skipped.count == LOGGED_SKIPS {
+                        tracing::warn!(
+                            source,
+                            "skipped message: {e} (further skipped messages of this stream are \
+                             counted, not logged: the run's end says how many)"
+                        );
+                    }
                     skipped.count += 1;
                     if skipped.first.is_none() {
                         skipped.first = Some(e.to_string());

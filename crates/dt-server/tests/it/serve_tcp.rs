@@ -563,3 +563,58 @@ async fn a_run_says_how_many_samples_it_could_not_use() {
     assert_eq!(r["dropped_samples"], 0, "{r}");
     d.stop().await;
 }
+
+/// A logger that writes one field wrong in every message wrote one warning
+/// a message (a helper's trial: 50 lines for 50): the first few are said,
+/// then that the rest are counted; the report has the count.
+#[tokio::test(flavor = "current_thread")]
+async fn skipped_messages_are_logged_a_few_times_then_counted() {
+    use std::sync::{Arc, Mutex};
+    #[derive(Clone, Default)]
+    struct Lines(Arc<Mutex<Vec<u8>>>);
+    impl std::io::Write for Lines {
+        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().unwrap().extend_from_slice(b);
+            Ok(b.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let lines = Lines::default();
+    let writer = lines.clone();
+    // this test's thread only: the ingest task runs on it (a current-thread runtime)
+    let _log = tracing::subscriber::set_default(
+        tracing_subscriber::fmt()
+            .with_ansi(false)
+            .with_writer(move || writer.clone())
+            .finish(),
+    );
+    let d = Daemon::start(test_config()).await;
+    let samples = run_samples(0, 2000);
+    let mut w = dt_core::log::LogWriter::new(
+        std::io::Cursor::new(Vec::new()),
+        &meta("noisy", "r1"),
+        crate::common::chunked(),
+    )
+    .unwrap();
+    let (_, acc) = dt_core::log::topic_spec("/acceleration").unwrap();
+    let schema = dt_core::log::json_schema(acc);
+    let mut bad = 0_u64;
+    for (i, s) in samples.iter().enumerate() {
+        w.write_sample(s).unwrap();
+        if i % 100 == 50 {
+            let wrong = serde_json::json!({"a1_mps2": "1,5", "a2_mps2": 0.0});
+            w.write_json("/acceleration", &schema, s.t_ns(), &wrong)
+                .unwrap();
+            bad += 1;
+        }
+    }
+    let r = send(d.ingest, &w.finish().unwrap().into_inner(), 4096).await;
+    assert_eq!(r["skipped_messages"], bad, "{r}");
+    d.stop().await;
+    let text = String::from_utf8(lines.0.lock().unwrap().clone()).unwrap();
+    let said = text.matches("skipped message:").count();
+    assert!(bad > 20 && said == 6, "{said} of {bad} said:\n{text}");
+    assert!(text.contains("further skipped messages of this stream are counted"));
+}
