@@ -903,7 +903,8 @@ struct MeasurementTerms {
 /// variance at `p` adds `ρ² (p − p₀)²`: the seal gain's prior spread about
 /// the one charge known, which that reading cannot narrow. A second
 /// reading measures the gain, and adds nothing; neither does a unit read
-/// with its own damping law ([`damping_law`](Self::damping_law)), whose
+/// with its own damping law ([`damping_law`](Self::damping_law)) under that
+/// law's measured spread ([`ObserverParams::own_law_spread`]), whose
 /// one-charge intervals covered 96.6 % on 72 units (the fifty-second
 /// session).
 ///
@@ -1180,11 +1181,12 @@ impl UnitCorrection {
         let Some(b) = p.baseline else {
             return prior;
         };
-        // measured with the calibration's law; a unit read with its own
-        // (`--unit-law`) covered 96.6 % with one charge on 72 units (the
-        // fifty-second session) and is left as it was
-        let one_charge =
-            (b.second.is_none() && b.damping_law.is_none()).then_some([b.charge_bar, sss]);
+        // measured with the calibration's prior; a unit read with its own law
+        // and that law's measured spread (`own_law_spread`) covered 96.6 %
+        // with one charge on 72 units (the fifty-second session) and is
+        // left as it was
+        let own = b.damping_law.is_some() && p.own_law_spread.is_some();
+        let one_charge = (b.second.is_none() && !own).then_some([b.charge_bar, sss]);
         let updated = b.readings().fold(prior, |u, r| {
             // One reading, `e = read − charge` of `h û` with `h = [1, p₀]`:
             // Σ hᵀ, h Σ hᵀ + σ_b², the gain and the updated state.
@@ -4577,12 +4579,28 @@ mod tests {
             systematic_rel: 0.11,
             ..base
         });
-        assert_eq!(measured, as_systematic);
-        let without = read(ObserverParams {
+        // the same prior; only the calibration's keeps the seal gain's spread
+        // about the one charge known (`ρ² (p − p₀)²`), which widens it 3 bar
+        // from that charge and moves the mean by what the weights move
+        assert!(
+            (measured.mean_bar - as_systematic.mean_bar).abs() < 1e-3
+                && as_systematic.sd_bar > measured.sd_bar + 0.02,
+            "{measured:?} {as_systematic:?}"
+        );
+        // the spread is the own law's: a narrower one, the calibration's
+        // numbers, reads narrower
+        let narrower = read(ObserverParams {
             baseline: Some(b),
+            own_law_spread: Some(UnitSpread {
+                sd_bar: 1.4,
+                rel: 0.08,
+            }),
             ..base
         });
-        assert!(measured.sd_bar > without.sd_bar, "{measured:?} {without:?}");
+        assert!(
+            measured.sd_bar > narrower.sd_bar,
+            "{measured:?} {narrower:?}"
+        );
         let plain = Some(UnitBaseline {
             damping_law: None,
             ..b
