@@ -937,16 +937,13 @@ mod tests {
     /// A size error the scanner sees ahead of the reader (found by the
     /// fuzzer): every record before the one at fault is still yielded,
     /// whatever the pieces the input comes in.
-    #[test]
-    fn a_size_error_ahead_comes_after_the_records_before_it() {
+    /// Five force samples written with `options`, and the offset of the
+    /// first top-level record with `opcode`.
+    fn five_forces(options: WriteOptions, opcode: u8) -> (Vec<u8>, usize) {
         let meta = RunMetadata {
             asset_id: "a".into(),
             run_id: "r".into(),
             ..RunMetadata::default()
-        };
-        let options = WriteOptions {
-            compression: Compression::None,
-            chunk_size: None,
         };
         let mut w = LogWriter::new(Cursor::new(Vec::new()), &meta, options).unwrap();
         for i in 0..5 {
@@ -956,12 +953,22 @@ mod tests {
             })
             .unwrap();
         }
-        let mut bytes = w.finish().unwrap().into_inner();
-        // cut at the data end record, then a channel declaring 1 KiB + 1
+        let bytes = w.finish().unwrap().into_inner();
         let mut pos = 8;
-        while bytes[pos] != 0x0F {
+        while bytes[pos] != opcode {
             pos += 9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
         }
+        (bytes, pos)
+    }
+
+    #[test]
+    fn a_size_error_ahead_comes_after_the_records_before_it() {
+        let options = WriteOptions {
+            compression: Compression::None,
+            chunk_size: None,
+        };
+        // cut at the data end record, then a channel declaring 1 KiB + 1
+        let (mut bytes, pos) = five_forces(options, 0x0F);
         bytes.truncate(pos);
         bytes.push(0x04);
         bytes.extend_from_slice(&1025_u64.to_le_bytes());
@@ -987,25 +994,7 @@ mod tests {
     /// complete records, not a record over the size limit.
     #[test]
     fn a_chunk_its_writer_never_finished_is_a_truncation() {
-        let meta = RunMetadata {
-            asset_id: "a".into(),
-            run_id: "r".into(),
-            ..RunMetadata::default()
-        };
-        let mut w =
-            LogWriter::new(Cursor::new(Vec::new()), &meta, WriteOptions::default()).unwrap();
-        for i in 0..5 {
-            w.write_sample(&Sample::Force {
-                t_ns: i,
-                force_n: 1.0,
-            })
-            .unwrap();
-        }
-        let mut bytes = w.finish().unwrap().into_inner();
-        let mut pos = 8;
-        while bytes[pos] != mcap::records::op::CHUNK {
-            pos += 9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
-        }
+        let (mut bytes, pos) = five_forces(WriteOptions::default(), mcap::records::op::CHUNK);
         bytes[pos + 1..pos + 9].copy_from_slice(&u64::MAX.to_le_bytes());
         bytes.truncate(pos + 40);
         let (_, err) = decode(&bytes, bytes.len(), ReadLimits::default());

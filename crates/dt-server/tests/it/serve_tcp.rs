@@ -490,32 +490,39 @@ async fn a_run_ends_at_its_end_magic_without_a_half_close() {
 
 /// Undecodable messages are skipped and the run goes on; the run's report
 /// says how many and why the first was (before, only the log said so).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_run_reports_the_messages_it_skipped() {
-    let d = Daemon::start(test_config()).await;
-    let samples = run_samples(0, 3000);
+/// A run of `duration_ms` with, after every `every`-th sample (from the
+/// `every / 2`-th), a message on a second `/acceleration` channel whose
+/// field is not a number: the stream, its good samples and its bad messages.
+fn with_bad_messages(asset: &str, duration_ms: i64, every: usize) -> (Vec<u8>, u64, u64) {
+    let samples = run_samples(0, duration_ms);
     let mut w = dt_core::log::LogWriter::new(
         std::io::Cursor::new(Vec::new()),
-        &meta("skips", "r1"),
+        &meta(asset, "r1"),
         crate::common::chunked(),
     )
     .unwrap();
     let (_, acc) = dt_core::log::topic_spec("/acceleration").unwrap();
     let schema = dt_core::log::json_schema(acc);
+    let mut bad = 0_u64;
     for (i, s) in samples.iter().enumerate() {
         w.write_sample(s).unwrap();
-        if i % 1000 == 500 {
-            // a second `/acceleration` channel, its messages not numbers
-            let bad = serde_json::json!({"a1_mps2": "1,5", "a2_mps2": 0.0});
-            w.write_json("/acceleration", &schema, s.t_ns(), &bad)
+        if i % every == every / 2 {
+            let wrong = serde_json::json!({"a1_mps2": "1,5", "a2_mps2": 0.0});
+            w.write_json("/acceleration", &schema, s.t_ns(), &wrong)
                 .unwrap();
+            bad += 1;
         }
     }
-    let bytes = w.finish().unwrap().into_inner();
+    (w.finish().unwrap().into_inner(), samples.len() as u64, bad)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_reports_the_messages_it_skipped() {
+    let d = Daemon::start(test_config()).await;
+    let (bytes, samples, skipped) = with_bad_messages("skips", 3000, 1000);
     let r = send(d.ingest, &bytes, 4096).await;
     assert_eq!(r["status"], "completed", "{r}");
-    assert_eq!(r["samples"], samples.len() as u64, "{r}");
-    let skipped = (0..samples.len()).filter(|i| i % 1000 == 500).count() as u64;
+    assert_eq!(r["samples"], samples, "{r}");
     assert_eq!(r["skipped_messages"], skipped, "{r}");
     let first = r["first_skipped"].as_str().unwrap_or_default();
     assert!(
@@ -591,26 +598,8 @@ async fn skipped_messages_are_logged_a_few_times_then_counted() {
             .finish(),
     );
     let d = Daemon::start(test_config()).await;
-    let samples = run_samples(0, 2000);
-    let mut w = dt_core::log::LogWriter::new(
-        std::io::Cursor::new(Vec::new()),
-        &meta("noisy", "r1"),
-        crate::common::chunked(),
-    )
-    .unwrap();
-    let (_, acc) = dt_core::log::topic_spec("/acceleration").unwrap();
-    let schema = dt_core::log::json_schema(acc);
-    let mut bad = 0_u64;
-    for (i, s) in samples.iter().enumerate() {
-        w.write_sample(s).unwrap();
-        if i % 100 == 50 {
-            let wrong = serde_json::json!({"a1_mps2": "1,5", "a2_mps2": 0.0});
-            w.write_json("/acceleration", &schema, s.t_ns(), &wrong)
-                .unwrap();
-            bad += 1;
-        }
-    }
-    let r = send(d.ingest, &w.finish().unwrap().into_inner(), 4096).await;
+    let (bytes, _, bad) = with_bad_messages("noisy", 2000, 100);
+    let r = send(d.ingest, &bytes, 4096).await;
     assert_eq!(r["skipped_messages"], bad, "{r}");
     d.stop().await;
     let text = String::from_utf8(lines.0.lock().unwrap().clone()).unwrap();
