@@ -372,6 +372,12 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     assert bad.status_code == 422 and "read_sd_bar" in bad.json()["error"], bad.text
     bad = httpx.put(url, json={"charge_bar": 12.0, "read_bar": 10.5, "read_sd_bar": -1})
     assert bad.status_code == 422 and "observer.baseline.read_sd_bar" in bad.json()["error"], bad.text
+    # a charge in psi taken as bar, on the baseline as on the service
+    bad = httpx.put(url, json={"charge_bar": 174.0, "read_bar": 160.0, "read_sd_bar": 3.0})
+    assert bad.status_code == 422 and "in psi it would be 12.0 bar" in bad.json()["error"], bad.text
+    second = {"charge_bar": 58.0 / 0.0689475729, "read_bar": 4.2, "read_sd_bar": 0.3}
+    bad = httpx.put(url, json={"charge_bar": 12.0, "read_bar": 10.5, "read_sd_bar": 0.3, "second": second})
+    assert bad.status_code == 422 and "second.charge_bar" in bad.json()["error"], bad.text
     assert httpx.put(url, content=b"{").status_code == 400
     assert httpx.put(f"http://{d.http}/v1/assets/van%2007/baseline", json=doc).status_code == 400
     r = httpx.put(url, content=(tmp_path / "unit.json").read_bytes())

@@ -612,6 +612,21 @@ async fn put_baseline(
         Ok(b) => b,
         Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
     };
+    let charges = match &baseline {
+        AssetBaseline::Road(r) => vec![("charge_bar", r.charge_bar)],
+        AssetBaseline::Observer(u) => std::iter::once(("charge_bar", u.charge_bar))
+            .chain(
+                u.second
+                    .as_ref()
+                    .map(|s| ("second.charge_bar", s.charge_bar)),
+            )
+            .collect(),
+    };
+    for (field, bar) in charges {
+        if let Err(e) = charge_in_range(field, bar) {
+            return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}"));
+        }
+    }
     if let Some(r) = refuse_here(&app, &id, &baseline) {
         return r;
     }
@@ -645,6 +660,23 @@ const MAX_CHARGE_BAR: f64 = 60.0;
 /// One psi in bar.
 const PSI_BAR: f64 = 0.068_947_572_9;
 
+/// Why `bar`, a charge a service or a baseline reports as `field`, is not a
+/// damper's gas charge: not finite, negative, or above [`MAX_CHARGE_BAR`]
+/// (a charge in psi taken as bar was accepted: a helper's trial sent 174).
+fn charge_in_range(field: &str, bar: f64) -> Result<(), String> {
+    if bar.is_finite() && bar > MAX_CHARGE_BAR {
+        Err(format!(
+            "{field} {bar} bar is above any damper's gas charge (≤ {MAX_CHARGE_BAR} bar gauge); \
+             in psi it would be {:.1} bar",
+            bar * PSI_BAR
+        ))
+    } else if bar.is_finite() && bar >= 0.0 {
+        Ok(())
+    } else {
+        Err(format!("{field} {bar} must be a finite charge ≥ 0 bar"))
+    }
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ServiceBody {
@@ -672,30 +704,10 @@ async fn put_service(
         return r;
     }
     let (charge_bar, at) = match serde_json::from_slice::<ServiceBody>(&body) {
-        Ok(b) if b.charge_bar.is_finite() && (0.0..=MAX_CHARGE_BAR).contains(&b.charge_bar) => {
-            (b.charge_bar, b.at)
-        }
-        // a charge in psi taken as bar was accepted (a helper's trial: 174)
-        Ok(b) if b.charge_bar > MAX_CHARGE_BAR && b.charge_bar.is_finite() => {
-            return error(
-                StatusCode::UNPROCESSABLE_ENTITY,
-                format!(
-                    "body: charge_bar {} bar is above any damper's gas charge (≤ {MAX_CHARGE_BAR} \
-                     bar gauge); in psi it would be {:.1} bar",
-                    b.charge_bar,
-                    b.charge_bar * PSI_BAR
-                ),
-            )
-        }
-        Ok(b) => {
-            return error(
-                StatusCode::UNPROCESSABLE_ENTITY,
-                format!(
-                    "body: charge_bar {} must be a finite charge ≥ 0 bar",
-                    b.charge_bar
-                ),
-            )
-        }
+        Ok(b) => match charge_in_range("charge_bar", b.charge_bar) {
+            Ok(()) => (b.charge_bar, b.at),
+            Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
+        },
         Err(e) => {
             return error(
                 StatusCode::UNPROCESSABLE_ENTITY,

@@ -12,7 +12,7 @@ use tokio::sync::broadcast;
 
 use super::config::Config;
 use super::sink::{ObserverRead, RoadRead, RunEnd, RunInfo, Sink, SinkError};
-use super::store::{AssetState, CalendarClock, HistoryPoint};
+use super::store::{wall_now_ms, AssetState, CalendarClock, HistoryPoint, FUTURE_SLACK_MS};
 
 /// One event of the live stream; the SSE event name is [`LiveEvent::name`].
 #[derive(Debug, Clone, Serialize)]
@@ -307,9 +307,19 @@ impl LiveState {
 #[derive(Debug)]
 pub struct LiveSink {
     state: Arc<LiveState>,
-    /// Each run in progress: its calendar clock (from its first estimate)
-    /// and whether any of its estimates was the asset's newest.
-    runs: HashMap<u64, (Option<CalendarClock>, bool)>,
+    /// Each run in progress.
+    runs: HashMap<u64, RunSeen>,
+}
+
+/// What [`LiveSink`] keeps of a run in progress.
+#[derive(Debug, Default)]
+struct RunSeen {
+    /// Its calendar clock (from its first estimate).
+    clock: Option<CalendarClock>,
+    /// Whether any of its estimates was the asset's newest.
+    shown_any: bool,
+    /// How far its newest calendar time ran ahead of this gateway's clock, ms.
+    ahead_ms: i64,
 }
 
 impl LiveSink {
@@ -329,7 +339,7 @@ impl Sink for LiveSink {
     }
 
     fn run_started(&mut self, run: &RunInfo) -> Result<(), SinkError> {
-        self.runs.insert(run.seq, (None, false));
+        self.runs.insert(run.seq, RunSeen::default());
         self.state.with_asset(run, |v| {
             v.summary.active_runs += 1;
             v.summary.expected_bar = run.asset.nominal_bar;
@@ -344,8 +354,14 @@ impl Sink for LiveSink {
             return Ok(());
         };
         let state = &self.state;
-        let (clock, shown_any) = self.runs.entry(run.seq).or_insert((None, false));
-        let clock = *clock.get_or_insert_with(|| CalendarClock::new(first.t_ns, run.started));
+        let seen = self.runs.entry(run.seq).or_default();
+        let clock = *seen
+            .clock
+            .get_or_insert_with(|| CalendarClock::new(first.t_ns, run.started));
+        // An estimate further ahead of this gateway's clock (a logger's
+        // forward jump, a wrong date) is shown, but what comes after it is
+        // judged against the time before it ([`FUTURE_SLACK_MS`]).
+        let future_ms = wall_now_ms().saturating_add(FUTURE_SLACK_MS);
         let mut changes = Vec::new();
         state.with_asset(run, |v| {
             let mut health = v.summary.health;
@@ -360,7 +376,11 @@ impl Sink for LiveSink {
                 if !live && ms < v.shown_ms {
                     continue;
                 }
-                v.shown_ms = v.shown_ms.max(ms);
+                if ms > future_ms {
+                    seen.ahead_ms = seen.ahead_ms.max(ms - future_ms + FUTURE_SLACK_MS);
+                } else {
+                    v.shown_ms = v.shown_ms.max(ms);
+                }
                 if e.health != health {
                     changes.push((e.t_ns, health, e.health));
                     health = e.health;
@@ -374,7 +394,7 @@ impl Sink for LiveSink {
             let s = &mut v.summary;
             s.ticks += batch.len() as u64;
             let Some(last) = newest else { return };
-            *shown_any = true;
+            seen.shown_any = true;
             s.run_id.clone_from(&run.meta.run_id);
             s.simulated = run.meta.simulated();
             s.pressure_bar = finite(last.pressure_bar);
@@ -419,10 +439,17 @@ impl Sink for LiveSink {
         // A run whose every estimate was older than the asset's newest is
         // not its last run; one with no estimate at all cannot be placed and
         // is reported (a failure to read a new upload must show).
-        let last = match self.runs.remove(&run.seq) {
-            Some((Some(_), shown_any)) => shown_any,
-            _ => true,
-        };
+        let seen = self.runs.remove(&run.seq).unwrap_or_default();
+        let last = seen.clock.is_none() || seen.shown_any;
+        if seen.ahead_ms > 0 {
+            tracing::warn!(
+                asset = %run.meta.asset_id,
+                run_id = %run.meta.run_id,
+                "its clock ran up to {:.0} s ahead of this gateway's: shown, but an upload \
+                 of the asset's later data is not hidden behind it",
+                seen.ahead_ms as f64 / 1e3
+            );
+        }
         self.state.with_asset(run, |v| {
             v.summary.active_runs = v.summary.active_runs.saturating_sub(1);
             if last {

@@ -377,3 +377,69 @@ async fn a_name_dropped_again_does_not_replace_the_first_file() {
     );
     d.stop().await;
 }
+
+/// The run id and ticks `GET /v1/assets` shows for `asset`.
+async fn shown_by(d: &Daemon, asset: &str) -> Option<(serde_json::Value, u64)> {
+    let v = d.get_json("/v1/assets").await;
+    v["assets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["asset_id"] == asset)
+        .map(|a| (a["run_id"].clone(), a["ticks"].as_u64().unwrap()))
+}
+
+/// A log whose clock ran hours ahead (a logger's wrong date) became the
+/// asset's newest data, and every later upload was hidden behind it until
+/// the wall clock caught up (a helper's trial). It is shown, but what comes
+/// after it is judged against the time before it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_clock_ahead_of_the_gateway_does_not_hide_later_uploads() {
+    let root = tempfile::tempdir().unwrap();
+    let inbox = root.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let mut config = test_config();
+    config.server.inbox = Some(inbox.clone());
+    config.store.path = Some(root.path().join("fleet.sqlite"));
+    let d = Daemon::start(config.clone()).await;
+    let now_ns = i64::try_from(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_nanos(),
+    )
+    .unwrap();
+    let hour_ns = 3_600_000_000_000;
+    let shown = || shown_by(&d, "ahead");
+    let runs = [
+        ("earlier", now_ns - 3 * hour_ns),
+        ("wrong-date", now_ns + 5 * hour_ns),
+        ("later", now_ns - hour_ns),
+    ];
+    let mut ticks = 0;
+    for (run, t0) in runs {
+        let s = good_stream("ahead", run, t0, 1500);
+        ticks += s.ticks;
+        drop_file(&inbox, &format!("{run}.mcap"), &s.bytes);
+        wait_until("the run processed", || async {
+            shown().await.is_some_and(|(_, n)| n == ticks)
+        })
+        .await;
+        let (id, _) = shown().await.unwrap();
+        assert_eq!(id, run, "the asset shows its newest run");
+    }
+    // An upload older than the last real one is still a backlog.
+    let s = good_stream("ahead", "backlog", now_ns - 2 * hour_ns, 1500);
+    ticks += s.ticks;
+    drop_file(&inbox, "backlog.mcap", &s.bytes);
+    wait_until("the backlog processed", || async {
+        shown().await.is_some_and(|(_, n)| n == ticks)
+    })
+    .await;
+    assert_eq!(shown().await.unwrap().0, "later");
+    d.stop().await;
+    // and so after a restart, from the fleet store
+    let d = Daemon::start(config).await;
+    assert_eq!(shown_by(&d, "ahead").await, Some(("later".into(), ticks)));
+    d.stop().await;
+}

@@ -408,6 +408,20 @@ impl CalendarClock {
     }
 }
 
+/// How far ahead of this gateway's clock a calendar time may be and still
+/// order an asset's runs and summary, ms. A clock further ahead (a logger's
+/// forward jump, a wrong date) would otherwise make its run the asset's
+/// newest, and hide every later upload until the wall clock caught up.
+pub const FUTURE_SLACK_MS: i64 = 60_000;
+
+/// This gateway's clock, Unix ms.
+#[must_use]
+pub fn wall_now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+}
+
 /// RFC 3339 (UTC, ms) of a calendar time in ms.
 #[must_use]
 pub fn rfc3339_ms(t_ms: i64) -> String {

@@ -125,6 +125,7 @@ impl Trends {
         let points = one_point_per_run(
             runs.into_iter()
                 .filter(|r| since.is_none_or(|t| r.start_ms >= t)),
+            super::wall_now_ms().saturating_add(super::FUTURE_SLACK_MS),
         );
         let a = config.asset(asset_id);
         let view = TrendView::compute(&points, a.warn_bar, a.fault_bar).since(since);
@@ -137,12 +138,21 @@ impl Trends {
 /// a file copied into the inbox under another name, a failed attempt then a
 /// whole one) weighed once per copy: three copies of one run narrowed the
 /// leak rate's interval and moved the fault date (sixty-second session, a
-/// helper trying the daemon). A completed copy wins, then the newest.
-fn one_point_per_run(runs: impl Iterator<Item = RunRecord>) -> Vec<(String, RunPoint)> {
+/// helper trying the daemon). A completed copy wins, then the newest. A run
+/// whose reading is dated after `future_ms` (a logger's clock ahead of this
+/// gateway's, [`super::FUTURE_SLACK_MS`]) cannot be placed and is left out:
+/// days ahead, it would set the leak rate alone.
+fn one_point_per_run(
+    runs: impl Iterator<Item = RunRecord>,
+    future_ms: i64,
+) -> Vec<(String, RunPoint)> {
     let mut best: std::collections::BTreeMap<String, (bool, i64, RunPoint)> =
         std::collections::BTreeMap::new();
     for r in runs {
         let Some(point) = r.summary else { continue };
+        if point.t_unix_s * 1e3 > future_ms as f64 {
+            continue;
+        }
         let key = (r.status == "completed", r.start_ms);
         match best.get(&r.run_id) {
             Some((done, start, _)) if (*done, *start) >= key => {}
@@ -254,12 +264,6 @@ impl Committed {
 /// (a store that slow is reported; the run is not held forever).
 const COMMIT_WAIT: Duration = Duration::from_secs(30);
 
-fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
-}
-
 fn wall_ms(t: SystemTime) -> i64 {
     t.duration_since(UNIX_EPOCH)
         .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
@@ -306,7 +310,7 @@ impl StoreSink {
             sent: AtomicU64::new(0),
             committed,
             runs: HashMap::new(),
-            boot_ms: now_ms(),
+            boot_ms: super::wall_now_ms(),
             min_excitation_mps: dt_core::bundle::HealthConfig::default().min_excitation_mps,
             metrics,
         })
@@ -561,7 +565,7 @@ fn write_loop(
         if let Some(days) = config.store.retention_days {
             if last_prune.is_none_or(|t| t.elapsed() >= Duration::from_secs(PRUNE_EVERY_S)) {
                 last_prune = Some(Instant::now());
-                let before = now_ms() - (days * 86_400_000.0) as i64;
+                let before = super::wall_now_ms() - (days * 86_400_000.0) as i64;
                 match store.prune(before) {
                     Ok(n) if n > 0 => tracing::info!(rows = n, "fleet store: retention applied"),
                     Ok(_) => {}
@@ -634,7 +638,8 @@ mod tests {
     }
 
     /// A run sent three times (a failed attempt, two whole copies) is one
-    /// point: its completed copy, the newest of them.
+    /// point: its completed copy, the newest of them. A run dated ahead of
+    /// the gateway's clock is none.
     #[test]
     fn a_run_sent_again_is_one_point() {
         let day = 86_400_000;
@@ -646,8 +651,10 @@ mod tests {
                 run("d6", "completed", 6 * day, Some(8.5)),
                 run("d5", "failed", 5 * day, Some(9.5)),
                 run("d4", "completed", 4 * day, None),
+                run("d9", "completed", 9 * day, Some(1.0)),
             ]
             .into_iter(),
+            8 * day,
         );
         let got: Vec<(&str, f64)> = points
             .iter()

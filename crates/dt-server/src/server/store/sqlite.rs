@@ -513,12 +513,17 @@ impl FleetStore for SqliteStore {
                  FROM assets a \
                  LEFT JOIN runs r ON r.key = \
                    (SELECT key FROM runs WHERE asset = a.id \
-                    ORDER BY coalesce(end_ms, start_ms) DESC, rowid DESC LIMIT 1) \
-                 LEFT JOIN samples s ON s.asset = a.id AND s.t_ms = \
-                   (SELECT max(t_ms) FROM samples WHERE asset = a.id) \
+                    ORDER BY coalesce(end_ms, start_ms) > ?1, \
+                      coalesce(end_ms, start_ms) DESC, rowid DESC LIMIT 1) \
+                 LEFT JOIN samples s ON s.asset = a.id AND s.t_ms = coalesce( \
+                   (SELECT max(t_ms) FROM samples WHERE asset = a.id AND t_ms <= ?1), \
+                   (SELECT max(t_ms) FROM samples WHERE asset = a.id)) \
                  ORDER BY a.asset_id",
             )?;
-            let rows = stmt.query_map([], |r| {
+            // What lies ahead of this gateway's clock is the asset's newest
+            // only when nothing else is (as the live view orders it).
+            let future_ms = super::wall_now_ms().saturating_add(super::FUTURE_SLACK_MS);
+            let rows = stmt.query_map([future_ms], |r| {
                 let t_ms: Option<i64> = r.get(5)?;
                 Ok(AssetState {
                     asset_id: r.get(0)?,
