@@ -351,3 +351,39 @@ def test_road_blocks_takes_the_calibration_as_text_or_path(tmp_path: Path):
         shocktwin.road_blocks(str(run), tmp_path / "no-such.json")
     with pytest.raises(TypeError, match="calibration: expected JSON text or a path, got int"):
         shocktwin.road_blocks(str(run), 42)
+
+
+def test_ctrl_c_interrupts_a_long_call(shocktwin_bin: Path, tmp_path: Path):
+    """Ctrl-C during a long call (an estimate of a 435 s run with the committed perm-18 bundle)
+    raises ``KeyboardInterrupt`` soon after the signal, not when the call ends (a helper's trial
+    in a notebook). Timed against the same call uninterrupted, in the same process (a ratio)."""
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[2]
+    subprocess.run([str(shocktwin_bin), "simulate", "--pressures", "12", "--frequencies", "2",
+                    "--out", str(tmp_path)], check=True, capture_output=True)
+    run = next(tmp_path.glob("*.mcap"))
+    script = """
+import json, os, signal, sys, threading, time
+import shocktwin
+log = shocktwin.read_log(sys.argv[1])
+bundle = shocktwin.Bundle(sys.argv[2])
+t = time.monotonic()
+shocktwin.estimate(log, bundle)
+whole = time.monotonic() - t
+threading.Timer(0.1 * whole, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+t = time.monotonic()
+try:
+    shocktwin.estimate(log, bundle)
+    print(json.dumps({"whole": whole, "completed": time.monotonic() - t}))
+except KeyboardInterrupt:
+    print(json.dumps({"whole": whole, "interrupted": time.monotonic() - t}))
+"""
+    done = subprocess.run([sys.executable, "-c", script, str(run), str(repo / "docs" / "study" / "bundles" / "perm-18")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    print(got)
+    assert "interrupted" in got, got
+    assert got["whole"] > 0.3, f"the call is too short to tell: {got}"
+    assert got["interrupted"] < 0.5 * got["whole"], got

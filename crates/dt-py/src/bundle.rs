@@ -16,7 +16,7 @@ use pyo3::types::{PyDict, PyString};
 
 use crate::convert::{ns_to_seconds, to_numpy};
 use crate::exceptions::{input_error, CoreError};
-use crate::gil::without_gil;
+use crate::gil::{interruptible, without_gil};
 use crate::log::{read_log, PyLog};
 use crate::params::{json_to_py, physics_dict};
 
@@ -339,7 +339,7 @@ pub(crate) fn estimate<'py>(
     }
     let origin_ns = run.t0_ns().unwrap_or(0);
     let (estimates, counters) =
-        without_gil(py, move || estimate_log(bundle, cfg, &run)).map_err(CoreError::from)?;
+        interruptible(py, move || estimate_log(bundle, cfg, &run))?.map_err(CoreError::from)?;
     let o = &counters.observer;
     if o.not_calibrated_here() {
         // `shocktwin replay` says so; a notebook got the prior without a word

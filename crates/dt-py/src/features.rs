@@ -18,7 +18,7 @@ use pyo3::types::{PyDict, PyString};
 use crate::bundle::PyBundle;
 use crate::convert::{ns_to_seconds, to_numpy};
 use crate::exceptions::{input_error, CoreError};
-use crate::gil::without_gil;
+use crate::gil::{interruptible, without_gil};
 use crate::log::{read_log, PyLog};
 use crate::params::{physics_from_dict, physics_from_file};
 
@@ -103,7 +103,7 @@ pub(crate) fn features<'py>(
         }
     };
     let run = run_from(py, log)?;
-    let table = without_gil(py, move || compute_features(&run, &params, &groups))
+    let table = interruptible(py, move || compute_features(&run, &params, &groups))?
         .map_err(CoreError::from)?;
     let shape = (table.n_rows(), table.columns.len());
     let x = Array2::from_shape_vec(shape, table.values)
@@ -153,7 +153,7 @@ pub(crate) fn charge_reversals<'py>(
         counters,
         rod_accel_scale: rod_scale,
         ends_split_bar,
-    } = without_gil(py, move || compute_reversals(&run, &params)).map_err(CoreError::from)?;
+    } = interruptible(py, move || compute_reversals(&run, &params))?.map_err(CoreError::from)?;
     let out = PyDict::new(py);
     let col = |f: &dyn Fn(&dt_core::charge::Reversal) -> f64| -> Vec<f64> {
         revs.iter().map(f).collect()
@@ -292,7 +292,7 @@ pub(crate) fn twin_trace<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let (params, _) = physics_from(bundle_or_params)?;
     let run = run_from(py, log)?;
-    let table = without_gil(py, move || compute_twin(&run, &params)).map_err(CoreError::from)?;
+    let table = interruptible(py, move || compute_twin(&run, &params))?.map_err(CoreError::from)?;
     let out = PyDict::new(py);
     let tw = |f: &dyn Fn(&dt_core::features::TwinState) -> f64| -> Vec<f64> {
         table.twin.iter().map(f).collect()
@@ -494,13 +494,14 @@ pub(crate) fn road_blocks<'py>(
         let run = run_from(py, base)?;
         let c = cal.clone();
         let blocks =
-            without_gil(py, move || read_run(&run, &c, health)).map_err(CoreError::from)?;
+            interruptible(py, move || read_run(&run, &c, health))?.map_err(CoreError::from)?;
         cal = cal
             .with_baseline(&blocks, bar)
             .map_err(pyo3::exceptions::PyValueError::new_err)?;
     }
     let run = run_from(py, log)?;
-    let blocks = without_gil(py, move || read_run(&run, &cal, health)).map_err(CoreError::from)?;
+    let blocks =
+        interruptible(py, move || read_run(&run, &cal, health))?.map_err(CoreError::from)?;
     let out = PyDict::new(py);
     let col = |f: &dyn Fn(&dt_core::road::RoadBlock) -> f64| -> Vec<f64> {
         blocks.iter().map(f).collect()

@@ -11,7 +11,7 @@ use pyo3::types::PyDict;
 
 use crate::convert::{ns_to_seconds, to_numpy};
 use crate::exceptions::CoreError;
-use crate::gil::without_gil;
+use crate::gil::interruptible;
 
 /// The SPEC §2 sensor topics in the order `Log.topics` lists them.
 const TOPIC_ORDER: [&str; 7] = [
@@ -42,7 +42,7 @@ pub(crate) fn read_log(py: Python<'_>, path: PathBuf) -> PyResult<PyLog> {
     let display = path.display().to_string();
     // for pickling: a worker process may run in another directory
     let source = std::path::absolute(&path).unwrap_or_else(|_| path.clone());
-    let log = without_gil(py, move || core_read_log(&path)).map_err(CoreError::from)?;
+    let log = interruptible(py, move || core_read_log(&path))?.map_err(CoreError::from)?;
     Ok(PyLog {
         path: display,
         source,
