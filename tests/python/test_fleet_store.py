@@ -329,6 +329,11 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     sec = (first_log_time_ns(run) + np.round(est["t_s"] * 1e9).astype(np.int64)) // 1_000_000_000
     for s in with_b:
         assert est["pressure_bar"][sec == s].mean() == pytest.approx(with_b[s], abs=1e-9)
+    # the file `train.observer baseline` writes, as it is; a bad one names the field
+    whole = shocktwin.estimate(run, world["bundle"], observer_baseline=json.loads((tmp_path / "unit.json").read_text()))
+    assert np.array_equal(whole["pressure_bar"], est["pressure_bar"], equal_nan=True)
+    with pytest.raises(shocktwin.ParamsError, match=r"observer_baseline: need charge_bar.*missing field `read_sd_bar`"):
+        shocktwin.estimate(run, world["bundle"], observer_baseline={"charge_bar": 12.0, "read_bar": 10.5})
     config = tmp_path / "serve.toml"
     config.write_text("[assets.dyno-unit-A]\nobserver_baseline = { charge_bar = 12.0, read_bar = 10.5, "
                       "read_sd_bar = 0.3 }\n")

@@ -274,8 +274,8 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// new segment after a 2 s gap). ``observer_baseline`` (a dict with
 /// ``charge_bar``, ``read_bar``, ``read_sd_bar`` and optionally the unit's
 /// own ``damping_law``, a ``second`` reading and ``runs_averaged``, as ``python -m train.observer baseline [--unit-law]``
-/// writes under that key) is this unit's charge-observer baseline, for a
-/// bundle that reads the observer.
+/// writes under that key; the whole document it writes is taken too) is
+/// this unit's charge-observer baseline, for a bundle that reads the observer.
 ///
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
@@ -331,10 +331,11 @@ pub(crate) fn estimate<'py>(
             ))
             .into());
         }
-        let b: dt_core::charge::UnitBaseline =
-            serde_path_to_error::deserialize(crate::params::py_to_json(obj, what)?)
-                .map_err(|err| CoreError::params_at(what, &err))?;
-        b.validate().map_err(CoreError::from)?;
+        // as `train.observer baseline` writes it (nested) or bare, as the
+        // daemon's API takes it; the error names the field (it said
+        // "invalid physics parameters")
+        let b = dt_core::charge::UnitBaseline::from_document(crate::params::py_to_json(obj, what)?)
+            .map_err(|e| CoreError::Params(format!("{what}: {e}")))?;
         cfg.observer_baseline = Some(b);
     }
     let origin_ns = run.t0_ns().unwrap_or(0);
