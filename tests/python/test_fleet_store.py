@@ -91,7 +91,16 @@ class Daemon:
                 self.tcp = tcp.group(1) if tcp else ""
                 break
         assert self.http, f"the daemon did not start (exit {self.proc.poll()})"
-        threading.Thread(target=lambda: [None for _ in self.proc.stderr], daemon=True).start()  # type: ignore[union-attr]
+        self.log: list[str] = []  # what it logs after `listening`, without colours
+        threading.Thread(target=lambda: [self.log.append(ANSI.sub("", x)) for x in self.proc.stderr],  # type: ignore[union-attr]
+                         daemon=True).start()
+
+    def logged(self, *words: str, wait_s: float = 0.0) -> list[str]:
+        """The log lines that contain every one of ``words`` (waiting up to ``wait_s`` for one)."""
+        deadline = time.monotonic() + wait_s
+        while not (found := [x for x in list(self.log) if all(w in x for w in words)]) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        return found
 
     def get(self, path: str, **params: Any) -> Any:
         r = httpx.get(f"http://{self.http}{path}", params=params, timeout=10)
@@ -252,11 +261,16 @@ def test_an_older_run_processed_later_does_not_become_the_assets_latest(world: d
         return next(a for a in d.get("/v1/assets")["assets"] if a["asset_id"] == "dyno-unit-A")
 
     shutil.copy(newest, inbox / newest.name)
+    (inbox / "dyno-export.csv").write_text("t,position\n0,0\n")
     d.wait_runs("dyno-unit-A", 1)
     shown = row()
+    # said once each (a helper's trial: a mistyped asset id joined without a word; a CSV was ignored)
+    assert len(d.logged("a new asset joins the fleet", "dyno-unit-A")) == 1, d.log
+    assert d.logged("dyno-export.csv", "shocktwin import", wait_s=20), d.log
     shutil.copy(oldest, inbox / oldest.name)
     runs = d.wait_runs("dyno-unit-A", 2)
     assert runs[0]["run_id"] == shown["run_id"] != runs[1]["run_id"], runs
+    assert len(d.logged("a new asset joins the fleet")) == 1, d.log
     after = row()
     for k in ("run_id", "pressure_bar", "pressure_lo_bar", "pressure_hi_bar", "health", "last_t_ns"):
         assert after[k] == shown[k], (k, shown, after)
