@@ -19,11 +19,14 @@
 //! scale from the median absolute standardised residual), so that one run
 //! whose estimate went wrong does not bend the line. The per-run `s_i` carry
 //! the estimator's systematic part (a unit's bias), which is the same in
-//! every run and does not scatter the points, so the covariance of `(a, b)`
-//! is *scaled* by the residual variance, `σ̂² = Σ wᵢ rᵢ² / (n − 2)` (as
-//! `scipy.optimize.curve_fit` with `absolute_sigma=False` does), and
-//! intervals use Student's `t` with
-//! `n − 2` degrees of freedom.
+//! every run and does not scatter the points, so the covariance of `(a, b)`,
+//! `(XᵀWX)⁻¹` with the weights `1/s_i²`, is *scaled* by the residuals'
+//! variance: for weighted least squares `σ̂² = Σ wᵢ rᵢ² / (n − 2)` (as
+//! `scipy.optimize.curve_fit` with `absolute_sigma=False` does), for this
+//! Huber M-estimate Huber's "H1" factor (see [`huber_variance`]), which is
+//! that `σ̂²` when no run is trimmed. Intervals use Student's `t` with
+//! `n − 2` degrees of freedom. On simulated runs with normal errors the
+//! rate's 95 % interval covers the true rate 93–94 % of the time (a test).
 //!
 //! **Crossing.** The predicted time at which the line reaches a threshold
 //! `θ` is `τ* = (θ − a)/b`; its interval is Fieller's: the set of `τ` where
@@ -51,9 +54,10 @@
 //! (Bonferroni: the search is a multiple test). The trend is then the line
 //! after the onset: `a` the charge now, `b` the rate since the onset (the
 //! crossings follow from them), with the covariance of the three-parameter
-//! fit (scaled, `n − 3` degrees of freedom) — conditional on the onset found,
-//! so slightly narrow near it. The same Huber reweighting makes the kept fit
-//! robust; the onset search itself is unweighted by it.
+//! fit (`n − 3` degrees of freedom) averaged over every onset tried, each
+//! weighted by its likelihood (see [`onset_averaged_cov`]): conditional on
+//! the onset found it was narrow. The same Huber reweighting makes the kept
+//! fit robust; the onset search itself is unweighted by it.
 //!
 //! **Assumptions.** A leak rate constant since the last change of rate (a
 //! leak that accelerates smoothly is fitted late); runs summarised at comparable excitation;
@@ -174,24 +178,16 @@ impl Trend {
         let tau: Vec<f64> = pts.iter().map(|p| (p.t_unix_s - t_ref) / DAY_S).collect();
         let base_w: Vec<f64> = pts.iter().map(|p| 1.0 / (p.sd_bar * p.sd_bar)).collect();
         let onset = onset(&tau, &pts, &base_w);
-        let design = |t: f64| match onset {
-            None => vec![1.0, t],
-            Some(k) => vec![1.0, t, (t - k).min(0.0)],
+        let x = match &onset {
+            None => tau.iter().map(|&t| vec![1.0, t]).collect(),
+            Some(o) => hinge_design(&tau, o.best),
         };
-        let x: Vec<Vec<f64>> = tau.iter().map(|&t| design(t)).collect();
-        let (beta, inv, robust) = robust_fit(&x, &pts, &base_w).ok_or(TrendError::Singular)?;
+        let (beta, v, robust) = scaled_fit(&x, &pts, &base_w).ok_or(TrendError::Singular)?;
         let dof = n - beta.len();
-        let chi2: f64 = (0..n)
-            .map(|i| {
-                let r = pts[i].pressure_bar - dot(&x[i], &beta);
-                base_w[i] * robust[i] * r * r
-            })
-            .sum();
-        let s2 = if dof > 0 { chi2 / dof as f64 } else { f64::NAN };
-        let cov = [
-            [inv[(0, 0)] * s2, inv[(0, 1)] * s2],
-            [inv[(1, 0)] * s2, inv[(1, 1)] * s2],
-        ];
+        let mut cov = [[v[(0, 0)], v[(0, 1)]], [v[(1, 0)], v[(1, 1)]]];
+        if let Some(o) = &onset {
+            cov = onset_averaged_cov(&tau, &pts, &base_w, o, &beta).unwrap_or(cov);
+        }
         Ok(Self {
             runs_used: n,
             t_ref_unix_s: t_ref,
@@ -201,7 +197,7 @@ impl Trend {
             dof,
             q: t_quantile(dof),
             robust_weights: robust,
-            onset_unix_s: onset.map(|k| t_ref + k * DAY_S),
+            onset_unix_s: onset.map(|o| t_ref + o.best * DAY_S),
             slope_before_bar_per_day: (beta.len() == 3).then(|| beta[1] + beta[2]),
         })
     }
@@ -276,7 +272,7 @@ impl Trend {
 
 /// The onset of a change of rate (`τ`, days from the newest run), when the
 /// hinge is significant (see the module doc); `None` otherwise.
-fn onset(tau: &[f64], pts: &[RunPoint], w: &[f64]) -> Option<f64> {
+fn onset(tau: &[f64], pts: &[RunPoint], w: &[f64]) -> Option<Onset> {
     let n = tau.len();
     if n < MIN_RUNS + 2 + 1 {
         return None;
@@ -303,23 +299,151 @@ fn onset(tau: &[f64], pts: &[RunPoint], w: &[f64]) -> Option<f64> {
         .collect();
     candidates.sort_by(f64::total_cmp);
     candidates.dedup();
-    let (best, s_k) = candidates
+    let tried: Vec<(f64, f64)> = candidates
         .iter()
-        .filter_map(|&k| {
-            let x: Vec<Vec<f64>> = tau
-                .iter()
-                .map(|&t| vec![1.0, t, (t - k).min(0.0)])
-                .collect();
-            sse(&x).map(|s| (k, s))
-        })
-        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        .filter_map(|&k| sse(&hinge_design(tau, k)).map(|s| (k, s)))
+        .collect();
+    let &(best, s_k) = tried.iter().min_by(|a, b| a.1.total_cmp(&b.1))?;
     let dof = (n - 3) as f64;
     if !(s_k > 0.0 && s1 > s_k) {
         return None;
     }
     let f = (s1 - s_k) / (s_k / dof);
     let p = FisherSnedecor::new(1.0, dof).ok().map(|d| d.sf(f))?;
-    (p < ONSET_ALPHA / candidates.len() as f64).then_some(best)
+    (p < ONSET_ALPHA / candidates.len() as f64).then_some(Onset { best, tried })
+}
+
+/// A significant change of rate: the onset kept and every onset tried with
+/// its weighted residual sum of squares.
+struct Onset {
+    best: f64,
+    tried: Vec<(f64, f64)>,
+}
+
+/// The hinged line's design at onset `k` (days from the newest run).
+fn hinge_design(tau: &[f64], k: f64) -> Vec<Vec<f64>> {
+    tau.iter()
+        .map(|&t| vec![1.0, t, (t - k).min(0.0)])
+        .collect()
+}
+
+/// The robust fit of design `x`: `β` and its covariance (see the module
+/// doc); `None` when singular.
+fn scaled_fit(
+    x: &[Vec<f64>],
+    pts: &[RunPoint],
+    base_w: &[f64],
+) -> Option<(Vec<f64>, DMatrix<f64>, Vec<f64>)> {
+    let (beta, _, robust) = robust_fit(x, pts, base_w)?;
+    let (_, inv) = wls(x, pts, base_w, &vec![1.0; pts.len()])?;
+    let z: Vec<f64> = (0..pts.len())
+        .map(|i| (pts[i].pressure_bar - dot(&x[i], &beta)) * base_w[i].sqrt())
+        .collect();
+    Some((beta.clone(), inv * huber_variance(&z, beta.len()), robust))
+}
+
+/// The variance factor of a Huber M-estimate from its standardised
+/// residuals `z` and `p` parameters: Huber's (1981, §7.6) "H1",
+/// `K² · s² · Σψ(u)² / (n − p) / (mean ψ'(u))²` with `u = z / s`, `s` the
+/// residuals' MAD scale and `K = 1 + (p / n) · var ψ' / (mean ψ')²` (as
+/// `statsmodels`' `RLM` with `cov = "H1"`). With no residual beyond
+/// [`HUBER_K`] it is the weighted least squares' `Σ z² / (n − p)`. The
+/// weighted residuals of the last reweighted fit, used before, shrink with
+/// every point the reweighting trims: the slope's 95 % interval of a
+/// straight line with normal scatter covered 91 % (now 93 %; weighted least
+/// squares, untrimmed, 94 % on the same draws).
+fn huber_variance(z: &[f64], p: usize) -> f64 {
+    let n = z.len();
+    if n <= p {
+        return f64::NAN;
+    }
+    let classical = z.iter().map(|v| v * v).sum::<f64>() / (n - p) as f64;
+    let mut abs: Vec<f64> = z.iter().map(|v| v.abs()).collect();
+    abs.sort_by(f64::total_cmp);
+    let mut s = median(&abs) / 0.6745;
+    if s <= f64::EPSILON * 1e3 {
+        return classical;
+    }
+    // Huber's proposal 2 from the MAD: s² = Σ ψ(z/s)² s² / ((n − p) β),
+    // β = E ψ(N(0,1))², more efficient than the MAD alone
+    let beta = huber_beta();
+    for _ in 0..50 {
+        let sum: f64 = z
+            .iter()
+            .map(|v| (v / s).clamp(-HUBER_K, HUBER_K).powi(2))
+            .sum();
+        let next = s * (sum / ((n - p) as f64 * beta)).sqrt();
+        let done = (next - s).abs() <= 1e-10 * s;
+        s = next;
+        if done {
+            break;
+        }
+    }
+    let inside: Vec<bool> = z.iter().map(|v| v.abs() / s <= HUBER_K).collect();
+    let m = inside.iter().filter(|&&i| i).count() as f64 / n as f64;
+    if m == 0.0 {
+        return classical;
+    }
+    let var_dpsi = m * (1.0 - m);
+    let k = 1.0 + p as f64 / n as f64 * var_dpsi / (m * m);
+    let psi2: f64 = z
+        .iter()
+        .map(|v| (v / s).clamp(-HUBER_K, HUBER_K).powi(2))
+        .sum();
+    k * k * s * s * psi2 / (n - p) as f64 / (m * m)
+}
+
+/// The covariance of `(a, b)` at the onset kept, widened for not knowing
+/// the onset: averaged over every onset tried, each with its own fit's
+/// covariance plus the outer product of how far its `(a, b)` lie from the
+/// kept one's, weighted by its likelihood relative to the best,
+/// `(S_best / S_k)^{n/2}` (Akaike weights of models with as many
+/// parameters; Buckland, Burnham & Augustin 1997, the "unconditional"
+/// variance of a selected model). Conditional on the onset found, the rate's
+/// interval covered a simulated late leak's true rate 84 % of the time where
+/// it says 95 % (with [`huber_variance`]: 92 %). `None` if no onset's fit is
+/// regular.
+fn onset_averaged_cov(
+    tau: &[f64],
+    pts: &[RunPoint],
+    base_w: &[f64],
+    onset: &Onset,
+    kept: &[f64],
+) -> Option<[[f64; 2]; 2]> {
+    let n = pts.len() as f64;
+    let s_best = onset
+        .tried
+        .iter()
+        .map(|t| t.1)
+        .fold(f64::INFINITY, f64::min);
+    let mut sum_w = 0.0;
+    let mut cov = [[0.0; 2]; 2];
+    for &(k, s_k) in &onset.tried {
+        let w = (0.5 * n * (s_best / s_k).ln()).exp();
+        if w.is_nan() || w <= 1e-6 {
+            continue;
+        }
+        let Some((beta, v, _)) = scaled_fit(&hinge_design(tau, k), pts, base_w) else {
+            continue;
+        };
+        let d = [beta[0] - kept[0], beta[1] - kept[1]];
+        for (r, row) in cov.iter_mut().enumerate() {
+            for (c, x) in row.iter_mut().enumerate() {
+                *x += w * (v[(r, c)] + d[r] * d[c]);
+            }
+        }
+        sum_w += w;
+    }
+    (sum_w > 0.0 && cov.iter().flatten().all(|x| x.is_finite()))
+        .then(|| cov.map(|row| row.map(|x| x / sum_w)))
+}
+
+/// `E ψ(u)²` for `u ~ N(0, 1)` and Huber's `ψ` at [`HUBER_K`].
+fn huber_beta() -> f64 {
+    use statrs::distribution::{Continuous, Normal};
+    let nd = Normal::new(0.0, 1.0).expect("the standard normal");
+    let k = HUBER_K;
+    (2.0 * nd.cdf(k) - 1.0) - 2.0 * k * nd.pdf(k) + 2.0 * k * k * nd.sf(k)
 }
 
 fn dot(x: &[f64], beta: &[f64]) -> f64 {
@@ -535,6 +659,52 @@ mod tests {
             found as f64 <= ONSET_ALPHA * f64::from(trials),
             "{found} of {trials} straight lines given an onset"
         );
+    }
+
+    /// The rate's 95 % interval covers the true rate about 95 % of the time:
+    /// 2,000 straight leaks and 2,000 late ones (ten days at 12 bar, then
+    /// four losing 1.5 bar/day), each run's error normal. It covered 91 %
+    /// and 83 % before the Huber covariance and the averaging over onsets.
+    #[test]
+    fn the_rates_interval_covers_the_true_rate() {
+        use rand::SeedableRng as _;
+        use rand_distr::{Distribution as _, Normal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let normal = Normal::new(0.0, 0.4).unwrap();
+        let trials = 2000;
+        let (mut straight, mut late, mut fault) = (0, 0, 0);
+        for _ in 0..trials {
+            let run = |i: i32, bar: f64, e: f64| RunPoint {
+                t_unix_s: 1.7e9 + f64::from(i) * DAY_S,
+                pressure_bar: bar + e,
+                sd_bar: 1.5,
+            };
+            let pts: Vec<RunPoint> = (0..15)
+                .map(|i| run(i, 12.0 - 0.5 * f64::from(i), normal.sample(&mut rng)))
+                .collect();
+            let (lo, hi) = Trend::fit(&pts).unwrap().slope_interval();
+            straight += usize::from(lo < -0.5 && -0.5 < hi);
+            let pts: Vec<RunPoint> = (0..15)
+                .map(|i| {
+                    let bar = 12.0 - 1.5 * f64::from((i - 10).max(0));
+                    run(i, bar, normal.sample(&mut rng))
+                })
+                .collect();
+            let tr = Trend::fit(&pts).unwrap();
+            let (lo, hi) = tr.slope_interval();
+            late += usize::from(tr.onset_unix_s.is_some() && lo < -1.5 && -1.5 < hi);
+            let truth = 1.7e9 + (10.0 + 7.0 / 1.5) * DAY_S;
+            let c = tr.crossing(5.0);
+            fault += usize::from(
+                c.lo_unix_s.is_some_and(|l| l < truth) && c.hi_unix_s.is_some_and(|h| truth < h),
+            );
+        }
+        let share = |k: usize| k as f64 / f64::from(trials);
+        let (straight, late, fault) = (share(straight), share(late), share(fault));
+        println!("rate covered: straight {straight:.3}, late {late:.3}; fault time {fault:.3}");
+        for (what, got) in [("straight", straight), ("late", late), ("fault", fault)] {
+            assert!((0.925..=0.975).contains(&got), "{what}: {got}");
+        }
     }
 
     #[test]
