@@ -43,3 +43,11 @@ def test_docstring_examples_run(name):
     runner.run(test)
     result = runner.summarize(verbose=False)
     assert result.failed == 0, f"{name}: {result.failed} of {result.attempted} examples failed"
+
+
+@pytest.mark.parametrize("cls", [shocktwin.KalmanFilter, shocktwin.ForceModel, shocktwin.ThermalModel])
+def test_the_signatures_show_the_defaults(cls):
+    """``help`` and ``inspect.signature`` show each parameter's default (pyo3 wrote ``...``
+    for an expression), and they are the defaults the constructor uses."""
+    shown = {n: p.default for n, p in inspect.signature(cls).parameters.items()}
+    assert shown == cls().params

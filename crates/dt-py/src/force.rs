@@ -79,6 +79,11 @@ impl Inputs {
 #[pymethods]
 impl PyForceModel {
     #[new]
+    // the defaults as Python shows them (`help`, `inspect.signature`), which
+    // pyo3 writes as `...` for an expression; a test holds them to `params`
+    #[pyo3(
+        text_signature = "(*, k_leak_reb=533.0, k_leak_com=270.0, f_preload_reb=600.0, f_preload_com=300.0, k_spring_reb=2000.0, k_spring_com=400.0, k_main_reb=670.0, k_main_com=150.0, k_tr=2.0, k_hys=2.0, nu_40=15.0, beta=0.02, charge_bar=12.0, a_rod=0.00031415926535897936, v_gas=0.0001)"
+    )]
     #[pyo3(signature = (
         *,
         k_leak_reb = ForceParams::default().k_leak_reb,

@@ -31,6 +31,9 @@ pub(crate) struct PyKalmanFilter {
 #[pymethods]
 impl PyKalmanFilter {
     #[new]
+    // the defaults as Python shows them (`help`, `inspect.signature`), which
+    // pyo3 writes as `...` for an expression; a test holds them to `params`
+    #[pyo3(text_signature = "(sigma_accel=0.2, sigma_bias=0.005, sigma_position=0.001)")]
     #[pyo3(signature = (
         sigma_accel = KalmanParams::default().sigma_accel,
         sigma_bias = KalmanParams::default().sigma_bias,

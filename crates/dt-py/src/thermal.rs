@@ -32,6 +32,11 @@ pub(crate) struct PyThermalModel {
 #[pymethods]
 impl PyThermalModel {
     #[new]
+    // the defaults as Python shows them (`help`, `inspect.signature`), which
+    // pyo3 writes as `...` for an expression; a test holds them to `params`
+    #[pyo3(
+        text_signature = "(*, c_oil=500.0, c_cyl=700.0, ha_in=10.0, ha_out=2.5, eps_sigma_a=2.3e-09, tc_gain=1.0, tc_lag_s=0.0)"
+    )]
     #[pyo3(signature = (
         *,
         c_oil = ThermalParams::default().c_oil,
