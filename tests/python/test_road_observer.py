@@ -530,6 +530,20 @@ def test_the_daemon_reads_a_road_asset_with_the_road_observer(shocktwin_bin: Pat
         assert states == {"ok": 0.0, "low": 0.0, "leak": 1.0, "unknown": 0.0}, text
         shown = re.search(r'^shocktwin_asset_pressure_bar\{asset="dyno-unit-A"\} (\S+)$', text, re.M)
         assert shown and float(shown.group(1)) == pytest.approx(asset["pressure_avg_bar"], abs=1e-9), text
+        # A dyno sine run of the road asset is refused naming its excitation, as `shocktwin road`
+        # and `replay --road` do (the daemon read it as a drive: a helper's trial, sixty-second session)
+        subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--pressures", "6", "--frequencies", "1",
+                        "--out", str(tmp_path / "dyno")], check=True, capture_output=True)
+        sine = next((tmp_path / "dyno").glob("*.mcap"))
+        proc = subprocess.run([str(shocktwin_bin), "replay", "--model", str(FIXTURE_BUNDLE), "--road", str(road_model[1]),
+                               "--out", str(tmp_path / "sine.csv"), str(sine)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 1 and f"{sine}: run `{sine.stem}` is a dyno run (excitation" in proc.stderr, proc.stderr
+        (inbox / sine.name).write_bytes(sine.read_bytes())
+        reason = inbox / "failed" / f"{sine.name}.reason.txt"
+        deadline = time.monotonic() + 60
+        while not reason.exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert reason.exists() and "is a dyno run (excitation" in reason.read_text(), list(inbox.rglob("*"))
     finally:
         daemon.terminate()
         daemon.wait(timeout=30)

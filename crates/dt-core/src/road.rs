@@ -1120,6 +1120,27 @@ fn lfilter_step(b: &[f64], a: &[f64], zi: &mut [Vec<f64>], f: &[f64], out: &mut 
     }
 }
 
+/// Refuses a run whose metadata says it is a dyno sine run (`excitation`
+/// `sine …`): the road observer reads road drives, and read a healthy 6 bar
+/// unit's 1 Hz sine as `leak` (sixty-second session). The batch
+/// [`read_run`] and the daemon's road assets both ask.
+///
+/// # Errors
+/// [`PhysicsError::NotARoadRun`], naming the run and its excitation.
+pub fn refuse_dyno_run(meta: &crate::log::RunMetadata) -> Result<(), PhysicsError> {
+    match meta
+        .excitation
+        .as_deref()
+        .filter(|e| e.trim_start().to_ascii_lowercase().starts_with("sine"))
+    {
+        Some(excitation) => Err(PhysicsError::NotARoadRun {
+            run_id: meta.run_id.clone(),
+            excitation: excitation.to_owned(),
+        }),
+        None => Ok(()),
+    }
+}
+
 /// Every block of a recorded run, read as the stream would be (then
 /// [`RoadObserver::finish`]).
 ///
@@ -1145,17 +1166,7 @@ pub fn read_run_counted(
     cal: &RoadCalibration,
     health: HealthConfig,
 ) -> Result<(Vec<RoadBlock>, RoadCounters), PhysicsError> {
-    if let Some(excitation) = log
-        .metadata
-        .excitation
-        .as_deref()
-        .filter(|e| e.trim_start().to_ascii_lowercase().starts_with("sine"))
-    {
-        return Err(PhysicsError::NotARoadRun {
-            run_id: log.metadata.run_id.clone(),
-            excitation: excitation.to_owned(),
-        });
-    }
+    refuse_dyno_run(&log.metadata)?;
     let missing: Vec<String> = [
         ("/acceleration", log.acceleration.is_empty()),
         ("/position", log.position.is_empty()),

@@ -241,6 +241,15 @@ impl Model {
     }
 }
 
+/// With `--road`: a dyno sine run is refused ([`dt_core::road::refuse_dyno_run`]).
+fn refuse_dyno_run(file: &Path, est: &Estimator, meta: &RunMetadata) -> Result<()> {
+    if est.road().is_some() {
+        dt_core::road::refuse_dyno_run(meta)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    }
+    Ok(())
+}
+
 /// Replays one file: as it is read when it is clean and in order
 /// ([`replay_streaming`]), else the whole-file way, which sorts the samples
 /// and reports what it skipped.
@@ -688,6 +697,7 @@ fn replay_events(
         let s = match item {
             Decoded::Sample(s) => s,
             Decoded::Metadata(m) => {
+                refuse_dyno_run(file, &est, &m)?;
                 if out.format == Format::Mcap {
                     writer = Some(LogWriter::create(
                         (out.mcap_out)(&m.run_id),
@@ -760,6 +770,7 @@ fn replay_whole(
         tracing::warn!(file = %file.display(), "{problem}");
     }
     let mut est = model.estimator(cfg, &file.display().to_string())?;
+    refuse_dyno_run(file, &est, &log.metadata)?;
     let mut rows = Rows::new(
         out.format,
         out.table.as_deref_mut(),

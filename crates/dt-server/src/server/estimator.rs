@@ -130,6 +130,10 @@ impl TwinFactory for EstimatorFactory {
         asset: &AssetConfig,
     ) -> Result<Box<dyn AssetTwin>, TwinError> {
         let mut est = self.estimator_of(&meta.asset_id, asset)?;
+        if est.road().is_some() {
+            // a dyno run of a road asset is refused, as `shocktwin road` does
+            dt_core::road::refuse_dyno_run(meta)?;
+        }
         let mut service = None;
         if let Some(s) = asset.read_service {
             // a road asset's unit is read by the road observer (its blocks),
