@@ -237,7 +237,7 @@ impl LiveState {
                 AssetView {
                     summary,
                     history: VecDeque::new(),
-                    shown_ms: last.map_or(i64::MIN, |p| p.t_ms),
+                    shown_ms: st.shown_ms.unwrap_or(i64::MIN),
                 },
             );
         }

@@ -437,9 +437,28 @@ async fn a_clock_ahead_of_the_gateway_does_not_hide_later_uploads() {
     })
     .await;
     assert_eq!(shown().await.unwrap().0, "later");
-    d.stop().await;
     // and so after a restart, from the fleet store
+    let first = good_stream("first-ahead", "wrong-date", now_ns + 5 * hour_ns, 1500);
+    drop_file(&inbox, "first.mcap", &first.bytes);
+    wait_until("a wrong date first", || async {
+        shown_by(&d, "first-ahead")
+            .await
+            .is_some_and(|(_, n)| n == first.ticks)
+    })
+    .await;
+    d.stop().await;
     let d = Daemon::start(config).await;
     assert_eq!(shown_by(&d, "ahead").await, Some(("later".into(), ticks)));
+    // an asset whose only data is ahead does not hide its next upload after a restart
+    let next = good_stream("first-ahead", "next", now_ns - hour_ns, 1500);
+    drop_file(&inbox, "next.mcap", &next.bytes);
+    let both = first.ticks + next.ticks;
+    wait_until("the next upload", || async {
+        shown_by(&d, "first-ahead")
+            .await
+            .is_some_and(|(_, n)| n == both)
+    })
+    .await;
+    assert_eq!(shown_by(&d, "first-ahead").await.unwrap().0, "next");
     d.stop().await;
 }

@@ -237,8 +237,12 @@ pub struct AssetState {
     pub asset_id: String,
     /// Its latest run.
     pub run_id: String,
-    /// Latest 1 s point, if any.
+    /// Latest 1 s point, if any (one dated ahead of the gateway's clock only
+    /// when there is no other, [`FUTURE_SLACK_MS`]).
     pub last: Option<HistoryPoint>,
+    /// Calendar ms of the latest 1 s point not dated ahead of the gateway's
+    /// clock: what an upload must not be older than to show.
+    pub shown_ms: Option<i64>,
     /// Ticks over every run.
     pub ticks: u64,
     /// Latest run's status and reason.

@@ -140,8 +140,9 @@ impl Trends {
 /// leak rate's interval and moved the fault date (sixty-second session, a
 /// helper trying the daemon). A completed copy wins, then the newest. A run
 /// whose reading is dated after `future_ms` (a logger's clock ahead of this
-/// gateway's, [`super::FUTURE_SLACK_MS`]) cannot be placed and is left out:
-/// days ahead, it would set the leak rate alone.
+/// gateway's, [`super::FUTURE_SLACK_MS`]) cannot be placed and is left out
+/// (days ahead, it would set the leak rate alone) until the wall clock
+/// passes its date.
 fn one_point_per_run(
     runs: impl Iterator<Item = RunRecord>,
     future_ms: i64,

@@ -509,7 +509,8 @@ impl FleetStore for SqliteStore {
                 "SELECT a.asset_id, r.run_id, r.status, r.reason, \
                    (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
                    s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited, \
-                   r.observer, r.road, r.simulated \
+                   r.observer, r.road, r.simulated, \
+                   (SELECT max(t_ms) FROM samples WHERE asset = a.id AND t_ms <= ?1) \
                  FROM assets a \
                  LEFT JOIN runs r ON r.key = \
                    (SELECT key FROM runs WHERE asset = a.id \
@@ -520,8 +521,9 @@ impl FleetStore for SqliteStore {
                    (SELECT max(t_ms) FROM samples WHERE asset = a.id)) \
                  ORDER BY a.asset_id",
             )?;
-            // What lies ahead of this gateway's clock is the asset's newest
-            // only when nothing else is (as the live view orders it).
+            // What lies ahead of this gateway's clock is shown only when the
+            // asset has nothing else, and never orders what an upload must
+            // not be older than (`shown_ms`).
             let future_ms = super::wall_now_ms().saturating_add(super::FUTURE_SLACK_MS);
             let rows = stmt.query_map([future_ms], |r| {
                 let t_ms: Option<i64> = r.get(5)?;
@@ -536,6 +538,7 @@ impl FleetStore for SqliteStore {
                     last_run_road: road_from(r.get(12)?),
                     simulated: r.get(13)?,
                     ticks: r.get::<_, i64>(4)?.max(0) as u64,
+                    shown_ms: r.get(14)?,
                     last: if t_ms.is_some() {
                         Some(point_from_row(r, 5)?)
                     } else {
