@@ -50,6 +50,8 @@ where
     let (tx, mut rx) = sync_channel(1);
     std::thread::Builder::new()
         .name("shocktwin-call".into())
+        // the caller's thread it ran on before had the main thread's 8 MiB
+        .stack_size(8 << 20)
         .spawn(move || {
             // the caller may be gone (interrupted): nothing to tell
             let _ = tx.send(catch_unwind(AssertUnwindSafe(f)));
