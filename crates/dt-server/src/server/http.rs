@@ -623,7 +623,7 @@ async fn put_baseline(
             .collect(),
     };
     for (field, bar) in charges {
-        if let Err(e) = charge_in_range(field, bar) {
+        if let Err(e) = super::config::charge_in_range(field, bar) {
             return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}"));
         }
     }
@@ -654,29 +654,6 @@ async fn delete_baseline(State(app): State<AppState>, Path(id): Path<String>) ->
     Json(serde_json::json!({ "baseline": now })).into_response()
 }
 
-/// The highest gas charge a service may report, bar gauge (monotube dampers
-/// are charged to about 5–30 bar).
-const MAX_CHARGE_BAR: f64 = 60.0;
-/// One psi in bar.
-const PSI_BAR: f64 = 0.068_947_572_9;
-
-/// Why `bar`, a charge a service or a baseline reports as `field`, is not a
-/// damper's gas charge: not finite, negative, or above [`MAX_CHARGE_BAR`]
-/// (a charge in psi taken as bar was accepted: a helper's trial sent 174).
-fn charge_in_range(field: &str, bar: f64) -> Result<(), String> {
-    if bar.is_finite() && bar > MAX_CHARGE_BAR {
-        Err(format!(
-            "{field} {bar} bar is above any damper's gas charge (≤ {MAX_CHARGE_BAR} bar gauge); \
-             in psi it would be {:.1} bar",
-            bar * PSI_BAR
-        ))
-    } else if bar.is_finite() && bar >= 0.0 {
-        Ok(())
-    } else {
-        Err(format!("{field} {bar} must be a finite charge ≥ 0 bar"))
-    }
-}
-
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ServiceBody {
@@ -704,7 +681,7 @@ async fn put_service(
         return r;
     }
     let (charge_bar, at) = match serde_json::from_slice::<ServiceBody>(&body) {
-        Ok(b) => match charge_in_range("charge_bar", b.charge_bar) {
+        Ok(b) => match super::config::charge_in_range("charge_bar", b.charge_bar) {
             Ok(()) => (b.charge_bar, b.at),
             Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
         },
