@@ -647,17 +647,10 @@ fn check_asset(key: &str, a: &AssetConfig) -> Result<(), ServeError> {
         });
     }
     if let Some(b) = &a.observer_baseline {
-        let charges = std::iter::once(("charge_bar", b.charge_bar)).chain(
-            b.second
-                .as_ref()
-                .map(|s| ("second.charge_bar", s.charge_bar)),
-        );
-        for (field, bar) in charges {
-            charge_in_range(field, bar).map_err(|reason| ServeError::Invalid {
-                key: format!("{key}.observer_baseline"),
-                reason,
-            })?;
-        }
+        baseline_charges_in_range(b).map_err(|reason| ServeError::Invalid {
+            key: format!("{key}.observer_baseline"),
+            reason,
+        })?;
         if key == "defaults" {
             return Err(ServeError::Invalid {
                 key: format!("{key}.observer_baseline"),
@@ -693,6 +686,14 @@ pub(crate) fn charge_in_range(field: &str, bar: f64) -> Result<(), String> {
     } else {
         Err(format!("{field} {bar} must be a finite charge ≥ 0 bar"))
     }
+}
+
+/// [`charge_in_range`] for a baseline's charge and its second reading's.
+pub(crate) fn baseline_charges_in_range(b: &UnitBaseline) -> Result<(), String> {
+    charge_in_range("charge_bar", b.charge_bar)?;
+    b.second.as_ref().map_or(Ok(()), |s| {
+        charge_in_range("second.charge_bar", s.charge_bar)
+    })
 }
 
 #[cfg(test)]

@@ -613,19 +613,11 @@ async fn put_baseline(
         Err(e) => return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}")),
     };
     let charges = match &baseline {
-        AssetBaseline::Road(r) => vec![("charge_bar", r.charge_bar)],
-        AssetBaseline::Observer(u) => std::iter::once(("charge_bar", u.charge_bar))
-            .chain(
-                u.second
-                    .as_ref()
-                    .map(|s| ("second.charge_bar", s.charge_bar)),
-            )
-            .collect(),
+        AssetBaseline::Road(r) => super::config::charge_in_range("charge_bar", r.charge_bar),
+        AssetBaseline::Observer(u) => super::config::baseline_charges_in_range(u),
     };
-    for (field, bar) in charges {
-        if let Err(e) = super::config::charge_in_range(field, bar) {
-            return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}"));
-        }
+    if let Err(e) = charges {
+        return error(StatusCode::UNPROCESSABLE_ENTITY, format!("body: {e}"));
     }
     if let Some(r) = refuse_here(&app, &id, &baseline) {
         return r;
