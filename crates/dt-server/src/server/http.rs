@@ -622,7 +622,7 @@ async fn put_baseline(
     if let Some(r) = refuse_here(&app, &id, &baseline) {
         return r;
     }
-    let set_ms = now_ms();
+    let set_ms = super::store::wall_now_ms();
     let stored = StoredBaseline { baseline, set_ms };
     if let Err(r) = change_unit(&app, &id, UnitChange::Baseline(Some(stored))).await {
         return r;
@@ -687,7 +687,7 @@ async fn put_service(
             )
         }
     };
-    let now = now_ms();
+    let now = super::store::wall_now_ms();
     let set_ms = match at.as_deref().map(parse_time_ms) {
         None => now,
         Some(Ok(t)) if t <= now + 60_000 => t,
@@ -798,12 +798,6 @@ async fn change_unit(app: &AppState, id: &str, change: UnitChange) -> Result<(),
         Ok(())
     })
     .await
-}
-
-fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(SystemTime::UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
 }
 
 #[derive(Debug, Deserialize)]
