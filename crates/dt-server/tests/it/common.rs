@@ -127,14 +127,21 @@ impl Daemon {
         r.text().await.unwrap()
     }
 
-    /// `ticks` of one asset in `GET /v1/assets` (0 if unknown).
-    pub async fn asset_ticks(&self, asset: &str) -> u64 {
+    /// One asset's summary in `GET /v1/assets`, if it is known.
+    pub async fn asset_summary(&self, asset: &str) -> Option<serde_json::Value> {
         let v = self.get_json("/v1/assets").await;
         v["assets"]
             .as_array()
             .unwrap()
             .iter()
             .find(|a| a["asset_id"] == asset)
+            .cloned()
+    }
+
+    /// `ticks` of one asset in `GET /v1/assets` (0 if unknown).
+    pub async fn asset_ticks(&self, asset: &str) -> u64 {
+        self.asset_summary(asset)
+            .await
             .map_or(0, |a| a["ticks"].as_u64().unwrap())
     }
 }

@@ -380,12 +380,8 @@ async fn a_name_dropped_again_does_not_replace_the_first_file() {
 
 /// The run id and ticks `GET /v1/assets` shows for `asset`.
 async fn shown_by(d: &Daemon, asset: &str) -> Option<(serde_json::Value, u64)> {
-    let v = d.get_json("/v1/assets").await;
-    v["assets"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|a| a["asset_id"] == asset)
+    d.asset_summary(asset)
+        .await
         .map(|a| (a["run_id"].clone(), a["ticks"].as_u64().unwrap()))
 }
 
