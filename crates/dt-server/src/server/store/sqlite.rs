@@ -509,15 +509,16 @@ impl FleetStore for SqliteStore {
                 "SELECT a.asset_id, r.run_id, r.status, r.reason, \
                    (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
                    s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited, \
-                   r.observer, r.road, r.simulated, \
-                   (SELECT max(t_ms) FROM samples WHERE asset = a.id AND t_ms <= ?1) \
-                 FROM assets a \
+                   r.observer, r.road, r.simulated, a.shown_ms \
+                 FROM (SELECT id, asset_id, \
+                         (SELECT max(t_ms) FROM samples WHERE asset = assets.id AND t_ms <= ?1) \
+                           AS shown_ms \
+                       FROM assets) a \
                  LEFT JOIN runs r ON r.key = \
                    (SELECT key FROM runs WHERE asset = a.id \
                     ORDER BY coalesce(end_ms, start_ms) > ?1, \
                       coalesce(end_ms, start_ms) DESC, rowid DESC LIMIT 1) \
-                 LEFT JOIN samples s ON s.asset = a.id AND s.t_ms = coalesce( \
-                   (SELECT max(t_ms) FROM samples WHERE asset = a.id AND t_ms <= ?1), \
+                 LEFT JOIN samples s ON s.asset = a.id AND s.t_ms = coalesce(a.shown_ms, \
                    (SELECT max(t_ms) FROM samples WHERE asset = a.id)) \
                  ORDER BY a.asset_id",
             )?;
