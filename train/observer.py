@@ -59,7 +59,8 @@ charge was set or gauged): what the observer reads over the given runs and how s
 from their reversals alone, written as the unit's ``observer_baseline`` (dt-core
 ``UnitBaseline``) for ``shocktwin replay --observer-baseline`` and the daemon's
 ``[assets.<id>] observer_baseline``. The observer then conditions the unit's systematic
-offset and gain on it (``evaluate --baseline SET=FILE`` scores with it).
+offset and gain on it (``evaluate --baseline SET=FILE`` scores with it). Runs at several
+excitations give one reading per excitation, and a later run is corrected by the nearest.
 
 The data are simulated (``shocktwin simulate``); the report and figures say so.
 """
@@ -1133,6 +1134,8 @@ FIT_GAIN_FLOOR = 1e-4
 # the systematic part) below this share of the prior's.
 BASELINE_MAX_SD_SHARE = 0.25
 BASELINE_SETTLE_S = 60.0  # as `evaluate --settle-s`
+# readings a baseline holds at other excitations than its own (dt-core charge::OTHER_EXCITATIONS)
+OTHER_EXCITATIONS = 3
 
 
 def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: float,
@@ -1161,12 +1164,26 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     ``second``: ``(charge, runs)``, the same unit's runs at another known charge (an
     end-of-line test at two charges), read the same way into the baseline's ``second``
     reading (dt-core ``UnitBaseline::second``); with ``unit_law`` the law is refitted on the
-    runs at both charges."""
+    runs at both charges.
+
+    Runs at several excitations give one reading per excitation (``excitation_groups``: their
+    used reversals' ``|ÿ_r|`` ranges within the calibration's ``accel_cluster_rel`` of each
+    other): the first run's is the baseline's own, the others its ``other_excitations`` (dt-core
+    ``UnitBaseline::other_excitations``), each with its own ``second`` from the runs at the second
+    charge at its excitation. A unit's error moves with the excitation by an amount of its own
+    (docs/history.md, "Sixty-fifth session"): one reading averaged over two excitations would
+    correct neither."""
     obs = physics["observer"]
     if obs.get("baseline"):
         raise SystemExit("the physics already carries a unit baseline: give the model's own")
     fit = None
     all_paths = list(paths) + (list(second[1]) if second else [])
+    seen: dict[Path, Path] = {}
+    for p in all_paths:
+        # one run given twice would be counted as two (its reading's sd divided by √2)
+        if Path(p).resolve() in seen:
+            raise SystemExit(f"{p}: given twice (as {seen[Path(p).resolve()]}): each run counts once in a reading")
+        seen[Path(p).resolve()] = Path(p)
     if unit_law:
         from train.campaign import read_run
         from train.damping_law import unit_law as refit
@@ -1180,26 +1197,57 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     # A unit's reading takes every reversal (as the daemon's service reading does): its sd
     # is what the baseline will condition the unit on.
     physics = {**physics, "observer": {**obs, "fit_gain_floor": 0.0}}
-    first = _reading(physics, paths, jobs, charge_bar, own_law=fit is not None)
-    ob = {"charge_bar": float(charge_bar), "read_bar": first["read_bar"], "read_sd_bar": first["read_sd_bar"]}
-    if first["runs_effective"] > 1.0:
-        ob["runs_averaged"] = first["runs_effective"]  # dt-core UnitBaseline::runs_averaged
-    if first["split_bar"] is not None:
-        ob["split_bar"] = first["split_bar"]  # dt-core UnitBaseline::split_bar
-    ranges = first["ranges"]
-    runs = [{**r, "charge_bar": float(charge_bar)} for r in first["runs"]]
+    obs = physics["observer"]
+    own_law = fit is not None
+    reads = _read_runs(physics, paths, jobs)
+    groups = excitation_groups([r.span for r in reads], obs["accel_cluster_rel"])
+    if len(groups) > 1 + OTHER_EXCITATIONS:
+        raise SystemExit(f"{', '.join(map(str, paths))}: read at {len(groups)} excitations, a baseline holds at most "
+                         f"{1 + OTHER_EXCITATIONS} (dt-core UnitBaseline::other_excitations)")
+    seconds: list[list[int]] = [[] for _ in groups]
+    second_reads: list[BaselineRead] = []
     if second is not None:
-        other = _reading(physics, second[1], jobs, second[0], own_law=fit is not None)
-        # dt-core UnitBaseline::second
-        ob["second"] = {"charge_bar": float(second[0]), "read_bar": other["read_bar"],
-                        "read_sd_bar": other["read_sd_bar"]}
-        if other["runs_effective"] > 1.0:
-            ob["second"]["runs_averaged"] = other["runs_effective"]
-        ranges = ranges + other["ranges"]
-        runs += [{**r, "charge_bar": float(second[0])} for r in other["runs"]]
-    if ranges:
-        # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
-        ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
+        second_reads = _read_runs(physics, second[1], jobs)
+        spans = [[s for s in (reads[i].span for i in grp) if s is not None] for grp in groups]
+        for k, r in enumerate(second_reads):
+            # the excitation whose runs' range holds this run's (within the calibration's band)
+            near = [g for g, sp in enumerate(spans)
+                    if r.span is None or (sp and not away([min(x[0] for x in sp), max(x[1] for x in sp)], r.span,
+                                                          obs["accel_cluster_rel"]))]
+            if not near:
+                raise SystemExit(f"{second[1][k]}: read at |ÿ_r| {r.span[0]:.2f}–{r.span[1]:.2f} m/s², where no run at "
+                                 f"--charge-bar {charge_bar:g} was read: a second reading pairs with a first at its "
+                                 "excitation")
+            seconds[near[0]].append(k)
+    readings, runs = [], []
+    for g, (grp, sec) in enumerate(zip(groups, seconds)):
+        first = _reading(obs, [paths[i] for i in grp], [reads[i] for i in grp], charge_bar, own_law=own_law)
+        ob = {"charge_bar": float(charge_bar), "read_bar": first["read_bar"], "read_sd_bar": first["read_sd_bar"]}
+        if first["runs_effective"] > 1.0:
+            ob["runs_averaged"] = first["runs_effective"]  # dt-core UnitBaseline::runs_averaged
+        if first["split_bar"] is not None:
+            ob["split_bar"] = first["split_bar"]  # dt-core UnitBaseline::split_bar
+        ranges = first["ranges"]
+        runs += [{**r, "charge_bar": float(charge_bar), "excitation": g} for r in first["runs"]]
+        if sec:
+            other = _reading(obs, [second[1][k] for k in sec], [second_reads[k] for k in sec], second[0],
+                             own_law=own_law)
+            # dt-core UnitBaseline::second
+            ob["second"] = {"charge_bar": float(second[0]), "read_bar": other["read_bar"],
+                            "read_sd_bar": other["read_sd_bar"]}
+            if other["runs_effective"] > 1.0:
+                ob["second"]["runs_averaged"] = other["runs_effective"]
+            ranges = ranges + other["ranges"]
+            runs += [{**r, "charge_bar": float(second[0]), "excitation": g} for r in other["runs"]]
+        if ranges:
+            # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
+            ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
+        readings.append(ob)
+    ob = readings[0]
+    if len(readings) > 1:
+        # one reading per excitation (dt-core UnitBaseline::other_excitations): a run is
+        # corrected by the one nearest its excitation
+        ob["other_excitations"] = readings[1:]
     out = {"observer_baseline": ob, "runs": runs,
            "note": "one unit's reading at a known charge (simulated data when made from shocktwin simulate)"}
     if fit is not None:
@@ -1216,20 +1264,51 @@ def reading_var(obs: dict[str, Any], m: float, sd: float, floor: float = 1e-4) -
     return max(sd ** 2 - obs["systematic_sd_bar"] ** 2 - (obs["systematic_rel"] * m) ** 2, floor)
 
 
-def _reading(physics: dict[str, Any], paths: Sequence[Path], jobs: int, charge_bar: float,
-             own_law: bool = False) -> dict[str, Any]:
-    """One reading of a unit at one known charge for ``baseline_of``: each run's reading,
-    combined by inverse variance; the runs, and the ``|ÿ_r|`` range of each run's reversals.
-    ``own_law``: the unit is read with its own damping law (``--unit-law``); without it, a
-    reading refused for too few reversals suggests it."""
-    obs = physics["observer"]
+def _read_runs(physics: dict[str, Any], paths: Sequence[Path], jobs: int) -> list[BaselineRead]:
+    """Each run's reading of a unit for ``baseline_of``; a run read at an excitation with a
+    model of its own is refused."""
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         reads = list(pool.map(_baseline_read, [(str(p), physics) for p in paths]))
     for path, r in zip(paths, reads):
         if r.own:
             raise SystemExit(f"{path}: {r.own} of its reversals were read at an excitation with a measurement model of "
                              "its own, which a baseline does not condition (dt-core UnitBaseline): take the baseline "
-                             "at one of the shared model's excitations (the calibration's 1 Hz run is one)")
+                             "at one of the shared model's excitations (the calibration's 1 Hz run is one; leave this "
+                             "run out, the others make the baseline)")
+    return reads
+
+
+def excitation_groups(spans: Sequence[Sequence[float] | None], rel: float) -> list[list[int]]:
+    """The runs (their indices) grouped by excitation: by their used reversals' ``|ÿ_r|`` ranges
+    (``spans``), runs whose ranges lie within ``rel`` of each other's together. The group of the
+    first run comes first (the baseline's own reading), the others by excitation; a run without a
+    range joins the first group (its reading is refused there for want of reversals)."""
+    ranged = sorted((i for i, s in enumerate(spans) if s is not None), key=lambda i: spans[i][0])
+    groups: list[list[int]] = []
+    hi = -np.inf
+    for i in ranged:
+        lo_i, hi_i = spans[i]
+        if groups and lo_i <= hi * (1.0 + rel):
+            groups[-1].append(i)
+            hi = max(hi, hi_i)
+        else:
+            groups.append([i])
+            hi = hi_i
+    unranged = [i for i, s in enumerate(spans) if s is None]
+    if not groups:
+        return [unranged]
+    first = next((k for k, g in enumerate(groups) if 0 in g), 0)
+    groups.insert(0, groups.pop(first))
+    groups[0] = sorted(groups[0] + unranged)
+    return groups
+
+
+def _reading(obs: dict[str, Any], paths: Sequence[Path], reads: Sequence[BaselineRead], charge_bar: float,
+             own_law: bool = False) -> dict[str, Any]:
+    """One reading of a unit at one known charge and excitation for ``baseline_of``: the runs'
+    readings (``_read_runs``) combined by inverse variance; the runs, and the ``|ÿ_r|`` range of
+    each run's reversals. ``own_law``: the unit is read with its own damping law
+    (``--unit-law``); without it, a reading refused for too few reversals suggests it."""
     ranges = [r.span for r in reads if r.span is not None]
     splits = np.array([r.split_bar for r in reads])
     reads = [(r.read_bar, r.sd_bar, r.drift_bar) for r in reads]
@@ -1912,13 +1991,24 @@ def cmd_baseline(args: argparse.Namespace) -> int:
         print(f"the unit's own damping law from {u['windows']} reversal windows: median residual at the two ends "
               f"of the stroke (ÿ > 0 / ÿ < 0) {fmt(u['residual_before_mps2'])} m/s² with the calibration's law, "
               f"{fmt(u['residual_after_mps2'])} with the unit's")
-    also = ""
-    if "second" in ob:
-        s2 = ob["second"]
-        also = (f", and {s2['read_bar']:.2f} ± {s2['read_sd_bar']:.2f} bar at a known {s2['charge_bar']:g} bar "
-                f"({len(args.second_runs)} run(s))")
-    print(f"unit baseline: read {ob['read_bar']:.2f} ± {ob['read_sd_bar']:.2f} bar at a known "
-          f"{ob['charge_bar']:g} bar ({len(args.runs)} run(s)){also}; wrote {args.out}")
+    runs = b["runs"]
+    for k, r in enumerate([ob] + ob.get("other_excitations", [])):
+        at = (f" at |ÿ_r| {r['accel_range_mps2'][0]:.2f}–{r['accel_range_mps2'][1]:.2f} m/s²"
+              if r.get("accel_range_mps2") else "")
+        n_first = sum(1 for x in runs if x.get("excitation", 0) == k and x["charge_bar"] == r["charge_bar"])
+        also = ""
+        if "second" in r:
+            s2 = r["second"]
+            n_second = sum(1 for x in runs if x.get("excitation", 0) == k and x["charge_bar"] == s2["charge_bar"])
+            also = (f", and {s2['read_bar']:.2f} ± {s2['read_sd_bar']:.2f} bar at a known {s2['charge_bar']:g} bar "
+                    f"({n_second} run(s))")
+        files = ", ".join(x["file"] for x in runs if x.get("excitation", 0) == k)
+        print(f"unit baseline{at}: read {r['read_bar']:.2f} ± {r['read_sd_bar']:.2f} bar at a known "
+              f"{r['charge_bar']:g} bar ({n_first} run(s)){also}" + (" (its own reading)" if k == 0 and len(runs) and
+                                                                   "other_excitations" in ob else "")
+              + f": {files}")
+    print(f"wrote {args.out}" + (f": one reading per excitation, a run is corrected by the nearest"
+                                 if "other_excitations" in ob else ""))
     return 0
 
 
@@ -2025,7 +2115,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("--second-runs", nargs="+", type=Path, default=[], metavar="RUN",
                    help="run logs of that unit at --second-charge-bar (it takes every path after it: give it "
                         "after the runs, or end its list with `--`)")
-    b.add_argument("runs", nargs="+", type=Path, help="run logs of that unit at that charge")
+    b.add_argument("runs", nargs="+", type=Path,
+                   help="run logs of that unit at that charge; runs at several excitations (say 1 and 2 Hz) give one "
+                        "reading each, grouped by their reversals' |ÿ_r| (the calibration's band), the first run's "
+                        "the baseline's own and the others its `other_excitations` (up to 4 excitations in all, each "
+                        "one the shared measurement model reads): a later run is corrected by the nearest")
     t = sub.add_parser("transfer", help="how far a unit's error moves between excitations, from units other than "
                                         "the calibration's (ObserverParams::transfer_bar_per_ln_accel)")
     t.add_argument("--physics", required=True, type=Path, help="physics.json with a calibrated observer")

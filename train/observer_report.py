@@ -332,6 +332,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         name, _, d = spec.partition("=")
         if not d:
             raise SystemExit(f"{spec!r}: a held-out set is NAME=DIR")
+        if name in sets:
+            # `--baseline` takes one SET=FILE: a second one after it is read as a set
+            raise SystemExit(f"{spec!r}: set {name!r} is given twice (its other: {sets[name]}); a baseline is "
+                             "`--baseline SET=FILE`, once per set")
         sets[name] = Path(d)
     baselines = {}
     for spec in args.baseline:

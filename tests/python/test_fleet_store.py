@@ -346,7 +346,7 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     # the file `train.observer baseline` writes, as it is; a bad one names the field
     whole = shocktwin.estimate(run, world["bundle"], observer_baseline=json.loads((tmp_path / "unit.json").read_text()))
     assert np.array_equal(whole["pressure_bar"], est["pressure_bar"], equal_nan=True)
-    with pytest.raises(shocktwin.ParamsError, match=r"observer_baseline: need charge_bar.*missing field `read_sd_bar`"):
+    with pytest.raises(shocktwin.ParamsError, match=r"observer_baseline: missing field `read_sd_bar` \(a baseline needs charge_bar"):
         shocktwin.estimate(run, world["bundle"], observer_baseline={"charge_bar": 12.0, "read_bar": 10.5})
     config = tmp_path / "serve.toml"
     config.write_text("[assets.dyno-unit-A]\nobserver_baseline = { charge_bar = 12.0, read_bar = 10.5, "
@@ -443,8 +443,13 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     # (and a second reading at another known charge: `baseline --second-charge-bar`; each
     # reading of several runs, `runs_averaged`, as `baseline` writes it for several runs)
     second = {"charge_bar": 4.0, "read_bar": 3.4, "read_sd_bar": 0.3, "runs_averaged": 2.5}
+    # (and a reading at another excitation, far from this run's: `baseline` over runs at several
+    # excitations writes one per excitation, each with the range it was read at; this run is
+    # corrected by its own)
+    other = {"charge_bar": 12.0, "read_bar": 9.0, "read_sd_bar": 0.4, "accel_range_mps2": [20.0, 22.0]}
     own = {**doc, "observer_baseline": {**doc["observer_baseline"], "damping_law": law, "second": second,
-                                        "runs_averaged": 3.0}}
+                                        "runs_averaged": 3.0, "accel_range_mps2": [1.3, 7.0],
+                                        "other_excitations": [other]}}
     (tmp_path / "own.json").write_text(json.dumps(own))
     run2 = sorted(world["runs"].glob("*.mcap"))[1]
     with_own = replay_binned(bundle, run2, tmp_path / "o.csv", "--observer-baseline", str(tmp_path / "own.json"))
@@ -464,9 +469,13 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     bad = {**own, "observer_baseline": {**own["observer_baseline"], "second": {**second, "read_sd_bar": -1}}}
     r = httpx.put(url, json=bad)
     assert r.status_code == 422 and "observer.baseline.second.read_sd_bar" in r.json()["error"], r.text
+    overlapping = {**other, "accel_range_mps2": [6.0, 8.0]}
+    bad = {**own, "observer_baseline": {**own["observer_baseline"], "other_excitations": [overlapping]}}
+    r = httpx.put(url, json=bad)
+    assert r.status_code == 422 and "observer.baseline.other_excitations[0].accel_range_mps2" in r.json()["error"], r.text
     r = httpx.put(url, json=own)
     assert r.status_code == 200 and r.json()["own_damping_law"] is True and r.json()["second"] == second, r.text
-    assert r.json()["runs_averaged"] == 3.0, r.text
+    assert r.json()["runs_averaged"] == 3.0 and r.json()["other_excitations"] == [other], r.text
     bad = {**own, "observer_baseline": {**own["observer_baseline"], "runs_averaged": 0.5}}
     r = httpx.put(url, json=bad)
     assert r.status_code == 422 and "observer.baseline.runs_averaged" in r.json()["error"], r.text
@@ -478,6 +487,7 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     daemons.append(d4)
     kept = d4.get("/v1/assets/dyno-unit-A/baseline")
     assert kept["own_damping_law"] is True and kept["second"] == second and kept["runs_averaged"] == 3.0, kept
+    assert kept["other_excitations"] == [other], kept
     # A service (a recharge) does not change the valves: the daemon reads the unit with its
     # own law and the baseline it reads keeps it, as `train.observer baseline` reads the run
     # with that law in the calibration's place.
@@ -495,9 +505,12 @@ def test_a_baseline_set_over_the_api_is_kept_and_used(world: dict[str, Path], tm
     shutil.copy(day.path, inbox3 / day.path.name)
     d4.wait_runs("dyno-unit-A", 2)
     got = service_baseline(url)
-    # (a service's reading is one reading: it replaces both)
+    # (a service's reading is one reading: it replaces both; the unit's readings at other excitations
+    # are kept, as its law is, but the one whose excitations it overlaps: here the earlier own reading's)
     assert got["own_damping_law"] is True and got["charge_bar"] == day.label_bar and "second" not in got, got
     assert "runs_averaged" not in got, got
+    assert got["other_excitations"] == [other], got
+    assert d4.logged("keeps the earlier baseline's readings at other excitations", "kept=1", "left_out=1"), d4.log
     assert abs(got["read_bar"] - ref["read_bar"]) < 0.01, (got, ref)
     assert abs(got["read_sd_bar"] - ref["read_sd_bar"]) < 0.02 * ref["read_sd_bar"], (got, ref)
     d4.stop()

@@ -812,6 +812,49 @@ def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_e
         obs_tool.main([*args, "--unit", str(units[0][0]), str(units[1][0])])
 
 
+def test_a_baseline_read_at_two_excitations_keeps_one_reading_each(calibrated_campaign: tuple[Path, Path],
+                                                                   tmp_path: Path) -> None:
+    """Another unit read at a known 12 bar at 1 and 2 Hz: ``observer baseline`` over both runs
+    writes one reading per excitation (the first run's its own, the other in
+    ``other_excitations``), each the reading its run alone gives; the unit's later runs are each
+    corrected by the reading at their excitation, bit for bit as with that reading alone. A run
+    at the second charge at an excitation no first-charge run was read at is refused, named; so
+    is a set named twice in ``evaluate`` (``--baseline`` takes one SET=FILE)."""
+    _, physics = calibrated_campaign
+    runs = simulate(tmp_path / "unit", "--pressures", "4,12", "--frequencies", "1,2", "--unit", "3")
+    at = {(p, f): next(r for r in runs if r.name.startswith(f"p{p}.0-f{f}.0")) for p in (4, 12) for f in (1, 2)}
+    out = tmp_path / "two.json"
+    assert obs_tool.main(["baseline", "--physics", str(physics), "--charge-bar", "12", "--jobs", "1",
+                          str(at[12, 1]), str(at[12, 2]), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    ob = doc["observer_baseline"]
+    params = json.loads(physics.read_text())
+    alone = {f: obs_tool.baseline_of(params, [at[12, f]], 12.0, jobs=1)["observer_baseline"] for f in (1, 2)}
+    assert len(ob["other_excitations"]) == 1
+    assert {k: v for k, v in ob.items() if k != "other_excitations"} == alone[1]
+    assert ob["other_excitations"][0] == alone[2]
+    assert [r["excitation"] for r in doc["runs"]] == [0, 1]
+    assert ob["accel_range_mps2"][1] < ob["other_excitations"][0]["accel_range_mps2"][0]
+
+    def final(run: Path, baseline: dict) -> tuple[float, float]:
+        x, cols, _ = shocktwin.features(run, {**params, "observer": {**params["observer"], "baseline": baseline}},
+                                        ["observer"])
+        return float(x[-1, cols.index("observer_bar")]), float(x[-1, cols.index("observer_sd_bar")])
+
+    for f in (1, 2):
+        both, one = final(at[4, f], ob), final(at[4, f], alone[f])
+        print(f"unit 3 at 4 bar and {f} Hz (simulated), baselined at 12 bar and 1 + 2 Hz: {both[0]:.2f} ± "
+              f"{both[1]:.2f} bar (the {f} Hz reading alone: {one[0]:.2f} ± {one[1]:.2f})")
+        assert both == one
+    # the 2 Hz run's corrections differ from the 1 Hz reading's: which one served shows
+    assert final(at[4, 2], ob) != final(at[4, 2], alone[1])
+    with pytest.raises(SystemExit, match="no run at --charge-bar 12 was read"):
+        obs_tool.baseline_of(params, [at[12, 1]], 12.0, jobs=1, second=(4.0, [at[4, 2]]))
+    with pytest.raises(SystemExit, match="given twice"):
+        obs_tool.main(["evaluate", "--physics", str(physics), "--out", str(tmp_path / "e"),
+                       "--baseline", f"u={out}", f"u={tmp_path / 'unit'}", f"u={tmp_path / 'unit'}"])
+
+
 def test_a_units_run_spread_is_the_likeliest_spread_of_its_readings_between_takes(
         calibrated_campaign: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``observer run-spread``: two other units, each with two takes at a known 12 bar and 2 Hz

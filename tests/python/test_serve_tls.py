@@ -155,6 +155,8 @@ def test_refuses_to_expose_without_tls_unless_insecure(tmp_path: Path) -> None:
     done = subprocess.run(argv, capture_output=True, text=True, timeout=60)
     assert done.returncode == 1
     assert "TLS" in done.stderr and "--insecure" in done.stderr and "0.0.0.0:" in done.stderr
+    # a daemon that refuses to serve never said it was listening
+    assert "listening" not in done.stderr, done.stderr
     d = ServeProcess([*argv, "--insecure"])
     try:
         for _ in range(100):  # the warning follows the listening line
@@ -164,6 +166,30 @@ def test_refuses_to_expose_without_tls_unless_insecure(tmp_path: Path) -> None:
         assert "--insecure:" in d.text() and "0.0.0.0:" in d.text()
     finally:
         assert d.stop() == 0
+
+
+def test_a_token_file_others_can_read_is_warned_of(setup: dict[str, Any], tmp_path: Path) -> None:
+    """A token file other users of the machine can read gives them its role: the daemon warns,
+    naming the file and its mode, and says what to do; a file only its owner reads is not named.
+    The tokens themselves are never logged."""
+    shared, private = tmp_path / "shared.tokens", tmp_path / "private.tokens"
+    shared.write_text(f"{setup['read']}\n")
+    private.write_text(f"{setup['ingest']}\n")
+    shared.chmod(0o644)
+    private.chmod(0o600)
+    pki = setup["pki"]
+    config = tmp_path / "shocktwin.toml"
+    config.write_text(f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\nclient_ca = "{pki.client_ca}"\n'
+                      f'[auth]\nread_tokens_file = "{shared}"\ningest_tokens_file = "{private}"\n')
+    d = ServeProcess([str(BIN), "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
+                      "--model", str(BUNDLE), "--no-db"])
+    try:
+        warned = [line for line in d.log if "can be read by other users" in line]
+        assert len(warned) == 1 and str(shared) in warned[0] and "0644" in warned[0] and "chmod 600" in warned[0], d.text()
+        assert str(private) not in d.text()
+    finally:
+        assert d.stop() == 0, d.text()
+    assert setup["read"] not in d.text() and setup["ingest"] not in d.text()
 
 
 def test_runs_upload_over_https_with_the_ingest_role(daemon: ServeProcess, setup: dict[str, Any]) -> None:

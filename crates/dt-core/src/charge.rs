@@ -913,6 +913,18 @@ struct MeasurementTerms {
 /// ([`ExcitationModel::own`]), the baseline no longer applies and the
 /// unconditioned systematic spread is reported (a baseline read at such an
 /// excitation is refused by `python -m train.observer baseline`).
+///
+/// **One reading per excitation** ([`other_excitations`](Self::other_excitations)):
+/// a unit's error moves with the excitation by an amount of its own, which
+/// comes back on a repeat take (twelve simulated units, 2 Hz less 1 Hz:
+/// correlated 0.95–0.97 between takes, docs/history.md, "Sixty-fifth
+/// session"), so a reading at one excitation corrects the unit there and
+/// only up to `κ L` elsewhere ([`ObserverParams::transfer_bar_per_ln_accel`]).
+/// A baseline may carry readings of the same unit at other excitations, each
+/// with the same numbers as its own; a run is corrected by the reading
+/// nearest in `ln |ÿ_r|` to the reversals it used (the baseline's own on a
+/// tie, and before any reversal), and `κ L` counts from that reading's
+/// excitations.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct UnitBaseline {
@@ -962,6 +974,101 @@ pub struct UnitBaseline {
     /// whole split does.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub split_bar: Option<f64>,
+    /// The same unit read at other excitations than
+    /// [`accel_range_mps2`](Self::accel_range_mps2), which it then must
+    /// give: at most [`OTHER_EXCITATIONS`], their ranges apart from each
+    /// other's and from it (`python -m train.observer baseline` over runs at
+    /// several excitations writes one reading per excitation). None (the
+    /// default, and what a baseline written before this field means): the
+    /// baseline's own reading serves at every excitation.
+    #[serde(
+        default,
+        skip_serializing_if = "no_other_excitations",
+        with = "other_excitations_serde"
+    )]
+    pub other_excitations: [Option<ExcitationBaseline>; OTHER_EXCITATIONS],
+}
+
+/// How many readings at other excitations a [`UnitBaseline`] holds at most:
+/// with its own, one for each excitation a calibration can hold
+/// ([`ObserverParams::accel_clusters_mps2`]).
+pub const OTHER_EXCITATIONS: usize = 3;
+
+/// A reading of a unit at other excitations than its [`UnitBaseline`]'s own
+/// ([`UnitBaseline::other_excitations`]): the same numbers, read from runs
+/// whose used reversals spanned `accel_range_mps2`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExcitationBaseline {
+    /// The smallest and largest `|ÿ_r|` of the reversals the reading used,
+    /// m/s² (as [`UnitBaseline::accel_range_mps2`]).
+    pub accel_range_mps2: [f64; 2],
+    /// See [`UnitBaseline::charge_bar`].
+    pub charge_bar: f64,
+    /// See [`UnitBaseline::read_bar`].
+    pub read_bar: f64,
+    /// See [`UnitBaseline::read_sd_bar`].
+    pub read_sd_bar: f64,
+    /// See [`UnitBaseline::runs_averaged`].
+    #[serde(default = "one_run", skip_serializing_if = "is_one_run")]
+    pub runs_averaged: f64,
+    /// See [`UnitBaseline::second`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub second: Option<BaselineReading>,
+    /// See [`UnitBaseline::split_bar`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub split_bar: Option<f64>,
+}
+
+/// Whether a baseline has no reading at other excitations (the field is
+/// then left out).
+#[allow(clippy::trivially_copy_pass_by_ref)] // serde passes a reference
+#[must_use]
+pub fn no_other_excitations(others: &[Option<ExcitationBaseline>; OTHER_EXCITATIONS]) -> bool {
+    others.iter().all(Option::is_none)
+}
+
+/// [`UnitBaseline::other_excitations`] as a JSON list of its readings (for
+/// `#[serde(with = …)]` on a field of that type).
+pub mod other_excitations_serde {
+    use super::{ExcitationBaseline, OTHER_EXCITATIONS};
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    /// The readings as a list.
+    #[allow(clippy::trivially_copy_pass_by_ref)] // serde passes a reference
+    pub fn serialize<S: Serializer>(
+        others: &[Option<ExcitationBaseline>; OTHER_EXCITATIONS],
+        s: S,
+    ) -> Result<S::Ok, S::Error> {
+        others.iter().flatten().collect::<Vec<_>>().serialize(s)
+    }
+
+    /// A list of readings, at most [`OTHER_EXCITATIONS`].
+    pub fn deserialize<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<[Option<ExcitationBaseline>; OTHER_EXCITATIONS], D::Error> {
+        super::other_excitations_from(Vec::<ExcitationBaseline>::deserialize(d)?)
+            .map_err(serde::de::Error::custom)
+    }
+}
+
+/// [`UnitBaseline::other_excitations`] from a list of readings (a stored
+/// baseline's); more than [`OTHER_EXCITATIONS`] is an error that says so.
+pub fn other_excitations_from(
+    list: Vec<ExcitationBaseline>,
+) -> Result<[Option<ExcitationBaseline>; OTHER_EXCITATIONS], String> {
+    if list.len() > OTHER_EXCITATIONS {
+        return Err(format!(
+            "other_excitations: {} readings, at most {OTHER_EXCITATIONS} (one per excitation \
+             of the calibration besides the baseline's own)",
+            list.len()
+        ));
+    }
+    let mut out = [None; OTHER_EXCITATIONS];
+    for (slot, r) in out.iter_mut().zip(list) {
+        *slot = Some(r);
+    }
+    Ok(out)
 }
 
 /// One reading of a unit at a known charge: the second one of a
@@ -992,6 +1099,84 @@ fn is_one_run(runs: &f64) -> bool {
     *runs == 1.0
 }
 
+/// The names [`UnitBaseline::validate`] gives its fields in an error: the
+/// first reading's `charge_bar`, `read_bar`, `read_sd_bar`, `runs_averaged`,
+/// the second's, then `accel_range_mps2` and `split_bar`.
+struct ReadingNames {
+    first: [&'static str; 4],
+    second: [&'static str; 4],
+    accel_range: &'static str,
+    split: &'static str,
+}
+
+/// The baseline's own reading's names.
+const OWN_NAMES: ReadingNames = ReadingNames {
+    first: [
+        "observer.baseline.charge_bar",
+        "observer.baseline.read_bar",
+        "observer.baseline.read_sd_bar",
+        "observer.baseline.runs_averaged",
+    ],
+    second: [
+        "observer.baseline.second.charge_bar",
+        "observer.baseline.second.read_bar",
+        "observer.baseline.second.read_sd_bar",
+        "observer.baseline.second.runs_averaged",
+    ],
+    accel_range: "observer.baseline.accel_range_mps2",
+    split: "observer.baseline.split_bar",
+};
+
+/// A reading at another excitation's names, `other_excitations[k]`.
+macro_rules! other_names {
+    ($k:literal) => {
+        ReadingNames {
+            first: [
+                concat!("observer.baseline.other_excitations[", $k, "].charge_bar"),
+                concat!("observer.baseline.other_excitations[", $k, "].read_bar"),
+                concat!("observer.baseline.other_excitations[", $k, "].read_sd_bar"),
+                concat!(
+                    "observer.baseline.other_excitations[",
+                    $k,
+                    "].runs_averaged"
+                ),
+            ],
+            second: [
+                concat!(
+                    "observer.baseline.other_excitations[",
+                    $k,
+                    "].second.charge_bar"
+                ),
+                concat!(
+                    "observer.baseline.other_excitations[",
+                    $k,
+                    "].second.read_bar"
+                ),
+                concat!(
+                    "observer.baseline.other_excitations[",
+                    $k,
+                    "].second.read_sd_bar"
+                ),
+                concat!(
+                    "observer.baseline.other_excitations[",
+                    $k,
+                    "].second.runs_averaged"
+                ),
+            ],
+            accel_range: concat!(
+                "observer.baseline.other_excitations[",
+                $k,
+                "].accel_range_mps2"
+            ),
+            split: concat!("observer.baseline.other_excitations[", $k, "].split_bar"),
+        }
+    };
+}
+
+/// The names of the readings at other excitations, in order.
+const OTHER_NAMES: [ReadingNames; OTHER_EXCITATIONS] =
+    [other_names!(0), other_names!(1), other_names!(2)];
+
 impl UnitBaseline {
     /// The baseline's readings: its own, then the second one if any.
     fn readings(&self) -> impl Iterator<Item = BaselineReading> {
@@ -1015,14 +1200,22 @@ impl UnitBaseline {
             }
             other => other,
         };
-        let b: Self = serde_json::from_value(inner).map_err(|e| {
+        let b: Self = serde_path_to_error::deserialize(inner).map_err(|e| {
+            let at = e.path().to_string();
+            let e = if at == "." {
+                e.into_inner().to_string()
+            } else {
+                format!("{at}: {}", e.into_inner())
+            };
             format!(
-                "need charge_bar, read_bar and read_sd_bar (numbers, bar), \
+                "{e} (a baseline needs charge_bar, read_bar and read_sd_bar (numbers, bar), \
                  and optionally accel_range_mps2 ([lo, hi], m/s²), damping_law \
                  (the unit's own, as `observer.damping_law`) and second (a reading at \
                  another known charge: charge_bar, read_bar, read_sd_bar), \
-                 runs_averaged (how many runs a reading averages, default 1) and \
-                 split_bar (the stroke's ends apart at the reading, bar): {e}"
+                 runs_averaged (how many runs a reading averages, default 1), \
+                 split_bar (the stroke's ends apart at the reading, bar) and \
+                 other_excitations (readings of the unit at other excitations, each with \
+                 accel_range_mps2 and these numbers))"
             )
         })?;
         b.validate().map_err(|e| e.to_string())?;
@@ -1031,24 +1224,68 @@ impl UnitBaseline {
 
     /// Checks the numbers; the error names the first bad one.
     pub fn validate(&self) -> Result<(), PhysicsError> {
-        const FIRST: [&str; 3] = [
-            "observer.baseline.charge_bar",
-            "observer.baseline.read_bar",
-            "observer.baseline.read_sd_bar",
-        ];
-        const SECOND: [&str; 3] = [
-            "observer.baseline.second.charge_bar",
-            "observer.baseline.second.read_bar",
-            "observer.baseline.second.read_sd_bar",
-        ];
-        for (r, names) in self.readings().zip([FIRST, SECOND]) {
+        self.validate_reading(&OWN_NAMES)?;
+        let others: Vec<UnitBaseline> = self.at_each_excitation().skip(1).collect();
+        if others.is_empty() {
+            return Ok(());
+        }
+        let Some(own) = self.accel_range_mps2 else {
+            return Err(PhysicsError::InvalidParameter {
+                name: "observer.baseline.accel_range_mps2",
+                value: f64::NAN,
+                reason: "must be given when the baseline holds readings at other excitations \
+                         (other_excitations): a run is corrected by the nearest",
+            });
+        };
+        let mut ranges = vec![own];
+        for (b, names) in others.iter().zip(&OTHER_NAMES) {
+            b.validate_reading(names)?;
+            let [lo, hi] = b.accel_range_mps2.unwrap_or(own);
+            if ranges.iter().any(|[l, h]| lo < *h && *l < hi) {
+                return Err(PhysicsError::InvalidParameter {
+                    name: names.accel_range,
+                    value: lo,
+                    reason: "overlaps the excitations of the baseline's own reading or of an \
+                             earlier one: one reading per excitation (runs at one excitation \
+                             are read together)",
+                });
+            }
+            ranges.push([lo, hi]);
+        }
+        Ok(())
+    }
+
+    /// The baseline as it serves at each of its excitations: its own first,
+    /// then each of [`other_excitations`](Self::other_excitations) in its
+    /// place (the unit's own damping law kept), none with readings at other
+    /// excitations.
+    pub fn at_each_excitation(&self) -> impl Iterator<Item = UnitBaseline> + '_ {
+        let own = UnitBaseline {
+            other_excitations: [None; OTHER_EXCITATIONS],
+            ..*self
+        };
+        std::iter::once(own).chain(self.other_excitations.iter().flatten().map(move |r| {
+            UnitBaseline {
+                charge_bar: r.charge_bar,
+                read_bar: r.read_bar,
+                read_sd_bar: r.read_sd_bar,
+                accel_range_mps2: Some(r.accel_range_mps2),
+                damping_law: self.damping_law,
+                second: r.second,
+                runs_averaged: r.runs_averaged,
+                split_bar: r.split_bar,
+                other_excitations: [None; OTHER_EXCITATIONS],
+            }
+        }))
+    }
+
+    /// One excitation's numbers (`names`: the baseline's own or another
+    /// excitation's); the error names the first bad one.
+    fn validate_reading(&self, names: &ReadingNames) -> Result<(), PhysicsError> {
+        for (r, names) in self.readings().zip([names.first, names.second]) {
             if !(r.runs_averaged.is_finite() && r.runs_averaged >= 1.0) {
                 return Err(PhysicsError::InvalidParameter {
-                    name: if names == FIRST {
-                        "observer.baseline.runs_averaged"
-                    } else {
-                        "observer.baseline.second.runs_averaged"
-                    },
+                    name: names[3],
                     value: r.runs_averaged,
                     reason: "must be a finite number of runs, at least 1",
                 });
@@ -1075,7 +1312,7 @@ impl UnitBaseline {
             for value in [lo, hi] {
                 if !(value.is_finite() && value > 0.0 && lo <= hi) {
                     return Err(PhysicsError::InvalidParameter {
-                        name: "observer.baseline.accel_range_mps2",
+                        name: names.accel_range,
                         value,
                         reason: "must be two finite positive values, the smaller first",
                     });
@@ -1084,7 +1321,7 @@ impl UnitBaseline {
         }
         if let Some(split) = self.split_bar.filter(|v| !v.is_finite()) {
             return Err(PhysicsError::InvalidParameter {
-                name: "observer.baseline.split_bar",
+                name: names.split,
                 value: split,
                 reason: "must be finite",
             });
@@ -1100,6 +1337,50 @@ impl UnitBaseline {
             law.validate()?;
         }
         Ok(())
+    }
+
+    /// This baseline with the readings of `earlier` (its own and its
+    /// [`other_excitations`](Self::other_excitations)) that lie apart from
+    /// this one's excitations, as its readings at other excitations: what a
+    /// baseline read after a service keeps of the unit's baseline before it.
+    /// A recharge changes neither the unit's valves (its
+    /// [`damping_law`](Self::damping_law) is kept the same way) nor how its
+    /// error moves between excitations, which holds in bar across charges
+    /// (docs/history.md, "Sixty-fifth session"). Also how many of
+    /// `earlier`'s readings were left out: those overlapping this one's
+    /// excitations, without a range, or beyond [`OTHER_EXCITATIONS`]. Without
+    /// a range of its own, none is kept.
+    #[must_use]
+    pub fn keeping_readings_of(self, earlier: &UnitBaseline) -> (Self, usize) {
+        let mut kept = [None; OTHER_EXCITATIONS];
+        let (mut n, mut left_out) = (0, 0);
+        for b in earlier.at_each_excitation() {
+            let fits = match (self.accel_range_mps2, b.accel_range_mps2) {
+                (Some([lo, hi]), Some([l, h])) => !(l < hi && lo < h) && n < OTHER_EXCITATIONS,
+                _ => false,
+            };
+            if !fits {
+                left_out += 1;
+                continue;
+            }
+            kept[n] = b.accel_range_mps2.map(|range| ExcitationBaseline {
+                accel_range_mps2: range,
+                charge_bar: b.charge_bar,
+                read_bar: b.read_bar,
+                read_sd_bar: b.read_sd_bar,
+                runs_averaged: b.runs_averaged,
+                second: b.second,
+                split_bar: b.split_bar,
+            });
+            n += 1;
+        }
+        (
+            Self {
+                other_excitations: kept,
+                ..self
+            },
+            left_out,
+        )
     }
 
     /// How far a reversal at `abs_accel` (m/s²) lies from the excitations
@@ -1168,7 +1449,8 @@ struct UnitCorrection {
 }
 
 impl UnitCorrection {
-    fn of(p: &ObserverParams) -> Self {
+    /// The correction `baseline` makes under `p`'s prior (none: the prior).
+    fn of(p: &ObserverParams, baseline: Option<&UnitBaseline>) -> Self {
         let (s, rho) = p.unit_prior();
         let (sff, sss) = (s * s, rho * rho);
         let prior = Self {
@@ -1178,7 +1460,7 @@ impl UnitCorrection {
             run_var: [p.run_sd_bar.powi(2), p.run_rel.powi(2)],
             one_charge: None,
         };
-        let Some(b) = p.baseline else {
+        let Some(b) = baseline else {
             return prior;
         };
         // measured with the calibration's prior; a unit read with its own law
@@ -2060,16 +2342,21 @@ impl ObserverParams {
                     });
                 }
             }
-            if UnitCorrection::of(self).gain_rel <= -0.5 {
-                return Err(match b.second {
+            let names = std::iter::once(&OWN_NAMES).chain(&OTHER_NAMES);
+            for (at, names) in b.at_each_excitation().zip(names) {
+                if UnitCorrection::of(self, Some(&at)).gain_rel > -0.5 {
+                    continue;
+                }
+                let (first, second) = (names.first[1], names.second[1]);
+                return Err(match at.second {
                     None => PhysicsError::InvalidParameter {
-                        name: "observer.baseline.read_bar",
-                        value: b.read_bar,
+                        name: first,
+                        value: at.read_bar,
                         reason: "is further below charge_bar than the systematic spread allows \
                              (the unit's seal gain would halve): a wrong charge or another unit?",
                     },
                     Some(r) => PhysicsError::InvalidParameter {
-                        name: "observer.baseline.second.read_bar",
+                        name: second,
                         value: r.read_bar,
                         reason: "and the first reading together make the unit's seal gain \
                              halve (the readings further below their charges than the \
@@ -2410,6 +2697,10 @@ pub struct ChargeObserver {
     /// baseline's excitations ([`ObserverParams::transfer_bar_per_ln_accel`]).
     #[serde(default)]
     away_ln: f64,
+    /// The same from each of its readings at other excitations
+    /// ([`UnitBaseline::other_excitations`], in order).
+    #[serde(default)]
+    away_ln_other: [f64; OTHER_EXCITATIONS],
     /// The smallest and largest `|ÿ_r|` of the used reversals, m/s².
     #[serde(default)]
     used_accel_range: Option<[f64; 2]>,
@@ -2468,6 +2759,7 @@ impl ChargeObserver {
             used_own: false,
             used_held: false,
             away_ln: 0.0,
+            away_ln_other: [0.0; OTHER_EXCITATIONS],
             used_accel_range: None,
             silent_run: [[0; 2]; 4],
             other_fits: [[0; 2]; 4],
@@ -2846,8 +3138,8 @@ impl ChargeObserver {
             Some([(m1, _), (m2, _)]) if self.p.stroke_ends => 0.5 * (m1 + m2),
             _ => self.mean_bar,
         };
-        let unit = if self.p.baseline.is_some() && !self.used_own {
-            UnitCorrection::of(&self.p).apply(read).1
+        let unit = if let Some((b, _)) = self.baseline_in_use() {
+            UnitCorrection::of(&self.p, Some(&b)).apply(read).1
         } else {
             self.p.systematic_sd_bar.powi(2) + (self.p.systematic_rel * read).powi(2)
         };
@@ -2857,11 +3149,23 @@ impl ChargeObserver {
     /// What a unit baseline used away from its excitations adds to the
     /// systematic variance, bar² ([`ObserverParams::transfer_bar_per_ln_accel`]).
     fn transfer_var(&self) -> f64 {
-        if self.p.baseline.is_some() && !self.used_own {
-            (self.p.transfer_bar_per_ln_accel * self.away_ln).powi(2)
-        } else {
-            0.0
-        }
+        self.baseline_in_use().map_or(0.0, |(_, away)| {
+            (self.p.transfer_bar_per_ln_accel * away).powi(2)
+        })
+    }
+
+    /// The unit baseline that corrects the estimate now, as it serves at
+    /// its excitation ([`UnitBaseline::at_each_excitation`]), and the largest
+    /// distance in `ln |ÿ_r|` of a used reversal from that excitation: of
+    /// the baseline's readings the nearest to the reversals used, its own on
+    /// a tie (and before any). None without a baseline, or once a reversal
+    /// at an excitation with a model of its own was used.
+    fn baseline_in_use(&self) -> Option<(UnitBaseline, f64)> {
+        let b = self.p.baseline.filter(|_| !self.used_own)?;
+        let aways = std::iter::once(self.away_ln).chain(self.away_ln_other);
+        b.at_each_excitation()
+            .zip(aways)
+            .reduce(|best, next| if next.1 < best.1 { next } else { best })
     }
 
     /// What reading held at the line's fastest excitation adds to the
@@ -3179,7 +3483,14 @@ impl ChargeObserver {
             }
             let a = rev.accel_mps2.abs();
             if let Some(u) = self.p.baseline {
-                self.away_ln = self.away_ln.max(u.ln_distance(a, self.p.shared_span()));
+                let span = self.p.shared_span();
+                let mut at = u.at_each_excitation();
+                if let Some(own) = at.next() {
+                    self.away_ln = self.away_ln.max(own.ln_distance(a, span));
+                }
+                for (away, other) in self.away_ln_other.iter_mut().zip(at) {
+                    *away = away.max(other.ln_distance(a, span));
+                }
             }
             self.used_accel_range = Some(widen_range(self.used_accel_range, [a, a]));
             *rejected_run = 0;
@@ -3247,10 +3558,8 @@ impl ChargeObserver {
                 // much of their split (a property of its valves): only the
                 // change since counts.
                 let known = self
-                    .p
-                    .baseline
-                    .filter(|_| !self.used_own)
-                    .and_then(|b| b.split_bar)
+                    .baseline_in_use()
+                    .and_then(|(b, _)| b.split_bar)
                     .unwrap_or(0.0);
                 let split = ((m1 - m2 - known).powi(2) - v1 - v2).max(0.0) / 4.0;
                 let bias = 0.5 * (b1 + b2);
@@ -3265,8 +3574,8 @@ impl ChargeObserver {
         // an excitation with its own model the unit errs otherwise (on the
         // simulated second unit −1.7 bar at 12 bar and 1 Hz, +0.2 at 4 Hz),
         // so a reading that holds one reports the unconditioned spread.
-        let (mean_bar, sd_bar) = if self.p.baseline.is_some() && !self.used_own {
-            let unit = UnitCorrection::of(&self.p);
+        let (mean_bar, sd_bar) = if let Some((b, _)) = self.baseline_in_use() {
+            let unit = UnitCorrection::of(&self.p, Some(&b));
             // Every error of the raw reading and of the unit's correction
             // reaches the corrected mean divided by `1 + û_s`.
             let (mean, sys_var) = unit.apply(read);
@@ -4120,6 +4429,7 @@ mod tests {
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let est = read(Some(b));
         let prior = Matrix2::new(sys * sys, 0.0, 0.0, rel * rel);
@@ -4172,6 +4482,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             ..base
         })
@@ -4223,6 +4534,7 @@ mod tests {
             }),
             runs_averaged: runs[0],
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let mut sds = Vec::new();
         // each reading of one run, then of several (their mean holds R(p₀)²/n)
@@ -4306,6 +4618,7 @@ mod tests {
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let two = UnitBaseline {
             second: Some(BaselineReading {
@@ -4384,6 +4697,7 @@ mod tests {
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let base = ObserverParams {
             damping_law: a_law(),
@@ -4510,6 +4824,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             ..p
         };
@@ -4558,6 +4873,7 @@ mod tests {
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let spread = UnitSpread {
             sd_bar: 1.9,
@@ -4659,6 +4975,7 @@ mod tests {
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {
@@ -4725,6 +5042,238 @@ mod tests {
         })
         .unwrap_err();
         assert!(err.to_string().contains("accel_range_mps2"), "{err}");
+    }
+
+    /// The baseline of the tests below: its own reading at 1.5 m/s², one at
+    /// 6 m/s² in `other_excitations` (`(params, own alone, the other, both)`).
+    fn two_excitations() -> (
+        ObserverParams,
+        UnitBaseline,
+        ExcitationBaseline,
+        UnitBaseline,
+    ) {
+        let base = ObserverParams {
+            random_walk_bar2_per_s: 0.0,
+            transfer_bar_per_ln_accel: 0.4,
+            ..shared_table().0
+        };
+        let own = UnitBaseline {
+            charge_bar: 8.0,
+            read_bar: 8.3,
+            read_sd_bar: 0.1,
+            accel_range_mps2: Some([1.4, 1.6]),
+            damping_law: None,
+            second: None,
+            runs_averaged: 1.0,
+            split_bar: None,
+            other_excitations: Default::default(),
+        };
+        let fast = ExcitationBaseline {
+            accel_range_mps2: [5.8, 6.2],
+            charge_bar: 8.0,
+            read_bar: 7.1,
+            read_sd_bar: 0.15,
+            runs_averaged: 2.0,
+            second: None,
+            split_bar: Some(0.2),
+        };
+        let both = UnitBaseline {
+            other_excitations: [Some(fast), None, None],
+            ..own
+        };
+        (base, own, fast, both)
+    }
+
+    /// A baseline with a reading at another excitation: a run at 6 m/s² is
+    /// corrected by that reading exactly as by a baseline read there alone
+    /// (no transfer spread), a run at 1.5 m/s² by the baseline's own, and a
+    /// run at both by the nearer to all of them (its own on the tie), with
+    /// the transfer spread from it.
+    #[test]
+    fn a_baseline_read_at_several_excitations_corrects_each_run_by_the_nearest() {
+        let (base, own, _, both) = two_excitations();
+        let fast_alone = UnitBaseline {
+            charge_bar: 8.0,
+            read_bar: 7.1,
+            read_sd_bar: 0.15,
+            accel_range_mps2: Some([5.8, 6.2]),
+            runs_averaged: 2.0,
+            split_bar: Some(0.2),
+            ..own
+        };
+        let run = |baseline: UnitBaseline, slow: bool, quick: bool| {
+            let mut obs = ChargeObserver::new(ObserverParams {
+                baseline: Some(baseline),
+                ..base
+            })
+            .unwrap();
+            let mut t = 0;
+            if slow {
+                for k in 0..40 {
+                    let a = if k % 2 == 0 { 1.5 } else { -1.5 };
+                    read_spaced(&mut obs, t + k * 500_000_000, 80.0, a, 8.0, 0.5);
+                }
+                t += 40 * 500_000_000;
+            }
+            if quick {
+                for k in 0..40 {
+                    let a = if k % 2 == 0 { 6.0 } else { -6.0 };
+                    read_at(&mut obs, t + k * 250_000_000, 80.0, a, 8.0);
+                }
+                t += 40 * 250_000_000;
+            }
+            obs.estimate(t)
+        };
+        assert_eq!(run(both, false, true), run(fast_alone, false, true));
+        assert_eq!(run(both, true, false), run(own, true, false));
+        // The two readings differ, so which one served shows.
+        assert!((run(both, false, true).mean_bar - run(own, false, true).mean_bar).abs() > 0.5);
+        // At both excitations: the reading nearer to all the reversals used,
+        // with its transfer spread (6 m/s² lies ln(6/1.6) from its own, 1.5
+        // m/s² ln(5.8/1.5) from the other: its own).
+        let mixed = run(both, true, true);
+        let d_own = (6.0_f64 / 1.6).ln();
+        let d_fast = (5.8_f64 / 1.5).ln();
+        let nearer = if d_fast < d_own { fast_alone } else { own };
+        assert_eq!(mixed, run(nearer, true, true));
+        // Before any reversal: its own.
+        assert_eq!(run(both, false, false), run(own, false, false));
+    }
+
+    /// The readings at other excitations in the document: a list, read back
+    /// equal; a baseline written before the field still reads; a missing
+    /// field is named with its place; overlapping ranges, a missing own range,
+    /// too many readings and a bad number are refused by name (touching ranges
+    /// are apart).
+    #[test]
+    fn readings_at_other_excitations_are_checked() {
+        let (base, own, fast, both) = two_excitations();
+        let doc = serde_json::to_value(both).unwrap();
+        assert_eq!(doc["other_excitations"].as_array().map(Vec::len), Some(1));
+        assert_eq!(doc["other_excitations"][0]["read_bar"], 7.1);
+        assert_eq!(
+            serde_json::from_value::<UnitBaseline>(doc.clone()).unwrap(),
+            both
+        );
+        assert!(serde_json::to_value(own)
+            .unwrap()
+            .get("other_excitations")
+            .is_none());
+        let mut old = serde_json::to_value(own).unwrap();
+        old.as_object_mut().unwrap().remove("other_excitations");
+        assert_eq!(UnitBaseline::from_document(old).unwrap(), own);
+        let mut four = doc.clone();
+        four["other_excitations"] =
+            serde_json::Value::Array(vec![doc["other_excitations"][0].clone(); 4]);
+        let err = UnitBaseline::from_document(four).unwrap_err();
+        assert!(err.contains("at most 3"), "{err}");
+        let mut gap = doc.clone();
+        gap["other_excitations"][0]
+            .as_object_mut()
+            .unwrap()
+            .remove("read_bar");
+        let err = UnitBaseline::from_document(gap).unwrap_err();
+        assert!(
+            err.starts_with("other_excitations[0]: missing field `read_bar`"),
+            "{err}"
+        );
+
+        let refused = |b: UnitBaseline, name: &str| {
+            let err = ChargeObserver::new(ObserverParams {
+                baseline: Some(b),
+                ..base
+            })
+            .unwrap_err()
+            .to_string();
+            assert!(err.contains(name), "{name}: {err}");
+        };
+        let overlapping = ExcitationBaseline {
+            accel_range_mps2: [1.5, 2.0],
+            ..fast
+        };
+        refused(
+            UnitBaseline {
+                other_excitations: [Some(fast), Some(overlapping), None],
+                ..own
+            },
+            "observer.baseline.other_excitations[1].accel_range_mps2",
+        );
+        // ranges that only touch are apart
+        let touching = ExcitationBaseline {
+            accel_range_mps2: [1.6, 2.0],
+            ..fast
+        };
+        assert!(ChargeObserver::new(ObserverParams {
+            baseline: Some(UnitBaseline {
+                other_excitations: [Some(fast), Some(touching), None],
+                ..own
+            }),
+            ..base
+        })
+        .is_ok());
+        refused(
+            UnitBaseline {
+                accel_range_mps2: None,
+                ..both
+            },
+            "observer.baseline.accel_range_mps2",
+        );
+        refused(
+            UnitBaseline {
+                other_excitations: [
+                    Some(ExcitationBaseline {
+                        read_sd_bar: 0.0,
+                        ..fast
+                    }),
+                    None,
+                    None,
+                ],
+                ..own
+            },
+            "observer.baseline.other_excitations[0].read_sd_bar",
+        );
+    }
+
+    /// A service's reading keeps the earlier baseline's readings that lie
+    /// apart from its own excitations, its own reading included.
+    #[test]
+    fn a_services_reading_keeps_the_earlier_readings_at_other_excitations() {
+        let (_, own, fast, both) = two_excitations();
+        // A service's reading at 1.5 m/s² keeps the 6 m/s² reading and leaves
+        // the earlier own one (at its excitation) out; without a range of its
+        // own it keeps none.
+        let service = UnitBaseline {
+            charge_bar: 10.0,
+            read_bar: 10.4,
+            other_excitations: Default::default(),
+            ..own
+        };
+        let (after, left_out) = service.keeping_readings_of(&both);
+        assert_eq!(left_out, 1);
+        assert_eq!(after.other_excitations, [Some(fast), None, None]);
+        assert_eq!(
+            UnitBaseline {
+                other_excitations: Default::default(),
+                ..after
+            },
+            service
+        );
+        let (after, left_out) = UnitBaseline {
+            accel_range_mps2: Some([5.9, 6.1]),
+            ..service
+        }
+        .keeping_readings_of(&both);
+        assert_eq!(left_out, 1);
+        let [Some(kept), None, None] = after.other_excitations else {
+            panic!("{after:?}");
+        };
+        assert_eq!((kept.accel_range_mps2, kept.read_bar), ([1.4, 1.6], 8.3));
+        let (after, left_out) = UnitBaseline {
+            accel_range_mps2: None,
+            ..service
+        }
+        .keeping_readings_of(&both);
+        assert_eq!((after.other_excitations, left_out), ([None; 3], 2));
     }
 
     /// `N(m, s²)` truncated above: its moments against a numerical
@@ -4856,6 +5405,7 @@ mod tests {
                     second: None,
                     runs_averaged: 1.0,
                     split_bar,
+                    other_excitations: Default::default(),
                 }),
                 ..params()
             })

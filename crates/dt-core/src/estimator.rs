@@ -165,6 +165,12 @@ pub struct EstimatorConfig {
     /// is set (a baseline carries its own).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub observer_damping_law: Option<crate::charge::DampingLaw>,
+    /// The unit's baseline before the service a run reads: the baseline
+    /// read keeps its readings at other excitations
+    /// ([`UnitBaseline::keeping_readings_of`](crate::charge::UnitBaseline::keeping_readings_of)).
+    /// Not used by the estimator itself.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observer_service_earlier: Option<crate::charge::UnitBaseline>,
 }
 
 impl EstimatorConfig {
@@ -180,6 +186,7 @@ impl EstimatorConfig {
             observer_baseline: None,
             observer_fit_all: false,
             observer_damping_law: None,
+            observer_service_earlier: None,
         }
     }
 }

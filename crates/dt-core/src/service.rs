@@ -235,6 +235,7 @@ impl ServiceReading {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: self.split_bar,
+                other_excitations: Default::default(),
             },
             drift_sd_bar: drift,
         })

@@ -26,6 +26,8 @@ const S = {
 const esc = (s) => String(s).replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`);
 const fin = (v) => typeof v === "number" && Number.isFinite(v);
 const num = (v, d = 2) => (fin(v) ? v.toFixed(d).replace(/^-(0\.?0*)$/, "$1") : DASH);   // no "-0.00"
+// The |ÿ_r| range a baseline reading was read at, as its tooltip says it ("" when unknown).
+const excitation = (range) => (Array.isArray(range) ? ` (|ÿ| ${num(range[0], 2)}–${num(range[1], 2)} m/s²)` : "");
 const tsec = (iso) => (iso ? Date.parse(iso) / 1000 : null);   // RFC 3339 -> Unix s
 const iso = (s) => new Date(s * 1000).toISOString();
 const fmtDate = (s) => (fin(s) ? iso(s).slice(0, 10) : DASH);
@@ -138,7 +140,11 @@ function renderFleet() {
     const b = a.baseline;   // the unit's baseline narrows its interval (read at a known charge)
     const read = b?.kind === "road"
       ? `seal read over ${b.blocks} blocks of drive (offset ${num(b.offset_n, 2)} N) at a known ${num(b.charge_bar, 1)} bar`
-      : `read ${num(b?.read_bar, 2)} ± ${num(b?.read_sd_bar, 2)} bar at a known ${num(b?.charge_bar, 1)} bar`;
+      : `read ${num(b?.read_bar, 2)} ± ${num(b?.read_sd_bar, 2)} bar at a known ${num(b?.charge_bar, 1)} bar` +
+        excitation(b?.accel_range_mps2) +
+        // one reading per excitation: a run is corrected by the nearest
+        (b?.other_excitations ?? []).map((o) => `; ${num(o.read_bar, 2)} ± ${num(o.read_sd_bar, 2)} bar at ` +
+          `a known ${num(o.charge_bar, 1)} bar${excitation(o.accel_range_mps2)}`).join("");
     const base = b ? ` <span class="pill" title="unit baseline (${esc(b.source)}${b.set_at ? `, ${esc(b.set_at)}` : ""}): ` +
       `${read}">baseline</span>` : "";
     const road = a.road ? ` <span class="pill road" title="driven on roads: the road observer reads the charge ` +

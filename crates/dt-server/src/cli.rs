@@ -373,8 +373,9 @@ pub struct ReplayArgs {
     pub jobs: Option<usize>,
     /// The unit's charge-observer baseline: a JSON file with `charge_bar`,
     /// `read_bar`, `read_sd_bar` (as `python -m train.observer baseline`
-    /// writes, under `observer_baseline`); every file replayed is taken to
-    /// be that unit.
+    /// writes, under `observer_baseline`; with `other_excitations`, one
+    /// reading per excitation, each run is corrected by the nearest); every
+    /// file replayed is taken to be that unit.
     #[arg(long, value_name = "FILE.json")]
     pub observer_baseline: Option<PathBuf>,
     /// Read every file with the road observer (its calibration, `python -m

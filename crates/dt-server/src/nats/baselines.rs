@@ -62,6 +62,14 @@ pub struct BaselineEntry {
     /// See [`UnitBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub split_bar: Option<f64>,
+    /// See [`UnitBaseline`] (left out: none).
+    #[serde(
+        default,
+        skip_serializing_if = "dt_core::charge::no_other_excitations",
+        with = "dt_core::charge::other_excitations_serde"
+    )]
+    pub other_excitations:
+        [Option<dt_core::charge::ExcitationBaseline>; dt_core::charge::OTHER_EXCITATIONS],
     /// See [`RoadBaseline`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -87,6 +95,7 @@ impl From<StoredBaseline> for BaselineEntry {
             second: read.and_then(|u| u.second),
             runs_averaged: read.map(|u| u.runs_averaged).filter(|&n| n > 1.0),
             split_bar: read.and_then(|u| u.split_bar),
+            other_excitations: read.map(|u| u.other_excitations).unwrap_or_default(),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             set_ms: b.set_ms,
@@ -108,6 +117,7 @@ impl BaselineEntry {
                     second: self.second,
                     runs_averaged: self.runs_averaged.unwrap_or(1.0),
                     split_bar: self.split_bar,
+                    other_excitations: self.other_excitations,
                 };
                 b.validate().map_err(|e| e.to_string())?;
                 AssetBaseline::Observer(b)
@@ -499,6 +509,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             set_ms: 1_700_000_000_000,
         }
@@ -527,6 +538,16 @@ mod tests {
             });
             // each reading averaging several runs
             u.runs_averaged = 2.0 / 0.7;
+            // and a reading at another excitation
+            u.other_excitations[0] = Some(dt_core::charge::ExcitationBaseline {
+                accel_range_mps2: [5.8, 6.3],
+                charge_bar: 12.0,
+                read_bar: 11.2 / 0.9,
+                read_sd_bar: 0.2,
+                runs_averaged: 1.0,
+                second: None,
+                split_bar: Some(-0.3),
+            });
         }
         for b in [observer, ranged, two, road] {
             let json = serde_json::to_string(&BaselineEntry::from(b)).unwrap();

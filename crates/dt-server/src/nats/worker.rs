@@ -794,10 +794,13 @@ impl Partition {
                 Some(params) => reading
                     .finish(service.charge_bar, &params)
                     .map(|r| {
-                        AssetBaseline::Observer(UnitBaseline {
-                            damping_law: open.est.config().observer_damping_law,
-                            ..r.baseline
-                        })
+                        AssetBaseline::Observer(crate::server::estimator::with_earlier_readings(
+                            &UnitBaseline {
+                                damping_law: open.est.config().observer_damping_law,
+                                ..r.baseline
+                            },
+                            open.est.config().observer_service_earlier.as_ref(),
+                        ))
                     })
                     .map_err(|e| e.to_string()),
                 None => return,

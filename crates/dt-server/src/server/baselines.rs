@@ -86,6 +86,11 @@ pub struct BaselineView {
     /// ([`dt_core::charge::UnitBaseline::split_bar`]), when read.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub split_bar: Option<f64>,
+    /// The unit's readings at other excitations
+    /// ([`dt_core::charge::UnitBaseline::other_excitations`]), when it has
+    /// any: a run is corrected by the one nearest its excitation.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub other_excitations: Vec<dt_core::charge::ExcitationBaseline>,
     /// The unit's seal friction offset from the road calibration's, N.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offset_n: Option<f64>,
@@ -126,6 +131,9 @@ impl BaselineView {
             second: read.and_then(|u| u.second),
             runs_averaged: read.map(|u| u.runs_averaged).filter(|&n| n > 1.0),
             split_bar: read.and_then(|u| u.split_bar),
+            other_excitations: read
+                .map(|u| u.other_excitations.iter().flatten().copied().collect())
+                .unwrap_or_default(),
             offset_n: road.map(|r| r.offset_n),
             blocks: road.map(|r| r.blocks),
             source,
@@ -375,6 +383,7 @@ impl Baselines {
                 charge_bar: s.charge_bar,
                 set_ms: s.set_ms,
                 damping_law: before.and_then(|u| u.damping_law).filter(|_| !asset.road),
+                earlier: before.filter(|_| !asset.road),
             });
         } else if let Some(b) = self.get(asset_id) {
             match b.baseline {
@@ -437,6 +446,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             set_ms,
         };
@@ -486,6 +496,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             set_ms: 1_000,
         };
@@ -516,6 +527,7 @@ mod tests {
                 // the unit is read with the law its baseline had: a recharge
                 // does not change its valves
                 damping_law: Some(unit_law()),
+                earlier: Some(read_of(&old)), // its readings elsewhere are kept
             }
         );
         assert_eq!(baselines.view(&config, "van"), None);
@@ -530,9 +542,7 @@ mod tests {
             read_sd_bar: 0.3,
             accel_range_mps2: Some([1.4, 1.6]),
             damping_law: None,
-            second: None,
-            runs_averaged: 1.0,
-            split_bar: None,
+            ..read_of(&old)
         };
         assert_eq!(
             baselines
@@ -596,6 +606,7 @@ mod tests {
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         };
         let mut config = Config::default();
         for (id, road) in [("van", false), ("car", true)] {

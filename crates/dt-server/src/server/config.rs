@@ -276,6 +276,11 @@ pub struct ServiceToRead {
     /// None: the calibration's law.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub damping_law: Option<DampingLaw>,
+    /// The unit's observer baseline before the service: the baseline read
+    /// keeps its readings at other excitations than its own
+    /// ([`UnitBaseline::keeping_readings_of`]). None: none before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub earlier: Option<UnitBaseline>,
 }
 
 /// `[assets.<id>]`: any key left out comes from `[defaults]`.

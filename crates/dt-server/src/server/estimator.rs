@@ -102,6 +102,7 @@ impl EstimatorFactory {
         cfg.observer_fit_all = asset.read_service.is_some() && !asset.road;
         // A service reading runs the unit's own law, when its baseline before
         // the service had one that this model's calibration takes.
+        cfg.observer_service_earlier = asset.read_service.and_then(|s| s.earlier);
         cfg.observer_damping_law = asset
             .read_service
             .and_then(|s| s.damping_law)
@@ -210,10 +211,13 @@ impl AssetTwin for EstimatorTwin {
             reading
                 .finish(*charge_bar, &params)
                 .map(|r| {
-                    AssetBaseline::Observer(UnitBaseline {
-                        damping_law: law,
-                        ..r.baseline
-                    })
+                    AssetBaseline::Observer(with_earlier_readings(
+                        &UnitBaseline {
+                            damping_law: law,
+                            ..r.baseline
+                        },
+                        self.est.config().observer_service_earlier.as_ref(),
+                    ))
                 })
                 .map_err(|e| match e {
                     // read with the calibration's law: the unit's valves may be
@@ -246,4 +250,27 @@ impl AssetTwin for EstimatorTwin {
             road: c.road,
         }
     }
+}
+
+/// A service reading with the readings the unit's baseline before the
+/// service held at other excitations ([`UnitBaseline::keeping_readings_of`]);
+/// those it cannot keep are logged.
+pub(crate) fn with_earlier_readings(
+    read: &UnitBaseline,
+    earlier: Option<&UnitBaseline>,
+) -> UnitBaseline {
+    let Some(earlier) = earlier else {
+        return *read;
+    };
+    let (b, left_out) = read.keeping_readings_of(earlier);
+    let kept = b.other_excitations.iter().flatten().count();
+    if kept > 0 || left_out > 0 {
+        tracing::info!(
+            kept,
+            left_out,
+            "the service's reading keeps the earlier baseline's readings at other excitations \
+             (left out: at its own excitation, without a range, or beyond four in all)"
+        );
+    }
+    b
 }

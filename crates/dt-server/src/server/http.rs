@@ -715,6 +715,7 @@ async fn put_service(
             second: None,
             runs_averaged: 1.0,
             split_bar: None,
+            other_excitations: Default::default(),
         })
     };
     if let Some(r) = refuse_here(&app, &id, &probe) {

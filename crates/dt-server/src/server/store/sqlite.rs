@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
-use dt_core::charge::{ObserverCounters, UnitBaseline};
+use dt_core::charge::{other_excitations_from, ObserverCounters, UnitBaseline};
 use dt_core::road::{RoadBaseline, RoadCounters};
 use dt_core::trend::RunPoint;
 use rusqlite::{params, Connection, OptionalExtension as _};
@@ -25,7 +25,7 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 12;
+pub const SCHEMA_VERSION: i64 = 13;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
 const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
@@ -137,6 +137,12 @@ ALTER TABLE baselines ADD COLUMN split_bar REAL;
     r"
 ALTER TABLE runs ADD COLUMN simulated INTEGER;
 ",
+    // The unit read at other excitations
+    // (`dt_core::charge::UnitBaseline::other_excitations`): a JSON list of its
+    // readings; NULL: none.
+    r"
+ALTER TABLE baselines ADD COLUMN other_excitations TEXT;
+",
 ];
 
 const ASSET: &str = "(SELECT id FROM assets WHERE asset_id = ?1)";
@@ -201,8 +207,9 @@ fn put_baseline(
         AssetBaseline::Observer(u) => tx.execute(
             &format!(
                 "INSERT INTO baselines (asset, charge_bar, read_bar, read_sd_bar, set_ms, \
-                 accel_lo_mps2, accel_hi_mps2, damping_law, second, runs_averaged, split_bar) \
-                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)"
+                 accel_lo_mps2, accel_hi_mps2, damping_law, second, runs_averaged, split_bar, \
+                 other_excitations) \
+                 VALUES ({ASSET}, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)"
             ),
             params![
                 asset_id,
@@ -218,6 +225,10 @@ fn put_baseline(
                     .map(|r| serde_json::to_string(&r).expect("a reading is plain numbers")),
                 u.runs_averaged,
                 u.split_bar,
+                u.other_excitations.iter().any(Option::is_some).then(|| {
+                    let list: Vec<_> = u.other_excitations.iter().flatten().collect();
+                    serde_json::to_string(&list).expect("readings are plain numbers")
+                }),
             ],
         )?,
         AssetBaseline::Road(r) => tx.execute(
@@ -687,7 +698,7 @@ impl FleetStore for SqliteStore {
             let mut stmt = c.prepare(
                 "SELECT a.asset_id, b.charge_bar, b.read_bar, b.read_sd_bar, b.set_ms, \
                  b.accel_lo_mps2, b.accel_hi_mps2, b.damping_law, b.second, b.runs_averaged, \
-                 b.split_bar \
+                 b.split_bar, b.other_excitations \
                  FROM baselines b JOIN assets a ON a.id = b.asset",
             )?;
             let mut all = stmt
@@ -707,6 +718,16 @@ impl FleetStore for SqliteStore {
                                 second: json_column(r, 8, "second")?,
                                 runs_averaged: r.get(9)?,
                                 split_bar: r.get(10)?,
+                                other_excitations: other_excitations_from(
+                                    json_column(r, 11, "other_excitations")?.unwrap_or_default(),
+                                )
+                                .map_err(|e| {
+                                    rusqlite::Error::FromSqlConversionFailure(
+                                        11,
+                                        rusqlite::types::Type::Text,
+                                        format!("baselines.{e}").into(),
+                                    )
+                                })?,
                             }),
                             set_ms: r.get(4)?,
                         },
@@ -803,7 +824,7 @@ impl FleetStore for SqliteStore {
 
 #[cfg(test)]
 mod tests {
-    use dt_core::charge::{BaselineReading, DampingLaw};
+    use dt_core::charge::{BaselineReading, DampingLaw, ExcitationBaseline};
     use dt_core::estimate::Health;
 
     use super::*;
@@ -1021,6 +1042,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             set_ms: 1_700_000_000_000,
         };
@@ -1051,6 +1073,20 @@ mod tests {
                 runs_averaged: 2.0 / 0.7,
                 // and the stroke's ends apart at the reading
                 split_bar: Some(-1.0 / 3.0),
+                // and a reading at another excitation, to the bit
+                other_excitations: [
+                    Some(ExcitationBaseline {
+                        accel_range_mps2: [1.4, 1.6],
+                        charge_bar: 12.0,
+                        read_bar: 10.1 / 0.9,
+                        read_sd_bar: 0.2 / 3.0,
+                        runs_averaged: 1.0,
+                        second: None,
+                        split_bar: Some(0.1 / 0.7),
+                    }),
+                    None,
+                    None,
+                ],
             }),
             ..b
         };
@@ -1103,6 +1139,7 @@ mod tests {
                 second: None,
                 runs_averaged: 1.0,
                 split_bar: None,
+                other_excitations: Default::default(),
             }),
             set_ms: 1_700_000_000_000,
         };
