@@ -1209,11 +1209,12 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
     if second is not None:
         second_reads = _read_runs(physics, second[1], jobs)
         spans = [[s for s in (reads[i].span for i in grp) if s is not None] for grp in groups]
+        hulls = [[min(x[0] for x in sp), max(x[1] for x in sp)] if sp else None for sp in spans]
         for k, r in enumerate(second_reads):
-            # the excitation whose runs' range holds this run's (within the calibration's band)
-            near = [g for g, sp in enumerate(spans)
-                    if r.span is None or (sp and not away([min(x[0] for x in sp), max(x[1] for x in sp)], r.span,
-                                                          obs["accel_cluster_rel"]))]
+            # the nearest excitation whose runs' range holds this run's (within the calibration's band)
+            near = sorted((ln_distance(h, r.span) if r.span is not None else 0.0, g) for g, h in enumerate(hulls)
+                          if r.span is None or (h is not None and not away(h, r.span, obs["accel_cluster_rel"])))
+            near = [g for _, g in near]
             if not near:
                 raise SystemExit(f"{second[1][k]}: read at |ÿ_r| {r.span[0]:.2f}–{r.span[1]:.2f} m/s², where no run at "
                                  f"--charge-bar {charge_bar:g} was read: a second reading pairs with a first at its "
@@ -1243,6 +1244,16 @@ def baseline_of(physics: dict[str, Any], paths: Sequence[Path], charge_bar: floa
             # the excitations it was read at (dt-core UnitBaseline::accel_range_mps2)
             ob["accel_range_mps2"] = [min(r[0] for r in ranges), max(r[1] for r in ranges)]
         readings.append(ob)
+    ranged = [(g, r["accel_range_mps2"]) for g, r in enumerate(readings) if "accel_range_mps2" in r]
+    for a, (g, ra) in enumerate(ranged):
+        for h, rb in ranged[a + 1:]:
+            lo, hi = (ra, rb) if ra[0] <= rb[0] else (rb, ra)
+            if hi[0] <= lo[1] * (1.0 + obs["accel_cluster_rel"]):
+                # (dt-core charge::same_excitation: a baseline with them would be refused)
+                raise SystemExit(f"the readings at |ÿ_r| {ra[0]:.2f}–{ra[1]:.2f} and {rb[0]:.2f}–{rb[1]:.2f} m/s² (runs "
+                                 + ", ".join(x["file"] for x in runs if x["excitation"] in (g, h))
+                                 + ") reach within the calibration's band of each other once the --second-runs are "
+                                 "added: one excitation, or two? Give the runs of one excitation, or read them apart")
     ob = readings[0]
     if len(readings) > 1:
         # one reading per excitation (dt-core UnitBaseline::other_excitations): a run is

@@ -812,6 +812,17 @@ def test_a_units_transfer_spread_is_the_likeliest_spread_of_its_errors_between_e
         obs_tool.main([*args, "--unit", str(units[0][0]), str(units[1][0])])
 
 
+def test_runs_are_grouped_by_excitation_the_first_runs_group_first() -> None:
+    """``excitation_groups``: runs whose used ``|ÿ_r|`` ranges lie within the band of each other
+    read together (chained), the group of the first run given comes first and the others by
+    excitation, and a run without a range joins the first group."""
+    spans = [[5.8, 6.2], [1.40, 1.60], None, [1.62, 1.75], [24.0, 24.5], [5.9, 6.1]]
+    assert obs_tool.excitation_groups(spans, 0.2) == [[0, 2, 5], [1, 3], [4]]
+    assert obs_tool.excitation_groups([[1.4, 1.6], [1.95, 2.1]], 0.2) == [[0], [1]]
+    assert obs_tool.excitation_groups([[1.4, 1.6], [1.9, 2.1]], 0.2) == [[0, 1]]
+    assert obs_tool.excitation_groups([None, None], 0.2) == [[0, 1]]
+
+
 def test_a_baseline_read_at_two_excitations_keeps_one_reading_each(calibrated_campaign: tuple[Path, Path],
                                                                    tmp_path: Path) -> None:
     """Another unit read at a known 12 bar at 1 and 2 Hz: ``observer baseline`` over both runs

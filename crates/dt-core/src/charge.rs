@@ -1347,16 +1347,26 @@ impl UnitBaseline {
     /// [`damping_law`](Self::damping_law) is kept the same way) nor how its
     /// error moves between excitations, which holds in bar across charges
     /// (docs/history.md, "Sixty-fifth session"). Also how many of
-    /// `earlier`'s readings were left out: those overlapping this one's
-    /// excitations, without a range, or beyond [`OTHER_EXCITATIONS`]. Without
-    /// a range of its own, none is kept.
+    /// `earlier`'s readings were left out: those at this one's excitation
+    /// (within `rel` of its range, the calibration's
+    /// [`accel_cluster_rel`](ObserverParams::accel_cluster_rel): [`same_excitation`]),
+    /// without a range, or beyond [`OTHER_EXCITATIONS`]; all of them when
+    /// `earlier` was read with another damping law than this one, or when this
+    /// one has no range.
     #[must_use]
-    pub fn keeping_readings_of(self, earlier: &UnitBaseline) -> (Self, usize) {
+    pub fn keeping_readings_of(self, earlier: &UnitBaseline, rel: f64) -> (Self, usize) {
         let mut kept = [None; OTHER_EXCITATIONS];
         let (mut n, mut left_out) = (0, 0);
         for b in earlier.at_each_excitation() {
             let fits = match (self.accel_range_mps2, b.accel_range_mps2) {
-                (Some([lo, hi]), Some([l, h])) => !(l < hi && lo < h) && n < OTHER_EXCITATIONS,
+                (Some(own), Some(other)) => {
+                    !same_excitation(own, other, rel)
+                        && n < OTHER_EXCITATIONS
+                        && self.damping_law == earlier.damping_law
+                        && kept.iter().flatten().all(|k: &ExcitationBaseline| {
+                            !same_excitation(k.accel_range_mps2, other, rel)
+                        })
+                }
                 _ => false,
             };
             if !fits {
@@ -1412,6 +1422,16 @@ fn check_rod_accel_scale(scale: Option<f64>) -> Result<(), PhysicsError> {
         }
         _ => Ok(()),
     }
+}
+
+/// Whether two `|ÿ_r|` ranges (m/s²) are one excitation: they overlap, or
+/// the gap between them is within `rel` of the lower one's top (the
+/// calibration's [`accel_cluster_rel`](ObserverParams::accel_cluster_rel), the
+/// band `python -m train.observer baseline` groups runs by).
+#[must_use]
+pub fn same_excitation(a: [f64; 2], b: [f64; 2], rel: f64) -> bool {
+    let (low, high) = if a[0] <= b[0] { (a, b) } else { (b, a) };
+    high[0] <= low[1] * (1.0 + rel)
 }
 
 /// The range `[lo, hi]` widened to hold `other` too (`other` alone when
@@ -2330,6 +2350,26 @@ impl ObserverParams {
     fn check_baseline(&self) -> Result<(), PhysicsError> {
         if let Some(b) = &self.baseline {
             b.validate()?;
+            // readings apart by the document may still be one excitation to
+            // this calibration: runs that `baseline` would have read together
+            let ranges: Vec<[f64; 2]> = b
+                .at_each_excitation()
+                .filter_map(|r| r.accel_range_mps2)
+                .collect();
+            for (k, (r, names)) in ranges.iter().skip(1).zip(&OTHER_NAMES).enumerate() {
+                if ranges[..=k]
+                    .iter()
+                    .any(|e| same_excitation(*e, *r, self.accel_cluster_rel))
+                {
+                    return Err(PhysicsError::InvalidParameter {
+                        name: names.accel_range,
+                        value: r[0],
+                        reason: "lies within the calibration's band (accel_cluster_rel) of the \
+                                 baseline's own reading or an earlier one: one excitation, one \
+                                 reading",
+                    });
+                }
+            }
             if let Some(own) = &b.damping_law {
                 // (its calibration was checked by `b.validate()` above)
                 if !self.takes_unit_law(own) {
@@ -5143,8 +5183,8 @@ mod tests {
     /// The readings at other excitations in the document: a list, read back
     /// equal; a baseline written before the field still reads; a missing
     /// field is named with its place; overlapping ranges, a missing own range,
-    /// too many readings and a bad number are refused by name (touching ranges
-    /// are apart).
+    /// too many readings and a bad number are refused by name, and so are
+    /// readings within the calibration's band of each other.
     #[test]
     fn readings_at_other_excitations_are_checked() {
         let (base, own, fast, both) = two_excitations();
@@ -5198,14 +5238,26 @@ mod tests {
             },
             "observer.baseline.other_excitations[1].accel_range_mps2",
         );
-        // ranges that only touch are apart
-        let touching = ExcitationBaseline {
+        // ranges apart but within the calibration's band of each other are
+        // one excitation (as `baseline` groups runs); beyond it, two
+        let near = ExcitationBaseline {
             accel_range_mps2: [1.6, 2.0],
+            ..fast
+        };
+        refused(
+            UnitBaseline {
+                other_excitations: [Some(fast), Some(near), None],
+                ..own
+            },
+            "observer.baseline.other_excitations[1].accel_range_mps2",
+        );
+        let apart = ExcitationBaseline {
+            accel_range_mps2: [2.0, 2.5],
             ..fast
         };
         assert!(ChargeObserver::new(ObserverParams {
             baseline: Some(UnitBaseline {
-                other_excitations: [Some(fast), Some(touching), None],
+                other_excitations: [Some(fast), Some(apart), None],
                 ..own
             }),
             ..base
@@ -5248,7 +5300,8 @@ mod tests {
             other_excitations: Default::default(),
             ..own
         };
-        let (after, left_out) = service.keeping_readings_of(&both);
+        let rel = ObserverParams::default().accel_cluster_rel;
+        let (after, left_out) = service.keeping_readings_of(&both, rel);
         assert_eq!(left_out, 1);
         assert_eq!(after.other_excitations, [Some(fast), None, None]);
         assert_eq!(
@@ -5262,7 +5315,7 @@ mod tests {
             accel_range_mps2: Some([5.9, 6.1]),
             ..service
         }
-        .keeping_readings_of(&both);
+        .keeping_readings_of(&both, rel);
         assert_eq!(left_out, 1);
         let [Some(kept), None, None] = after.other_excitations else {
             panic!("{after:?}");
@@ -5272,8 +5325,31 @@ mod tests {
             accel_range_mps2: None,
             ..service
         }
-        .keeping_readings_of(&both);
+        .keeping_readings_of(&both, rel);
         assert_eq!((after.other_excitations, left_out), ([None; 3], 2));
+        // read with another damping law: none of the earlier readings holds
+        let law = DampingLaw {
+            width_mps: 0.008,
+            beta_per_k: 0.03,
+            ..DampingLaw::default()
+        };
+        let (after, left_out) = UnitBaseline {
+            damping_law: Some(law),
+            ..service
+        }
+        .keeping_readings_of(&both, rel);
+        assert_eq!((after.other_excitations, left_out), ([None; 3], 2));
+        // a service drive a little faster than the earlier 1.5 m/s² reading
+        // is the same excitation: that reading is left out, not kept beside it
+        let (after, left_out) = UnitBaseline {
+            accel_range_mps2: Some([1.62, 1.8]),
+            ..service
+        }
+        .keeping_readings_of(&both, rel);
+        assert_eq!(
+            (after.other_excitations, left_out),
+            ([Some(fast), None, None], 1)
+        );
     }
 
     /// `N(m, s²)` truncated above: its moments against a numerical

@@ -800,6 +800,7 @@ impl Partition {
                                 ..r.baseline
                             },
                             open.est.config().observer_service_earlier.as_ref(),
+                            params.accel_cluster_rel,
                         ))
                     })
                     .map_err(|e| e.to_string()),

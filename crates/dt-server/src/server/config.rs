@@ -693,12 +693,23 @@ pub(crate) fn charge_in_range(field: &str, bar: f64) -> Result<(), String> {
     }
 }
 
-/// [`charge_in_range`] for a baseline's charge and its second reading's.
+/// [`charge_in_range`] for a baseline's charges: its own, its second
+/// reading's and those of its readings at other excitations.
 pub(crate) fn baseline_charges_in_range(b: &UnitBaseline) -> Result<(), String> {
     charge_in_range("charge_bar", b.charge_bar)?;
     b.second.as_ref().map_or(Ok(()), |s| {
         charge_in_range("second.charge_bar", s.charge_bar)
-    })
+    })?;
+    for (k, r) in b.other_excitations.iter().flatten().enumerate() {
+        charge_in_range(&format!("other_excitations[{k}].charge_bar"), r.charge_bar)?;
+        if let Some(s) = r.second {
+            charge_in_range(
+                &format!("other_excitations[{k}].second.charge_bar"),
+                s.charge_bar,
+            )?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

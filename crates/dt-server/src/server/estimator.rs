@@ -217,6 +217,7 @@ impl AssetTwin for EstimatorTwin {
                             ..r.baseline
                         },
                         self.est.config().observer_service_earlier.as_ref(),
+                        params.accel_cluster_rel,
                     ))
                 })
                 .map_err(|e| match e {
@@ -258,18 +259,20 @@ impl AssetTwin for EstimatorTwin {
 pub(crate) fn with_earlier_readings(
     read: &UnitBaseline,
     earlier: Option<&UnitBaseline>,
+    rel: f64,
 ) -> UnitBaseline {
     let Some(earlier) = earlier else {
         return *read;
     };
-    let (b, left_out) = read.keeping_readings_of(earlier);
+    let (b, left_out) = read.keeping_readings_of(earlier, rel);
     let kept = b.other_excitations.iter().flatten().count();
     if kept > 0 || left_out > 0 {
         tracing::info!(
             kept,
             left_out,
             "the service's reading keeps the earlier baseline's readings at other excitations \
-             (left out: at its own excitation, without a range, or beyond four in all)"
+             (left out: at its own excitation, without a range, beyond four in all, or all of \
+             them when read with another damping law)"
         );
     }
     b

@@ -161,6 +161,10 @@ impl std::fmt::Display for AssetBaseline {
                         r.read_bar, r.read_sd_bar, r.charge_bar
                     )?;
                 }
+                let others = b.other_excitations.iter().flatten().count();
+                if others > 0 {
+                    write!(f, " (and at {others} other excitation(s))")?;
+                }
                 if b.damping_law.is_some() {
                     write!(f, ", with the unit's own damping law")?;
                 }
