@@ -5002,21 +5002,8 @@ mod tests {
     /// reading's own range is kept for the next baseline.
     #[test]
     fn a_baseline_used_away_from_its_excitations_carries_the_transfer_spread() {
-        let base = ObserverParams {
-            random_walk_bar2_per_s: 0.0,
-            ..shared_table().0
-        };
-        let b = UnitBaseline {
-            charge_bar: 8.0,
-            read_bar: 8.3,
-            read_sd_bar: 0.1,
-            accel_range_mps2: Some([1.4, 1.6]),
-            damping_law: None,
-            second: None,
-            runs_averaged: 1.0,
-            split_bar: None,
-            other_excitations: Default::default(),
-        };
+        // (each run below sets the transfer spread itself)
+        let (base, b, _, _) = two_excitations();
         let kappa = 0.4;
         let run = |baseline: Option<UnitBaseline>, transfer: f64, fast: bool| {
             let mut obs = ChargeObserver::new(ObserverParams {
@@ -5227,39 +5214,25 @@ mod tests {
             .to_string();
             assert!(err.contains(name), "{name}: {err}");
         };
-        let overlapping = ExcitationBaseline {
-            accel_range_mps2: [1.5, 2.0],
-            ..fast
+        // a second reading at another excitation, `[lo, hi]`
+        let beside = |range: [f64; 2]| UnitBaseline {
+            other_excitations: [
+                Some(fast),
+                Some(ExcitationBaseline {
+                    accel_range_mps2: range,
+                    ..fast
+                }),
+                None,
+            ],
+            ..own
         };
-        refused(
-            UnitBaseline {
-                other_excitations: [Some(fast), Some(overlapping), None],
-                ..own
-            },
-            "observer.baseline.other_excitations[1].accel_range_mps2",
-        );
+        let second_range = "observer.baseline.other_excitations[1].accel_range_mps2";
+        refused(beside([1.5, 2.0]), second_range);
         // ranges apart but within the calibration's band of each other are
         // one excitation (as `baseline` groups runs); beyond it, two
-        let near = ExcitationBaseline {
-            accel_range_mps2: [1.6, 2.0],
-            ..fast
-        };
-        refused(
-            UnitBaseline {
-                other_excitations: [Some(fast), Some(near), None],
-                ..own
-            },
-            "observer.baseline.other_excitations[1].accel_range_mps2",
-        );
-        let apart = ExcitationBaseline {
-            accel_range_mps2: [2.0, 2.5],
-            ..fast
-        };
+        refused(beside([1.6, 2.0]), second_range);
         assert!(ChargeObserver::new(ObserverParams {
-            baseline: Some(UnitBaseline {
-                other_excitations: [Some(fast), Some(apart), None],
-                ..own
-            }),
+            baseline: Some(beside([2.0, 2.5])),
             ..base
         })
         .is_ok());
