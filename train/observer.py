@@ -2014,11 +2014,10 @@ def cmd_baseline(args: argparse.Namespace) -> int:
             also = (f", and {s2['read_bar']:.2f} ± {s2['read_sd_bar']:.2f} bar at a known {s2['charge_bar']:g} bar "
                     f"({n_second} run(s))")
         files = ", ".join(x["file"] for x in runs if x.get("excitation", 0) == k)
+        own = " (its own reading)" if k == 0 and "other_excitations" in ob else ""
         print(f"unit baseline{at}: read {r['read_bar']:.2f} ± {r['read_sd_bar']:.2f} bar at a known "
-              f"{r['charge_bar']:g} bar ({n_first} run(s)){also}" + (" (its own reading)" if k == 0 and len(runs) and
-                                                                   "other_excitations" in ob else "")
-              + f": {files}")
-    print(f"wrote {args.out}" + (f": one reading per excitation, a run is corrected by the nearest"
+              f"{r['charge_bar']:g} bar ({n_first} run(s)){also}{own}: {files}")
+    print(f"wrote {args.out}" + (": one reading per excitation, a run is corrected by the nearest"
                                  if "other_excitations" in ob else ""))
     return 0
 
