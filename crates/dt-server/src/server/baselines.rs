@@ -382,7 +382,6 @@ impl Baselines {
             asset.read_service = Some(ServiceToRead {
                 charge_bar: s.charge_bar,
                 set_ms: s.set_ms,
-                damping_law: before.and_then(|u| u.damping_law).filter(|_| !asset.road),
                 earlier: before.filter(|_| !asset.road),
             });
         } else if let Some(b) = self.get(asset_id) {
@@ -524,12 +523,12 @@ mod tests {
             ServiceToRead {
                 charge_bar: 11.0,
                 set_ms: 5_000,
-                // the unit is read with the law its baseline had: a recharge
-                // does not change its valves
-                damping_law: Some(unit_law()),
-                earlier: Some(read_of(&old)), // its readings elsewhere are kept
+                // the unit is read with the law its baseline had (a recharge
+                // does not change its valves), and its readings elsewhere kept
+                earlier: Some(read_of(&old)),
             }
         );
+        assert_eq!(to_read.damping_law(), Some(unit_law()));
         assert_eq!(baselines.view(&config, "van"), None);
         // A run that read for an earlier service changes nothing.
         let stale = ServiceToRead {
@@ -634,7 +633,7 @@ mod tests {
                 .asset_config(&config, id)
                 .read_service
                 .unwrap()
-                .damping_law
+                .damping_law()
         };
         // the configuration's baseline, when none was set over the API; none
         // for a road asset (the road observer has no damping law) or a unit

@@ -270,17 +270,23 @@ pub struct ServiceToRead {
     /// When the service was reported, ms since the Unix epoch (the run
     /// completes that service only, not one reported after it started).
     pub set_ms: i64,
+    /// The unit's observer baseline before the service: its damping law and
+    /// its readings at other excitations than the service's are kept
+    /// ([`damping_law`](Self::damping_law),
+    /// [`UnitBaseline::keeping_readings_of`]). None: none before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub earlier: Option<UnitBaseline>,
+}
+
+impl ServiceToRead {
     /// The unit's own damping law, from its baseline before the service
     /// ([`UnitBaseline::damping_law`]): a recharge does not change the
     /// valves, so the unit is read with it and the baseline read keeps it.
     /// None: the calibration's law.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub damping_law: Option<DampingLaw>,
-    /// The unit's observer baseline before the service: the baseline read
-    /// keeps its readings at other excitations than its own
-    /// ([`UnitBaseline::keeping_readings_of`]). None: none before.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub earlier: Option<UnitBaseline>,
+    #[must_use]
+    pub fn damping_law(&self) -> Option<DampingLaw> {
+        self.earlier.and_then(|u| u.damping_law)
+    }
 }
 
 /// `[assets.<id>]`: any key left out comes from `[defaults]`.

@@ -105,7 +105,7 @@ impl EstimatorFactory {
         cfg.observer_service_earlier = asset.read_service.and_then(|s| s.earlier);
         cfg.observer_damping_law = asset
             .read_service
-            .and_then(|s| s.damping_law)
+            .and_then(|s| s.damping_law())
             .filter(|law| {
                 let ok = self
                     .bundle
