@@ -190,7 +190,9 @@ fn campaign_law() -> DampingLaw {
 /// 0.05 m/s² of noise, at 1 kHz, and the stroke velocity 4 ms late, as the
 /// Kalman filter's is on the simulated dyno (the fits find the reversal
 /// 3.8–4.3 ms before the velocity's zero); one observer over 16 reversals per
-/// iteration.
+/// iteration. `window_model_*`: one evaluation of that window model alone
+/// (the observer's window, 4 ms shift), which the damping law's fit
+/// (`train/damping_law.py`) makes for every window at every residual.
 fn bench_charge(c: &mut Criterion) {
     const REVERSALS: usize = 16;
     const KALMAN_LAG_S: f64 = 0.004;
@@ -204,7 +206,6 @@ fn bench_charge(c: &mut Criterion) {
     let oil_c = 60.0;
     let mut group = c.benchmark_group("charge");
     group.sample_size(10);
-    group.throughput(Throughput::Elements(REVERSALS as u64));
     for (name, half, accel_mag) in [
         ("window_fit_2hz", 0.25, 6.16),
         ("window_fit_4hz", 0.125, 24.2),
@@ -225,6 +226,25 @@ fn bench_charge(c: &mut Criterion) {
                 samples.push((t_ns, a + 0.05 * noise.next(), accel * (s - KALMAN_LAG_S)));
             }
         }
+        // One window of the model alone, as the damping law's fit calls it
+        // (`train/damping_law.py`: every window once per residual evaluation).
+        let one: Vec<f64> = (0..per_half)
+            .map(|i| f64::from(i) * 1e-3 - 0.5 * half)
+            .filter(|s| (-params.window_pre_s..=params.window_post_s).contains(s))
+            .collect();
+        group.throughput(Throughput::Elements(1));
+        group.bench_function(name.replace("fit", "model"), |b| {
+            b.iter(|| {
+                black_box(reversal_window_a2(
+                    &params,
+                    black_box(accel_mag),
+                    oil_c,
+                    [45.0, 1.0, 1.0, -4.0, -9.8],
+                    &one,
+                ))
+            });
+        });
+        group.throughput(Throughput::Elements(REVERSALS as u64));
         group.bench_function(name, |b| {
             b.iter(|| {
                 let mut obs = ChargeObserver::new(params).unwrap();

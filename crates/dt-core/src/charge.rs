@@ -1647,6 +1647,16 @@ pub struct LawValve {
 impl LawValve {
     /// The velocity through the valve at force `f ≥ 0` and `dv/dF`.
     fn velocity(&self, f: f64, ratio: f64, knee: f64) -> (f64, f64) {
+        self.velocity_from(f, ratio, knee, self.ramp_at_rest(knee))
+    }
+
+    /// The shims' ramp at `f = 0`, which [`Self::velocity`] takes off.
+    fn ramp_at_rest(&self, knee: f64) -> f64 {
+        0.5 * (self.crack_n.hypot(knee) - self.crack_n)
+    }
+
+    /// [`Self::velocity`] with the ramp at rest given ([`Self::ramp_at_rest`]).
+    fn velocity_from(&self, f: f64, ratio: f64, knee: f64, ramp0: f64) -> (f64, f64) {
         let a = self.laminar_nspm * ratio;
         let b = self.turbulent_ns2pm2;
         let disc = (a * a + 4.0 * b * f).sqrt();
@@ -1654,7 +1664,6 @@ impl LawValve {
         let (vb, dvb) = (2.0 * f / (a + disc), 1.0 / disc);
         let d = f - self.crack_n;
         let s = d.hypot(knee);
-        let ramp0 = 0.5 * (self.crack_n.hypot(knee) - self.crack_n);
         let ramp = (0.5 * (d + s) - ramp0).max(0.0);
         let dramp = 0.5 * (1.0 + d / s);
         let sq = f.sqrt();
@@ -1672,11 +1681,12 @@ impl LawValve {
             return (0.0, 1.0 / self.velocity(0.0, ratio, knee).1);
         }
         let a = self.laminar_nspm * ratio;
+        let ramp0 = self.ramp_at_rest(knee);
         let (mut lo, mut hi) = (0.0, a * v + self.turbulent_ns2pm2 * v * v);
         let mut f = hi;
         let mut dv = 1.0;
         for _ in 0..100 {
-            let (vv, d) = self.velocity(f, ratio, knee);
+            let (vv, d) = self.velocity_from(f, ratio, knee, ramp0);
             dv = d;
             let r = vv - v;
             if r > 0.0 {
@@ -1691,7 +1701,7 @@ impl LawValve {
             let done = (next - f).abs() <= 1e-12 * (1.0 + f);
             f = next;
             if done {
-                dv = self.velocity(f, ratio, knee).1;
+                dv = self.velocity_from(f, ratio, knee, ramp0).1;
                 break;
             }
         }
@@ -1794,6 +1804,14 @@ fn logistic(x: f64) -> f64 {
 /// [`LAW_TABLE_STEP_MPS`] `h` (error at most `h⁴ c max|sp⁗| / (384 w³)` per
 /// hinge of slope `c` and width `w`: 6e-5 N for 100 kN·s/m at the 8 mm/s of
 /// `train/damping_law.py`), the law itself outside the grid.
+///
+/// A grid point is computed when a step first needs it: a window's
+/// velocities cover a third to a quarter of the span the table is sized
+/// for (`ReversalModel::new`), and the damping law's fit builds a table
+/// for every window at every residual evaluation, each used once. The
+/// points are the law's own (`DampingLaw::force_and_slope_at`, with its
+/// hinges' constant terms taken once per table, the same numbers), so
+/// the table is the same, bit for bit, as one computed in full.
 #[derive(Debug, Clone)]
 struct LawTable {
     law: DampingLaw,
@@ -1801,8 +1819,10 @@ struct LawTable {
     lo: f64,
     /// `ẏ = 0` in grid steps from `lo`.
     zero_at: f64,
-    force: Vec<f64>,
-    slope: Vec<f64>,
+    /// Each hinge's value at rest ([`DampingLaw::hinge_rest`]).
+    rest: [f64; LAW_KNOTS],
+    /// The law's force and slope at each grid point, once computed.
+    cells: Vec<std::cell::Cell<Option<(f64, f64)>>>,
 }
 
 /// Grid step of a [`LawTable`], m/s.
@@ -1812,22 +1832,30 @@ impl LawTable {
     fn new(law: &DampingLaw, ratio: f64, half_span_mps: f64) -> Self {
         let n = (2.0 * half_span_mps / LAW_TABLE_STEP_MPS).ceil() as usize + 1;
         let lo = -half_span_mps;
-        let (force, slope) = (0..n)
-            .map(|i| law.force_and_slope(lo + i as f64 * LAW_TABLE_STEP_MPS, ratio))
-            .unzip();
         Self {
             law: *law,
             ratio,
             lo,
             zero_at: -lo / LAW_TABLE_STEP_MPS,
-            force,
-            slope,
+            rest: law.hinge_rest(),
+            cells: vec![std::cell::Cell::new(None); n],
         }
+    }
+
+    /// The law's force and slope at grid point `j`.
+    fn cell(&self, j: usize) -> (f64, f64) {
+        let cell = &self.cells[j];
+        cell.get().unwrap_or_else(|| {
+            let v = self.lo + j as f64 * LAW_TABLE_STEP_MPS;
+            let fs = self.law.force_and_slope_at(v, self.ratio, &self.rest);
+            cell.set(Some(fs));
+            fs
+        })
     }
 
     fn force_n(&self, v: f64) -> f64 {
         let x = (v - self.lo) / LAW_TABLE_STEP_MPS;
-        if !(x >= 0.0 && x + 1.0 < self.force.len() as f64) {
+        if !(x >= 0.0 && x + 1.0 < self.cells.len() as f64) {
             return self.law.force_n(v, self.ratio);
         }
         // `x ≥ 0`: truncation is the floor (and is not a libm call).
@@ -1840,12 +1868,8 @@ impl LawTable {
             return self.law.force_n(v, self.ratio);
         }
         let h = LAW_TABLE_STEP_MPS;
-        let (f0, f1, d0, d1) = (
-            self.force[j],
-            self.force[j + 1],
-            self.slope[j] * h,
-            self.slope[j + 1] * h,
-        );
+        let ((f0, s0), (f1, s1)) = (self.cell(j), self.cell(j + 1));
+        let (d0, d1) = (s0 * h, s1 * h);
         let (t2, t3) = (t * t, t * t * t);
         (2.0 * t3 - 3.0 * t2 + 1.0) * f0
             + (t3 - 2.0 * t2 + t) * d0
@@ -1899,25 +1923,52 @@ impl DampingLaw {
         if let Some((f, _)) = self.valves.and_then(|x| x.force(v_mps, ratio)) {
             return f;
         }
+        self.hinges_force_n(v_mps, ratio, &self.hinge_rest())
+    }
+
+    /// Each hinge's softplus at rest, which [`Self::force_n`] takes off so
+    /// that the law passes through 0 (0 for a knot at 0: no hinge).
+    fn hinge_rest(&self) -> [f64; LAW_KNOTS] {
+        let w = self.width_mps;
+        self.knots_mps.map(|k| {
+            if k > 0.0 {
+                softplus(-k / w)
+            } else if k < 0.0 {
+                softplus(k / w)
+            } else {
+                0.0
+            }
+        })
+    }
+
+    /// The hinges' force ([`Self::force_n`] without valves), with their
+    /// values at rest `rest` ([`Self::hinge_rest`]).
+    fn hinges_force_n(&self, v_mps: f64, ratio: f64, rest: &[f64; LAW_KNOTS]) -> f64 {
         let w = self.width_mps;
         let mut f = (ratio * self.viscous_nspm[0] + self.dry_nspm[0]) * v_mps;
         for (j, &k) in self.knots_mps.iter().enumerate() {
             let c = ratio * self.viscous_nspm[j + 1] + self.dry_nspm[j + 1];
             if k > 0.0 {
-                f += c * w * (softplus((v_mps - k) / w) - softplus(-k / w));
+                f += c * w * (softplus((v_mps - k) / w) - rest[j]);
             } else if k < 0.0 {
-                f -= c * w * (softplus((k - v_mps) / w) - softplus(k / w));
+                f -= c * w * (softplus((k - v_mps) / w) - rest[j]);
             }
         }
         f
     }
 
     /// [`Self::force_n`] and [`Self::slope_nspm`] together (a valve is
-    /// solved once for both).
-    fn force_and_slope(&self, v_mps: f64, ratio: f64) -> (f64, f64) {
+    /// solved once for both), with the hinges' values at rest given
+    /// ([`Self::hinge_rest`], taken once by a [`LawTable`]).
+    fn force_and_slope_at(&self, v_mps: f64, ratio: f64, rest: &[f64; LAW_KNOTS]) -> (f64, f64) {
         self.valves
             .and_then(|x| x.force(v_mps, ratio))
-            .unwrap_or_else(|| (self.force_n(v_mps, ratio), self.slope_nspm(v_mps, ratio)))
+            .unwrap_or_else(|| {
+                (
+                    self.hinges_force_n(v_mps, ratio, rest),
+                    self.slope_nspm(v_mps, ratio),
+                )
+            })
     }
 
     /// The slope `∂L/∂ẏ` at stroke velocity `v_mps` and viscosity ratio
@@ -4376,6 +4427,73 @@ mod tests {
         }
         for x in [19.999_999, 20.0, 1e3, f64::INFINITY, -20.0, -1e300] {
             assert_eq!(friction_shape(x).to_bits(), x.tanh().to_bits(), "x = {x}");
+        }
+    }
+
+    #[test]
+    fn a_table_computes_a_point_when_first_needed_and_as_the_law_gives_it() {
+        // The reference: every grid point computed up front from the law's
+        // public force and slope, then the same cubic Hermite step.
+        fn eager(law: &DampingLaw, ratio: f64, half: f64, v: f64) -> f64 {
+            let h = LAW_TABLE_STEP_MPS;
+            let n = (2.0 * half / h).ceil() as usize + 1;
+            let x = (v + half) / h;
+            let j = x as usize;
+            let zero_at = half / h;
+            if !(x >= 0.0 && x + 1.0 < n as f64)
+                || law.valves.is_some() && (j as f64 - zero_at) * (j as f64 + 1.0 - zero_at) <= 0.0
+            {
+                return law.force_n(v, ratio);
+            }
+            let at = |i: usize| {
+                let u = -half + i as f64 * h;
+                (law.force_n(u, ratio), law.slope_nspm(u, ratio) * h)
+            };
+            let ((f0, d0), (f1, d1), t) = (at(j), at(j + 1), x - j as f64);
+            let (t2, t3) = (t * t, t * t * t);
+            (2.0 * t3 - 3.0 * t2 + 1.0) * f0
+                + (t3 - 2.0 * t2 + t) * d0
+                + (-2.0 * t3 + 3.0 * t2) * f1
+                + (t3 - t2) * d1
+        }
+        for law in [a_law(), a_valve_law()] {
+            let (ratio, half) = (0.8, 0.25);
+            let vs: Vec<f64> = (-300..=300)
+                .map(|i| f64::from(i) * 0.9e-3 + 1.1e-4)
+                .collect();
+            let want: Vec<u64> = vs
+                .iter()
+                .map(|&v| eager(&law, ratio, half, v).to_bits())
+                .collect();
+            // Forwards, backwards and strided: each order fills the table
+            // differently, every order reads the same bits.
+            let mut strided: Vec<usize> = (0..vs.len()).collect();
+            strided.sort_by_key(|i| (i * 37) % vs.len());
+            let orders = [
+                (0..vs.len()).collect::<Vec<_>>(),
+                (0..vs.len()).rev().collect(),
+                strided,
+            ];
+            for order in orders {
+                let table = LawTable::new(&law, ratio, half);
+                for &i in &order {
+                    assert_eq!(table.force_n(vs[i]).to_bits(), want[i], "v = {}", vs[i]);
+                }
+                // A second pass reads what the first stored.
+                for &i in &order {
+                    assert_eq!(
+                        table.force_n(vs[i]).to_bits(),
+                        want[i],
+                        "again at {}",
+                        vs[i]
+                    );
+                }
+            }
+            // Points no step needed are never computed.
+            let table = LawTable::new(&law, ratio, half);
+            let _ = table.force_n(0.1005);
+            let filled = table.cells.iter().filter(|c| c.get().is_some()).count();
+            assert_eq!(filled, 2, "{filled} points computed for one step");
         }
     }
 
