@@ -1352,44 +1352,65 @@ impl UnitBaseline {
     /// [`accel_cluster_rel`](ObserverParams::accel_cluster_rel): [`same_excitation`]),
     /// without a range, or beyond [`OTHER_EXCITATIONS`]; all of them when
     /// `earlier` was read with another damping law than this one, or when this
-    /// one has no range.
+    /// one has no range. When more than [`OTHER_EXCITATIONS`] lie apart, the
+    /// ones farthest from this one's range (in `ln |ÿ_r|`) are kept: a
+    /// reversal near this one's excitation is corrected by this one, with
+    /// the least transfer spread, whatever reading lay beside it.
     #[must_use]
     pub fn keeping_readings_of(self, earlier: &UnitBaseline, rel: f64) -> (Self, usize) {
-        let mut kept = [None; OTHER_EXCITATIONS];
-        let (mut n, mut left_out) = (0, 0);
-        for b in earlier.at_each_excitation() {
-            let fits = match (self.accel_range_mps2, b.accel_range_mps2) {
-                (Some(own), Some(other)) => {
-                    !same_excitation(own, other, rel)
-                        && n < OTHER_EXCITATIONS
-                        && self.damping_law == earlier.damping_law
-                        && kept.iter().flatten().all(|k: &ExcitationBaseline| {
-                            !same_excitation(k.accel_range_mps2, other, rel)
-                        })
-                }
-                _ => false,
-            };
-            if !fits {
-                left_out += 1;
-                continue;
+        let Some(own) = self.accel_range_mps2 else {
+            return (self, earlier.at_each_excitation().count());
+        };
+        let same_law = self.damping_law == earlier.damping_law;
+        // The readings apart from this one's excitation, each with its gap
+        // from it in `ln |ÿ_r|`.
+        let apart: Vec<(f64, ExcitationBaseline)> = earlier
+            .at_each_excitation()
+            .filter_map(|b| {
+                let range = b.accel_range_mps2?;
+                (same_law && !same_excitation(own, range, rel)).then(|| {
+                    let gap = (range[0] / own[1]).ln().max((own[0] / range[1]).ln());
+                    let reading = ExcitationBaseline {
+                        accel_range_mps2: range,
+                        charge_bar: b.charge_bar,
+                        read_bar: b.read_bar,
+                        read_sd_bar: b.read_sd_bar,
+                        runs_averaged: b.runs_averaged,
+                        second: b.second,
+                        split_bar: b.split_bar,
+                    };
+                    (gap, reading)
+                })
+            })
+            .collect();
+        let total = earlier.at_each_excitation().count();
+        // The farthest `OTHER_EXCITATIONS`, one per excitation, in `earlier`'s
+        // order (the sort is stable: equal gaps keep it too).
+        let mut order: Vec<usize> = (0..apart.len()).collect();
+        order.sort_by(|&i, &j| apart[j].0.total_cmp(&apart[i].0));
+        let mut chosen: Vec<usize> = Vec::with_capacity(OTHER_EXCITATIONS);
+        for i in order {
+            let range = apart[i].1.accel_range_mps2;
+            if chosen.len() < OTHER_EXCITATIONS
+                && chosen
+                    .iter()
+                    .all(|&k| !same_excitation(apart[k].1.accel_range_mps2, range, rel))
+            {
+                chosen.push(i);
             }
-            kept[n] = b.accel_range_mps2.map(|range| ExcitationBaseline {
-                accel_range_mps2: range,
-                charge_bar: b.charge_bar,
-                read_bar: b.read_bar,
-                read_sd_bar: b.read_sd_bar,
-                runs_averaged: b.runs_averaged,
-                second: b.second,
-                split_bar: b.split_bar,
-            });
-            n += 1;
         }
+        chosen.sort_unstable();
+        let mut kept = [None; OTHER_EXCITATIONS];
+        for (slot, &i) in kept.iter_mut().zip(&chosen) {
+            *slot = Some(apart[i].1);
+        }
+        let n = chosen.len();
         (
             Self {
                 other_excitations: kept,
                 ..self
             },
-            left_out,
+            total - n,
         )
     }
 
@@ -5441,6 +5462,42 @@ mod tests {
             (after.other_excitations, left_out),
             ([Some(fast), None, None], 1)
         );
+        // Four earlier readings apart from the service's: the three farthest
+        // from it are kept (the one beside it is covered by the service's own
+        // reading), in the earlier baseline's order.
+        let at = |lo: f64, read_bar: f64| ExcitationBaseline {
+            accel_range_mps2: [lo, 1.1 * lo],
+            read_bar,
+            ..fast
+        };
+        let four = UnitBaseline {
+            accel_range_mps2: Some([1.5, 1.65]),
+            other_excitations: [
+                Some(at(12.0, 12.9)),
+                Some(at(3.0, 11.1)),
+                Some(at(6.0, 11.6)),
+            ],
+            ..own
+        };
+        four.validate().unwrap();
+        let fastest = UnitBaseline {
+            accel_range_mps2: Some([24.0, 25.0]),
+            ..service
+        };
+        let (after, left_out) = fastest.keeping_readings_of(&four, rel);
+        let kept = after
+            .other_excitations
+            .map(|r| r.map(|r| r.accel_range_mps2[0]));
+        assert_eq!((kept, left_out), ([Some(1.5), Some(3.0), Some(6.0)], 1));
+        let slowest = UnitBaseline {
+            accel_range_mps2: Some([0.7, 0.75]),
+            ..service
+        };
+        let (after, left_out) = slowest.keeping_readings_of(&four, rel);
+        let kept = after
+            .other_excitations
+            .map(|r| r.map(|r| r.accel_range_mps2[0]));
+        assert_eq!((kept, left_out), ([Some(12.0), Some(3.0), Some(6.0)], 1));
     }
 
     /// `N(m, s²)` truncated above: its moments against a numerical
