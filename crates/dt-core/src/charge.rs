@@ -1352,14 +1352,20 @@ impl UnitBaseline {
     /// [`accel_cluster_rel`](ObserverParams::accel_cluster_rel): [`same_excitation`]),
     /// without a range, or beyond [`OTHER_EXCITATIONS`]; all of them when
     /// `earlier` was read with another damping law than this one, or when this
-    /// one has no range. When more than [`OTHER_EXCITATIONS`] lie apart, the
-    /// ones farthest from this one's range (in `ln |ÿ_r|`) are kept: a
-    /// reversal near this one's excitation is corrected by this one, with
-    /// the least transfer spread, whatever reading lay beside it.
+    /// one has no range. Of the readings apart, the farthest from this one's
+    /// range (in `ln |ÿ_r|`) are kept first, one per excitation: when more
+    /// than [`OTHER_EXCITATIONS`] lie apart, the ones beside this one's
+    /// excitation are left out (a reversal there is corrected by this one,
+    /// with the least transfer spread); of two at one excitation (which a
+    /// validated baseline never holds), the farther.
     #[must_use]
     pub fn keeping_readings_of(self, earlier: &UnitBaseline, rel: f64) -> (Self, usize) {
         let Some(own) = self.accel_range_mps2 else {
-            return (self, earlier.at_each_excitation().count());
+            let none = Self {
+                other_excitations: [None; OTHER_EXCITATIONS],
+                ..self
+            };
+            return (none, earlier.at_each_excitation().count());
         };
         let same_law = self.damping_law == earlier.damping_law;
         // The readings apart from this one's excitation, each with its gap
@@ -4451,6 +4457,89 @@ mod tests {
         }
     }
 
+    /// `DampingLaw::force_n`'s hinges as written before the sixty-seventh
+    /// session.
+    fn hinges_force_before(law: &DampingLaw, v_mps: f64, ratio: f64) -> f64 {
+        let w = law.width_mps;
+        let mut f = (ratio * law.viscous_nspm[0] + law.dry_nspm[0]) * v_mps;
+        for (j, &k) in law.knots_mps.iter().enumerate() {
+            let c = ratio * law.viscous_nspm[j + 1] + law.dry_nspm[j + 1];
+            if k > 0.0 {
+                f += c * w * (softplus((v_mps - k) / w) - softplus(-k / w));
+            } else if k < 0.0 {
+                f -= c * w * (softplus((k - v_mps) / w) - softplus(k / w));
+            }
+        }
+        f
+    }
+
+    /// `LawValve::velocity` as written before the sixty-seventh session.
+    fn valve_velocity_before(x: &LawValve, f: f64, ratio: f64, knee: f64) -> (f64, f64) {
+        let a = x.laminar_nspm * ratio;
+        let b = x.turbulent_ns2pm2;
+        let disc = (a * a + 4.0 * b * f).sqrt();
+        let (vb, dvb) = (2.0 * f / (a + disc), 1.0 / disc);
+        let d = f - x.crack_n;
+        let s = d.hypot(knee);
+        let ramp0 = 0.5 * (x.crack_n.hypot(knee) - x.crack_n);
+        let ramp = (0.5 * (d + s) - ramp0).max(0.0);
+        let dramp = 0.5 * (1.0 + d / s);
+        let sq = f.sqrt();
+        let vs = x.shim_mps_per_n15 * ramp * sq;
+        let dvs =
+            x.shim_mps_per_n15 * (dramp * sq + if sq > 0.0 { ramp / (2.0 * sq) } else { 0.0 });
+        (vb + vs, dvb + dvs)
+    }
+
+    /// `LawValve::force` as written before the sixty-seventh session.
+    fn valve_force_before(x: &LawValve, v: f64, ratio: f64, knee: f64) -> (f64, f64) {
+        if v <= 0.0 {
+            return (0.0, 1.0 / valve_velocity_before(x, 0.0, ratio, knee).1);
+        }
+        let a = x.laminar_nspm * ratio;
+        let (mut lo, mut hi) = (0.0, a * v + x.turbulent_ns2pm2 * v * v);
+        let mut f = hi;
+        let mut dv = 1.0;
+        for _ in 0..100 {
+            let (vv, d) = valve_velocity_before(x, f, ratio, knee);
+            dv = d;
+            let r = vv - v;
+            if r > 0.0 {
+                hi = f;
+            } else {
+                lo = f;
+            }
+            let mut next = f - r / d;
+            if !(next > lo && next < hi) {
+                next = 0.5 * (lo + hi);
+            }
+            let done = (next - f).abs() <= 1e-12 * (1.0 + f);
+            f = next;
+            if done {
+                dv = valve_velocity_before(x, f, ratio, knee).1;
+                break;
+            }
+        }
+        (f, 1.0 / dv)
+    }
+
+    /// `LawValves::force` with the valves as written before the
+    /// sixty-seventh session.
+    fn valves_force_before(x: &LawValves, v: f64, ratio: f64) -> Option<(f64, f64)> {
+        if v >= 0.0 {
+            x.extension
+                .map(|e| valve_force_before(&e, v, ratio, x.knee_n))
+        } else {
+            x.compression.map(|c| {
+                let (f, d) = valve_force_before(&c, -v, ratio, x.knee_n);
+                let (f2, d2) = x
+                    .compression_piston
+                    .map_or((0.0, 0.0), |p| valve_force_before(&p, -v, ratio, x.knee_n));
+                (-(f + f2), d + d2)
+            })
+        }
+    }
+
     #[test]
     fn a_table_computes_a_point_when_first_needed_and_as_the_law_gives_it() {
         // The reference: every grid point computed up front from the law's
@@ -4509,6 +4598,17 @@ mod tests {
                         vs[i]
                     );
                 }
+            }
+            // The law's numbers are those of the code before the table was
+            // filled as needed (sixty-seventh session), written out below:
+            // each hinge's rest value and each valve's ramp at rest taken
+            // again at every evaluation.
+            for &v in &vs {
+                let want = law
+                    .valves
+                    .and_then(|x| valves_force_before(&x, v, ratio))
+                    .map_or_else(|| hinges_force_before(&law, v, ratio), |(f, _)| f);
+                assert_eq!(law.force_n(v, ratio).to_bits(), want.to_bits(), "v = {v}");
             }
             // Points no step needed are never computed.
             let table = LawTable::new(&law, ratio, half);

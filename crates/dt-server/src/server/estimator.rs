@@ -271,8 +271,8 @@ pub(crate) fn with_earlier_readings(
             kept,
             left_out,
             "the service's reading keeps the earlier baseline's readings at other excitations \
-             (left out: at its own excitation, without a range, beyond four in all, or all of \
-             them when read with another damping law)"
+             (left out: at its own excitation, without a range, beyond three, those nearest its \
+             own excitation, or all of them when read with another damping law)"
         );
     }
     b
