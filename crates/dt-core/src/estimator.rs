@@ -921,7 +921,10 @@ pub fn estimate_log(
 ) -> Result<(Vec<Estimate>, EstimatorCounters), EstimatorError> {
     let mut est = Estimator::new(bundle, cfg)?;
     let mut out = Vec::new();
-    for s in crate::features::sorted_samples(log) {
+    for (k, s) in crate::features::sorted_samples(log).into_iter().enumerate() {
+        if crate::cancel::requested_at(k) {
+            break; // nobody waits for it any more (`cancel`)
+        }
         est.push(s)?;
         out.extend(est.drain());
     }

@@ -1528,7 +1528,10 @@ pub fn compute_reversals(
     let mut pipe =
         FeaturePipeline::new(&params, available.intersect(TopicSet::for_groups(&groups)))?;
     pipe.record_reversals();
-    for s in &sorted_samples(log) {
+    for (k, s) in sorted_samples(log).iter().enumerate() {
+        if crate::cancel::requested_at(k) {
+            break; // nobody waits for it any more (`cancel`)
+        }
         pipe.push(s)?;
         pipe.drain().for_each(drop);
     }
@@ -1629,7 +1632,10 @@ fn run_pipeline(
             table.truth_static_bar.push(row.truth_static_bar);
         }
     };
-    for s in &samples {
+    for (k, s) in samples.iter().enumerate() {
+        if crate::cancel::requested_at(k) {
+            break; // nobody waits for it any more (`cancel`)
+        }
         pipe.push(s)?;
         take(&mut pipe);
     }

@@ -7,6 +7,7 @@
 //! thin shells around it.
 
 pub mod bundle;
+pub mod cancel;
 pub mod charge;
 pub mod error;
 pub mod estimate;

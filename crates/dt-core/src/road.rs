@@ -1190,7 +1190,10 @@ pub fn read_run_counted(
             what,
         })?;
     let mut out = Vec::new();
-    for s in log.samples_in_order() {
+    for (k, s) in log.samples_in_order().enumerate() {
+        if crate::cancel::requested_at(k) {
+            break; // nobody waits for it any more (`cancel`)
+        }
         obs.push(&s);
         out.append(&mut obs.drain());
     }

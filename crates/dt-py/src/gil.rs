@@ -11,12 +11,17 @@
 //! the feature pipeline, the observer's reversals, an estimate, the road
 //! observer) goes through [`interruptible`] instead: Ctrl-C in a notebook
 //! raises `KeyboardInterrupt` within [`SIGNAL_POLL`], where it waited for
-//! the call's end (a helper's trial, sixty-second session). dt-core has no
-//! cancellation points, so the interrupted computation runs to its end on
-//! its own thread and its result is dropped.
+//! the call's end (a helper's trial, sixty-second session). The call's
+//! thread gets a cancellation flag (`dt_core::cancel`), set when the wait
+//! ends with the signal: a run's loop over its samples stops within a few
+//! milliseconds and its incomplete result is dropped. Reading a log and the
+//! calls that work on every core (rayon) have no such point and run to
+//! their end.
 
 use std::panic::{catch_unwind, resume_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{sync_channel, RecvTimeoutError};
+use std::sync::Arc;
 use std::time::Duration;
 
 use pyo3::exceptions::PyRuntimeError;
@@ -37,7 +42,7 @@ where
 
 /// Runs `f` on a thread of its own, the GIL released, and returns its
 /// result; a signal meanwhile (Ctrl-C) returns its Python exception at once
-/// (see the module doc). A panic in `f` is a panic here (pyo3's
+/// and asks the computation to stop (see the module doc). A panic in `f` is a panic here (pyo3's
 /// `PanicException`).
 ///
 /// # Errors
@@ -48,13 +53,16 @@ where
     T: Send + 'static,
 {
     let (tx, mut rx) = sync_channel(1);
+    let cancel = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&cancel);
     std::thread::Builder::new()
         .name("shocktwin-call".into())
         // the caller's thread it ran on before had the main thread's 8 MiB
         .stack_size(8 << 20)
         .spawn(move || {
+            let result = dt_core::cancel::with_flag(flag, || catch_unwind(AssertUnwindSafe(f)));
             // the caller may be gone (interrupted): nothing to tell
-            let _ = tx.send(catch_unwind(AssertUnwindSafe(f)));
+            let _ = tx.send(result);
         })
         .map_err(|e| PyRuntimeError::new_err(format!("could not start the call's thread: {e}")))?;
     loop {
@@ -63,7 +71,13 @@ where
         match got {
             Ok(Ok(value)) => return Ok(value),
             Ok(Err(panic)) => resume_unwind(panic),
-            Err(RecvTimeoutError::Timeout) => py.check_signals()?,
+            Err(RecvTimeoutError::Timeout) => {
+                if let Err(signal) = py.check_signals() {
+                    // stop the computation: nobody will read its result
+                    cancel.store(true, Ordering::Relaxed);
+                    return Err(signal);
+                }
+            }
             Err(RecvTimeoutError::Disconnected) => {
                 return Err(PyRuntimeError::new_err(
                     "the call's thread ended without a result",
