@@ -5598,6 +5598,19 @@ mod tests {
             .other_excitations
             .map(|r| r.map(|r| r.accel_range_mps2[0]));
         assert_eq!((kept, left_out), ([Some(12.0), Some(3.0), Some(6.0)], 1));
+        // read with another law, none of the four holds; without a range, none is kept
+        let (after, left_out) = UnitBaseline {
+            damping_law: Some(law),
+            ..fastest
+        }
+        .keeping_readings_of(&four, rel);
+        assert_eq!((after.other_excitations, left_out), ([None; 3], 4));
+        let (after, left_out) = UnitBaseline {
+            accel_range_mps2: None,
+            ..four
+        }
+        .keeping_readings_of(&four, rel);
+        assert_eq!((after.other_excitations, left_out), ([None; 3], 4));
     }
 
     /// `N(m, s²)` truncated above: its moments against a numerical
