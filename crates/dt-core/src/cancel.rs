@@ -18,8 +18,10 @@ use std::cell::RefCell;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-/// The sample loops look at the flag once per this many samples (a few
-/// milliseconds of work, about a second of a run at 1 kHz on three topics).
+/// The sample loops look at the flag once per this many samples (about a
+/// second of a run at 1 kHz on three topics: under a millisecond of the
+/// estimator's work, tens of milliseconds where the observer fits 4 Hz
+/// reversals).
 pub const CHECK_EVERY: usize = 4096;
 
 thread_local! {
