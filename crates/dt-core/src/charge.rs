@@ -1406,11 +1406,10 @@ impl UnitBaseline {
             }
         }
         chosen.sort_unstable();
-        let mut kept = [None; OTHER_EXCITATIONS];
-        for (slot, &i) in kept.iter_mut().zip(&chosen) {
-            *slot = Some(apart[i].1);
-        }
         let n = chosen.len();
+        // at most `OTHER_EXCITATIONS` were chosen: never the error
+        let kept = other_excitations_from(chosen.iter().map(|&i| apart[i].1).collect())
+            .unwrap_or_default();
         (
             Self {
                 other_excitations: kept,
