@@ -8,9 +8,10 @@
 //! the thread a flag; the loops over a run's samples
 //! ([`crate::features::compute_features`], [`crate::features::compute_twin`],
 //! [`crate::features::compute_reversals`], [`crate::estimator::estimate_log`],
-//! [`crate::road::read_run`]) look at it every [`CHECK_EVERY`] samples
-//! ([`requested_at`]) and, once it is set, stop taking samples and return what
-//! they have. That result is incomplete: whoever sets the flag has stopped
+//! [`crate::road::read_run`]) and the whole-file log reader's loop over its
+//! messages ([`crate::log::read_log_bytes`]) look at it every [`CHECK_EVERY`]
+//! samples ([`requested_at`]) and, once it is set, stop taking samples and
+//! return what they have. That result is incomplete: whoever sets the flag has stopped
 //! waiting and must drop it. A thread without a flag (the daemon, `replay`)
 //! is never stopped.
 

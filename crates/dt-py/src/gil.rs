@@ -13,10 +13,10 @@
 //! raises `KeyboardInterrupt` within [`SIGNAL_POLL`], where it waited for
 //! the call's end (a helper's trial, sixty-second session). The call's
 //! thread gets a cancellation flag (`dt_core::cancel`), set when the wait
-//! ends with the signal: a run's loop over its samples stops within a few
-//! milliseconds and its incomplete result is dropped. Reading a log and the
-//! calls that work on every core (rayon) have no such point and run to
-//! their end.
+//! ends with the signal: a run's loop over its samples (or a log's over
+//! its messages) stops within a few milliseconds and its incomplete result
+//! is dropped. The calls that work on every core (rayon) have no such point
+//! and run to their end.
 
 use std::panic::{catch_unwind, resume_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, Ordering};

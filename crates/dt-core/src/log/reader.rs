@@ -46,6 +46,7 @@ pub fn read_log_bytes(source_name: &str, bytes: &[u8]) -> Result<RunLog, LogErro
     let mut problems = Problems::default();
     let mut seen_message = false;
     let mut input = bytes;
+    let mut messages = 0usize;
     while let Some(event) = raw.next_event(&mut input) {
         match event? {
             RawEvent::Channel(channel) => decoder.on_channel(source_name, &channel)?,
@@ -72,6 +73,12 @@ pub fn read_log_bytes(source_name: &str, bytes: &[u8]) -> Result<RunLog, LogErro
                 data,
                 ..
             } => {
+                // Ctrl-C in the bindings ([`crate::cancel`]): the rest is
+                // not read, and the caller drops what was.
+                if crate::cancel::requested_at(messages) {
+                    break;
+                }
+                messages += 1;
                 seen_message = true;
                 match decoder.decode(source_name, channel, log_time, data) {
                     Ok(Some(sample)) => log.push(sample),

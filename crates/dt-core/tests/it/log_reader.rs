@@ -97,6 +97,33 @@ fn read_log_reads_a_file_and_names_a_missing_one() {
     assert!(err.to_string().contains("nope.mcap"), "{err}");
 }
 
+/// Ctrl-C in the bindings sets the call's flag ([`dt_core::cancel`]): the
+/// reader stops taking messages (its caller drops the log); without the flag,
+/// or with it unset, it reads them all.
+#[test]
+fn read_log_stops_when_its_call_is_cancelled() {
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+    let bytes = write_bytes(&samples(), WriteOptions::default());
+    let read = |set: bool| {
+        dt_core::cancel::with_flag(Arc::new(AtomicBool::new(set)), || {
+            read_log_bytes("mem", &bytes).unwrap()
+        })
+    };
+    assert_eq!(read(false).samples_sorted(), samples());
+    let stopped = read(true);
+    assert_eq!(
+        stopped.metadata,
+        meta(),
+        "the metadata comes before any message"
+    );
+    assert_eq!(
+        stopped.sample_count(),
+        0,
+        "no message read once the flag is set"
+    );
+}
+
 #[test]
 fn samples_sorted_orders_equal_times_by_topic_rank() {
     let mut log = RunLog::default();
