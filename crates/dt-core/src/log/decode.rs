@@ -128,11 +128,12 @@ fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(
             encoding: channel.message_encoding.clone(),
         });
     }
+    // A channel without a schema is valid MCAP (schemaless JSON): read.
     let Some(schema) = &channel.schema else {
         return Ok(());
     };
-    if schema.encoding != "jsonschema" || schema.data.is_empty() {
-        return Ok(());
+    if schema.data.is_empty() {
+        return Ok(()); // an empty schema says nothing either
     }
     let schema_error = |field: &str, detail: String| LogError::Schema {
         file: file.to_owned(),
@@ -140,25 +141,54 @@ fn check_channel(file: &str, channel: &RawChannel, spec: &TopicSpec) -> Result<(
         field: field.to_owned(),
         detail,
     };
+    if schema.encoding != "jsonschema" {
+        return Err(schema_error(
+            spec.fields[0],
+            format!(
+                "schema `{}` is encoded `{}`, not `jsonschema`",
+                schema.name, schema.encoding
+            ),
+        ));
+    }
     let parsed: serde_json::Value = serde_json::from_slice(&schema.data).map_err(|e| {
         schema_error(
             spec.fields[0],
-            format!(" (schema `{}` is not valid JSON: {e})", schema.name),
+            format!("schema `{}` is not valid JSON: {e}", schema.name),
         )
     })?;
     let properties = parsed
         .get("properties")
         .and_then(serde_json::Value::as_object);
     for field in spec.fields {
-        let declared = properties.is_some_and(|p| p.contains_key(*field));
-        if !declared {
+        let Some(declared) = properties.and_then(|p| p.get(*field)) else {
             return Err(schema_error(
                 field,
-                format!(" (schema `{}` has no property `{field}`)", schema.name),
+                format!("schema `{}` has no property `{field}`", schema.name),
+            ));
+        };
+        if let Some(other) = not_a_number(declared) {
+            return Err(schema_error(
+                field,
+                format!(
+                    "schema `{}` declares it `{other}`, not a number",
+                    schema.name
+                ),
             ));
         }
     }
     Ok(())
+}
+
+/// The declared `type` of a schema property when it admits no number
+/// (neither `number` nor `integer`, alone or in a list: a writer may add
+/// `null` for a missing sample); `None` when it admits one or declares none.
+fn not_a_number(property: &serde_json::Value) -> Option<String> {
+    let numeric = |t: &serde_json::Value| matches!(t.as_str(), Some("number" | "integer"));
+    match property.get("type")? {
+        serde_json::Value::Array(types) if types.iter().any(numeric) => None,
+        t if numeric(t) => None,
+        t => Some(t.to_string()),
+    }
 }
 
 /// The message's numbers when it is written as the writers write it: the

@@ -72,16 +72,19 @@ pub enum LogError {
         /// The encoding found.
         encoding: String,
     },
-    /// A known topic's JSON schema does not declare a field the format requires.
-    #[error("{file}: topic `{topic}`: schema lacks field `{field}`{detail}")]
+    /// A known topic's schema does not match the format (SPEC §2): not
+    /// `jsonschema`, not valid JSON, lacking a field the format requires, or
+    /// declaring it other than a number.
+    #[error("{file}: topic `{topic}`: schema field `{field}`: {detail}")]
     Schema {
         /// File or source name.
         file: String,
         /// The topic.
         topic: String,
-        /// The missing field.
+        /// The field the schema gets wrong (the topic's first for a schema
+        /// that is wrong as a whole).
         field: String,
-        /// Extra context (e.g. the schema could not be parsed).
+        /// What is wrong.
         detail: String,
     },
     /// A message of a known topic could not be decoded (a field is missing or

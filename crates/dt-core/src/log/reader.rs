@@ -9,7 +9,7 @@
 //! | not MCAP, bad CRC, truncated, record over a size limit | error | error, decoder stops |
 //! | `shocktwin.run` missing | error | error if a message comes first |
 //! | `asset_id` / `run_id` missing or not `[A-Za-z0-9._-]{1,64}` (nor `.`, `..`) | error | error |
-//! | known topic not `json`, or its JSON schema lacks a field | error | error |
+//! | known topic not `json`, its schema not `jsonschema`, or lacking a field or declaring it other than a number | error | error |
 //! | one message missing a field / not a number / bad JSON | problem: skipped, counted | `Err` item, decoding goes on |
 //! | unknown topic | counted, problem | `LogEvent::Unknown` |
 //! | second `shocktwin.run` record | problem, first one used | ignored |

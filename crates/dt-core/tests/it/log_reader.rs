@@ -207,8 +207,16 @@ impl Raw {
         self
     }
     fn channel(&mut self, topic: &str, encoding: &str, schema: Option<&str>) -> u16 {
+        self.channel_encoded(topic, encoding, schema.map(|s| ("jsonschema", s)))
+    }
+    fn channel_encoded(
+        &mut self,
+        topic: &str,
+        encoding: &str,
+        schema: Option<(&str, &str)>,
+    ) -> u16 {
         let schema_id = match schema {
-            Some(s) => self.w.add_schema("s", "jsonschema", s.as_bytes()).unwrap(),
+            Some((how, s)) => self.w.add_schema("s", how, s.as_bytes()).unwrap(),
             None => 0,
         };
         self.w
@@ -469,6 +477,60 @@ fn fatal_validation_errors_name_file_topic_and_field() {
     let (_, errors, end) = decode_pieces(&bytes, 3);
     assert!(matches!(errors[0], LogError::Schema { .. }), "{errors:?}");
     assert!(end.is_err());
+
+    // a schema that declares a field other than a number, or is not
+    // jsonschema (a helper's audit of SPEC §2: both were read as if right)
+    for (name, how, schema, field, says) in [
+        (
+            "f6.mcap",
+            "jsonschema",
+            r#"{"properties":{"position_m":{"type":"string"}}}"#,
+            "position_m",
+            "declares it `\"string\"`",
+        ),
+        (
+            "f7.mcap",
+            "jsonschema",
+            r#"{"properties":{"position_m":{"type":["string","null"]}}}"#,
+            "position_m",
+            "not a number",
+        ),
+        (
+            "f8.mcap",
+            "protobuf",
+            "message Position { double position_m = 1; }",
+            "position_m",
+            "encoded `protobuf`, not `jsonschema`",
+        ),
+    ] {
+        let mut raw = Raw::new(mcap::WriteOptions::new());
+        raw.metadata(&IDS);
+        let c = raw.channel_encoded("/position", "json", Some((how, schema)));
+        raw.message(c, 1, r#"{"position_m": 0.01}"#);
+        let bytes = raw.finish();
+        let text = read_log_bytes(name, &bytes).unwrap_err().to_string();
+        assert!(
+            text.contains(name) && text.contains("/position") && text.contains(field),
+            "{text}"
+        );
+        assert!(text.contains(says), "{text}");
+        let (events, errors, _) = decode_pieces(&bytes, 7);
+        assert!(matches!(errors[0], LogError::Schema { .. }), "{errors:?}");
+        assert!(samples_of(&events).is_empty(), "{events:?}");
+    }
+    // what a writer may declare instead of a bare number, and no type at all
+    for schema in [
+        r#"{"properties":{"position_m":{"type":["number","null"]}}}"#,
+        r#"{"properties":{"position_m":{"type":"integer"}}}"#,
+        r#"{"properties":{"position_m":{}}}"#,
+    ] {
+        let mut raw = Raw::new(mcap::WriteOptions::new());
+        raw.metadata(&IDS);
+        let c = raw.channel("/position", "json", Some(schema));
+        raw.message(c, 1, r#"{"position_m": 0.01}"#);
+        let log = read_log_bytes("ok.mcap", &raw.finish()).unwrap();
+        assert_eq!(log.position, vec![(1, 0.01)], "{schema}");
+    }
 }
 
 #[test]
