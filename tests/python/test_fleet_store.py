@@ -267,9 +267,20 @@ def test_an_older_run_processed_later_does_not_become_the_assets_latest(world: d
     # said once each (a helper's trial: a mistyped asset id joined without a word; a CSV was ignored)
     assert len(d.logged("a new asset joins the fleet", "dyno-unit-A")) == 1, d.log
     assert d.logged("dyno-export.csv", "shocktwin import", wait_s=20), d.log
+    # the same run uploaded again adds nothing to what is shown (a helper's trial: its last tick
+    # came into the history twice)
+    shutil.copy(newest, inbox / f"again-{newest.name}")
+    d.wait_runs("dyno-unit-A", 2)
+    deadline = time.monotonic() + 60
+    while row()["ticks"] < 2 * shown["ticks"]:  # every tick of it through the live view
+        assert time.monotonic() < deadline, d.log
+        time.sleep(0.2)
+    hist = d.get("/v1/assets/dyno-unit-A", history=100000)["history"]
+    assert all(a["t_ns"] < b["t_ns"] for a, b in zip(hist, hist[1:])), "a tick shown twice"
+    assert row()["run_id"] == shown["run_id"]
     shutil.copy(oldest, inbox / oldest.name)
-    runs = d.wait_runs("dyno-unit-A", 2)
-    assert runs[0]["run_id"] == shown["run_id"] != runs[1]["run_id"], runs
+    runs = d.wait_runs("dyno-unit-A", 3)
+    assert runs[0]["run_id"] == shown["run_id"] != runs[-1]["run_id"], runs
     assert len(d.logged("a new asset joins the fleet")) == 1, d.log
     after = row()
     for k in ("run_id", "pressure_bar", "pressure_lo_bar", "pressure_hi_bar", "health", "last_t_ns"):
@@ -286,7 +297,7 @@ def test_an_older_run_processed_later_does_not_become_the_assets_latest(world: d
     assert row()["run_id"] == shown["run_id"]
     # a run newer than what it shows is shown
     shutil.copy(middle, inbox / middle.name)
-    d.wait_runs("dyno-unit-A", 3)
+    d.wait_runs("dyno-unit-A", 4)
     assert row()["run_id"] == shown["run_id"], "a middle day is older than the last"
     d2.stop()
 
