@@ -6,6 +6,7 @@ by ``train/`` are tested in ``test_train_tools.py``."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -171,7 +172,9 @@ def test_log_and_bundle_pickle_into_worker_processes(make_log, tmp_path: Path, m
     path = make_log(duration_s=4.0)
     monkeypatch.chdir(path.parent)
     log = shocktwin.read_log(path.name)  # relative: the pickle holds the absolute path
-    bundle = shocktwin.Bundle(MLP13)
+    # relative too: pickled after the chdir below, it must still name this directory (a
+    # helper's trial: the path was made absolute at pickling, against the new directory)
+    bundle = shocktwin.Bundle(os.path.relpath(MLP13, path.parent))
     log2, bundle2 = pickle.loads(pickle.dumps((log, bundle)))
     assert isinstance(log2, shocktwin.Log) and isinstance(bundle2, shocktwin.Bundle)
     assert log2.metadata == log.metadata and bundle2.columns == bundle.columns

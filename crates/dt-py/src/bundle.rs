@@ -45,6 +45,9 @@ pub(crate) fn load_bundle(py: Python<'_>, path: PathBuf) -> PyResult<Arc<Bundle>
 #[pyclass(module = "shocktwin._native", name = "Bundle", frozen)]
 pub(crate) struct PyBundle {
     bundle: Arc<Bundle>,
+    /// The directory's absolute path when the bundle was loaded (what it
+    /// pickles as, whatever the working directory is by then).
+    absolute: PathBuf,
 }
 
 impl PyBundle {
@@ -87,8 +90,10 @@ fn rows_of(bundle: &Bundle, x: &PyArrayLike2<'_, f64, AllowTypeChange>) -> PyRes
 impl PyBundle {
     #[new]
     fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let absolute = std::path::absolute(&path).unwrap_or_else(|_| path.clone());
         Ok(Self {
             bundle: load_bundle(py, path)?,
+            absolute,
         })
     }
 
@@ -207,13 +212,13 @@ impl PyBundle {
         self.bundle.precision()
     }
 
-    /// Pickled as the directory's absolute path: unpickling loads the
-    /// bundle again, so a worker process (``multiprocessing``,
-    /// ``concurrent.futures``, joblib) needs the same directory, unchanged.
+    /// Pickled as the directory's absolute path when it was loaded:
+    /// unpickling loads the bundle again, so a worker process
+    /// (``multiprocessing``, ``concurrent.futures``, joblib) needs the same
+    /// directory, unchanged. (Taken at pickling, a relative path named
+    /// another directory after a ``chdir``: a helper's trial.)
     fn __reduce__<'py>(slf: &Bound<'py, Self>) -> (Bound<'py, pyo3::types::PyType>, (PathBuf,)) {
-        let dir = &slf.get().bundle.dir;
-        let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.clone());
-        (slf.get_type(), (dir,))
+        (slf.get_type(), (slf.get().absolute.clone(),))
     }
 
     fn __repr__(&self) -> String {
