@@ -203,12 +203,15 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
                 report.library = library;
             }
             RawEvent::Channel(channel) => {
+                // A channel's record comes again in the summary: checked
+                // (and its problem said) once.
+                if channels.contains_key(&channel.id) {
+                    continue;
+                }
                 if let Err(err) = decoder.on_channel(source_name, &channel) {
                     problems.note(err.to_string());
                 }
-                channels
-                    .entry(channel.id)
-                    .or_insert_with(|| ChannelReport::new(&channel));
+                channels.insert(channel.id, ChannelReport::new(&channel));
             }
             RawEvent::Message {
                 channel,
@@ -230,6 +233,13 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
             RawEvent::Metadata { name, metadata } => {
                 if name == RUN_METADATA_NAME {
                     run_records += 1;
+                    if run_records == 1 && report.message_count > 0 {
+                        // as `read_log` says it (a helper's audit: inspect
+                        // called such a file complete)
+                        problems.note(format!(
+                            "metadata `{RUN_METADATA_NAME}` comes after the first message (a stream reader would refuse it)"
+                        ));
+                    }
                     if report.run.is_none() {
                         match RunMetadata::from_map(source_name, &metadata) {
                             Ok(run) => report.run = Some(run),

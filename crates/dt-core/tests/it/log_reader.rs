@@ -680,6 +680,50 @@ fn not_mcap_is_an_error_naming_the_file() {
     assert!(read_log_bytes("flip.mcap", &bytes).is_err());
 }
 
+/// `inspect` says what `read_log` says (a helper's audit): metadata after
+/// the first message is a problem, and a bad channel's problem is said once
+/// though its record comes again in the summary.
+#[test]
+fn inspect_names_late_metadata_and_a_bad_schema_once() {
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    let c = raw.channel(
+        "/force",
+        "json",
+        Some(r#"{"type":"object","properties":{"f":{"type":"number"}}}"#),
+    );
+    raw.message(c, 1, r#"{"force_n": 1}"#);
+    raw.metadata(&IDS);
+    let bytes = raw.finish();
+    let read = read_log_bytes("late.mcap", &bytes);
+    let report = dt_core::log::inspect_bytes("late.mcap", &bytes).unwrap();
+    let said = |what: &str| report.problems.iter().filter(|p| p.contains(what)).count();
+    assert_eq!(
+        said("comes after the first message"),
+        1,
+        "{:?}",
+        report.problems
+    );
+    assert_eq!(said("schema field `force_n`"), 1, "{:?}", report.problems);
+    // the whole-file reader refuses the schema outright
+    assert!(read.is_err());
+    // the metadata alone late: read_log and inspect both say so
+    let mut raw = Raw::new(mcap::WriteOptions::new());
+    let c = raw.channel("/position", "json", None);
+    raw.message(c, 1, r#"{"position_m": 0.01}"#);
+    raw.metadata(&IDS);
+    let bytes = raw.finish();
+    let log = read_log_bytes("late.mcap", &bytes).unwrap();
+    let report = dt_core::log::inspect_bytes("late.mcap", &bytes).unwrap();
+    for problems in [&log.problems, &report.problems] {
+        assert!(
+            problems
+                .iter()
+                .any(|p| p.contains("comes after the first message")),
+            "{problems:?}"
+        );
+    }
+}
+
 #[test]
 fn inspect_reports_counts_rates_and_a_complete_log() {
     let bytes = write_bytes(&samples(), WriteOptions::default());
