@@ -158,6 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     columns = dataset.group_columns(perm["groups"])
 
     metrics: dict[str, Any] = {}
+    interval = None
     if args.split == "runs":
         test_idx = set(split_runs(len(tables), args.seed).tolist())
         masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
@@ -168,6 +169,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         preds = [evaluate.predict_run(trained, tables[i], columns, excited[i]) for i in sorted(test_idx)]
         scores = evaluate.score_runs(preds)
         metrics = {"test_runs": [tables[i].run.name for i in sorted(test_idx)], **scores.as_dict()}
+        if "observer" not in perm["groups"]:  # the observer gives its own (SPEC §2a)
+            interval = model.held_out_interval(preds, metrics["test_runs"])
     elif args.split == "paper":
         test = evaluate.paper_split(tables, args.seed)
         x, y = evaluate.training_set(tables, columns, excited, [~m for m in test], args.per_run,
@@ -194,6 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         physics=physics,
         nominal_bar=nominal_bar,
         health=scaled_health(nominal_bar),
+        interval=interval,
         provenance={
             "campaign": campaign.root.name,
             "campaign_digest": campaign.digest(),
@@ -215,6 +219,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if "caveat" in metrics:
             what += f"\n  {metrics['caveat']}"
     print(what)
+    if interval:
+        print(f"  95 % interval: the 1 s average ± {interval['half_width_bar']:.2f} bar, sized on the "
+              f"{len(interval['runs'])} held-out runs ({interval['ticks']} excited ticks)")
+    elif "observer" not in perm["groups"]:
+        print(f"  no interval: the estimates' pressure_lo_bar/hi_bar stay null (it is sized on held-out runs: "
+              f"--split runs; this is --split {args.split})")
     print(f"wrote bundle {args.out}")
     return 0
 

@@ -191,7 +191,8 @@ def test_params_and_groups_from_a_bundle(full_log, tmp_path: Path):
     rows = np.isfinite(x).all(axis=1)
     trained = train_model.fit(x[rows], np.full(rows.sum(), 12.0), columns, seed=0, max_iter=5)
     bundle = train_model.write_bundle(
-        tmp_path / "bundle", trained, permutation=perm, physics=params, nominal_bar=12.0, provenance={}
+        tmp_path / "bundle", trained, permutation=perm, physics=params, nominal_bar=12.0,
+        provenance={"campaign_digest": None, "split": "none", "seed": 0, "metrics": {}},
     )
     got, got_columns, _ = shocktwin.features(full_log, bundle)  # groups from the bundle
     assert got_columns == columns

@@ -87,7 +87,7 @@ def trained(data: dataset.CampaignData) -> model.Trained:
 def bundle_dir(trained: model.Trained, physics: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
     return model.write_bundle(
         tmp_path_factory.mktemp("bundle") / "perm-12", trained, permutation=PERM12, physics=physics,
-        nominal_bar=12.0, provenance={"campaign": "test", "split": "none", "seed": 0},
+        nominal_bar=12.0, provenance={"campaign": "test", "campaign_digest": None, "split": "none", "seed": 0, "metrics": {}},
     )
 
 
@@ -360,7 +360,7 @@ def test_a_network_reading_the_observer_learns_its_residual_and_every_reader_add
         assert row.any() == (c not in model.NOT_READ_BY_RESIDUAL), c
 
     out = model.write_bundle(tmp_path / "perm-18", tr, permutation=extra[18], physics=physics, nominal_bar=12.0,
-                             provenance={"campaign": "test", "split": "none", "seed": 0})
+                             provenance={"campaign": "test", "campaign_digest": None, "split": "none", "seed": 0, "metrics": {}})
     twin = json.loads((out / "twin.json").read_text())
     assert twin["provenance"]["network"]["hidden"] == list(model.HIDDEN)
     assert twin["provenance"]["network"]["target"].startswith("charge_bar - observer_bar")
@@ -663,6 +663,13 @@ def test_train_then_replay(campaign, shocktwin_bin, tmp_path):
     assert (prov["per_run"], prov["max_iter"], prov["skipped_runs"]) == (PER_RUN, MAX_ITER, [])
     assert np.isfinite(prov["metrics"]["rmse_bar"])
     assert bundle.physics != {k: shocktwin.default_params()[k] for k in ("kalman", "thermal", "force")}  # calibrated
+    # SPEC §2a: a bundle trained now gives an interval without the observer too (a helper's audit: it
+    # gave none), sized on the held-out run
+    interval = bundle.twin["interval"]
+    assert interval["runs"] == prov["metrics"]["test_runs"] and interval["level"] == 0.95
+    q = interval["half_width_bar"]
+    assert q > 0 and interval["ticks"] > 100, interval
+    assert f"the 1 s average ± {q:.2f} bar" in proc.stdout
 
     runs = sorted(campaign.glob("*.mcap"))
     out_csv = tmp_path / "x.csv"
@@ -688,6 +695,15 @@ def test_train_then_replay(campaign, shocktwin_bin, tmp_path):
         np.testing.assert_array_equal(pressure, want["pressure_bar"])
         np.testing.assert_allclose([float(r["t_s"]) for r in got], want["t_s"], rtol=0, atol=5e-4)
         assert [r["health"] for r in got] == want["health"].tolist()
+        # the 1 s average ± q where there is one (floored at 0 bar gauge: none here reaches it), else none
+        num = lambda k: np.array([float(r[k]) if r[k] else np.nan for r in got])  # noqa: E731
+        avg, lo, hi = num("pressure_avg_bar"), num("pressure_lo_bar"), num("pressure_hi_bar")
+        np.testing.assert_array_equal(lo, want["pressure_lo_bar"])
+        has = np.isfinite(avg)
+        assert has.any() and np.array_equal(np.isfinite(hi), has)
+        clear = has & (avg > q)
+        np.testing.assert_allclose(hi[clear] - avg[clear], q, atol=2e-9)
+        np.testing.assert_allclose(avg[clear] - lo[clear], q, atol=2e-9)
 
 
 # --- the quick study end to end -------------------------------------------------------------

@@ -198,6 +198,23 @@ pub struct OnnxInfo {
     pub sha256: Option<String>,
 }
 
+/// The 95 % interval of a bundle without the charge observer (SPEC §2a):
+/// the 1 s average ± the 95th percentile of its absolute error on the runs
+/// `train.train --split runs` kept out of training (their excited ticks).
+/// Empirical, from a few runs: it holds as far as those runs are like the
+/// ones the bundle will read.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutInterval {
+    /// Half the interval's width, bar.
+    pub half_width_bar: f64,
+    /// The central coverage it was sized for (0.95).
+    pub level: f64,
+    /// The held-out runs it was measured on.
+    pub runs: Vec<String>,
+    /// Their excited ticks.
+    pub ticks: u64,
+}
+
 /// Contents of `twin.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TwinJson {
@@ -212,12 +229,16 @@ pub struct TwinJson {
     /// The asset model's nominal charge pressure, bar gauge at 20 °C.
     pub nominal_bar: f64,
     /// Health thresholds (SPEC §6).
-    #[serde(default)]
     pub health: HealthConfig,
     /// The network file.
     pub onnx: OnnxInfo,
-    /// Training provenance (campaign digest, split, seed, metrics …), kept verbatim.
-    #[serde(default)]
+    /// The interval of a bundle without the charge observer (`None`: none,
+    /// as for bundles trained on every run or before this field).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interval: Option<HeldOutInterval>,
+    /// Training provenance, kept verbatim: an object holding at least
+    /// [`PROVENANCE_KEYS`] (SPEC §5; a value may be `null` where there is
+    /// none, as for a fixture's random weights).
     pub provenance: serde_json::Value,
 }
 
@@ -1004,9 +1025,38 @@ fn hex_digest(bytes: &[u8]) -> String {
 }
 
 /// Checks the JSON part for consistency; returns the parsed groups.
+/// What a bundle's training provenance must say (SPEC §5).
+pub const PROVENANCE_KEYS: [&str; 4] = ["campaign_digest", "split", "seed", "metrics"];
+
 fn check_twin(twin: &TwinJson) -> Result<Vec<Group>, String> {
     if twin.format != BUNDLE_FORMAT {
         return Err(format!("format {:?} is not {BUNDLE_FORMAT:?}", twin.format));
+    }
+    // SPEC §5: every part present (a helper's audit: a bundle without its
+    // thresholds or provenance loaded with defaults, without a word).
+    let Some(provenance) = twin.provenance.as_object() else {
+        return Err(format!(
+            "provenance is {}, not an object with {PROVENANCE_KEYS:?}",
+            twin.provenance
+        ));
+    };
+    let missing: Vec<&str> = PROVENANCE_KEYS
+        .into_iter()
+        .filter(|k| !provenance.contains_key(*k))
+        .collect();
+    if !missing.is_empty() {
+        return Err(format!("provenance lacks {missing:?}"));
+    }
+    if let Some(i) = &twin.interval {
+        if !(i.half_width_bar.is_finite() && i.half_width_bar > 0.0) {
+            return Err(format!(
+                "interval.half_width_bar = {} must be finite and > 0",
+                i.half_width_bar
+            ));
+        }
+    }
+    if twin.onnx.sha256.is_none() {
+        return Err("onnx.sha256 is missing (the network file's digest, checked at load)".into());
     }
     let perm = &twin.permutation;
     if perm.groups.is_empty() {

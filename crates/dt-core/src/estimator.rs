@@ -847,16 +847,28 @@ impl Estimator {
             .filter(|x| x.is_finite())
             .fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
         let pressure_avg_bar = if n > 0.0 { sum / n } else { f64::NAN };
-        // The interval: the charge observer's standard deviation around the
-        // estimate, when the bundle reads the observer (SPEC §2a).
-        let sd = if self.s.uses_observer {
-            row.values[col::OBSERVER_SD_BAR]
+        // The interval (SPEC §2a): the charge observer's standard deviation
+        // around the estimate, when the bundle reads the observer; else the
+        // held-out error of the 1 s average around it, when the bundle was
+        // sized on held-out runs (NaN while there is no average: not
+        // excited); else none.
+        let (lo, hi, avg_lo, avg_hi) = if self.s.uses_observer {
+            let half = Z95 * row.values[col::OBSERVER_SD_BAR];
+            (
+                pressure_bar - half,
+                pressure_bar + half,
+                pressure_avg_bar - half,
+                pressure_avg_bar + half,
+            )
+        } else if let Some(i) = &self.bundle.twin.interval {
+            let (lo, hi) = (
+                pressure_avg_bar - i.half_width_bar,
+                pressure_avg_bar + i.half_width_bar,
+            );
+            (lo, hi, lo, hi)
         } else {
-            f64::NAN
+            (f64::NAN, f64::NAN, f64::NAN, f64::NAN)
         };
-        let half = Z95 * sd;
-        let (lo, hi) = (pressure_bar - half, pressure_bar + half);
-        let (avg_lo, avg_hi) = (pressure_avg_bar - half, pressure_avg_bar + half);
         let health =
             self.s
                 .health

@@ -10,6 +10,7 @@ use dt_core::bundle::{mlp_f32_agrees, Bundle, BundleError, MLP_F32_PARITY_BAR};
 use dt_core::features::Group;
 use dt_core::params::PhysicsParams;
 use serde_json::Value;
+use sha2::Digest as _;
 
 /// Agreement required between the float64 network paths and numpy (SPEC: 1e-9).
 const TOL_BAR: f64 = 1e-9;
@@ -327,18 +328,50 @@ fn network_names_and_dtype_are_checked() {
         t["onnx"]["dtype"] = Value::from("int8");
     });
     load_err(dir.path(), &["mlp.onnx", "onnx.dtype", "int8"]);
-    // A network for another width (the force-only one under permutation 13).
-    let dir = edited("bundle-mlp13", |t| {
-        t["onnx"].as_object_mut().unwrap().remove("sha256");
-    });
-    std::fs::copy(
-        fixture("bundle-force-skl/mlp.onnx"),
-        dir.path().join("mlp.onnx"),
-    )
-    .unwrap();
+    // A network for another width (the force-only one under permutation 13),
+    // its digest right.
+    let with_network = |bytes: &[u8]| {
+        let digest: String = sha2::Sha256::digest(bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        let dir = edited("bundle-mlp13", |t| {
+            t["onnx"]["sha256"] = Value::from(digest);
+        });
+        std::fs::write(dir.path().join("mlp.onnx"), bytes).unwrap();
+        dir
+    };
+    let other = std::fs::read(fixture("bundle-force-skl/mlp.onnx")).unwrap();
+    let dir = with_network(&other);
     let err = load_err(dir.path(), &["mlp.onnx"]);
     assert!(matches!(err, BundleError::Onnx { .. }), "{err}");
     // Not ONNX at all.
-    std::fs::write(dir.path().join("mlp.onnx"), b"not a network").unwrap();
+    let dir = with_network(b"not a network");
     load_err(dir.path(), &["mlp.onnx", "ONNX"]);
+}
+
+/// SPEC §5: every part present, or loading names what is not (a helper's
+/// audit: without `health` or `provenance` a bundle loaded with defaults).
+#[test]
+fn every_part_must_be_present() {
+    for part in ["health", "provenance"] {
+        let dir = edited("bundle-mlp13", |t| {
+            t.as_object_mut().unwrap().remove(part);
+        });
+        load_err(dir.path(), &["twin.json", part]);
+    }
+    for key in ["campaign_digest", "split", "seed", "metrics"] {
+        let dir = edited("bundle-mlp13", |t| {
+            t["provenance"].as_object_mut().unwrap().remove(key);
+        });
+        load_err(dir.path(), &["twin.json", "provenance", key]);
+    }
+    let dir = edited("bundle-mlp13", |t| {
+        t["provenance"] = Value::from("trained somewhere");
+    });
+    load_err(dir.path(), &["twin.json", "provenance"]);
+    let dir = edited("bundle-mlp13", |t| {
+        t["onnx"].as_object_mut().unwrap().remove("sha256");
+    });
+    load_err(dir.path(), &["twin.json", "onnx.sha256"]);
 }

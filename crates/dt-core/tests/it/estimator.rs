@@ -381,6 +381,73 @@ fn unknown_without_excitation() {
     assert_ne!(ticks[399].estimate.health, Health::Unknown);
 }
 
+/// `bundle-mlp13` with a held-out interval of half-width `q` (as
+/// `train.train --split runs` writes it).
+fn bundle_with_interval(q: f64) -> (tempfile::TempDir, Arc<Bundle>) {
+    let src =
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/bundle-mlp13");
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["twin.json", "mlp.onnx"] {
+        std::fs::copy(src.join(f), dir.path().join(f)).unwrap();
+    }
+    let path = dir.path().join("twin.json");
+    let mut twin: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    twin["interval"] = serde_json::json!({
+        "half_width_bar": q, "level": 0.95, "runs": ["held-out"], "ticks": 1000
+    });
+    std::fs::write(&path, twin.to_string()).unwrap();
+    let b = Arc::new(Bundle::load(dir.path()).unwrap());
+    (dir, b)
+}
+
+/// SPEC §2a/§6a for a bundle without the observer (a helper's audit: a
+/// bundle trained now gave no interval and judged on the average alone):
+/// its held-out half-width around the 1 s average, none while there is no
+/// average, and the verdict by the interval.
+#[test]
+fn a_held_out_interval_brackets_the_average_and_decides_health() {
+    let log = synth_log(T0, 8, 0.04, 9);
+    let (_dir, b) = bundle_with_interval(0.5);
+    let ticks = stream(&mut estimator(&b), &sorted_samples(&log));
+    let plain = stream(
+        &mut estimator(&bundle("bundle-mlp13")),
+        &sorted_samples(&log),
+    );
+    let mut bracketed = 0;
+    for (t, p) in ticks.iter().zip(&plain) {
+        let (e, v1) = (&t.estimate, &p.estimate);
+        assert!(
+            v1.pressure_lo_bar.is_nan() && v1.pressure_hi_bar.is_nan(),
+            "no interval without one"
+        );
+        assert_eq!(e.pressure_bar.to_bits(), v1.pressure_bar.to_bits());
+        if v1.pressure_avg_bar.is_nan() {
+            assert!(
+                e.pressure_lo_bar.is_nan() && e.pressure_hi_bar.is_nan(),
+                "{e:?}"
+            );
+        } else if v1.pressure_avg_bar > 0.5 {
+            assert!(
+                (e.pressure_hi_bar - v1.pressure_avg_bar - 0.5).abs() < 1e-12,
+                "{e:?}"
+            );
+            assert!(
+                (v1.pressure_avg_bar - e.pressure_lo_bar - 0.5).abs() < 1e-12,
+                "{e:?}"
+            );
+            bracketed += 1;
+        }
+    }
+    assert!(bracketed > 100, "{bracketed} ticks with an interval");
+    // An interval wider than the thresholds' span decides nothing: `unknown`
+    // where the average alone judged.
+    let (_dir, wide) = bundle_with_interval(50.0);
+    let ticks = stream(&mut estimator(&wide), &sorted_samples(&log));
+    assert_ne!(plain[399].estimate.health, Health::Unknown);
+    assert!(ticks.iter().all(|t| t.estimate.health == Health::Unknown));
+}
+
 // ---- the health state machine on synthetic ticks ----
 
 const TICK: i64 = TICK_NS;
