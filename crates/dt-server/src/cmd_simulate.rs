@@ -108,8 +108,9 @@ fn report(summaries: &[dt_sim::RunSummary], started: std::time::Instant, args: &
     }
     let total_s: f64 = summaries.iter().map(|s| s.duration_s).sum();
     println!(
-        "SIMULATED DATA (dt-sim truth plant, not a real dyno): {} runs of {}, {:.0} s simulated in {:.1} s, written to {}",
+        "SIMULATED DATA (dt-sim truth plant, not a real dyno): {} run{} of {}, {:.0} s simulated in {:.1} s, written to {}",
         summaries.len(),
+        if summaries.len() == 1 { "" } else { "s" },
         summaries.first().map_or("-", |s| s.asset_id.as_str()),
         total_s,
         started.elapsed().as_secs_f64(),

@@ -772,8 +772,9 @@ fn log_road(source: &str, asset_id: &str, r: &dt_core::road::RoadCounters) {
     if let Some(why) = r.why_none() {
         tracing::warn!(source = %source, asset = %asset_id, "{why}");
     } else if r.read > 0 {
-        // the counts as one field: they are the API's `last_run_road`, by name
-        tracing::info!(source = %source, asset = %asset_id, blocks = ?r, "road observer");
+        // the counts as one field, in JSON: the API's `last_run_road`, by name
+        let blocks = serde_json::to_string(r).unwrap_or_default();
+        tracing::info!(source = %source, asset = %asset_id, blocks = %blocks, "road observer");
     }
 }
 
