@@ -366,16 +366,19 @@ impl Sink for LiveSink {
         state.with_asset(run, |v| {
             let mut health = v.summary.health;
             let mut newest = None;
-            // An upload (inbox, `POST /v1/runs`) shows only what is newer
-            // than what the asset shows: a backlog of older logs processed
-            // later keeps its estimates to the store, and a run sent again
-            // (streamed, then its file uploaded) does not repeat its last
-            // ticks in the history. A live stream (TCP, NATS) is the asset
-            // now, whatever its clock says.
+            // An upload (inbox, `POST /v1/runs`) shows only what is not
+            // older than what the asset shows: a backlog of older logs
+            // processed later keeps its estimates to the store. The run the
+            // asset shows, sent again (streamed, then its file uploaded),
+            // does not repeat its last tick in the history; another run at
+            // the same time (simulated runs share a clock) takes its place.
+            // A live stream (TCP, NATS) is the asset now, whatever its clock
+            // says.
             let live = run.kind.is_live();
+            let again = v.summary.run_id == run.meta.run_id;
             for e in batch {
                 let ms = clock.ms(e.t_ns);
-                if !live && ms <= v.shown_ms {
+                if !live && (ms < v.shown_ms || (again && ms == v.shown_ms)) {
                     continue;
                 }
                 if ms > future_ms {
