@@ -86,6 +86,7 @@ fn write_rows(out: &Path, runs: &[Read]) -> Result<()> {
     }
     for r in runs {
         for b in &r.blocks {
+            let (estimate, lo, hi) = reported(b);
             if csv {
                 writeln!(
                     w,
@@ -99,9 +100,9 @@ fn write_rows(out: &Path, runs: &[Read]) -> Result<()> {
                     b.stroke_rms_mps,
                     b.reading_bar,
                     b.reading_sd_bar,
-                    b.estimate_bar,
-                    b.lo_bar,
-                    b.hi_bar,
+                    estimate,
+                    lo,
+                    hi,
                     b.health.as_str()
                 )?;
             } else {
@@ -109,8 +110,8 @@ fn write_rows(out: &Path, runs: &[Read]) -> Result<()> {
                     "run_id": r.run_id, "asset_id": r.asset_id, "t_s": b.t_s,
                     "alpha_n": b.alpha_n, "alpha_sd_n": b.alpha_sd_n, "temp_c": b.temp_c,
                     "stroke_rms_mps": b.stroke_rms_mps, "reading_bar": b.reading_bar,
-                    "reading_sd_bar": b.reading_sd_bar, "pressure_bar": b.estimate_bar,
-                    "pressure_lo_bar": b.lo_bar, "pressure_hi_bar": b.hi_bar, "health": b.health,
+                    "reading_sd_bar": b.reading_sd_bar, "pressure_bar": estimate,
+                    "pressure_lo_bar": lo, "pressure_hi_bar": hi, "health": b.health,
                 });
                 writeln!(w, "{row}")?;
             }
@@ -118,6 +119,17 @@ fn write_rows(out: &Path, runs: &[Read]) -> Result<()> {
     }
     w.flush()?;
     Ok(())
+}
+
+/// A block's estimate and interval as `replay --road` and the daemon report
+/// them: floored at ambient (0 bar gauge) when the interval reaches above
+/// it (`dt_core::estimator::at_ambient_floor`; a helper's trial found
+/// `shocktwin road` printing `[-1.02, 4.74]` where they gave 0). The block's
+/// reading itself is not floored.
+fn reported(b: &RoadBlock) -> (f64, f64, f64) {
+    let [estimate, _, lo] =
+        dt_core::estimator::at_ambient_floor([b.estimate_bar, b.estimate_bar, b.lo_bar], b.hi_bar);
+    (estimate, lo, b.hi_bar)
 }
 
 /// The per-run table (Markdown) on stdout.
@@ -154,21 +166,19 @@ fn print_table(runs: &[Read], health: &HealthConfig, simulated: bool) {
                     .map_or("never".to_owned(), |i| format!("{:.0} s", r.blocks[i].t_s));
                 (
                     format!("{l}"),
-                    format!("{:+.2}", last.estimate_bar - l),
+                    format!("{:+.2}", reported(last).0 - l),
                     format!("{:.0} %", 100.0 * covered as f64 / r.blocks.len() as f64),
                     format!("{from} (want {})", want.as_str()),
                 )
             }
             None => ("—".into(), String::new(), String::new(), String::new()),
         };
+        let (estimate, lo, hi) = reported(last);
         println!(
-            "| {} | {} | {label} | {} | {:.2} | [{:.2}, {:.2}] | {} | {err} | {cover} | {right} |",
+            "| {} | {} | {label} | {} | {estimate:.2} | [{lo:.2}, {hi:.2}] | {} | {err} | {cover} | {right} |",
             r.run_id,
             r.asset_id,
             r.blocks.len(),
-            last.estimate_bar,
-            last.lo_bar,
-            last.hi_bar,
             last.health.as_str()
         );
     }
