@@ -331,10 +331,13 @@ fn network_names_and_dtype_are_checked() {
     // A network for another width (the force-only one under permutation 13),
     // its digest right.
     let with_network = |bytes: &[u8]| {
-        let digest: String = sha2::Sha256::digest(bytes)
+        let digest = sha2::Sha256::digest(bytes)
             .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect();
+            .fold(String::new(), |mut s, b| {
+                use std::fmt::Write as _;
+                let _ = write!(s, "{b:02x}");
+                s
+            });
         let dir = edited("bundle-mlp13", |t| {
             t["onnx"]["sha256"] = Value::from(digest);
         });
