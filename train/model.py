@@ -175,18 +175,28 @@ def to_onnx(trained: Trained) -> bytes:
     return onx.SerializeToString()
 
 
-def held_out_interval(preds: Sequence[Any], runs: Sequence[str], level: float = 0.95) -> dict[str, Any] | None:
+def held_out_interval(errors: np.ndarray, runs: Sequence[str], level: float = 0.95) -> dict[str, Any] | None:
     """The 95 % interval of a bundle without the charge observer (SPEC §2a; dt-core
-    ``HeldOutInterval``): the split-conformal half-width of the 1 s average's absolute error on
-    the held-out runs' excited ticks (the ``⌈(n + 1) level⌉``-th smallest of ``n``). Pooled over
-    ticks of a few runs, it holds as far as those runs are like the ones the bundle will read.
-    ``None`` without a held-out tick."""
-    err = np.concatenate([np.abs(p.averaged() - p.table.label_bar) for p in preds]) if preds else np.empty(0)
-    err = np.sort(err[np.isfinite(err)])
+    ``HeldOutInterval``) from ``errors``, the absolute errors of the estimator's 1 s average
+    (``pressure_avg_bar``) on the held-out ``runs``' ticks that have one: their
+    ``⌈(n + 1) level⌉``-th smallest of ``n`` (the largest when ``n`` is too small). An empirical
+    percentile, not a coverage guarantee: a run's ticks err together, so it holds as far as the
+    few held-out runs are like the ones the bundle will read. ``None`` without an error."""
+    err = np.sort(np.asarray(errors, dtype=float))
+    err = err[np.isfinite(err)]
     if not len(err):
         return None
     k = min(len(err), int(np.ceil((len(err) + 1) * level))) - 1
     return {"half_width_bar": float(err[k]), "level": level, "runs": list(runs), "ticks": int(len(err))}
+
+
+def add_interval(bundle_dir: Path, interval: dict[str, Any]) -> None:
+    """Writes ``interval`` into the bundle's ``twin.json`` (after its network has been run on the
+    held-out runs to size it)."""
+    path = bundle_dir / "twin.json"
+    twin = json.loads(path.read_text())
+    twin["interval"] = interval
+    path.write_text(json.dumps(twin, indent=2) + "\n")
 
 
 # What a bundle's provenance must say (SPEC §5; dt-core ``bundle::PROVENANCE_KEYS``).
@@ -202,11 +212,9 @@ def write_bundle(
     nominal_bar: float,
     provenance: dict[str, Any],
     health: dict[str, float] | None = None,
-    interval: dict[str, Any] | None = None,
 ) -> Path:
     """Write ``twin.json`` + ``mlp.onnx`` (SPEC §5) into ``out_dir``. ``provenance`` must say
-    ``PROVENANCE_KEYS`` (a value may be ``None`` where there is none): loading checks them.
-    ``interval``: a bundle without the observer's held-out 95 % interval (``held_out_interval``)."""
+    ``PROVENANCE_KEYS`` (a value may be ``None`` where there is none): loading checks them."""
     missing = [k for k in PROVENANCE_KEYS if k not in provenance]
     if missing:
         raise ValueError(f"a bundle's provenance must say {', '.join(missing)} (SPEC §5)")
@@ -232,7 +240,6 @@ def write_bundle(
             "dtype": "float64",
             "sha256": hashlib.sha256(onnx_bytes).hexdigest(),
         },
-        **({"interval": interval} if interval else {}),
         "provenance": {
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "network": {

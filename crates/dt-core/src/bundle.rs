@@ -1024,10 +1024,10 @@ fn hex_digest(bytes: &[u8]) -> String {
         })
 }
 
-/// Checks the JSON part for consistency; returns the parsed groups.
 /// What a bundle's training provenance must say (SPEC §5).
 pub const PROVENANCE_KEYS: [&str; 4] = ["campaign_digest", "split", "seed", "metrics"];
 
+/// Checks the JSON part for consistency; returns the parsed groups.
 fn check_twin(twin: &TwinJson) -> Result<Vec<Group>, String> {
     if twin.format != BUNDLE_FORMAT {
         return Err(format!("format {:?} is not {BUNDLE_FORMAT:?}", twin.format));
@@ -1053,6 +1053,18 @@ fn check_twin(twin: &TwinJson) -> Result<Vec<Group>, String> {
                 "interval.half_width_bar = {} must be finite and > 0",
                 i.half_width_bar
             ));
+        }
+        if (i.level - 0.95).abs() > 1e-12 {
+            return Err(format!(
+                "interval.level = {} is not 0.95 (SPEC §2a's central 95 % interval)",
+                i.level
+            ));
+        }
+        if twin.permutation.groups.iter().any(|g| g == "observer") {
+            return Err(
+                "interval is given for a bundle that reads the observer, which gives its own"
+                    .into(),
+            );
         }
     }
     if twin.onnx.sha256.is_none() {

@@ -61,7 +61,9 @@ pub struct Estimate {
     pub pressure_avg_bar: f64,
     /// Lower end of the central 95 % interval of the charge pressure at the
     /// tick, bar gauge (SPEC §2a); NaN when the estimator cannot say (a
-    /// bundle without the charge observer). Absent in older records.
+    /// bundle with neither the charge observer nor a held-out interval, or
+    /// one with the latter while there is no 1 s average). Absent in older
+    /// records.
     #[serde(default = "nan", deserialize_with = "f64_or_nan")]
     pub pressure_lo_bar: f64,
     /// Upper end of that interval, bar gauge.

@@ -249,7 +249,8 @@ pub const VACUUM_GAUGE_BAR: f64 = -crate::params::P_ATM_PA / 1e5;
 
 /// The health state machine of SPEC §6 and §6a, fed one tick at a time.
 ///
-/// Without an interval (a bundle without the charge observer), the *level*
+/// Without an interval (a bundle with neither the charge observer nor a
+/// held-out interval, [`crate::bundle::HeldOutInterval`]), the *level*
 /// of a 1 s average is `leak` below `fault_bar`, `low` below `warn_bar`, else
 /// `ok`, with hysteresis around the reported state: `leak` is left only at
 /// `fault_bar + hysteresis_bar`, `low` (upwards) only at

@@ -285,8 +285,9 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
 /// ``pressure_avg_bar`` (1 s average), ``pressure_lo_bar`` and
-/// ``pressure_hi_bar`` (central 95 % interval, NaN without the charge
-/// observer), ``expected_bar``, ``velocity_mps``,
+/// ``pressure_hi_bar`` (central 95 % interval: NaN without the charge
+/// observer and without the bundle's held-out interval, or while there is
+/// no 1 s average for the latter), ``expected_bar``, ``velocity_mps``,
 /// ``force_model_n``, ``oil_temp_c`` (float64, NaN where the estimator has
 /// no value) and ``health`` (str: ``ok``, ``low``, ``leak``, ``unknown``).
 /// Raises ``MissingTopicsError`` when the log lacks a topic the bundle's

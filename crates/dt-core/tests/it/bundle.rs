@@ -377,4 +377,22 @@ fn every_part_must_be_present() {
         t["onnx"].as_object_mut().unwrap().remove("sha256");
     });
     load_err(dir.path(), &["twin.json", "onnx.sha256"]);
+    // a held-out interval that is not SPEC §2a's
+    for (half, level, says) in [
+        (0.0, 0.95, "half_width_bar"),
+        (-1.0, 0.95, "half_width_bar"),
+        (1.0, 0.68, "interval.level"),
+    ] {
+        let dir = edited("bundle-mlp13", |t| {
+            t["interval"] = serde_json::json!({
+                "half_width_bar": half, "level": level, "runs": ["r"], "ticks": 10
+            });
+        });
+        load_err(dir.path(), &["twin.json", says]);
+    }
+    let dir = edited("bundle-mlp13", |t| {
+        t["interval"] =
+            serde_json::json!({"half_width_bar": 1.0, "level": 0.95, "runs": ["r"], "ticks": 10});
+    });
+    assert!(Bundle::load(dir.path()).is_ok());
 }
