@@ -199,10 +199,10 @@ pub struct OnnxInfo {
 }
 
 /// The 95 % interval of a bundle without the charge observer (SPEC §2a):
-/// the 1 s average ± the 95th percentile of its absolute error on the runs
-/// `train.train --split runs` kept out of training (their excited ticks).
-/// Empirical, from a few runs: it holds as far as those runs are like the
-/// ones the bundle will read.
+/// the 1 s average ± the 95th percentile of the estimator's own 1 s
+/// average's absolute error on the runs `train.train --split runs` kept out
+/// of training (their ticks that have one). Empirical, from a few runs: it
+/// holds as far as those runs are like the ones the bundle will read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct HeldOutInterval {
     /// Half the interval's width, bar.
@@ -211,7 +211,7 @@ pub struct HeldOutInterval {
     pub level: f64,
     /// The held-out runs it was measured on.
     pub runs: Vec<String>,
-    /// Their excited ticks.
+    /// Their ticks with a 1 s average, the errors it was taken over.
     pub ticks: u64,
 }
 

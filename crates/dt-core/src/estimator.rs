@@ -851,8 +851,8 @@ impl Estimator {
         // The interval (SPEC §2a): the charge observer's standard deviation
         // around the estimate, when the bundle reads the observer; else the
         // held-out error of the 1 s average around it, when the bundle was
-        // sized on held-out runs (NaN while there is no average: not
-        // excited); else none.
+        // sized on held-out runs (NaN while there is no average: no excited
+        // tick in the last second); else none.
         let (lo, hi, avg_lo, avg_hi) = if self.s.uses_observer {
             let half = Z95 * row.values[col::OBSERVER_SD_BAR];
             (
