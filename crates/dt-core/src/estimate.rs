@@ -83,6 +83,17 @@ pub struct Estimate {
     /// Modelled oil temperature at the tick, °C.
     #[serde(deserialize_with = "f64_or_nan")]
     pub oil_temp_c: f64,
+    /// `pressure_bar` before the floor at 0 bar gauge (`at_ambient_floor` in
+    /// `estimator`): what a statistic over many ticks should take, since the
+    /// floor biases a mean upwards near 0. Not part of `/estimate`: not
+    /// written, and NaN when read from a record.
+    #[serde(skip, default = "nan")]
+    pub unfloored_bar: f64,
+    /// Half the width of the 95 % interval before the floor (its lower bound
+    /// floored at 0 makes `(hi − lo) / 2` too narrow); NaN without an
+    /// interval. Not part of `/estimate`, as `unfloored_bar`.
+    #[serde(skip, default = "nan")]
+    pub unfloored_half_bar: f64,
 }
 
 /// JSON schema (`jsonschema` encoding) of the `/estimate` topic's messages.
@@ -124,15 +135,20 @@ mod tests {
             velocity_mps: -0.25,
             force_model_n: 812.0,
             oil_temp_c: 31.0,
+            unfloored_bar: -0.4,
+            unfloored_half_bar: 2.1,
         };
         let json = serde_json::to_string(&e).unwrap();
         assert!(json.contains("\"pressure_bar\":null"), "{json}");
+        // the unfloored pair is the daemon's own, not the topic's
+        assert!(!json.contains("unfloored"), "{json}");
         assert!(json.contains("\"health\":\"ok\""), "{json}");
         let back: Estimate = serde_json::from_str(&json).unwrap();
         assert!(back.pressure_bar.is_nan());
         assert_eq!(back.pressure_avg_bar.to_bits(), 11.5_f64.to_bits());
         assert_eq!(back.pressure_lo_bar.to_bits(), 10.0_f64.to_bits());
         assert!(back.pressure_hi_bar.is_nan());
+        assert!(back.unfloored_bar.is_nan() && back.unfloored_half_bar.is_nan());
         // A v1 record (no interval) still reads, with NaN bounds.
         let v1 = json
             .replace(",\"pressure_lo_bar\":10.0", "")

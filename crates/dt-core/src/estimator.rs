@@ -897,6 +897,7 @@ impl Estimator {
             }
             None => (pressure_bar, pressure_avg_bar, lo, hi, health),
         };
+        let (unfloored_bar, unfloored_half_bar) = (pressure_bar, 0.5 * (hi - lo));
         let [pressure_bar, pressure_avg_bar, lo] =
             at_ambient_floor([pressure_bar, pressure_avg_bar, lo], hi);
         Ok(Estimate {
@@ -910,6 +911,8 @@ impl Estimator {
             velocity_mps: twin.velocity_mps,
             force_model_n: twin.force_model_n,
             oil_temp_c: twin.oil_temp_c,
+            unfloored_bar,
+            unfloored_half_bar,
         })
     }
 }

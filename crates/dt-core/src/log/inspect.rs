@@ -236,9 +236,7 @@ pub fn inspect_bytes(source_name: &str, bytes: &[u8]) -> Result<InspectReport, L
                     if run_records == 1 && report.message_count > 0 {
                         // as `read_log` says it (a helper's audit: inspect
                         // called such a file complete)
-                        problems.note(format!(
-                            "metadata `{RUN_METADATA_NAME}` comes after the first message (a stream reader would refuse it)"
-                        ));
+                        problems.note(super::metadata_after_first_message());
                     }
                     if report.run.is_none() {
                         match RunMetadata::from_map(source_name, &metadata) {

@@ -53,6 +53,12 @@ pub mod topic {
 /// Name of the MCAP metadata record that describes a run.
 pub const RUN_METADATA_NAME: &str = "shocktwin.run";
 
+/// The problem `read_log` and `inspect` both note for a file whose run
+/// metadata follows a message (one text, so the two cannot drift apart).
+fn metadata_after_first_message() -> String {
+    format!("metadata `{RUN_METADATA_NAME}` comes after the first message (a stream reader would refuse it)")
+}
+
 /// The `shocktwin.run` metadata of a run (SPEC §2).
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct RunMetadata {

@@ -61,9 +61,7 @@ pub fn read_log_bytes(source_name: &str, bytes: &[u8]) -> Result<RunLog, LogErro
                 } else {
                     metadata = Some(RunMetadata::from_map(source_name, &map)?);
                     if seen_message {
-                        problems.note(format!(
-                            "metadata `{RUN_METADATA_NAME}` comes after the first message (a stream reader would refuse it)"
-                        ));
+                        problems.note(super::metadata_after_first_message());
                     }
                 }
             }

@@ -446,6 +446,25 @@ fn a_held_out_interval_brackets_the_average_and_decides_health() {
     let ticks = stream(&mut estimator(&wide), &sorted_samples(&log));
     assert_ne!(plain[399].estimate.health, Health::Unknown);
     assert!(ticks.iter().all(|t| t.estimate.health == Health::Unknown));
+    // Its lower bound is floored at 0 bar; the store's run summary takes the
+    // estimate and half-width from before the floor (`Estimate::unfloored_*`).
+    let mut floored = 0;
+    for (t, p) in ticks.iter().zip(&plain) {
+        let (e, v1) = (&t.estimate, &p.estimate);
+        assert_eq!(e.unfloored_bar.to_bits(), v1.pressure_bar.to_bits());
+        assert_eq!(v1.unfloored_bar.to_bits(), v1.pressure_bar.to_bits());
+        assert!(v1.unfloored_half_bar.is_nan(), "no interval, no half");
+        if e.pressure_avg_bar.is_finite() {
+            assert!((e.unfloored_half_bar - 50.0).abs() < 1e-9, "{e:?}");
+            if e.pressure_lo_bar == 0.0 {
+                assert!(e.pressure_hi_bar - e.pressure_lo_bar < 100.0);
+                floored += 1;
+            }
+        } else {
+            assert!(e.unfloored_half_bar.is_nan(), "{e:?}");
+        }
+    }
+    assert!(floored > 100, "{floored} floored ticks");
 }
 
 // ---- the health state machine on synthetic ticks ----

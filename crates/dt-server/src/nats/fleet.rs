@@ -61,6 +61,24 @@ struct EstimateIn {
     run_id: String,
     #[serde(flatten)]
     e: Estimate,
+    /// `Estimate::unfloored_bar` (absent from a worker before the
+    /// sixty-ninth session's: NaN, and the store takes the floored values).
+    #[serde(default)]
+    unfloored_bar: Option<f64>,
+    /// `Estimate::unfloored_half_bar`, likewise.
+    #[serde(default)]
+    unfloored_half_bar: Option<f64>,
+}
+
+impl EstimateIn {
+    /// The estimate with the pair the worker sent beside it.
+    fn estimate(&self) -> Estimate {
+        Estimate {
+            unfloored_bar: self.unfloored_bar.unwrap_or(f64::NAN),
+            unfloored_half_bar: self.unfloored_half_bar.unwrap_or(f64::NAN),
+            ..self.e
+        }
+    }
 }
 
 #[derive(Deserialize)]
@@ -127,7 +145,7 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
                                 let r = relay_for(&ctx.ingest, &mut runs, &source, &asset, &e.run_id, None).await;
                                 if let Some(r) = r {
                                     r.set_arrival(arrived);
-                                    r.relay([e.e]);
+                                    r.relay([e.estimate()]);
                                 }
                             }
                             Err(err) => tracing::warn!(subject = %msg.subject, "undecodable estimate: {err}"),

@@ -849,6 +849,8 @@ impl Partition {
             let payload = serde_json::to_vec(&EstimateMsg {
                 run_id: &open.run_id,
                 e,
+                unfloored_bar: e.unfloored_bar,
+                unfloored_half_bar: e.unfloored_half_bar,
             })
             .map_err(|err| Refused::Publish(NatsError::new("estimate encoding", err)))?;
             let id = format!("e/{asset}/{}/{}", open.run_id, e.t_ns);
@@ -927,6 +929,11 @@ pub struct EstimateMsg<'a> {
     /// The estimate (`t_ns` and the SPEC §2/§2a fields).
     #[serde(flatten)]
     pub e: &'a Estimate,
+    /// [`Estimate::unfloored_bar`], which `/estimate` does not carry: the
+    /// gateway's store summarises runs with it (`docs/nats.md`).
+    pub unfloored_bar: f64,
+    /// [`Estimate::unfloored_half_bar`], likewise.
+    pub unfloored_half_bar: f64,
 }
 
 /// `shocktwin.health.<asset>`: a change of the reported state.

@@ -123,6 +123,8 @@ impl TickCounterTwin {
             velocity_mps: f64::NAN,
             force_model_n: f64::NAN,
             oil_temp_c: f64::NAN,
+            unfloored_bar: f64::NAN,
+            unfloored_half_bar: f64::NAN,
         }
     }
 

@@ -192,6 +192,10 @@ struct Bin {
     pressure: Mean,
     lo: Mean,
     hi: Mean,
+    /// The estimate and the interval's half-width before the floor at 0 bar,
+    /// for the run's summary (`Estimate::unfloored_bar`).
+    unfloored: Mean,
+    unfloored_half: Mean,
     v2_sum: f64,
     health: Health,
 }
@@ -204,9 +208,44 @@ impl Bin {
             pressure: Mean::default(),
             lo: Mean::default(),
             hi: Mean::default(),
+            unfloored: Mean::default(),
+            unfloored_half: Mean::default(),
             v2_sum: 0.0,
             health: Health::Ok,
         }
+    }
+
+    /// Takes one estimate's pressures and velocity (not its health).
+    fn add(&mut self, e: &Estimate) {
+        self.n += 1;
+        self.pressure.add(e.pressure_bar);
+        self.lo.add(e.pressure_lo_bar);
+        self.hi.add(e.pressure_hi_bar);
+        if e.pressure_bar.is_finite() {
+            self.unfloored.add(e.unfloored_bar);
+        }
+        if e.pressure_lo_bar.is_finite() && e.pressure_hi_bar.is_finite() {
+            self.unfloored_half.add(e.unfloored_half_bar);
+        }
+        if e.velocity_mps.is_finite() {
+            self.v2_sum += e.velocity_mps * e.velocity_mps;
+        }
+    }
+
+    /// The second's pressure and interval half-width for the run's summary:
+    /// before the floor at 0 bar (floored, a run near 0 would read high, with
+    /// a narrower interval, and weigh more in the trend than it should), or
+    /// the floored ones where the estimates did not carry them (a record, an
+    /// older NATS worker).
+    fn for_summary(&self) -> Option<(f64, Option<f64>)> {
+        let p = self.unfloored.get().or_else(|| self.pressure.get())?;
+        let half = self.unfloored_half.get().or_else(|| {
+            self.lo
+                .get()
+                .zip(self.hi.get())
+                .map(|(lo, hi)| 0.5 * (hi - lo))
+        });
+        Some((p, half))
     }
 }
 
@@ -341,11 +380,10 @@ impl StoreSink {
             excited,
         };
         if excited {
-            if let Some(p) = point.pressure_bar {
-                let half = point
-                    .pressure_lo_bar
-                    .zip(point.pressure_hi_bar)
-                    .map(|(lo, hi)| 0.5 * (hi - lo));
+            // The summary takes the values before the floor at 0 bar: floored,
+            // a run near 0 would read high, with a narrower interval, and
+            // weigh more in the trend than it should.
+            if let Some((p, half)) = bin.for_summary() {
                 acc.excited.push((point.t_ms, p, half));
             }
         }
@@ -435,13 +473,7 @@ impl Sink for StoreSink {
                 self.flush_bin(run, &mut acc);
             }
             let bin = acc.bin.get_or_insert_with(|| Bin::new(sec));
-            bin.n += 1;
-            bin.pressure.add(e.pressure_bar);
-            bin.lo.add(e.pressure_lo_bar);
-            bin.hi.add(e.pressure_hi_bar);
-            if e.velocity_mps.is_finite() {
-                bin.v2_sum += e.velocity_mps * e.velocity_mps;
-            }
+            bin.add(e);
             if health_code(e.health) > health_code(bin.health) || bin.n == 1 {
                 bin.health = e.health;
             }
@@ -662,5 +694,49 @@ mod tests {
             .map(|(id, p)| (id.as_str(), p.pressure_bar))
             .collect();
         assert_eq!(got, [("d5", 9.5), ("d6", 8.5), ("d7", 8.1)]);
+    }
+
+    fn estimate(shown: [f64; 3], unfloored: f64, half: f64) -> Estimate {
+        Estimate {
+            t_ns: 0,
+            pressure_bar: shown[0],
+            pressure_avg_bar: shown[0],
+            pressure_lo_bar: shown[1],
+            pressure_hi_bar: shown[2],
+            expected_bar: 12.0,
+            health: Health::Leak,
+            velocity_mps: 0.3,
+            force_model_n: 0.0,
+            oil_temp_c: 30.0,
+            unfloored_bar: unfloored,
+            unfloored_half_bar: half,
+        }
+    }
+
+    /// A run near 0 bar is summarised from its estimates before the floor:
+    /// shown as 0 [0, 2.0], read −0.5 ± 2.5, it enters the trend as −0.5 with
+    /// sd 2.5 / 1.96, not as 0 with sd 1.0 / 1.96.
+    #[test]
+    fn a_run_near_ambient_is_summarised_before_the_floor() {
+        let mut floored = Bin::new(0);
+        for _ in 0..50 {
+            floored.add(&estimate([0.0, 0.0, 2.0], -0.5, 2.5));
+        }
+        assert_eq!(floored.for_summary(), Some((-0.5, Some(2.5))));
+        let seconds: Vec<(i64, f64, Option<f64>)> = (0..SUMMARY_MIN_BINS as i64 + 60)
+            .map(|k| (k * 1000, -0.5, Some(2.5)))
+            .collect();
+        let p = summarise(&seconds).unwrap();
+        assert_eq!(p.pressure_bar, -0.5);
+        assert!((p.sd_bar - 2.5 / 1.96).abs() < 1e-12, "{}", p.sd_bar);
+        // Estimates without the pair (a record, an older NATS worker): the
+        // shown values, as before.
+        let mut shown = Bin::new(0);
+        shown.add(&estimate([3.0, 1.0, 5.0], f64::NAN, f64::NAN));
+        shown.add(&estimate([3.2, 1.2, 5.2], f64::NAN, f64::NAN));
+        let (p, half) = shown.for_summary().unwrap();
+        assert!((p - 3.1).abs() < 1e-12 && (half.unwrap() - 2.0).abs() < 1e-12);
+        // No estimate: nothing to summarise.
+        assert_eq!(Bin::new(0).for_summary(), None);
     }
 }
