@@ -401,6 +401,75 @@ def test_workers_and_publish_reach_a_tls_nats_server(
         server.stop()
 
 
+def test_a_daemon_started_before_its_nats_server_waits_for_it(
+        shocktwin_bin: Path, tmp_path: Path, runs: list[Path]) -> None:
+    """A helper's trial: with NATS not up yet, the daemon's NATS parts gave up after 10 s for
+    good and `/readyz` said ready. Now they wait for the server, `/readyz` says not ready
+    until they have connected, and the worker then serves."""
+    import httpx
+
+    server = NatsServer(tmp_path)
+    server.stop()
+    w = worker(shocktwin_bin, server)
+    try:
+        r = httpx.get(f"http://{w.http}/readyz", timeout=5)
+        assert r.status_code == 503 and "starting nats" in r.text, r.text
+        time.sleep(11.5)  # past the first 10 s: still trying, and says so
+        r = httpx.get(f"http://{w.http}/readyz", timeout=5)
+        assert r.status_code == 503 and "starting nats" in r.text, r.text
+        assert "still trying" in w.text() and "source stopped" not in w.text(), w.text()[-3000:]
+        server.start()
+        deadline = time.monotonic() + 30
+        while (r := httpx.get(f"http://{w.http}/readyz", timeout=5)).status_code != 200:
+            assert time.monotonic() < deadline, (r.text, w.text()[-3000:])
+            time.sleep(0.3)
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--rename-assets", "late-",
+                               str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(server.url, {"late-0"}, 120, [w])
+        assert done["late-0"]["meta"]["outcome"] == "completed"
+    finally:
+        w.stop()
+        server.stop()
+
+
+def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(
+        shocktwin_bin: Path, tmp_path: Path, runs: list[Path]) -> None:
+    """`publish --nats-token-file` (a helper's trial: publish had no way to give the token the
+    docs recommend), and the connection's files read before connecting, named when wrong."""
+    work = tmp_path / "nats"
+    work.mkdir()
+    server = NatsServer(work, 'authorization { token: "s3cret-nats" }\n')
+    try:
+        token = tmp_path / "nats.token"
+        token.write_text("s3cret-nats\n")
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-token-file", str(token),
+                               "--rename-assets", "tok-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        empty = tmp_path / "empty.token"
+        empty.write_text("\n")
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-token-file", str(empty),
+                               str(runs[0])], capture_output=True, text=True, timeout=60)
+        assert proc.returncode != 0 and "--nats-token-file" in proc.stderr and "empty.token" in proc.stderr, \
+            proc.stderr
+        # the token in a URL is not printed back
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats",
+                               server.url.replace("nats://", "nats://wrong-s3cret@"), str(runs[0])],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode != 0 and "wrong-s3cret" not in proc.stderr and "***@" in proc.stderr, proc.stderr
+        # a daemon whose `[nats]` names a missing CA does not start, and says which setting and file
+        config = tmp_path / "worker.toml"
+        config.write_text(f'[nats]\nurl = "{server.url}"\nca_file = "{tmp_path / "caX.pem"}"\n'
+                          f'token_file = "{token}"\n')
+        proc = subprocess.run([str(shocktwin_bin), "serve", "--config", str(config), "--model", str(BUNDLE),
+                               "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode != 0, proc.stderr
+        assert "nats.ca_file" in proc.stderr and "caX.pem" in proc.stderr, proc.stderr
+    finally:
+        server.stop()
+
+
 def wait_ended_tls(server: NatsServer, ca_pem: Path, assets: set[str], timeout_s: float,
                    w: ServeProcess) -> dict[str, dict[str, Any]]:
     import ssl

@@ -86,6 +86,17 @@ pub struct PublishArgs {
     /// CA of the server certificate (PEM): connect with TLS.
     #[arg(long)]
     pub nats_ca: Option<PathBuf>,
+    /// Client certificate (PEM), for a server that verifies clients (with
+    /// `--nats-key`; as `[nats] cert_file`).
+    #[arg(long, requires = "nats_key")]
+    pub nats_cert: Option<PathBuf>,
+    /// Its private key (PEM; as `[nats] key_file`).
+    #[arg(long, requires = "nats_cert")]
+    pub nats_key: Option<PathBuf>,
+    /// File whose first line is the server's token (as `[nats] token_file`;
+    /// a file, not an argument, so that it is not in the process list).
+    #[arg(long)]
+    pub nats_token_file: Option<PathBuf>,
 }
 
 /// `shocktwin simulate`.

@@ -25,7 +25,7 @@ use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    baseline_bucket, connect, service_bucket, NatsConfig, NatsError, BASELINE_BUCKET,
+    baseline_bucket, connect_patiently, service_bucket, NatsConfig, NatsError, BASELINE_BUCKET,
     SERVICE_BUCKET,
 };
 use crate::server::config::ServiceToRead;
@@ -345,7 +345,8 @@ impl NatsBaselines {
     }
 
     async fn watch(self, ctx: SourceContext) -> Result<(), NatsError> {
-        let client = connect(&self.cfg, "shocktwin baselines").await?;
+        let client = connect_patiently(&self.cfg, "shocktwin baselines", &ctx.cancel).await?;
+        ctx.started.signal();
         let js = jetstream::new(client);
         let (kv, services) = (baseline_bucket(&js).await?, service_bucket(&js).await?);
         let config = Arc::new(ctx.ingest.config().clone());
@@ -477,7 +478,14 @@ where
 
 impl Source for NatsBaselines {
     fn name(&self) -> String {
-        format!("nats baselines ({})", self.cfg.url.as_deref().unwrap_or(""))
+        format!(
+            "nats baselines ({})",
+            super::without_credentials(self.cfg.url.as_deref().unwrap_or(""))
+        )
+    }
+
+    fn says_started(&self) -> bool {
+        true // once connected
     }
 
     fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {

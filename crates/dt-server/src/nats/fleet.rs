@@ -16,7 +16,7 @@ use futures_util::StreamExt;
 use serde::Deserialize;
 
 use super::payload::asset_of_token;
-use super::{connect, ensure_topology, NatsConfig, NatsError, ESTIMATES_STREAM};
+use super::{connect_patiently, ensure_topology, NatsConfig, NatsError, ESTIMATES_STREAM};
 use crate::server::ingest::{Ingest, RunHandle};
 use crate::server::sink::{RunOutcome, SourceKind};
 use crate::server::source::{Source, SourceContext};
@@ -42,8 +42,12 @@ impl Source for NatsFleetView {
     fn name(&self) -> String {
         format!(
             "nats fleet view ({})",
-            self.cfg.url.as_deref().unwrap_or("")
+            super::without_credentials(self.cfg.url.as_deref().unwrap_or(""))
         )
+    }
+
+    fn says_started(&self) -> bool {
+        true // once connected
     }
 
     fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
@@ -97,7 +101,8 @@ struct RunEventIn {
 }
 
 async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
-    let client = connect(cfg, "shocktwin fleet view").await?;
+    let client = connect_patiently(cfg, "shocktwin fleet view", &ctx.cancel).await?;
+    ctx.started.signal();
     let js = jetstream::new(client);
     ensure_topology(&js, cfg).await?;
     let stream = js

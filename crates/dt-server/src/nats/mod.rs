@@ -18,7 +18,7 @@ pub mod payload;
 pub mod publish;
 pub mod worker;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use async_nats::jetstream::{self, kv, stream};
@@ -109,13 +109,154 @@ impl NatsError {
     }
 }
 
-/// Connects with the configured TLS and credentials.
+impl NatsConfig {
+    /// Reads the files the connection will need, so that a wrong path, a
+    /// file that is not PEM or an empty token is said at once, naming the
+    /// setting and the file (a helper's trial: a missing `ca_file` gave 39
+    /// lines of "TLS error" and "no connection after 10 s", an empty
+    /// `token_file` "authorization violation" over and over). Returns the
+    /// key (`ca_file`, …) and why.
+    pub fn check_files(&self) -> Result<(), (&'static str, String)> {
+        use rustls::pki_types::pem::PemObject as _;
+        use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+
+        let certs = |key: &'static str, path: &Path| -> Result<(), (&'static str, String)> {
+            let why = |e: &dyn std::fmt::Display| (key, format!("{}: {e}", path.display()));
+            let n = CertificateDer::pem_file_iter(path)
+                .map_err(|e| why(&pem_problem(&e)))?
+                .try_fold(0usize, |n, c| c.map(|_| n + 1))
+                .map_err(|e| why(&format!("not a PEM certificate: {e}")))?;
+            if n == 0 {
+                return Err(why(&"no certificate in the file"));
+            }
+            Ok(())
+        };
+        if let Some(ca) = &self.ca_file {
+            certs("nats.ca_file", ca)?;
+        }
+        match (&self.cert_file, &self.key_file) {
+            (Some(cert), Some(key)) => {
+                certs("nats.cert_file", cert)?;
+                PrivateKeyDer::from_pem_file(key).map_err(|e| {
+                    (
+                        "nats.key_file",
+                        format!("{}: {}", key.display(), pem_problem(&e)),
+                    )
+                })?;
+            }
+            (Some(_), None) => {
+                return Err(("nats.key_file", "missing: `cert_file` needs its key".into()))
+            }
+            (None, Some(_)) => {
+                return Err((
+                    "nats.cert_file",
+                    "missing: `key_file` needs its certificate".into(),
+                ))
+            }
+            (None, None) => {}
+        }
+        if let Some(f) = &self.token_file {
+            let text = std::fs::read_to_string(f)
+                .map_err(|e| ("nats.token_file", format!("{}: {e}", f.display())))?;
+            if text.lines().next().unwrap_or_default().trim().is_empty() {
+                return Err((
+                    "nats.token_file",
+                    format!("{}: no token on its first line", f.display()),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `url` (comma-separated server URLs) with any `user:password@` or
+/// `token@` written as `***@`, for messages and logs: a token in a URL is a
+/// secret (a helper's trial: the error printed it back).
+pub fn without_credentials(url: &str) -> String {
+    url.split(',')
+        .map(|u| match (u.find("://"), u.rfind('@')) {
+            (Some(s), Some(at)) if at > s + 3 => format!("{}***{}", &u[..s + 3], &u[at..]),
+            _ => u.to_owned(),
+        })
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// A PEM reading error in words: a missing or unreadable file as such, not
+/// as a file that is not PEM.
+fn pem_problem(e: &rustls::pki_types::pem::Error) -> String {
+    match e {
+        rustls::pki_types::pem::Error::Io(io) => format!("cannot read it: {io}"),
+        rustls::pki_types::pem::Error::NoItemsFound => "no PEM item in the file".into(),
+        other => format!("not PEM: {other:?}"),
+    }
+}
+
+/// Connects with the configured TLS and credentials, waiting at most 10 s
+/// for the first connection (`shocktwin publish`: a wrong URL is an error,
+/// not a hang).
 pub async fn connect(cfg: &NatsConfig, name: &str) -> Result<async_nats::Client, NatsError> {
+    let (client, what) = client_for(cfg, name).await?;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while client.connection_state() != async_nats::connection::State::Connected {
+        if tokio::time::Instant::now() > deadline {
+            return Err(NatsError::new(&what, "no connection after 10 s"));
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    Ok(client)
+}
+
+/// Connects as [`connect`], but waits for the server as long as the daemon
+/// runs: a gateway's daemon may start before its NATS server, or the server
+/// be down a while (a helper's trial: after 10 s the daemon's NATS parts
+/// stopped for good while `/readyz` said ready). Warns every
+/// [`PATIENT_WARN_EVERY`] that it is still trying. `Err` only once `cancel`
+/// is cancelled, or for a client that cannot be made at all.
+pub async fn connect_patiently(
+    cfg: &NatsConfig,
+    name: &str,
+    cancel: &tokio_util::sync::CancellationToken,
+) -> Result<async_nats::Client, NatsError> {
+    let (client, what) = client_for(cfg, name).await?;
+    let started = tokio::time::Instant::now();
+    let mut warn_at = started + PATIENT_WARN_EVERY;
+    while client.connection_state() != async_nats::connection::State::Connected {
+        if cancel.is_cancelled() {
+            return Err(NatsError::new(&what, "stopped before a connection"));
+        }
+        if tokio::time::Instant::now() >= warn_at {
+            tracing::warn!(
+                "{name}: NATS {what}: no connection after {} s; still trying (`/readyz` says not ready meanwhile)",
+                started.elapsed().as_secs()
+            );
+            warn_at += PATIENT_WARN_EVERY;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    if started.elapsed() >= PATIENT_WARN_EVERY {
+        tracing::info!(
+            "{name}: NATS {what}: connected after {} s",
+            started.elapsed().as_secs()
+        );
+    }
+    Ok(client)
+}
+
+/// How often [`connect_patiently`] says that it is still trying.
+pub const PATIENT_WARN_EVERY: Duration = Duration::from_secs(10);
+
+/// The client (it connects, and reconnects, in the background) and what to
+/// call the connection in messages (its URL without credentials).
+async fn client_for(
+    cfg: &NatsConfig,
+    name: &str,
+) -> Result<(async_nats::Client, String), NatsError> {
     let url = cfg
         .url
         .clone()
         .ok_or_else(|| NatsError::new("connect", "no URL configured"))?;
-    let what = format!("connect {url}");
+    let what = format!("connect {}", without_credentials(&url));
     let mut opts = async_nats::ConnectOptions::new()
         .name(name)
         .retry_on_initial_connect()
@@ -132,20 +273,13 @@ pub async fn connect(cfg: &NatsConfig, name: &str) -> Result<async_nats::Client,
         let token = text.lines().next().unwrap_or_default().trim().to_owned();
         opts = opts.token(token);
     }
-    // `retry_on_initial_connect` makes connect return at once; wait for the
-    // first connection (bounded) so that a wrong URL is an error, not a hang.
+    // `retry_on_initial_connect` makes connect return at once; the callers
+    // wait for the first connection
     let client = opts
         .connect(url.as_str())
         .await
         .map_err(|e| NatsError::new(&what, e))?;
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while client.connection_state() != async_nats::connection::State::Connected {
-        if tokio::time::Instant::now() > deadline {
-            return Err(NatsError::new(&what, "no connection after 10 s"));
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    Ok(client)
+    Ok((client, what))
 }
 
 /// The streams and buckets, created when missing. Returns the number of
@@ -285,5 +419,52 @@ mod tests {
             Some(16)
         );
         assert_eq!(super::partitions_of("x.{{wildcard(1)}}"), None);
+    }
+
+    #[test]
+    fn credentials_in_a_url_are_not_repeated() {
+        assert_eq!(
+            super::without_credentials("tls://s3cret@h:4222,nats://u:p@g:1,nats://plain:2"),
+            "tls://***@h:4222,nats://***@g:1,nats://plain:2"
+        );
+    }
+
+    /// A wrong file is said at once, naming the setting and the file.
+    #[test]
+    fn the_connection_files_are_read_before_connecting() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = |name: &str, text: &str| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, text).unwrap();
+            p
+        };
+        let cfg = |f: &dyn Fn(&mut super::NatsConfig)| {
+            let mut c = super::NatsConfig::default();
+            f(&mut c);
+            c.check_files()
+        };
+        assert_eq!(cfg(&|_| {}), Ok(()));
+        let missing = dir.path().join("caX.pem");
+        let (key, why) = cfg(&|c| c.ca_file = Some(missing.clone())).unwrap_err();
+        assert_eq!(key, "nats.ca_file");
+        assert!(
+            why.contains("caX.pem") && why.contains("cannot read"),
+            "{why}"
+        );
+        let junk = file("junk.pem", "not a certificate\n");
+        let (key, why) = cfg(&|c| c.ca_file = Some(junk.clone())).unwrap_err();
+        assert_eq!(key, "nats.ca_file");
+        assert!(why.contains("junk.pem"), "{why}");
+        let (key, _) = cfg(&|c| c.cert_file = Some(junk.clone())).unwrap_err();
+        assert_eq!(key, "nats.key_file", "a certificate without its key");
+        let empty = file("empty.token", "\n");
+        let (key, why) = cfg(&|c| c.token_file = Some(empty.clone())).unwrap_err();
+        assert_eq!(key, "nats.token_file");
+        assert!(
+            why.contains("empty.token") && why.contains("no token"),
+            "{why}"
+        );
+        let token = file("ok.token", "s3cret\n");
+        assert_eq!(cfg(&|c| c.token_file = Some(token.clone())), Ok(()));
     }
 }

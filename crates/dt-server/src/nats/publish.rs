@@ -37,8 +37,20 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
     let cfg = NatsConfig {
         url: Some(args.nats.clone()),
         ca_file: args.nats_ca.clone(),
+        cert_file: args.nats_cert.clone(),
+        key_file: args.nats_key.clone(),
+        token_file: args.nats_token_file.clone(),
         ..NatsConfig::default()
     };
+    if let Err((key, why)) = cfg.check_files() {
+        let flag = match key {
+            "nats.ca_file" => "--nats-ca",
+            "nats.cert_file" => "--nats-cert",
+            "nats.key_file" => "--nats-key",
+            _ => "--nats-token-file",
+        };
+        bail!("{flag}: {why}");
+    }
     let client = connect(&cfg, "shocktwin publish").await?;
     let js = jetstream::new(client);
     ensure_topology(&js, &cfg).await?;
@@ -67,7 +79,12 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
             ),
             Err(e) => {
                 failed += 1;
-                eprintln!("shocktwin: {}: {e:#}", file.display());
+                let (name, msg) = (file.display().to_string(), format!("{e:#}"));
+                if msg.starts_with(&name) {
+                    eprintln!("shocktwin: {msg}");
+                } else {
+                    eprintln!("shocktwin: {name}: {msg}");
+                }
             }
         }
     }
@@ -92,9 +109,13 @@ async fn publish_file(
     opts: &FileOptions,
 ) -> Result<(String, String, u64, usize)> {
     let path = PathBuf::from(file);
+    // the reader's error names the file and says its cause already: one
+    // message, not its chain (a helper's trial: "f: f: No such file …: No
+    // such file …")
     let log = tokio::task::spawn_blocking(move || read_log(&path))
         .await
-        .context("reader task")??;
+        .context("reader task")?
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut meta = log.metadata.clone();
     if let Some(a) = &opts.asset {
         meta.asset_id.clone_from(a);

@@ -53,8 +53,8 @@ use tokio_util::sync::CancellationToken;
 
 use super::payload::{PayloadError, TelemetryBatch};
 use super::{
-    checkpoint_bucket, connect, ensure_topology, lease_bucket, NatsConfig, NatsError, RENEW_EVERY,
-    TELEMETRY_STREAM,
+    checkpoint_bucket, connect_patiently, ensure_topology, lease_bucket, NatsConfig, NatsError,
+    RENEW_EVERY, TELEMETRY_STREAM,
 };
 use crate::server::baselines::recorded_before;
 use crate::server::config::{Config, ServiceToRead};
@@ -109,8 +109,12 @@ impl Source for NatsWorker {
         format!(
             "nats worker {} ({})",
             self.id,
-            self.cfg.url.as_deref().unwrap_or("")
+            super::without_credentials(self.cfg.url.as_deref().unwrap_or(""))
         )
+    }
+
+    fn says_started(&self) -> bool {
+        true // once connected
     }
 
     fn run(self: Box<Self>, ctx: SourceContext) -> BoxFuture<'static, Result<(), ServeError>> {
@@ -159,7 +163,13 @@ impl MetricsHandle {
 
 impl NatsWorker {
     async fn serve(self, ctx: SourceContext) -> Result<(), NatsError> {
-        let client = connect(&self.cfg, &format!("shocktwin worker {}", self.id)).await?;
+        let client = connect_patiently(
+            &self.cfg,
+            &format!("shocktwin worker {}", self.id),
+            &ctx.cancel,
+        )
+        .await?;
+        ctx.started.signal();
         let js = jetstream::ContextBuilder::new()
             .max_ack_inflight(MAX_ACKS_IN_FLIGHT)
             .build(client);

@@ -454,6 +454,11 @@ impl Config {
             key: key.to_owned(),
             reason: reason.to_owned(),
         };
+        if self.nats.url.is_some() {
+            self.nats
+                .check_files()
+                .map_err(|(key, why)| invalid(key, &why))?;
+        }
         let l = &self.limits;
         if l.max_connections == 0 {
             return Err(invalid("limits.max_connections", "must be at least 1"));

@@ -4,7 +4,7 @@
 //! | --- | --- |
 //! | `GET /` | the dashboard (HTML; its script, styles and the vendored uPlot under `/assets/`, compiled into the binary) |
 //! | `GET /healthz` | `200 ok` while the process serves |
-//! | `GET /readyz` | `200 ready` once every source takes work (the inbox: once its directory is watched, or rescanned when it cannot be), or `503` while starting (`not ready: starting <source>`) or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) |
+//! | `GET /readyz` | `200 ready` once every source takes work (the inbox: once its directory is watched, or rescanned when it cannot be; a NATS part: once connected), or `503` while starting (`not ready: starting <source>`) or draining, or `503 degraded: …` with the reason while the fleet store cannot be written (disk full) or once a source has stopped with an error (`degraded: source <name> stopped: <why>`) |
 //! | `GET /metrics` | Prometheus metrics (`OpenMetrics` text) |
 //! | `GET /v1/assets` | `{"assets": [AssetSummary…]}`: latest pressure, 1 s average, health, last update (an upload of older data than shown does not replace it; a live stream always does) |
 //! | `GET /v1/assets/{id}[?history=N]` | `AssetSummary` + `history` (recent estimates, oldest first); 404 if unknown |
@@ -344,6 +344,18 @@ async fn require_token(
 async fn readyz(State(app): State<AppState>) -> Response {
     if !app.ready.load(Ordering::Relaxed) {
         return (StatusCode::SERVICE_UNAVAILABLE, "not ready\n").into_response();
+    }
+    let stopped = app.starting.failed();
+    if !stopped.is_empty() {
+        let said: Vec<String> = stopped
+            .iter()
+            .map(|(name, why)| format!("source {name} stopped: {why}"))
+            .collect();
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("degraded: {}\n", said.join("; ")),
+        )
+            .into_response();
     }
     let starting = app.starting.pending();
     if !starting.is_empty() {

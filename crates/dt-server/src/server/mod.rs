@@ -352,9 +352,13 @@ fn spawn_sources(
         };
         // The context goes with the source: when it ends (or panics), a
         // start it did not signal is signalled.
+        let (cancel, starting) = (cancel.clone(), starting.clone());
         tracker.spawn(async move {
             if let Err(e) = source.run(ctx).await {
                 tracing::error!(source = %name, "source stopped: {e}");
+                if !cancel.is_cancelled() {
+                    starting.stopped(&name, &e.to_string());
+                }
             }
         });
     }

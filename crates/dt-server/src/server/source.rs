@@ -39,6 +39,8 @@ pub struct Starting(Arc<Mutex<Pending>>);
 struct Pending {
     next_id: u64,
     names: BTreeMap<u64, String>,
+    /// Sources that stopped with an error while the daemon ran, and why.
+    stopped: Vec<(String, String)>,
 }
 
 impl Starting {
@@ -58,6 +60,20 @@ impl Starting {
     pub fn pending(&self) -> Vec<String> {
         let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
         pending.names.values().cloned().collect()
+    }
+
+    /// Source `name` stopped with an error (`why`) while the daemon ran: it
+    /// takes no more work, and `/readyz` says so (a helper's trial: a source
+    /// that gave up counted as started, and the daemon said ready).
+    pub fn stopped(&self, name: &str, why: &str) {
+        let mut pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        pending.stopped.push((name.to_owned(), why.to_owned()));
+    }
+
+    /// The sources that stopped with an error, and why.
+    pub fn failed(&self) -> Vec<(String, String)> {
+        let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        pending.stopped.clone()
     }
 }
 
