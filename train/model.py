@@ -175,19 +175,31 @@ def to_onnx(trained: Trained) -> bytes:
     return onx.SerializeToString()
 
 
-def held_out_interval(errors: np.ndarray, runs: Sequence[str], level: float = 0.95) -> dict[str, Any] | None:
+# How a held-out interval's errors were taken (``method`` in ``twin.json``'s ``interval``).
+HELD_OUT = "held-out"  # train.train --split runs: the bundle itself on the runs it was not trained on
+# train.study: the k folds' networks, each on the runs it was not trained on (every run once), for a
+# bundle trained on all of them
+CROSS_VALIDATED = "cross-validated"
+
+
+def held_out_interval(errors: np.ndarray, runs: Sequence[str], level: float = 0.95,
+                      method: str = HELD_OUT) -> dict[str, Any] | None:
     """The 95 % interval of a bundle without the charge observer (SPEC §2a; dt-core
-    ``HeldOutInterval``) from ``errors``, the absolute errors of the estimator's 1 s average
-    (``pressure_avg_bar``) on the held-out ``runs``' ticks that have one: their
-    ``⌈(n + 1) level⌉``-th smallest of ``n`` (the largest when ``n`` is too small). An empirical
-    percentile, not a coverage guarantee: a run's ticks err together, so it holds as far as the
-    few held-out runs are like the ones the bundle will read. ``None`` without an error."""
+    ``HeldOutInterval``) from ``errors``, the absolute errors of the 1 s average on the held-out
+    ``runs``' ticks that have one: their ``⌈(n + 1) level⌉``-th smallest of ``n`` (the largest
+    when ``n`` is too small). ``method`` says whose errors: ``HELD_OUT``, the bundle's own
+    estimator (``pressure_avg_bar``); ``CROSS_VALIDATED``, the study's fold networks (a causal
+    1 s mean of their excited ticks' estimates, ``train.evaluate``), each trained on fewer runs
+    than the bundle. An empirical percentile, not a coverage guarantee: a run's ticks err
+    together, so it holds as far as the held-out runs are like the ones the bundle will read.
+    ``None`` without an error."""
     err = np.sort(np.asarray(errors, dtype=float))
     err = err[np.isfinite(err)]
     if not len(err):
         return None
     k = min(len(err), int(np.ceil((len(err) + 1) * level))) - 1
-    return {"half_width_bar": float(err[k]), "level": level, "runs": list(runs), "ticks": int(len(err))}
+    return {"half_width_bar": float(err[k]), "level": level, "runs": list(runs), "ticks": int(len(err)),
+            "method": method}
 
 
 def add_interval(bundle_dir: Path, interval: dict[str, Any]) -> None:

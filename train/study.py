@@ -173,6 +173,12 @@ def evaluate_permutation_set(
     for key, preds in fold_preds.items():
         results[key]["held_out"] = evaluate.score_runs(preds).as_dict()
         results[key]["held_out_runs"] = evaluate.per_run(preds)
+        if "observer" not in results[key]["perm"]["groups"]:
+            # SPEC §2a: the interval of a bundle without the observer, from the errors of the folds'
+            # networks on the runs each kept out (every run once; model.held_out_interval)
+            results[key]["interval"] = model.held_out_interval(
+                np.concatenate([np.abs(p.averaged() - p.table.label_bar) for p in preds]) if preds else [],
+                [p.table.run.name for p in preds], method=model.CROSS_VALIDATED)
     for key, preds in plain_preds.items():
         results[key]["held_out_plain"] = evaluate.score_runs(preds).as_dict()
     return [results[p["key"]] for p in perms], models
@@ -817,6 +823,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            "augmentation": evaluate.AUGMENTATION,
                                            "metrics": next(r for r in table2 if r["perm"]["id"] == perm["id"])["held_out"],
                                            "simulated_data": True})
+            interval = next(r for r in table2 if r["perm"]["id"] == perm["id"]).get("interval")
+            if interval:
+                model.add_interval(args.out / "bundles" / f"perm-{perm['id']}", interval)
+                print(f"bundle perm-{perm['id']}: 95 % interval the 1 s average ± {interval['half_width_bar']:.2f} bar "
+                      f"(cross-validated on {len(interval['runs'])} runs held out by fold; simulated data)")
 
     gen: list[dict[str, Any]] = []
     oracle: list[dict[str, Any]] = []

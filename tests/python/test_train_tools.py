@@ -652,7 +652,8 @@ def test_held_out_interval_takes_the_95th_percentile_of_the_errors():
     largest when ``n`` is too small for it; none without an error."""
     errors = np.random.default_rng(0).permutation(np.r_[np.arange(1.0, 100.0), np.nan])
     got = model.held_out_interval(errors, ["a", "b"])
-    assert got == {"half_width_bar": 95.0, "level": 0.95, "runs": ["a", "b"], "ticks": 99}
+    assert got == {"half_width_bar": 95.0, "level": 0.95, "runs": ["a", "b"], "ticks": 99, "method": "held-out"}
+    assert model.held_out_interval(errors, ["a"], method=model.CROSS_VALIDATED)["method"] == "cross-validated"
     assert model.held_out_interval(np.arange(1.0, 11.0), ["a"])["half_width_bar"] == 10.0
     assert model.held_out_interval(np.array([np.nan]), ["a"]) is None
 
@@ -753,7 +754,22 @@ def test_quick_study_reports_both_protocols_and_an_oracle_that_never_sees_test_r
         # it has seen each test condition in a repeat take
         repeats = {name.removeprefix("oracle/") for name in trained if name.startswith("oracle/")}
         assert {t.replace(".mcap", "-r1.mcap") for t in tested} == repeats
-    assert shocktwin.Bundle(out / "bundles" / "perm-13").permutation["id"] == 13
+    bundle = shocktwin.Bundle(out / "bundles" / "perm-13")
+    assert bundle.permutation["id"] == 13
+    # SPEC §2a: the study's bundle, trained on every run, carries the interval its folds' networks
+    # measured on the runs each kept out (every run once)
+    interval = bundle.twin["interval"]
+    assert interval["method"] == "cross-validated" and interval["level"] == 0.95
+    assert sorted(interval["runs"]) == sorted(p.name for p in campaign.glob("*.mcap"))
+    row13 = next(r for r in results["table2"] if r["id"] == 13)
+    assert row13["interval"] == interval and interval["ticks"] == row13["held_out"]["n"]
+    q = interval["half_width_bar"]
+    assert 0 < q < 50 and f"bundle perm-13: 95 % interval the 1 s average ± {q:.2f} bar" in proc.stdout
+    est = shocktwin.estimate(sorted(campaign.glob("*.mcap"))[0], bundle)
+    avg, hi = np.asarray(est["pressure_avg_bar"]), np.asarray(est["pressure_hi_bar"])
+    pos = np.isfinite(avg) & (avg > 0)
+    assert pos.sum() > 100
+    np.testing.assert_allclose(hi[pos] - avg[pos], q, atol=2e-9)
 
 
 def test_the_suite_search_alone(campaign, physics_json, tmp_path):

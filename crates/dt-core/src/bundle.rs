@@ -199,10 +199,12 @@ pub struct OnnxInfo {
 }
 
 /// The 95 % interval of a bundle without the charge observer (SPEC §2a):
-/// the 1 s average ± the 95th percentile of the estimator's own 1 s
-/// average's absolute error on the runs `train.train --split runs` kept out
-/// of training (their ticks that have one). Empirical, from a few runs: it
-/// holds as far as those runs are like the ones the bundle will read.
+/// the 1 s average ± the 95th percentile of the 1 s average's absolute error
+/// on runs kept out of training (their ticks that have one): the bundle's
+/// own estimator on the runs `train.train --split runs` kept out, or, for
+/// the study's bundles trained on every run, its folds' networks each on the
+/// runs it was not trained on (`method`). Empirical: it holds as far as
+/// those runs are like the ones the bundle will read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct HeldOutInterval {
     /// Half the interval's width, bar.
@@ -213,7 +215,16 @@ pub struct HeldOutInterval {
     pub runs: Vec<String>,
     /// Their ticks with a 1 s average, the errors it was taken over.
     pub ticks: u64,
+    /// Whose errors: `held-out` (the bundle itself, `train.train`) or
+    /// `cross-validated` (the study's folds, for a bundle trained on all
+    /// runs); absent in bundles written before the sixty-ninth session.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
 }
+
+/// [`HeldOutInterval::method`]'s values (`train.model`'s `HELD_OUT`,
+/// `CROSS_VALIDATED`).
+pub const HELD_OUT_METHODS: [&str; 2] = ["held-out", "cross-validated"];
 
 /// Contents of `twin.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -1058,6 +1069,15 @@ fn check_twin(twin: &TwinJson) -> Result<Vec<Group>, String> {
             return Err(format!(
                 "interval.level = {} is not 0.95 (SPEC §2a's central 95 % interval)",
                 i.level
+            ));
+        }
+        if let Some(m) = i
+            .method
+            .as_deref()
+            .filter(|m| !HELD_OUT_METHODS.contains(m))
+        {
+            return Err(format!(
+                "interval.method = `{m}` is neither of {HELD_OUT_METHODS:?}"
             ));
         }
         if twin.permutation.groups.iter().any(|g| g == "observer") {

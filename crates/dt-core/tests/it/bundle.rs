@@ -391,8 +391,21 @@ fn every_part_must_be_present() {
         load_err(dir.path(), &["twin.json", says]);
     }
     let dir = edited("bundle-mlp13", |t| {
-        t["interval"] =
-            serde_json::json!({"half_width_bar": 1.0, "level": 0.95, "runs": ["r"], "ticks": 10});
+        t["interval"] = serde_json::json!({
+            "half_width_bar": 1.0, "level": 0.95, "runs": ["r"], "ticks": 10, "method": "guessed"
+        });
     });
-    assert!(Bundle::load(dir.path()).is_ok());
+    load_err(dir.path(), &["twin.json", "interval.method", "guessed"]);
+    // without `method` (written before it), and with each of its values
+    for method in [None, Some("held-out"), Some("cross-validated")] {
+        let dir = edited("bundle-mlp13", |t| {
+            t["interval"] = serde_json::json!({"half_width_bar": 1.0, "level": 0.95, "runs": ["r"], "ticks": 10});
+            if let Some(m) = method {
+                t["interval"]["method"] = Value::from(m);
+            }
+        });
+        let b = Bundle::load(dir.path()).unwrap();
+        let i = b.twin.interval.as_ref().unwrap();
+        assert_eq!(i.method.as_deref(), method);
+    }
 }
