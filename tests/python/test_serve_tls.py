@@ -192,6 +192,41 @@ def test_a_token_file_others_can_read_is_warned_of(setup: dict[str, Any], tmp_pa
     assert setup["read"] not in d.text() and setup["ingest"] not in d.text()
 
 
+def test_a_wrong_tls_or_token_file_is_named_for_what_it_is(setup: dict[str, Any], tmp_path: Path) -> None:
+    """A helper's trial: a missing key file read "not a PEM private key: I/O error", a client CA
+    that was a key file "no root trust anchors were provided", a missing token file had no
+    `auth` context. Each now names the setting, the file and what is wrong with it; and the
+    start-up line says what protects the listeners."""
+    pki = setup["pki"]
+
+    def refusal(tls: str, auth: str) -> str:
+        config = tmp_path / "bad.toml"
+        config.write_text(tls + auth)
+        done = subprocess.run([str(BIN), "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http",
+                               "127.0.0.1:0", "--model", str(BUNDLE), "--no-db"], capture_output=True, text=True,
+                              timeout=60)
+        assert done.returncode != 0, done.stderr
+        return done.stderr
+
+    tokens = f'[auth]\nread_tokens_file = "{setup["root"] / "read.tokens"}"\n'
+    missing = tmp_path / "serverX.key"
+    err = refusal(f'[tls]\ncert = "{pki.cert}"\nkey = "{missing}"\n', tokens)
+    assert "`tls`" in err and "serverX.key" in err and "cannot read it" in err and "not a PEM" not in err, err
+    err = refusal(f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\nclient_ca = "{pki.key}"\n', tokens)
+    assert "no CA certificate in the file" in err and str(pki.key) in err and "trust anchors" not in err, err
+    err = refusal(f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\n',
+                  f'[auth]\nread_tokens_file = "{tmp_path / "nope.tokens"}"\n')
+    assert "configuration `auth`" in err and "nope.tokens" in err, err
+    # a protected daemon says so when it starts
+    d = ServeProcess([str(BIN), "serve", "--config", str(setup["config"]), "--listen", "127.0.0.1:0",
+                      "--http", "127.0.0.1:0", "--model", str(BUNDLE), "--no-db"])
+    try:
+        line = next(line for line in d.log if "listening" in line)
+        assert "tls=on" in line and "client_certificates=on" in line and "tokens=on" in line, line
+    finally:
+        assert d.stop() == 0, d.text()
+
+
 def test_runs_upload_over_https_with_the_ingest_role(daemon: ServeProcess, setup: dict[str, Any]) -> None:
     """`POST /v1/runs`: the body is a run's MCAP bytes, as on the TCP ingest; only the ingest
     role may upload, and the run then shows to the read role."""

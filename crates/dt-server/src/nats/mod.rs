@@ -117,6 +117,7 @@ impl NatsConfig {
     /// `token_file` "authorization violation" over and over). Returns the
     /// key (`ca_file`, …) and why.
     pub fn check_files(&self) -> Result<(), (&'static str, String)> {
+        use crate::server::security::pem_problem;
         use rustls::pki_types::pem::PemObject as _;
         use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 
@@ -180,16 +181,6 @@ pub fn without_credentials(url: &str) -> String {
         })
         .collect::<Vec<_>>()
         .join(",")
-}
-
-/// A PEM reading error in words: a missing or unreadable file as such, not
-/// as a file that is not PEM.
-fn pem_problem(e: &rustls::pki_types::pem::Error) -> String {
-    match e {
-        rustls::pki_types::pem::Error::Io(io) => format!("cannot read it: {io}"),
-        rustls::pki_types::pem::Error::NoItemsFound => "no PEM item in the file".into(),
-        other => format!("not PEM: {other:?}"),
-    }
 }
 
 /// Connects with the configured TLS and credentials, waiting at most 10 s

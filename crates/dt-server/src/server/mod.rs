@@ -382,9 +382,15 @@ pub async fn run(
         l.local_addr()
             .map_or_else(|e| e.to_string(), |a| a.to_string())
     };
+    // what protects them, said where an operator looks first (a helper's
+    // trial: nothing in the log told a TLS + token daemon from a plain one)
+    let on = |b: bool| if b { "on" } else { "off" };
     tracing::info!(
         listen = %addr(&listeners.ingest),
         http = %addr(&listeners.http),
+        tls = %on(tls.is_some()),
+        client_certificates = %on(config.tls.client_ca.is_some() && tls.is_some()),
+        tokens = %on(tokens.enabled()),
         "listening"
     );
     let config = Arc::new(config);

@@ -91,9 +91,9 @@ impl Tokens {
             let Some(path) = path else {
                 return Ok(Vec::new());
             };
-            let text = std::fs::read_to_string(path).map_err(|source| ServeError::Io {
-                path: path.clone(),
-                error: source,
+            let text = std::fs::read_to_string(path).map_err(|e| ServeError::Invalid {
+                key: "auth".into(),
+                reason: format!("{}: cannot read it: {e}", path.display()),
             })?;
             let tokens: Vec<[u8; 32]> = text
                 .lines()
@@ -154,6 +154,19 @@ impl Tokens {
     }
 }
 
+/// A PEM reading error in words: a missing or unreadable file as such, not
+/// as a file that is not PEM (a helper's trial: a missing key file read
+/// "not a PEM private key: I/O error: No such file or directory").
+pub(crate) fn pem_problem(e: &rustls::pki_types::pem::Error) -> String {
+    match e {
+        rustls::pki_types::pem::Error::Io(io) => format!("cannot read it: {io}"),
+        rustls::pki_types::pem::Error::NoItemsFound => {
+            "no PEM item of that kind in the file".into()
+        }
+        other => format!("not PEM: {other:?}"),
+    }
+}
+
 fn tls_error(path: &Path, what: &str, e: impl std::fmt::Display) -> ServeError {
     ServeError::Invalid {
         key: "tls".into(),
@@ -177,7 +190,7 @@ pub fn server_configs(config: &Config) -> Result<Option<TlsConfigs>, ServeError>
         return Ok(None);
     };
     let certs: Vec<CertificateDer<'static>> = CertificateDer::pem_file_iter(cert)
-        .map_err(|e| tls_error(cert, "cannot read the certificate chain", e))?
+        .map_err(|e| tls_error(cert, "certificate chain", pem_problem(&e)))?
         .collect::<Result<_, _>>()
         .map_err(|e| tls_error(cert, "not a PEM certificate chain", e))?;
     if certs.is_empty() {
@@ -188,7 +201,7 @@ pub fn server_configs(config: &Config) -> Result<Option<TlsConfigs>, ServeError>
         ));
     }
     let key_der = PrivateKeyDer::from_pem_file(key)
-        .map_err(|e| tls_error(key, "not a PEM private key", e))?;
+        .map_err(|e| tls_error(key, "private key", pem_problem(&e)))?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let builder = || {
         rustls::ServerConfig::builder_with_provider(Arc::clone(&provider))
@@ -204,12 +217,16 @@ pub fn server_configs(config: &Config) -> Result<Option<TlsConfigs>, ServeError>
         Some(ca) => {
             let mut roots = rustls::RootCertStore::empty();
             for c in CertificateDer::pem_file_iter(ca)
-                .map_err(|e| tls_error(ca, "cannot read the client CA", e))?
+                .map_err(|e| tls_error(ca, "client CA", pem_problem(&e)))?
             {
                 let c = c.map_err(|e| tls_error(ca, "not a PEM certificate", e))?;
                 roots
                     .add(c)
                     .map_err(|e| tls_error(ca, "not a usable CA certificate", e))?;
+            }
+            if roots.is_empty() {
+                // rustls would say "no root trust anchors were provided"
+                return Err(tls_error(ca, "client CA", "no CA certificate in the file"));
             }
             let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(
                 Arc::new(roots),
