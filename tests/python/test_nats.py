@@ -296,6 +296,9 @@ def test_bad_input_on_the_bus_is_dead_lettered_and_the_run_goes_on(
         await js.publish("shocktwin.telemetry.bad!id", batch("bad!id", "r1", 0))
         await js.publish("shocktwin.telemetry.good", batch("good", "r1", 1))
         await js.publish("shocktwin.telemetry.good", batch("good", "r1", 1))  # again: back in time
+        bad_field = json.loads(batch("good", "r1", 2))
+        bad_field["position"][1] = [bad_field["position"][1][0], "x"]
+        await js.publish("shocktwin.telemetry.good", json.dumps(bad_field).encode())
         await js.publish("shocktwin.telemetry.good", batch("good", "r1", 2, end=True))
         await nc.close()
 
@@ -306,9 +309,10 @@ def test_bad_input_on_the_bus_is_dead_lettered_and_the_run_goes_on(
         assert done["good"]["ticks"] > 0
         dead = read_stream(nats_server.url, ["shocktwin.deadletter.>"], "SHOCKTWIN_DEADLETTER")
         kinds = sorted(h.get("Shocktwin-Kind", "") for _, _, h, _ in dead)
-        assert kinds == ["back_in_time", "charset", "decode", "version"], dead
+        assert kinds == ["back_in_time", "charset", "decode", "decode", "version"], dead
         reasons = " | ".join(h["Shocktwin-Reason"] for _, _, h, _ in dead)
         assert "asset_id" in reasons and "going back in time" in reasons and "version 2" in reasons, reasons
+        assert "field `position[1][1]`" in reasons, reasons  # the path of the bad value, not only a column
         assert w.proc.poll() is None
     finally:
         w.stop()
@@ -446,6 +450,11 @@ def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(
         proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-token-file", str(token),
                                "--rename-assets", "tok-", str(runs[0])], capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr
+        assert "already in the stream" not in proc.stderr, proc.stderr
+        # the same run again: stored once, and said so
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-token-file", str(token),
+                               "--rename-assets", "tok-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0 and "every batch was already in the stream" in proc.stderr, proc.stderr
         empty = tmp_path / "empty.token"
         empty.write_text("\n")
         proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-token-file", str(empty),

@@ -113,7 +113,7 @@ pub enum PayloadError {
         value: String,
     },
     /// The subject names another asset than the payload.
-    #[error("subject token `{token}` does not name asset `{asset}` (expected `{expected}`)")]
+    #[error("the subject names asset token `{token}`, the payload's `asset_id` is `{asset}` (its token: `{expected}`)")]
     SubjectMismatch {
         /// The subject's asset token.
         token: String,
@@ -157,9 +157,16 @@ impl TelemetryBatch {
     /// Decodes and checks a message received on the subject whose asset
     /// token is `token`.
     pub fn decode(token: &str, bytes: &[u8]) -> Result<Self, PayloadError> {
-        let b: TelemetryBatch = serde_json::from_slice(bytes).map_err(|e| {
-            // Names the field (serde's message) and where.
-            PayloadError::Decode(e.to_string())
+        // names the field's path, not only a column (a helper's trial:
+        // "invalid type: string "x", expected f64 at line 1 column 91")
+        let de = &mut serde_json::Deserializer::from_slice(bytes);
+        let b: TelemetryBatch = serde_path_to_error::deserialize(de).map_err(|e| {
+            let path = e.path().to_string();
+            PayloadError::Decode(if path == "." {
+                e.into_inner().to_string()
+            } else {
+                format!("field `{path}`: {}", e.into_inner())
+            })
         })?;
         if b.v != PAYLOAD_VERSION {
             return Err(PayloadError::Version(b.v));
@@ -339,12 +346,21 @@ mod tests {
         assert!(e.to_string().contains("asset_id"), "{e}");
         let e = TelemetryBatch::decode("b", ok).unwrap_err();
         assert_eq!(e.kind(), "subject");
+        assert!(
+            e.to_string().contains("asset token `b`")
+                && e.to_string().contains("`asset_id` is `a`"),
+            "{e}"
+        );
         let e = TelemetryBatch::decode(
             "a",
             br#"{"v":1,"asset_id":"a","run_id":"r","batch":0,"force":[[1,"x"]]}"#,
         )
         .unwrap_err();
         assert_eq!(e.kind(), "decode");
+        // the field's path, not only a column
+        assert!(e.to_string().contains("field `force[0][1]`"), "{e}");
+        let e = TelemetryBatch::decode("a", br#"{"v":1,"asset_id":"a","run_id":"r"}"#).unwrap_err();
+        assert!(e.to_string().contains("batch"), "{e}");
         assert!(TelemetryBatch::decode("a", b"\xff\x00garbage").is_err());
     }
 }

@@ -73,9 +73,21 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
     while let Some(joined) = tasks.join_next().await {
         let (file, r) = joined.context("publish task")?;
         match r {
-            Ok((asset, run, batches, samples)) => eprintln!(
-                "published {}: asset {asset} run {run}, {batches} batches, {samples} samples",
-                file.display()
+            Ok(p) => eprintln!(
+                "published {}: asset {} run {}, {} batches, {} samples{}",
+                file.display(),
+                p.asset,
+                p.run,
+                p.batches,
+                p.samples,
+                // a helper's trial: publishing a run again said nothing of it
+                match p.duplicates {
+                    0 => String::new(),
+                    d if d == p.batches => {
+                        "; every batch was already in the stream (this run was published before): stored once, nothing new".into()
+                    }
+                    d => format!("; {d} of them already in the stream (published before, or a retried batch): stored once"),
+                }
             ),
             Err(e) => {
                 failed += 1;
@@ -107,7 +119,7 @@ async fn publish_file(
     js: &jetstream::Context,
     file: &Path,
     opts: &FileOptions,
-) -> Result<(String, String, u64, usize)> {
+) -> Result<Published> {
     let path = PathBuf::from(file);
     // the reader's error names the file and says its cause already: one
     // message, not its chain (a helper's trial: "f: f: No such file …: No
@@ -127,7 +139,7 @@ async fn publish_file(
     map.remove("run_id");
     let t0 = samples.first().map_or(0, Sample::t_ns);
     let started = tokio::time::Instant::now();
-    let mut batch_no = 0u64;
+    let (mut batch_no, mut duplicates) = (0u64, 0u64);
     let mut i = 0;
     loop {
         let end_t = t0 + (batch_no as i64 + 1) * opts.batch_ns;
@@ -152,28 +164,48 @@ async fn publish_file(
         }
         let payload: bytes::Bytes = serde_json::to_vec(&b)?.into();
         let id = format!("{}/{}/{}", meta.asset_id, meta.run_id, batch_no);
-        send_with_retry(js, &subject, &payload, &id)
+        if send_with_retry(js, &subject, &payload, &id)
             .await
-            .with_context(|| format!("batch {batch_no} on {subject}"))?;
+            .with_context(|| format!("batch {batch_no} on {subject}"))?
+        {
+            duplicates += 1;
+        }
         batch_no += 1;
         if b.end {
             break;
         }
     }
-    Ok((meta.asset_id, meta.run_id, batch_no, samples.len()))
+    Ok(Published {
+        asset: meta.asset_id,
+        run: meta.run_id,
+        batches: batch_no,
+        duplicates,
+        samples: samples.len(),
+    })
+}
+
+/// What one file's publish sent.
+struct Published {
+    asset: String,
+    run: String,
+    batches: u64,
+    /// Batches the stream already held (same message id): stored once.
+    duplicates: u64,
+    samples: usize,
 }
 
 /// How long a batch is retried while the server is away (a restart).
 const RETRY_FOR: Duration = Duration::from_secs(60);
 
 /// Publishes one batch and waits for its acknowledgement, retrying (same
-/// message id: stored once) until [`RETRY_FOR`] has passed.
+/// message id: stored once) until [`RETRY_FOR`] has passed. Returns whether
+/// the stream already held it (JetStream's `duplicate`).
 async fn send_with_retry(
     js: &jetstream::Context,
     subject: &str,
     payload: &bytes::Bytes,
     id: &str,
-) -> Result<()> {
+) -> Result<bool> {
     let deadline = tokio::time::Instant::now() + RETRY_FOR;
     let mut wait = Duration::from_millis(50);
     loop {
@@ -188,7 +220,7 @@ async fn send_with_retry(
             .map_err(anyhow::Error::from)
         };
         match attempt.await {
-            Ok(_) => return Ok(()),
+            Ok(ack) => return Ok(ack.duplicate),
             Err(e) if tokio::time::Instant::now() >= deadline => {
                 return Err(e.context(format!("no acknowledgement for {} s", RETRY_FOR.as_secs())));
             }
