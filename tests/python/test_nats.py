@@ -437,6 +437,41 @@ def test_a_daemon_started_before_its_nats_server_waits_for_it(
         server.stop()
 
 
+def test_a_nats_part_that_stops_makes_the_daemon_degraded(shocktwin_bin: Path, tmp_path: Path) -> None:
+    """A worker whose server has no JetStream cannot join the group: its source stops, and
+    `/readyz` says so (a review: a source that stopped had counted as started, and the
+    daemon said ready)."""
+    import shutil
+
+    import httpx
+
+    from conftest import _free_port, terminate
+
+    exe = shutil.which("nats-server", path=str(Path(sys.executable).parent)) or shutil.which("nats-server")
+    assert exe is not None
+    port = _free_port()
+    log = (tmp_path / "nats.log").open("wb")
+    server = subprocess.Popen([exe, "-a", "127.0.0.1", "-p", str(port)], stdout=log, stderr=log)  # no -js
+    try:
+        w = ServeProcess([str(shocktwin_bin), "serve", "--nats", f"nats://127.0.0.1:{port}", "--model", str(BUNDLE),
+                          "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                r = httpx.get(f"http://{w.http}/readyz", timeout=5)
+                if r.status_code == 503 and r.text.startswith("degraded"):
+                    break
+                assert time.monotonic() < deadline, (r.status_code, r.text, w.text()[-3000:])
+                time.sleep(0.3)
+            assert "source nats worker" in r.text and "stopped" in r.text, r.text
+            assert w.proc.poll() is None, "the daemon itself goes on (its HTTP API answers)"
+        finally:
+            w.stop()
+    finally:
+        terminate(server)
+        log.close()
+
+
 def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(
         shocktwin_bin: Path, tmp_path: Path, runs: list[Path]) -> None:
     """`publish --nats-token-file` (a helper's trial: publish had no way to give the token the

@@ -897,7 +897,7 @@ impl Estimator {
             }
             None => (pressure_bar, pressure_avg_bar, lo, hi, health),
         };
-        let (unfloored_bar, unfloored_half_bar) = (pressure_bar, 0.5 * (hi - lo));
+        let (unfloored_bar, unfloored_half_bar) = unfloored(pressure_bar, lo, hi);
         let [pressure_bar, pressure_avg_bar, lo] =
             at_ambient_floor([pressure_bar, pressure_avg_bar, lo], hi);
         Ok(Estimate {
@@ -927,6 +927,14 @@ pub fn at_ambient_floor(values: [f64; 3], hi_bar: f64) -> [f64; 3] {
     } else {
         values
     }
+}
+
+/// The estimate and its interval's half-width as read, before
+/// [`at_ambient_floor`] (`Estimate::unfloored_bar`, `unfloored_half_bar`):
+/// the fleet store summarises runs with them. NaN half without an interval.
+#[must_use]
+pub fn unfloored(pressure_bar: f64, lo_bar: f64, hi_bar: f64) -> (f64, f64) {
+    (pressure_bar, 0.5 * (hi_bar - lo_bar))
 }
 
 /// Runs a whole log through a fresh estimator (what `replay` does per file).
@@ -973,6 +981,12 @@ mod tests {
             [0.0, 0.0, 0.0]
         );
         assert_eq!(at_ambient_floor([1.9, 2.1, -0.93], 4.82), [1.9, 2.1, 0.0]);
+        // what the store's run summary takes instead: the reading as read
+        // (a review: a test on a run that never went below 0 checked nothing)
+        let (p, lo, hi) = (-0.5, -3.0, 2.0);
+        assert_eq!(at_ambient_floor([p, p, lo], hi), [0.0, 0.0, 0.0]);
+        assert_eq!(unfloored(p, lo, hi), (-0.5, 2.5));
+        assert!(unfloored(3.0, f64::NAN, f64::NAN).1.is_nan());
         assert_eq!(at_ambient_floor([2.94, 2.9, 0.62], 5.37), [2.94, 2.9, 0.62]);
         // wholly below ambient: shown as read (the model does not hold)
         assert_eq!(

@@ -345,10 +345,13 @@ impl NatsBaselines {
     }
 
     async fn watch(self, ctx: SourceContext) -> Result<(), NatsError> {
-        let client = connect_patiently(&self.cfg, "shocktwin baselines", &ctx.cancel).await?;
-        ctx.started.signal();
+        let Some(client) = connect_patiently(&self.cfg, "shocktwin baselines", &ctx.cancel).await?
+        else {
+            return Ok(()); // stopped before the server came
+        };
         let js = jetstream::new(client);
         let (kv, services) = (baseline_bucket(&js).await?, service_bucket(&js).await?);
+        ctx.started.signal(); // connected, buckets there (a review: not before)
         let config = Arc::new(ctx.ingest.config().clone());
         // The work that applies one value on a blocking thread: `change` on
         // the daemon's copy and store, then the asset's trend.

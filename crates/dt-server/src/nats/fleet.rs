@@ -101,8 +101,9 @@ struct RunEventIn {
 }
 
 async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
-    let client = connect_patiently(cfg, "shocktwin fleet view", &ctx.cancel).await?;
-    ctx.started.signal();
+    let Some(client) = connect_patiently(cfg, "shocktwin fleet view", &ctx.cancel).await? else {
+        return Ok(()); // stopped before the server came
+    };
     let js = jetstream::new(client);
     ensure_topology(&js, cfg).await?;
     let stream = js
@@ -120,9 +121,14 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
         .messages()
         .await
         .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?;
+    ctx.started.signal(); // connected and subscribed (a review: not before)
     let mut runs: HashMap<String, RunHandle> = HashMap::new();
     let mut tick = tokio::time::interval(FLUSH_EVERY);
-    let source = format!("nats {}", cfg.url.as_deref().unwrap_or(""));
+    // kept with each run and served by the API: no credentials (a review)
+    let source = format!(
+        "nats {}",
+        super::without_credentials(cfg.url.as_deref().unwrap_or(""))
+    );
     loop {
         tokio::select! {
             () = ctx.cancel.cancelled() => break,

@@ -175,9 +175,13 @@ impl NatsConfig {
 /// secret (a helper's trial: the error printed it back).
 pub fn without_credentials(url: &str) -> String {
     url.split(',')
-        .map(|u| match (u.find("://"), u.rfind('@')) {
-            (Some(s), Some(at)) if at > s + 3 => format!("{}***{}", &u[..s + 3], &u[at..]),
-            _ => u.to_owned(),
+        .map(|u| {
+            // async-nats takes a URL without a scheme too (`token@host:4222`)
+            let start = u.find("://").map_or(0, |s| s + 3);
+            match u[start..].rfind('@') {
+                Some(at) if at > 0 => format!("{}***{}", &u[..start], &u[start + at..]),
+                _ => u.to_owned(),
+            }
         })
         .collect::<Vec<_>>()
         .join(",")
@@ -202,19 +206,20 @@ pub async fn connect(cfg: &NatsConfig, name: &str) -> Result<async_nats::Client,
 /// runs: a gateway's daemon may start before its NATS server, or the server
 /// be down a while (a helper's trial: after 10 s the daemon's NATS parts
 /// stopped for good while `/readyz` said ready). Warns every
-/// [`PATIENT_WARN_EVERY`] that it is still trying. `Err` only once `cancel`
-/// is cancelled, or for a client that cannot be made at all.
+/// [`PATIENT_WARN_EVERY`] that it is still trying. `None` once `cancel` is
+/// cancelled first (the daemon stops: nothing to report); `Err` only for a
+/// client that cannot be made at all.
 pub async fn connect_patiently(
     cfg: &NatsConfig,
     name: &str,
     cancel: &tokio_util::sync::CancellationToken,
-) -> Result<async_nats::Client, NatsError> {
+) -> Result<Option<async_nats::Client>, NatsError> {
     let (client, what) = client_for(cfg, name).await?;
     let started = tokio::time::Instant::now();
     let mut warn_at = started + PATIENT_WARN_EVERY;
     while client.connection_state() != async_nats::connection::State::Connected {
         if cancel.is_cancelled() {
-            return Err(NatsError::new(&what, "stopped before a connection"));
+            return Ok(None);
         }
         if tokio::time::Instant::now() >= warn_at {
             tracing::warn!(
@@ -231,7 +236,7 @@ pub async fn connect_patiently(
             started.elapsed().as_secs()
         );
     }
-    Ok(client)
+    Ok(Some(client))
 }
 
 /// How often [`connect_patiently`] says that it is still trying.
@@ -417,6 +422,10 @@ mod tests {
         assert_eq!(
             super::without_credentials("tls://s3cret@h:4222,nats://u:p@g:1,nats://plain:2"),
             "tls://***@h:4222,nats://***@g:1,nats://plain:2"
+        );
+        assert_eq!(
+            super::without_credentials("s3cret@h:4222,plain:2"),
+            "***@h:4222,plain:2"
         );
     }
 

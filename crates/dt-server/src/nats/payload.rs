@@ -159,8 +159,8 @@ impl TelemetryBatch {
     pub fn decode(token: &str, bytes: &[u8]) -> Result<Self, PayloadError> {
         // names the field's path, not only a column (a helper's trial:
         // "invalid type: string "x", expected f64 at line 1 column 91")
-        let de = &mut serde_json::Deserializer::from_slice(bytes);
-        let b: TelemetryBatch = serde_path_to_error::deserialize(de).map_err(|e| {
+        let mut de = serde_json::Deserializer::from_slice(bytes);
+        let b: TelemetryBatch = serde_path_to_error::deserialize(&mut de).map_err(|e| {
             let path = e.path().to_string();
             PayloadError::Decode(if path == "." {
                 e.into_inner().to_string()
@@ -168,6 +168,9 @@ impl TelemetryBatch {
                 format!("field `{path}`: {}", e.into_inner())
             })
         })?;
+        // nothing after the object (what `serde_json::from_slice` checks)
+        de.end()
+            .map_err(|e| PayloadError::Decode(format!("after the object: {e}")))?;
         if b.v != PAYLOAD_VERSION {
             return Err(PayloadError::Version(b.v));
         }
@@ -362,5 +365,13 @@ mod tests {
         let e = TelemetryBatch::decode("a", br#"{"v":1,"asset_id":"a","run_id":"r"}"#).unwrap_err();
         assert!(e.to_string().contains("batch"), "{e}");
         assert!(TelemetryBatch::decode("a", b"\xff\x00garbage").is_err());
+        // trailing bytes, or a second object, are refused (a review: the
+        // path-naming decoder alone took them)
+        for tail in [&b"garbage"[..], &br#"{"v":1}"#[..]] {
+            let bytes = [&ok[..], tail].concat();
+            let e = TelemetryBatch::decode("a", &bytes).unwrap_err();
+            assert_eq!(e.kind(), "decode", "{e}");
+        }
+        assert!(TelemetryBatch::decode("a", &[&ok[..], b" \n"].concat()).is_ok());
     }
 }

@@ -163,13 +163,15 @@ impl MetricsHandle {
 
 impl NatsWorker {
     async fn serve(self, ctx: SourceContext) -> Result<(), NatsError> {
-        let client = connect_patiently(
+        let Some(client) = connect_patiently(
             &self.cfg,
             &format!("shocktwin worker {}", self.id),
             &ctx.cancel,
         )
-        .await?;
-        ctx.started.signal();
+        .await?
+        else {
+            return Ok(()); // stopped before the server came
+        };
         let js = jetstream::ContextBuilder::new()
             .max_ack_inflight(MAX_ACKS_IN_FLIGHT)
             .build(client);
@@ -195,6 +197,7 @@ impl NatsWorker {
             metrics: Arc::new(MetricsHandle(ctx.ingest.clone())),
         };
         tracing::info!(worker = %self.id, partitions, "joined the worker group");
+        ctx.started.signal(); // connected and set up (a review: not before)
         let mut held: BTreeMap<u32, Held> = BTreeMap::new();
         let heartbeat = format!("worker.{}", self.id);
         let mut tick = tokio::time::interval(RENEW_EVERY / 2);

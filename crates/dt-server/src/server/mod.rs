@@ -353,13 +353,28 @@ fn spawn_sources(
         // The context goes with the source: when it ends (or panics), a
         // start it did not signal is signalled.
         let (cancel, starting) = (cancel.clone(), starting.clone());
+        // held until the stop is recorded: with the context's gone first,
+        // `/readyz` could answer ready in between (a review)
+        let held = ctx.started.clone();
         tracker.spawn(async move {
-            if let Err(e) = source.run(ctx).await {
-                tracing::error!(source = %name, "source stopped: {e}");
-                if !cancel.is_cancelled() {
-                    starting.stopped(&name, &e.to_string());
+            let why = match source.run(ctx).await {
+                Err(e) => {
+                    tracing::error!(source = %name, "source stopped: {e}");
+                    Some(e.to_string())
                 }
+                // every source runs until the daemon stops; one that ends
+                // before takes no more work either (a review: the fleet
+                // view's stream ending left `/readyz` ready)
+                Ok(()) if !cancel.is_cancelled() => {
+                    tracing::error!(source = %name, "source ended while the daemon runs");
+                    Some("ended".to_owned())
+                }
+                Ok(()) => None,
+            };
+            if let Some(why) = why.filter(|_| !cancel.is_cancelled()) {
+                starting.stopped(&name, &why);
             }
+            drop(held);
         });
     }
     starting
