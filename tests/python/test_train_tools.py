@@ -762,9 +762,13 @@ def test_quick_study_reports_both_protocols_and_an_oracle_that_never_sees_test_r
     assert interval["method"] == "cross-validated" and interval["level"] == 0.95
     assert sorted(interval["runs"]) == sorted(p.name for p in campaign.glob("*.mcap"))
     row13 = next(r for r in results["table2"] if r["id"] == 13)
-    assert row13["interval"] == interval and interval["ticks"] == row13["held_out"]["n"]
+    assert row13["interval"] == interval and interval["ticks"] > 100
     q = interval["half_width_bar"]
     assert 0 < q < 50 and f"bundle perm-13: 95 % interval the 1 s average ± {q:.2f} bar" in proc.stdout
+    assert "the folds' networks through the estimator" in proc.stdout
+    # these physics are priors, fitted on no run of the campaign: not said to be optimistic (a
+    # calibration of `fit_physics` on it names its runs in `fit.runs`, and then it is)
+    assert "optimistic" not in proc.stdout.split("bundle perm-13:")[1].splitlines()[0]
     est = shocktwin.estimate(sorted(campaign.glob("*.mcap"))[0], bundle)
     avg, hi = np.asarray(est["pressure_avg_bar"]), np.asarray(est["pressure_hi_bar"])
     pos = np.isfinite(avg) & (avg > 0)
