@@ -173,6 +173,7 @@ impl NatsConfig {
 /// `url` (comma-separated server URLs) with any `user:password@` or
 /// `token@` written as `***@`, for messages and logs: a token in a URL is a
 /// secret (a helper's trial: the error printed it back).
+#[must_use]
 pub fn without_credentials(url: &str) -> String {
     url.split(',')
         .map(|u| {

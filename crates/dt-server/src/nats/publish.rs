@@ -199,7 +199,7 @@ const RETRY_FOR: Duration = Duration::from_secs(60);
 
 /// Publishes one batch and waits for its acknowledgement, retrying (same
 /// message id: stored once) until [`RETRY_FOR`] has passed. Returns whether
-/// the stream already held it (JetStream's `duplicate`).
+/// the stream already held it (`JetStream`'s `duplicate`).
 async fn send_with_retry(
     js: &jetstream::Context,
     subject: &str,

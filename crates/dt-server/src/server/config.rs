@@ -448,17 +448,26 @@ impl Config {
         }
     }
 
+    /// `[nats]`'s files, read before connecting (`NatsConfig::check_files`).
+    fn check_nats_files(&self) -> Result<(), ServeError> {
+        if self.nats.url.is_none() {
+            return Ok(());
+        }
+        self.nats
+            .check_files()
+            .map_err(|(key, reason)| ServeError::Invalid {
+                key: key.to_owned(),
+                reason,
+            })
+    }
+
     /// Checks limits and thresholds; the error names the key.
     pub fn validate(&self) -> Result<(), ServeError> {
         let invalid = |key: &str, reason: &str| ServeError::Invalid {
             key: key.to_owned(),
             reason: reason.to_owned(),
         };
-        if self.nats.url.is_some() {
-            self.nats
-                .check_files()
-                .map_err(|(key, why)| invalid(key, &why))?;
-        }
+        self.check_nats_files()?;
         let l = &self.limits;
         if l.max_connections == 0 {
             return Err(invalid("limits.max_connections", "must be at least 1"));
