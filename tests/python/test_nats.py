@@ -496,6 +496,14 @@ def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(
                                str(runs[0])], capture_output=True, text=True, timeout=60)
         assert proc.returncode != 0 and "--nats-token-file" in proc.stderr and "empty.token" in proc.stderr, \
             proc.stderr
+        # a wrong token: the cause is said with the failure, not only in the client's log
+        wrong = tmp_path / "wrong.token"
+        wrong.write_text("not-the-token\n")
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--nats-token-file", str(wrong),
+                               str(runs[0])], capture_output=True, text=True, timeout=60)
+        last = proc.stderr.splitlines()[-1] if proc.stderr else ""
+        assert proc.returncode != 0 and "no connection after 10 s (last:" in last, proc.stderr
+        assert "authorization" in last.lower(), proc.stderr
         # the token in a URL is not printed back
         proc = subprocess.run([str(shocktwin_bin), "publish", "--nats",
                                server.url.replace("nats://", "nats://wrong-s3cret@"), str(runs[0])],

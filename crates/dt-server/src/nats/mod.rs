@@ -19,6 +19,7 @@ pub mod publish;
 pub mod worker;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_nats::jetstream::{self, kv, stream};
@@ -192,11 +193,14 @@ pub fn without_credentials(url: &str) -> String {
 /// for the first connection (`shocktwin publish`: a wrong URL is an error,
 /// not a hang).
 pub async fn connect(cfg: &NatsConfig, name: &str) -> Result<async_nats::Client, NatsError> {
-    let (client, what) = client_for(cfg, name).await?;
+    let (client, what, last) = client_for(cfg, name).await?;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
     while client.connection_state() != async_nats::connection::State::Connected {
         if tokio::time::Instant::now() > deadline {
-            return Err(NatsError::new(&what, "no connection after 10 s"));
+            return Err(NatsError::new(
+                &what,
+                format!("no connection after 10 s{}", last.said()),
+            ));
         }
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
@@ -215,7 +219,7 @@ pub async fn connect_patiently(
     name: &str,
     cancel: &tokio_util::sync::CancellationToken,
 ) -> Result<Option<async_nats::Client>, NatsError> {
-    let (client, what) = client_for(cfg, name).await?;
+    let (client, what, last) = client_for(cfg, name).await?;
     let started = tokio::time::Instant::now();
     let mut warn_at = started + PATIENT_WARN_EVERY;
     while client.connection_state() != async_nats::connection::State::Connected {
@@ -224,8 +228,9 @@ pub async fn connect_patiently(
         }
         if tokio::time::Instant::now() >= warn_at {
             tracing::warn!(
-                "{name}: NATS {what}: no connection after {} s; still trying (`/readyz` says not ready meanwhile)",
-                started.elapsed().as_secs()
+                "{name}: NATS {what}: no connection after {} s{}; still trying (`/readyz` says not ready meanwhile)",
+                started.elapsed().as_secs(),
+                last.said()
             );
             warn_at += PATIENT_WARN_EVERY;
         }
@@ -243,21 +248,54 @@ pub async fn connect_patiently(
 /// How often [`connect_patiently`] says that it is still trying.
 pub const PATIENT_WARN_EVERY: Duration = Duration::from_secs(10);
 
-/// The client (it connects, and reconnects, in the background) and what to
-/// call the connection in messages (its URL without credentials).
+/// The last error the client met, for the messages that say it could not
+/// connect (a helper's trial: "no connection after 10 s", the cause only in
+/// dozens of lines of the client's own log, which logs every event at info).
+#[derive(Debug, Clone, Default)]
+struct LastError(Arc<std::sync::Mutex<Option<String>>>);
+
+impl LastError {
+    fn said(&self) -> String {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .as_ref()
+            .map_or_else(String::new, |e| format!(" (last: {e})"))
+    }
+
+    /// Keeps an error event's text.
+    fn take(&self, event: &async_nats::Event) {
+        if let async_nats::Event::ClientError(_) | async_nats::Event::ServerError(_) = event {
+            *self
+                .0
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(event.to_string());
+        }
+    }
+}
+
+/// The client (it connects, and reconnects, in the background), what to
+/// call the connection in messages (its URL without credentials) and its
+/// last error.
 async fn client_for(
     cfg: &NatsConfig,
     name: &str,
-) -> Result<(async_nats::Client, String), NatsError> {
+) -> Result<(async_nats::Client, String, LastError), NatsError> {
     let url = cfg
         .url
         .clone()
         .ok_or_else(|| NatsError::new("connect", "no URL configured"))?;
     let what = format!("connect {}", without_credentials(&url));
+    let last = LastError::default();
+    let seen = last.clone();
     let mut opts = async_nats::ConnectOptions::new()
         .name(name)
         .retry_on_initial_connect()
-        .connection_timeout(Duration::from_secs(5));
+        .connection_timeout(Duration::from_secs(5))
+        .event_callback(move |event| {
+            seen.take(&event);
+            async {}
+        });
     if let Some(ca) = &cfg.ca_file {
         opts = opts.add_root_certificates(ca.clone()).require_tls(true);
     }
@@ -276,7 +314,7 @@ async fn client_for(
         .connect(url.as_str())
         .await
         .map_err(|e| NatsError::new(&what, e))?;
-    Ok((client, what))
+    Ok((client, what, last))
 }
 
 /// The streams and buckets, created when missing. Returns the number of
