@@ -187,10 +187,10 @@ def held_out_interval(errors: np.ndarray, runs: Sequence[str], level: float = 0.
     """The 95 % interval of a bundle without the charge observer (SPEC §2a; dt-core
     ``HeldOutInterval``) from ``errors``, the absolute errors of the 1 s average on the held-out
     ``runs``' ticks that have one: their ``⌈(n + 1) level⌉``-th smallest of ``n`` (the largest
-    when ``n`` is too small). ``method`` says whose errors: ``HELD_OUT``, the bundle's own
-    estimator (``pressure_avg_bar``); ``CROSS_VALIDATED``, the study's fold networks (a causal
-    1 s mean of their excited ticks' estimates, ``train.evaluate``), each trained on fewer runs
-    than the bundle. An empirical percentile, not a coverage guarantee: a run's ticks err
+    when ``n`` is too small). ``method`` says whose errors: ``HELD_OUT``, the bundle itself;
+    ``CROSS_VALIDATED``, the study's fold networks, each written as a bundle and trained on fewer
+    runs than the bundle (``train.study.cross_validated_interval``); both the estimator's own
+    1 s average (``pressure_avg_bar``). An empirical percentile, not a coverage guarantee: a run's ticks err
     together, so it holds as far as the held-out runs are like the ones the bundle will read.
     ``None`` without an error."""
     err = np.sort(np.asarray(errors, dtype=float))
