@@ -118,20 +118,14 @@ impl NatsConfig {
     /// `token_file` "authorization violation" over and over). Returns the
     /// key (`ca_file`, …) and why.
     pub fn check_files(&self) -> Result<(), (&'static str, String)> {
-        use crate::server::security::pem_problem;
+        use crate::server::security::{pem_certificates, pem_problem};
         use rustls::pki_types::pem::PemObject as _;
-        use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+        use rustls::pki_types::PrivateKeyDer;
 
         let certs = |key: &'static str, path: &Path| -> Result<(), (&'static str, String)> {
-            let why = |e: &dyn std::fmt::Display| (key, format!("{}: {e}", path.display()));
-            let n = CertificateDer::pem_file_iter(path)
-                .map_err(|e| why(&pem_problem(&e)))?
-                .try_fold(0usize, |n, c| c.map(|_| n + 1))
-                .map_err(|e| why(&format!("not a PEM certificate: {e}")))?;
-            if n == 0 {
-                return Err(why(&"no certificate in the file"));
-            }
-            Ok(())
+            pem_certificates(path)
+                .map(drop)
+                .map_err(|why| (key, format!("{}: {why}", path.display())))
         };
         if let Some(ca) = &self.ca_file {
             certs("nats.ca_file", ca)?;
@@ -158,17 +152,20 @@ impl NatsConfig {
             (None, None) => {}
         }
         if let Some(f) = &self.token_file {
-            let text = std::fs::read_to_string(f)
-                .map_err(|e| ("nats.token_file", format!("{}: {e}", f.display())))?;
-            if text.lines().next().unwrap_or_default().trim().is_empty() {
-                return Err((
-                    "nats.token_file",
-                    format!("{}: no token on its first line", f.display()),
-                ));
-            }
+            read_token(f).map_err(|why| ("nats.token_file", why))?;
         }
         Ok(())
     }
+}
+
+/// The token on the first line of `path`; else why not, naming the file.
+fn read_token(path: &Path) -> Result<String, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let token = text.lines().next().unwrap_or_default().trim();
+    if token.is_empty() {
+        return Err(format!("{}: no token on its first line", path.display()));
+    }
+    Ok(token.to_owned())
 }
 
 /// `url` (comma-separated server URLs) with any `user:password@` or
@@ -303,9 +300,7 @@ async fn client_for(
         opts = opts.add_client_certificate(cert.clone(), key.clone());
     }
     if let Some(f) = &cfg.token_file {
-        let text = std::fs::read_to_string(f)
-            .map_err(|e| NatsError::new(format!("token file {}", f.display()), e))?;
-        let token = text.lines().next().unwrap_or_default().trim().to_owned();
+        let token = read_token(f).map_err(|why| NatsError::new("token file", why))?;
         opts = opts.token(token);
     }
     // `retry_on_initial_connect` makes connect return at once; the callers

@@ -154,6 +154,19 @@ impl Tokens {
     }
 }
 
+/// The certificates of a PEM file, at least one; else why not, in words
+/// (the TLS listeners' chain, and NATS's CA and client certificate).
+pub(crate) fn pem_certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>, String> {
+    let certs: Vec<CertificateDer<'static>> = CertificateDer::pem_file_iter(path)
+        .map_err(|e| pem_problem(&e))?
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("not a PEM certificate: {e}"))?;
+    if certs.is_empty() {
+        return Err("no certificate in the file".into());
+    }
+    Ok(certs)
+}
+
 /// A PEM reading error in words: a missing or unreadable file as such, not
 /// as a file that is not PEM (a helper's trial: a missing key file read
 /// "not a PEM private key: I/O error: No such file or directory").
@@ -189,17 +202,7 @@ pub fn server_configs(config: &Config) -> Result<Option<TlsConfigs>, ServeError>
     let (Some(cert), Some(key)) = (&tls.cert, &tls.key) else {
         return Ok(None);
     };
-    let certs: Vec<CertificateDer<'static>> = CertificateDer::pem_file_iter(cert)
-        .map_err(|e| tls_error(cert, "certificate chain", pem_problem(&e)))?
-        .collect::<Result<_, _>>()
-        .map_err(|e| tls_error(cert, "not a PEM certificate chain", e))?;
-    if certs.is_empty() {
-        return Err(tls_error(
-            cert,
-            "certificate chain",
-            "no certificate in the file",
-        ));
-    }
+    let certs = pem_certificates(cert).map_err(|why| tls_error(cert, "certificate chain", why))?;
     let key_der = PrivateKeyDer::from_pem_file(key)
         .map_err(|e| tls_error(key, "private key", pem_problem(&e)))?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
