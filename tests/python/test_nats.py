@@ -437,39 +437,98 @@ def test_a_daemon_started_before_its_nats_server_waits_for_it(
         server.stop()
 
 
-def test_a_nats_part_that_stops_makes_the_daemon_degraded(shocktwin_bin: Path, tmp_path: Path) -> None:
-    """A worker whose server has no JetStream cannot join the group: its source stops, and
-    `/readyz` says so (a review: a source that stopped had counted as started, and the
-    daemon said ready)."""
-    import shutil
-
+def wait_readyz(w: ServeProcess, want: Any, timeout_s: float = 60) -> Any:
+    """The first `/readyz` answer for which `want(response)` holds."""
     import httpx
 
-    from conftest import _free_port, terminate
+    deadline = time.monotonic() + timeout_s
+    while not want(r := httpx.get(f"http://{w.http}/readyz", timeout=5)):
+        assert time.monotonic() < deadline, (r.status_code, r.text, w.text()[-3000:])
+        time.sleep(0.3)
+    return r
 
+
+def test_a_nats_part_tries_its_set_up_again_until_the_server_has_jetstream(
+        shocktwin_bin: Path, tmp_path: Path, runs: list[Path]) -> None:
+    """A server without JetStream: the worker cannot make its streams, says why in `/readyz`
+    and tries again; once the server has JetStream it joins the group and serves, with no
+    restart of the daemon (before, the part stopped for good at its first failed set-up)."""
+    import shutil
+
+    from conftest import terminate
+
+    server = NatsServer(tmp_path)  # its ports and store; stopped, then started without -js
+    server.stop()
     exe = shutil.which("nats-server", path=str(Path(sys.executable).parent)) or shutil.which("nats-server")
     assert exe is not None
-    port = _free_port()
-    log = (tmp_path / "nats.log").open("wb")
-    server = subprocess.Popen([exe, "-a", "127.0.0.1", "-p", str(port)], stdout=log, stderr=log)  # no -js
+    with (tmp_path / "plain.log").open("wb") as log:
+        plain = subprocess.Popen([exe, "-a", "127.0.0.1", "-p", str(server.port)], stdout=log, stderr=log)
+    w = worker(shocktwin_bin, server)
     try:
-        w = ServeProcess([str(shocktwin_bin), "serve", "--nats", f"nats://127.0.0.1:{port}", "--model", str(BUNDLE),
-                          "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
-        try:
-            deadline = time.monotonic() + 60
-            while True:
-                r = httpx.get(f"http://{w.http}/readyz", timeout=5)
-                if r.status_code == 503 and r.text.startswith("degraded"):
-                    break
-                assert time.monotonic() < deadline, (r.status_code, r.text, w.text()[-3000:])
-                time.sleep(0.3)
-            assert "source nats worker" in r.text and "stopped" in r.text, r.text
-            assert w.proc.poll() is None, "the daemon itself goes on (its HTTP API answers)"
-        finally:
-            w.stop()
+        r = wait_readyz(w, lambda r: "set-up failed" in r.text)
+        assert r.status_code == 503 and r.text.startswith("not ready: starting") and "nats worker" in r.text, r.text
+        assert "JetStream" in r.text or "jetstream" in r.text, r.text
+        assert "trying again every 5 s" in r.text, r.text
+        assert w.proc.poll() is None and "source stopped" not in w.text(), w.text()[-3000:]
+        terminate(plain)
+        server.start()
+        wait_readyz(w, lambda r: r.status_code == 200, timeout_s=90)
+        assert "NATS reconnected" in w.text(), w.text()[-3000:]
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", server.url, "--rename-assets", "mended-",
+                               str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(server.url, {"mended-0"}, 120, [w])
+        assert done["mended-0"]["meta"]["outcome"] == "completed"
+        # the client's own per-event lines stay out of the log; ours say what happened
+        assert "async_nats: event" not in w.text(), w.text()[-3000:]
     finally:
-        terminate(server)
-        log.close()
+        w.stop()
+        terminate(plain)
+        server.stop()
+
+
+def test_a_stream_no_worker_can_join_makes_the_daemon_degraded(
+        shocktwin_bin: Path, nats_server: NatsServer) -> None:
+    """A telemetry stream made elsewhere with more partitions than a worker can hold: no retry
+    mends it, so the worker's part stops and `/readyz` says so (a review: a source that
+    stopped had counted as started, and the daemon said ready); the daemon goes on."""
+    import nats
+    from nats.js.api import StreamConfig, SubjectTransform
+
+    async def make_stream() -> None:
+        nc = await nats.connect(nats_server.url)
+        await nc.jetstream().add_stream(StreamConfig(
+            name="SHOCKTWIN_TELEMETRY", subjects=["shocktwin.telemetry.*"],
+            subject_transform=SubjectTransform(
+                src="shocktwin.telemetry.*",
+                dest="shocktwin.telemetry.{{partition(200,1)}}.{{wildcard(1)}}")))
+        await nc.close()
+
+    asyncio.run(make_stream())
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        r = wait_readyz(w, lambda r: r.text.startswith("degraded"))
+        assert r.status_code == 503, r.text
+        assert "source nats worker" in r.text and "stopped" in r.text, r.text
+        assert "200 partitions: at most 128" in r.text, r.text
+        assert w.proc.poll() is None, "the daemon itself goes on (its HTTP API answers)"
+    finally:
+        w.stop()
+
+
+def test_nats_settings_out_of_range_are_refused_at_start(shocktwin_bin: Path, tmp_path: Path) -> None:
+    """`[nats] partitions = 200` made a stream no worker could join, and a negative
+    `telemetry_max_age_s` stopped the part with a panic: both are refused at start, the
+    key named."""
+    for setting, key in (("partitions = 200", "nats.partitions"),
+                         ("telemetry_max_age_s = -1.0", "nats.telemetry_max_age_s")):
+        config = tmp_path / "bad.toml"
+        config.write_text(f'[nats]\nurl = "nats://127.0.0.1:4222"\n{setting}\n')
+        proc = subprocess.run([str(shocktwin_bin), "serve", "--config", str(config), "--model", str(BUNDLE),
+                               "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode != 0, proc.stderr
+        assert key in proc.stderr and "panicked" not in proc.stderr, proc.stderr
 
 
 def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(

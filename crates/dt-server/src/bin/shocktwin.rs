@@ -7,8 +7,11 @@ use dt_server::cli::{Cli, Command};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // The NATS client logs each of its events at info (a reconnection
+    // attempt a second per part while the server is away); the daemon says
+    // the ones that matter itself (`nats::LastError`).
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,async_nats=warn"));
     // Structured (JSON) logs: `serve --log-format json` or SHOCKTWIN_LOG_FORMAT=json.
     let json_logs = match &cli.command {
         Command::Serve(args) if args.log_format.is_some() => {

@@ -25,8 +25,8 @@ use futures_util::StreamExt;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    baseline_bucket, connect_patiently, service_bucket, NatsConfig, NatsError, BASELINE_BUCKET,
-    SERVICE_BUCKET,
+    baseline_bucket, connect_patiently, service_bucket, NatsConfig, NatsError, SetUpError,
+    SetUpRetries, BASELINE_BUCKET, SERVICE_BUCKET,
 };
 use crate::server::config::ServiceToRead;
 use crate::server::source::{Source, SourceContext};
@@ -345,12 +345,25 @@ impl NatsBaselines {
     }
 
     async fn watch(self, ctx: SourceContext) -> Result<(), NatsError> {
-        let Some(client) = connect_patiently(&self.cfg, "shocktwin baselines", &ctx.cancel).await?
-        else {
+        const NAME: &str = "shocktwin baselines";
+        let Some(client) = connect_patiently(&self.cfg, NAME, &ctx).await? else {
             return Ok(()); // stopped before the server came
         };
         let js = jetstream::new(client);
-        let (kv, services) = (baseline_bucket(&js).await?, service_bucket(&js).await?);
+        let mut retries = SetUpRetries::default();
+        let (kv, services) = loop {
+            let buckets = async {
+                Ok::<_, SetUpError>((baseline_bucket(&js).await?, service_bucket(&js).await?))
+            };
+            match buckets.await {
+                Ok(buckets) => break buckets,
+                Err(e) => {
+                    if !retries.after(NAME, e, &ctx).await? {
+                        return Ok(()); // stopped while waiting
+                    }
+                }
+            }
+        };
         ctx.started.signal(); // connected, buckets there (a review: not before)
         let config = Arc::new(ctx.ingest.config().clone());
         // The work that applies one value on a blocking thread: `change` on

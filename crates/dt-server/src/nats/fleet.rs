@@ -16,7 +16,10 @@ use futures_util::StreamExt;
 use serde::Deserialize;
 
 use super::payload::asset_of_token;
-use super::{connect_patiently, ensure_topology, NatsConfig, NatsError, ESTIMATES_STREAM};
+use super::{
+    connect_patiently, ensure_topology, NatsConfig, NatsError, SetUpError, SetUpRetries,
+    ESTIMATES_STREAM,
+};
 use crate::server::ingest::{Ingest, RunHandle};
 use crate::server::sink::{RunOutcome, SourceKind};
 use crate::server::source::{Source, SourceContext};
@@ -100,17 +103,17 @@ struct RunEventIn {
     road: Option<dt_core::road::RoadCounters>,
 }
 
-async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
-    let Some(client) = connect_patiently(cfg, "shocktwin fleet view", &ctx.cancel).await? else {
-        return Ok(()); // stopped before the server came
-    };
-    let js = jetstream::new(client);
-    ensure_topology(&js, cfg).await?;
+/// The estimate stream from now on (the streams created when missing).
+async fn subscribe(
+    js: &jetstream::Context,
+    cfg: &NatsConfig,
+) -> Result<consumer::pull::Ordered, SetUpError> {
+    ensure_topology(js, cfg).await?;
     let stream = js
         .get_stream(ESTIMATES_STREAM)
         .await
         .map_err(|e| NatsError::new(format!("stream {ESTIMATES_STREAM}"), e))?;
-    let mut messages = stream
+    Ok(stream
         .create_consumer(consumer::pull::OrderedConfig {
             filter_subjects: vec!["shocktwin.estimate.*".into(), "shocktwin.run.*".into()],
             deliver_policy: consumer::DeliverPolicy::New,
@@ -120,7 +123,26 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
         .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?
         .messages()
         .await
-        .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?;
+        .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?)
+}
+
+async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
+    const NAME: &str = "shocktwin fleet view";
+    let Some(client) = connect_patiently(cfg, NAME, &ctx).await? else {
+        return Ok(()); // stopped before the server came
+    };
+    let js = jetstream::new(client);
+    let mut retries = SetUpRetries::default();
+    let mut messages = loop {
+        match subscribe(&js, cfg).await {
+            Ok(messages) => break messages,
+            Err(e) => {
+                if !retries.after(NAME, e, &ctx).await? {
+                    return Ok(()); // stopped while waiting
+                }
+            }
+        }
+    };
     ctx.started.signal(); // connected and subscribed (a review: not before)
     let mut runs: HashMap<String, RunHandle> = HashMap::new();
     let mut tick = tokio::time::interval(FLUSH_EVERY);

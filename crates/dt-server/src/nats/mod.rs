@@ -25,6 +25,8 @@ use std::time::Duration;
 use async_nats::jetstream::{self, kv, stream};
 use serde::{Deserialize, Serialize};
 
+use crate::server::source::SourceContext;
+
 /// Telemetry stream.
 pub const TELEMETRY_STREAM: &str = "SHOCKTWIN_TELEMETRY";
 /// Estimates, health changes and run events.
@@ -111,6 +113,37 @@ impl NatsError {
 }
 
 impl NatsConfig {
+    /// Checks the settings ([`Self::check_settings`]), then the files
+    /// ([`Self::check_files`]). Returns the key (`nats.ca_file`, …) and why.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        self.check_settings()?;
+        self.check_files()
+    }
+
+    /// `partitions` and `telemetry_max_age_s` within what the group can
+    /// use: before, 200 partitions made a stream no worker could join, and a
+    /// negative age stopped the part with a panic.
+    pub fn check_settings(&self) -> Result<(), (&'static str, String)> {
+        if !(1..=worker::MAX_PARTITIONS).contains(&self.partitions) {
+            return Err((
+                "nats.partitions",
+                format!(
+                    "{}: must be 1 to {} (a worker holds at most that many)",
+                    self.partitions,
+                    worker::MAX_PARTITIONS
+                ),
+            ));
+        }
+        let age = self.telemetry_max_age_s;
+        if !(age.is_finite() && age > 0.0 && age <= 100.0 * 365.0 * 86_400.0) {
+            return Err((
+                "nats.telemetry_max_age_s",
+                format!("{age}: must be a positive number of seconds (at most 100 years)"),
+            ));
+        }
+        Ok(())
+    }
+
     /// Reads the files the connection will need, so that a wrong path, a
     /// file that is not PEM or an empty token is said at once, naming the
     /// setting and the file (a helper's trial: a missing `ca_file` gave 39
@@ -191,82 +224,214 @@ pub fn without_credentials(url: &str) -> String {
 /// not a hang).
 pub async fn connect(cfg: &NatsConfig, name: &str) -> Result<async_nats::Client, NatsError> {
     let (client, what, last) = client_for(cfg, name).await?;
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while client.connection_state() != async_nats::connection::State::Connected {
-        if tokio::time::Instant::now() > deadline {
-            return Err(NatsError::new(
-                &what,
-                format!("no connection after 10 s{}", last.said()),
-            ));
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
+    let limit = Duration::from_secs(10);
+    let never = tokio_util::sync::CancellationToken::new();
+    match wait_connected(&client, &never, Some(limit), |_| {}).await {
+        Some(true) => Ok(client),
+        _ => Err(NatsError::new(
+            &what,
+            format!("no connection after 10 s{}", last.said()),
+        )),
     }
-    Ok(client)
 }
 
 /// Connects as [`connect`], but waits for the server as long as the daemon
 /// runs: a gateway's daemon may start before its NATS server, or the server
 /// be down a while (a helper's trial: after 10 s the daemon's NATS parts
-/// stopped for good while `/readyz` said ready). Warns every
-/// [`PATIENT_WARN_EVERY`] that it is still trying. `None` once `cancel` is
-/// cancelled first (the daemon stops: nothing to report); `Err` only for a
-/// client that cannot be made at all.
+/// stopped for good while `/readyz` said ready). Every
+/// [`PATIENT_WARN_EVERY`] it warns that it is still trying, and `/readyz`
+/// says why beside the part's name. `None` once the daemon stops first
+/// (nothing to report); `Err` only for a client that cannot be made at all.
 pub async fn connect_patiently(
     cfg: &NatsConfig,
     name: &str,
-    cancel: &tokio_util::sync::CancellationToken,
+    ctx: &SourceContext,
 ) -> Result<Option<async_nats::Client>, NatsError> {
     let (client, what, last) = client_for(cfg, name).await?;
-    let started = tokio::time::Instant::now();
-    let mut warn_at = started + PATIENT_WARN_EVERY;
-    while client.connection_state() != async_nats::connection::State::Connected {
-        if cancel.is_cancelled() {
-            return Ok(None);
-        }
-        if tokio::time::Instant::now() >= warn_at {
-            tracing::warn!(
-                "{name}: NATS {what}: no connection after {} s{}; still trying (`/readyz` says not ready meanwhile)",
-                started.elapsed().as_secs(),
-                last.said()
-            );
-            warn_at += PATIENT_WARN_EVERY;
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    if started.elapsed() >= PATIENT_WARN_EVERY {
+    let still = |waited: Duration| {
+        let why = format!(
+            "{what}: no connection after {} s{}",
+            waited.as_secs(),
+            last.said()
+        );
+        tracing::warn!("{name}: NATS {why}; still trying (`/readyz` says not ready meanwhile)");
+        ctx.started.note(Some(why));
+    };
+    let began = tokio::time::Instant::now();
+    let connected = wait_connected(&client, &ctx.cancel, None, still).await;
+    ctx.started.note(None);
+    if connected.is_some() && began.elapsed() >= PATIENT_WARN_EVERY {
         tracing::info!(
             "{name}: NATS {what}: connected after {} s",
-            started.elapsed().as_secs()
+            began.elapsed().as_secs()
         );
     }
-    Ok(Some(client))
+    Ok(connected.and(Some(client)))
+}
+
+/// Waits until `client` is connected (`Some(true)`); `None` once `cancel`
+/// is cancelled first, `Some(false)` after `limit`. Calls `still` with the
+/// time waited every [`PATIENT_WARN_EVERY`].
+async fn wait_connected(
+    client: &async_nats::Client,
+    cancel: &tokio_util::sync::CancellationToken,
+    limit: Option<Duration>,
+    mut still: impl FnMut(Duration),
+) -> Option<bool> {
+    let started = tokio::time::Instant::now();
+    let mut say_at = started + PATIENT_WARN_EVERY;
+    while client.connection_state() != async_nats::connection::State::Connected {
+        if cancel.is_cancelled() {
+            return None;
+        }
+        let now = tokio::time::Instant::now();
+        if limit.is_some_and(|limit| now - started > limit) {
+            return Some(false);
+        }
+        if now >= say_at {
+            still(now - started);
+            say_at += PATIENT_WARN_EVERY;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    Some(true)
 }
 
 /// How often [`connect_patiently`] says that it is still trying.
 pub const PATIENT_WARN_EVERY: Duration = Duration::from_secs(10);
 
-/// The last error the client met, for the messages that say it could not
-/// connect (a helper's trial: "no connection after 10 s", the cause only in
-/// dozens of lines of the client's own log, which logs every event at info).
+/// How long a daemon's NATS part waits before it tries a failed set-up
+/// again ([`retry_set_up`]).
+pub const SET_UP_RETRY_EVERY: Duration = Duration::from_secs(5);
+
+/// Why a NATS part's set-up (streams, buckets, consumer) failed: tried again
+/// while the daemon runs (the server may gain `JetStream`, a stream be
+/// mended) or, for what only a new configuration mends, the part stops.
+#[derive(Debug)]
+pub enum SetUpError {
+    /// Tried again after [`SET_UP_RETRY_EVERY`].
+    Retry(NatsError),
+    /// The part stops (`/readyz` then says "degraded").
+    Stop(NatsError),
+}
+
+impl From<NatsError> for SetUpError {
+    fn from(e: NatsError) -> Self {
+        Self::Retry(e)
+    }
+}
+
+/// How often a set-up that keeps failing the same way is said again.
+pub const SET_UP_WARN_EVERY: Duration = Duration::from_secs(60);
+
+/// A NATS part's failed set-ups: what it said last, and when.
+#[derive(Debug, Default)]
+pub struct SetUpRetries {
+    said: Option<(String, tokio::time::Instant)>,
+    tries: u32,
+}
+
+impl SetUpRetries {
+    /// After a failed set-up of part `name`: for [`SetUpError::Retry`],
+    /// warns (when the reason is new, else every [`SET_UP_WARN_EVERY`]),
+    /// says why in `/readyz` and waits [`SET_UP_RETRY_EVERY`] (`Ok(true)`:
+    /// try again; `Ok(false)`: the daemon stops); for [`SetUpError::Stop`],
+    /// the error. Before, any set-up error stopped the part for good (a
+    /// gateway whose NATS server came up without `JetStream` needed the
+    /// daemon restarted once the server was mended).
+    pub async fn after(
+        &mut self,
+        name: &str,
+        error: SetUpError,
+        ctx: &SourceContext,
+    ) -> Result<bool, NatsError> {
+        let e = match error {
+            SetUpError::Retry(e) => e.to_string(),
+            SetUpError::Stop(e) => return Err(e),
+        };
+        self.tries += 1;
+        let every = SET_UP_RETRY_EVERY.as_secs();
+        let now = tokio::time::Instant::now();
+        let due = self
+            .said
+            .as_ref()
+            .is_none_or(|(said, at)| *said != e || now - *at >= SET_UP_WARN_EVERY);
+        if due {
+            tracing::warn!(
+                "{name}: set-up failed (try {}): {e}; trying again every {every} s (`/readyz` says not ready meanwhile)",
+                self.tries
+            );
+            self.said = Some((e.clone(), now));
+        }
+        ctx.started.note(Some(format!(
+            "set-up failed: {e}; trying again every {every} s"
+        )));
+        tokio::select! {
+            () = ctx.cancel.cancelled() => Ok(false),
+            () = tokio::time::sleep(SET_UP_RETRY_EVERY) => Ok(true),
+        }
+    }
+}
+
+/// What the client met, for the log and for the messages that say it could
+/// not connect (a helper's trial: "no connection after 10 s", the cause
+/// only in dozens of lines of the client's own log). The client logs every
+/// event at info; the daemon's default filter keeps only its warnings
+/// (`bin/shocktwin.rs`), and this says the events that matter once, naming
+/// the part: a lost connection, a reconnection, a server's error while
+/// connected.
 #[derive(Debug, Clone, Default)]
-struct LastError(Arc<std::sync::Mutex<Option<String>>>);
+struct LastError(Arc<std::sync::Mutex<Seen>>);
+
+#[derive(Debug, Default)]
+struct Seen {
+    /// The last client or server error.
+    error: Option<String>,
+    /// Connected now.
+    connected: bool,
+    /// Connected before: a connection now is a reconnection.
+    was_connected: bool,
+}
 
 impl LastError {
     fn said(&self) -> String {
         self.0
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .error
             .as_ref()
             .map_or_else(String::new, |e| format!(" (last: {e})"))
     }
 
-    /// Keeps an error event's text.
-    fn take(&self, event: &async_nats::Event) {
-        if let async_nats::Event::ClientError(_) | async_nats::Event::ServerError(_) = event {
-            *self
-                .0
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(event.to_string());
+    /// Keeps an error event's text; logs what part `name` should say.
+    fn take(&self, event: &async_nats::Event, name: &str) {
+        use async_nats::Event;
+        let mut seen = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        match event {
+            Event::Connected => {
+                if seen.was_connected {
+                    tracing::info!("{name}: NATS reconnected");
+                }
+                (seen.connected, seen.was_connected) = (true, true);
+            }
+            Event::Disconnected => {
+                seen.connected = false;
+                tracing::warn!("{name}: NATS connection lost; reconnecting");
+            }
+            Event::ClientError(_) | Event::ServerError(_) => {
+                // while connecting, the waits above say the last one
+                if seen.connected {
+                    tracing::warn!("{name}: NATS {event}");
+                } else {
+                    tracing::debug!("{name}: NATS {event}");
+                }
+                seen.error = Some(event.to_string());
+            }
+            Event::Draining | Event::Closed => tracing::debug!("{name}: NATS {event}"),
+            Event::LameDuckMode | Event::SlowConsumer(_) => tracing::warn!("{name}: NATS {event}"),
         }
     }
 }
@@ -284,13 +449,13 @@ async fn client_for(
         .ok_or_else(|| NatsError::new("connect", "no URL configured"))?;
     let what = format!("connect {}", without_credentials(&url));
     let last = LastError::default();
-    let seen = last.clone();
+    let (seen, part) = (last.clone(), name.to_owned());
     let mut opts = async_nats::ConnectOptions::new()
         .name(name)
         .retry_on_initial_connect()
         .connection_timeout(Duration::from_secs(5))
         .event_callback(move |event| {
-            seen.take(&event);
+            seen.take(&event, &part);
             async {}
         });
     if let Some(ca) = &cfg.ca_file {
@@ -478,6 +643,20 @@ mod tests {
             c.check_files()
         };
         assert_eq!(cfg(&|_| {}), Ok(()));
+        // the settings, before the files
+        let settings = |f: &dyn Fn(&mut super::NatsConfig)| {
+            let mut c = super::NatsConfig::default();
+            f(&mut c);
+            c.check().map_err(|(key, _)| key)
+        };
+        assert_eq!(settings(&|_| {}), Ok(()));
+        assert_eq!(settings(&|c| c.partitions = 128), Ok(()));
+        assert_eq!(settings(&|c| c.partitions = 129), Err("nats.partitions"));
+        assert_eq!(settings(&|c| c.partitions = 0), Err("nats.partitions"));
+        for age in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let refused = settings(&|c| c.telemetry_max_age_s = age);
+            assert_eq!(refused, Err("nats.telemetry_max_age_s"), "{age}");
+        }
         // refused for `key`, the reason saying each of `says`
         let refused = |f: &dyn Fn(&mut super::NatsConfig), key: &str, says: &[&str]| {
             let (k, why) = cfg(f).unwrap_err();

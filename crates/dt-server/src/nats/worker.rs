@@ -54,7 +54,7 @@ use tokio_util::sync::CancellationToken;
 use super::payload::{PayloadError, TelemetryBatch};
 use super::{
     checkpoint_bucket, connect_patiently, ensure_topology, lease_bucket, NatsConfig, NatsError,
-    RENEW_EVERY, TELEMETRY_STREAM,
+    SetUpError, SetUpRetries, RENEW_EVERY, TELEMETRY_STREAM,
 };
 use crate::server::baselines::recorded_before;
 use crate::server::config::{Config, ServiceToRead};
@@ -71,6 +71,10 @@ const CHECKPOINT_VERSION: u32 = 1;
 const MAX_PENDING_ACKS: usize = 256;
 /// The `JetStream` context's limit of unacknowledged publishes.
 const MAX_ACKS_IN_FLIGHT: usize = 1 << 16;
+/// The most partitions a worker group can have (`[nats] partitions`): a
+/// worker holding them all keeps within [`MAX_ACKS_IN_FLIGHT`].
+#[allow(clippy::cast_possible_truncation)] // 128
+pub const MAX_PARTITIONS: u32 = (MAX_ACKS_IN_FLIGHT / MAX_PENDING_ACKS / 2) as u32;
 
 /// A worker of the group (a [`Source`] of the daemon).
 pub struct NatsWorker {
@@ -162,39 +166,54 @@ impl MetricsHandle {
 }
 
 impl NatsWorker {
+    /// The group's streams and buckets (created when missing): the
+    /// partitions, the lease bucket and what a partition task needs.
+    async fn set_up(
+        &self,
+        js: &jetstream::Context,
+        ctx: &SourceContext,
+    ) -> Result<(u32, kv::Store, PartCtx), SetUpError> {
+        let partitions = ensure_topology(js, &self.cfg).await?;
+        if partitions > MAX_PARTITIONS {
+            // the count of a stream made elsewhere (the configuration's is
+            // checked at start), fixed when it was made: not mended by a retry
+            return Err(SetUpError::Stop(NatsError::new(
+                format!("stream {TELEMETRY_STREAM}"),
+                format!("{partitions} partitions: at most {MAX_PARTITIONS} per worker group"),
+            )));
+        }
+        let leases = lease_bucket(js).await?;
+        let part = PartCtx {
+            checkpoints: checkpoint_bucket(js).await?,
+            baseline_kv: super::baseline_bucket(js).await?,
+            service_kv: super::service_bucket(js).await?,
+            js: js.clone(),
+            factory: self.factory.clone(),
+            config: Arc::new(ctx.ingest.config().clone()),
+            baselines: Arc::clone(ctx.ingest.baselines()),
+            metrics: Arc::new(MetricsHandle(ctx.ingest.clone())),
+        };
+        Ok((partitions, leases, part))
+    }
+
     async fn serve(self, ctx: SourceContext) -> Result<(), NatsError> {
-        let Some(client) = connect_patiently(
-            &self.cfg,
-            &format!("shocktwin worker {}", self.id),
-            &ctx.cancel,
-        )
-        .await?
-        else {
+        let name = format!("shocktwin worker {}", self.id);
+        let Some(client) = connect_patiently(&self.cfg, &name, &ctx).await? else {
             return Ok(()); // stopped before the server came
         };
         let js = jetstream::ContextBuilder::new()
             .max_ack_inflight(MAX_ACKS_IN_FLIGHT)
             .build(client);
-        let partitions = ensure_topology(&js, &self.cfg).await?;
-        if partitions as usize * MAX_PENDING_ACKS * 2 > MAX_ACKS_IN_FLIGHT {
-            return Err(NatsError::new(
-                "partitions",
-                format!(
-                    "{partitions} partitions: at most {} per worker group",
-                    MAX_ACKS_IN_FLIGHT / MAX_PENDING_ACKS / 2
-                ),
-            ));
-        }
-        let leases = lease_bucket(&js).await?;
-        let part = PartCtx {
-            checkpoints: checkpoint_bucket(&js).await?,
-            baseline_kv: super::baseline_bucket(&js).await?,
-            service_kv: super::service_bucket(&js).await?,
-            js,
-            factory: self.factory.clone(),
-            config: Arc::new(ctx.ingest.config().clone()),
-            baselines: Arc::clone(ctx.ingest.baselines()),
-            metrics: Arc::new(MetricsHandle(ctx.ingest.clone())),
+        let mut retries = SetUpRetries::default();
+        let (partitions, leases, part) = loop {
+            match self.set_up(&js, &ctx).await {
+                Ok(set_up) => break set_up,
+                Err(e) => {
+                    if !retries.after(&name, e, &ctx).await? {
+                        return Ok(()); // stopped while waiting
+                    }
+                }
+            }
         };
         tracing::info!(worker = %self.id, partitions, "joined the worker group");
         ctx.started.signal(); // connected and set up (a review: not before)

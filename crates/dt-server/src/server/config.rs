@@ -448,13 +448,14 @@ impl Config {
         }
     }
 
-    /// `[nats]`'s files, read before connecting (`NatsConfig::check_files`).
-    fn check_nats_files(&self) -> Result<(), ServeError> {
+    /// `[nats]`'s settings, and its files read before connecting
+    /// (`NatsConfig::check`).
+    fn check_nats(&self) -> Result<(), ServeError> {
         if self.nats.url.is_none() {
             return Ok(());
         }
         self.nats
-            .check_files()
+            .check()
             .map_err(|(key, reason)| ServeError::Invalid {
                 key: key.to_owned(),
                 reason,
@@ -467,7 +468,7 @@ impl Config {
             key: key.to_owned(),
             reason: reason.to_owned(),
         };
-        self.check_nats_files()?;
+        self.check_nats()?;
         let l = &self.limits;
         if l.max_connections == 0 {
             return Err(invalid("limits.max_connections", "must be at least 1"));

@@ -38,7 +38,8 @@ pub struct Starting(Arc<Mutex<Pending>>);
 #[derive(Debug, Default)]
 struct Pending {
     next_id: u64,
-    names: BTreeMap<u64, String>,
+    /// Each starting source's name, and what keeps it (see [`Started::note`]).
+    names: BTreeMap<u64, (String, Option<String>)>,
     /// Sources that stopped with an error while the daemon ran, and why.
     stopped: Vec<(String, String)>,
 }
@@ -49,17 +50,26 @@ impl Starting {
         let mut pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
         let id = pending.next_id;
         pending.next_id += 1;
-        pending.names.insert(id, name.to_owned());
+        pending.names.insert(id, (name.to_owned(), None));
         Started(Some(Arc::new(Handle {
             starting: Arc::clone(&self.0),
             id,
         })))
     }
 
-    /// The names of the sources still starting (none: all take work).
+    /// The sources still starting (none: all take work), each as its name
+    /// and, after it in parentheses, what keeps it when it said
+    /// ([`Started::note`]).
     pub fn pending(&self) -> Vec<String> {
         let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
-        pending.names.values().cloned().collect()
+        pending
+            .names
+            .values()
+            .map(|(name, note)| match note {
+                Some(note) => format!("{name} ({note})"),
+                None => name.clone(),
+            })
+            .collect()
     }
 
     /// Source `name` stopped with an error (`why`) while the daemon ran: it
@@ -95,6 +105,13 @@ impl Handle {
         let mut pending = self.starting.lock().unwrap_or_else(PoisonError::into_inner);
         pending.names.remove(&self.id);
     }
+
+    fn note(&self, why: Option<String>) {
+        let mut pending = self.starting.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some((_, note)) = pending.names.get_mut(&self.id) {
+            *note = why;
+        }
+    }
 }
 
 impl Drop for Handle {
@@ -108,6 +125,14 @@ impl Started {
     pub fn signal(&self) {
         if let Some(handle) = &self.0 {
             handle.signal();
+        }
+    }
+
+    /// What keeps the source from taking work, for `/readyz` (e.g. "no
+    /// connection after 20 s"); `None` clears it. A no-op once signalled.
+    pub fn note(&self, why: Option<String>) {
+        if let Some(handle) = &self.0 {
+            handle.note(why);
         }
     }
 }
@@ -147,6 +172,16 @@ mod tests {
         assert_eq!(starting.pending(), ["inbox in", "inbox in"]);
         // A source with the same name is another source.
         other.signal();
+        assert_eq!(starting.pending(), ["inbox in"]);
+        // What keeps a source is said beside its name, until cleared or signalled.
+        inbox.note(Some("set-up failed: no JetStream".into()));
+        assert_eq!(
+            starting.pending(),
+            ["inbox in (set-up failed: no JetStream)"]
+        );
+        inbox.note(None);
+        assert_eq!(starting.pending(), ["inbox in"]);
+        other.note(Some("after its signal".into()));
         assert_eq!(starting.pending(), ["inbox in"]);
         // Its clones go with the source's context: the last one signals.
         let clone = inbox.clone();
