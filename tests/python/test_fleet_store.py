@@ -670,6 +670,58 @@ def test_kill9_mid_run_leaves_it_interrupted_and_redone(world: dict[str, Path], 
     d2.stop()
 
 
+def test_a_run_relayed_over_nats_is_summarised_as_on_the_daemon_that_read_it(
+        world: dict[str, Path], calibrated_campaign: tuple[Path, Path], tmp_path: Path,
+        daemons: list[Daemon]) -> None:
+    """A near-empty run read by a NATS worker and kept by a read-only fleet view's store has
+    the summary a daemon that read the run itself keeps: taken before the floor at 0 bar from
+    the pair the worker sends beside each estimate (docs/nats.md). Floored, the summary
+    reads high with a narrower sd (the sixty-ninth session's change; simulated data)."""
+    from conftest import NatsServer, terminate
+
+    run = calibrated_campaign[0] / "p0.5-f2.0-s1.mcap"
+    asset = shocktwin.read_log(run).metadata["asset_id"]
+    # the daemon that reads the run itself: through its inbox
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    direct = Daemon(world["bundle"], tmp_path / "direct.sqlite", inbox)
+    daemons.append(direct)
+    shutil.copy(run, inbox / run.name)
+    want = [r for r in direct.wait_runs(asset, 1) if r["status"] == "completed"][0]
+    # the run floors: the interval's lower end at 0 bar in its history
+    hist = direct.get(f"/v1/assets/{asset}/history", since=want["start"], until=want["end"], step_s=1)["points"]
+    assert any(p["pressure_lo_bar"] == 0.0 for p in hist), "the run never floors: the test would prove nothing"
+
+    nats_dir = tmp_path / "nats"
+    nats_dir.mkdir()
+    server = NatsServer(nats_dir)
+    try:
+        worker = subprocess.Popen([str(BIN), "serve", "--nats", server.url, "--model", str(world["bundle"]),
+                                   "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"],
+                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            config = tmp_path / "view.toml"
+            config.write_text(f'[nats]\nurl = "{server.url}"\nworker = false\n')
+            (tmp_path / "view-inbox").mkdir()
+            view = Daemon(world["bundle"], tmp_path / "view.sqlite", tmp_path / "view-inbox", config)
+            daemons.append(view)
+            deadline = time.monotonic() + 60
+            while httpx.get(f"http://{view.http}/readyz", timeout=5).status_code != 200:
+                assert time.monotonic() < deadline, "the fleet view did not become ready"
+                time.sleep(0.3)
+            proc = subprocess.run([str(BIN), "publish", "--nats", server.url, str(run)],
+                                  capture_output=True, text=True, timeout=300)
+            assert proc.returncode == 0, proc.stderr
+            got = [r for r in view.wait_runs(asset, 1) if r["status"] == "completed"][0]
+        finally:
+            terminate(worker)
+    finally:
+        server.stop()
+    assert got["ticks"] == want["ticks"]
+    for key in ("summary_bar", "summary_sd_bar"):
+        assert got[key] == pytest.approx(want[key], rel=1e-9, abs=1e-9), (key, got, want)
+
+
 def test_a_file_that_is_not_a_store_is_refused_by_name(tmp_path: Path) -> None:
     bad = tmp_path / "fleet.sqlite"
     bad.write_bytes(b"this is not a database\n" * 512)
