@@ -487,6 +487,33 @@ def test_a_nats_part_tries_its_set_up_again_until_the_server_has_jetstream(
         server.stop()
 
 
+def test_readyz_says_degraded_while_the_nats_connection_is_lost(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path]) -> None:
+    """Through a NATS server's outage `/readyz` said `200 ready` while the NATS parts took no
+    work; now it says `503 degraded` with the lost connection until the parts reconnect, and the
+    worker then serves again. The leases that expired meanwhile are said in one line, not one
+    per partition."""
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        wait_readyz(w, lambda r: r.status_code == 200)
+        nats_server.stop()
+        r = wait_readyz(w, lambda r: r.status_code != 200, timeout_s=30)
+        assert r.status_code == 503 and r.text.startswith("degraded: source nats"), r.text
+        assert "NATS connection lost at" in r.text and "reconnecting" in r.text, r.text
+        time.sleep(6)  # longer than a lease lives (4 s)
+        nats_server.start()
+        wait_readyz(w, lambda r: r.status_code == 200, timeout_s=60)
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets",
+                               "after-outage-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(nats_server.url, {"after-outage-0"}, 120, [w])
+        assert done["after-outage-0"]["meta"]["outcome"] == "completed"
+        lost = [line for line in w.text().splitlines() if "leases lost" in line]
+        assert 1 <= len(lost) <= 2, "\n".join(lost) or w.text()[-3000:]
+    finally:
+        w.stop()
+
+
 def test_a_stream_no_worker_can_join_makes_the_daemon_degraded(
         shocktwin_bin: Path, nats_server: NatsServer) -> None:
     """A telemetry stream made elsewhere with more partitions than a worker can hold: no retry

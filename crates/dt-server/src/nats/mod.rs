@@ -25,7 +25,7 @@ use std::time::Duration;
 use async_nats::jetstream::{self, kv, stream};
 use serde::{Deserialize, Serialize};
 
-use crate::server::source::SourceContext;
+use crate::server::source::{SourceContext, Trouble};
 
 /// Telemetry stream.
 pub const TELEMETRY_STREAM: &str = "SHOCKTWIN_TELEMETRY";
@@ -223,7 +223,7 @@ pub fn without_credentials(url: &str) -> String {
 /// for the first connection (`shocktwin publish`: a wrong URL is an error,
 /// not a hang).
 pub async fn connect(cfg: &NatsConfig, name: &str) -> Result<async_nats::Client, NatsError> {
-    let (client, what, last) = client_for(cfg, name).await?;
+    let (client, what, last) = client_for(cfg, name, Trouble::default()).await?;
     let limit = Duration::from_secs(10);
     let never = tokio_util::sync::CancellationToken::new();
     match wait_connected(&client, &never, Some(limit), |_| {}).await {
@@ -247,7 +247,7 @@ pub async fn connect_patiently(
     name: &str,
     ctx: &SourceContext,
 ) -> Result<Option<async_nats::Client>, NatsError> {
-    let (client, what, last) = client_for(cfg, name).await?;
+    let (client, what, last) = client_for(cfg, name, ctx.started.trouble()).await?;
     let still = |waited: Duration| {
         let why = format!(
             "{what}: no connection after {} s{}",
@@ -385,6 +385,8 @@ struct LastError(Arc<std::sync::Mutex<Seen>>);
 
 #[derive(Debug, Default)]
 struct Seen {
+    /// Where a lost connection is said to `/readyz`.
+    trouble: Trouble,
     /// The last client or server error.
     error: Option<String>,
     /// Connected now.
@@ -416,10 +418,15 @@ impl LastError {
                     tracing::info!("{name}: NATS reconnected");
                 }
                 (seen.connected, seen.was_connected) = (true, true);
+                seen.trouble.set(None);
             }
             Event::Disconnected => {
                 seen.connected = false;
-                tracing::warn!("{name}: NATS connection lost; reconnecting");
+                tracing::warn!("{name}: NATS connection lost; reconnecting (`/readyz` says degraded meanwhile)");
+                let since = humantime::format_rfc3339_seconds(std::time::SystemTime::now());
+                seen.trouble.set(Some(format!(
+                    "NATS connection lost at {since}; reconnecting"
+                )));
             }
             Event::ClientError(_) | Event::ServerError(_) => {
                 // while connecting, the waits above say the last one
@@ -442,13 +449,17 @@ impl LastError {
 async fn client_for(
     cfg: &NatsConfig,
     name: &str,
+    trouble: Trouble,
 ) -> Result<(async_nats::Client, String, LastError), NatsError> {
     let url = cfg
         .url
         .clone()
         .ok_or_else(|| NatsError::new("connect", "no URL configured"))?;
     let what = format!("connect {}", without_credentials(&url));
-    let last = LastError::default();
+    let last = LastError(Arc::new(std::sync::Mutex::new(Seen {
+        trouble,
+        ..Seen::default()
+    })));
     let (seen, part) = (last.clone(), name.to_owned());
     let mut opts = async_nats::ConnectOptions::new()
         .name(name)

@@ -232,6 +232,9 @@ impl NatsWorker {
             // Renew; a lease we cannot renew is lost: drop the partition
             // without writing (another worker may own it already).
             let mut lost = Vec::new();
+            // one line for the leases lost together (every one after an
+            // outage longer than their lifetime: a line each before)
+            let mut lost_why: Option<String> = None;
             for (&p, h) in &mut held {
                 if h.task.is_finished() {
                     lost.push((p, true));
@@ -243,10 +246,14 @@ impl NatsWorker {
                 {
                     Ok(r) => h.revision = r,
                     Err(e) => {
-                        tracing::warn!(worker = %self.id, partition = p, "lease lost: {e}");
+                        lost_why.get_or_insert_with(|| e.to_string());
                         lost.push((p, false));
                     }
                 }
+            }
+            if let Some(why) = lost_why {
+                let partitions: Vec<u32> = lost.iter().filter(|l| !l.1).map(|l| l.0).collect();
+                tracing::warn!(worker = %self.id, ?partitions, "leases lost (taken again when free): {why}");
             }
             for (p, finished) in lost {
                 if let Some(h) = held.remove(&p) {

@@ -357,6 +357,18 @@ async fn readyz(State(app): State<AppState>) -> Response {
         )
             .into_response();
     }
+    let troubled = app.starting.troubled();
+    if !troubled.is_empty() {
+        let said: Vec<String> = troubled
+            .iter()
+            .map(|(name, why)| format!("source {name}: {why}"))
+            .collect();
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("degraded: {}\n", said.join("; ")),
+        )
+            .into_response();
+    }
     let starting = app.starting.pending();
     if !starting.is_empty() {
         return (

@@ -6,7 +6,7 @@
 //! which source fed them.
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError, Weak};
 
 use futures_util::future::BoxFuture;
 use tokio_util::sync::CancellationToken;
@@ -42,6 +42,9 @@ struct Pending {
     names: BTreeMap<u64, (String, Option<String>)>,
     /// Sources that stopped with an error while the daemon ran, and why.
     stopped: Vec<(String, String)>,
+    /// Sources that took work and cannot for now (a lost connection),
+    /// and why ([`Trouble`]).
+    troubled: BTreeMap<u64, (String, String)>,
 }
 
 impl Starting {
@@ -54,6 +57,7 @@ impl Starting {
         Started(Some(Arc::new(Handle {
             starting: Arc::clone(&self.0),
             id,
+            name: name.to_owned(),
         })))
     }
 
@@ -85,6 +89,12 @@ impl Starting {
         let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
         pending.stopped.clone()
     }
+
+    /// The sources that cannot take work for now (see [`Trouble`]), and why.
+    pub fn troubled(&self) -> Vec<(String, String)> {
+        let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        pending.troubled.values().cloned().collect()
+    }
 }
 
 /// A source's "I take work now": signalled once (again is a no-op), and at
@@ -98,6 +108,7 @@ pub struct Started(Option<Arc<Handle>>);
 struct Handle {
     starting: Arc<Mutex<Pending>>,
     id: u64,
+    name: String,
 }
 
 impl Handle {
@@ -116,7 +127,39 @@ impl Handle {
 
 impl Drop for Handle {
     fn drop(&mut self) {
-        self.signal();
+        let mut pending = self.starting.lock().unwrap_or_else(PoisonError::into_inner);
+        pending.names.remove(&self.id);
+        pending.troubled.remove(&self.id);
+    }
+}
+
+/// Says, after a source has started, that it cannot take work for now and
+/// why, or that it can again (a NATS part whose connection is lost:
+/// `/readyz` said ready through a server's outage). Holds its source's
+/// entry weakly: it outlives the source harmlessly (a client's event task).
+#[derive(Debug, Clone, Default)]
+pub struct Trouble(Option<Weak<Handle>>);
+
+impl Trouble {
+    /// `Some(why)`: the source cannot take work for now; `None`: it can.
+    pub fn set(&self, why: Option<String>) {
+        let Some(handle) = self.0.as_ref().and_then(Weak::upgrade) else {
+            return;
+        };
+        let mut pending = handle
+            .starting
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        match why {
+            Some(why) => {
+                pending
+                    .troubled
+                    .insert(handle.id, (handle.name.clone(), why));
+            }
+            None => {
+                pending.troubled.remove(&handle.id);
+            }
+        }
     }
 }
 
@@ -134,6 +177,11 @@ impl Started {
         if let Some(handle) = &self.0 {
             handle.note(why);
         }
+    }
+
+    /// The source's [`Trouble`] reporter.
+    pub fn trouble(&self) -> Trouble {
+        Trouble(self.0.as_ref().map(Arc::downgrade))
     }
 }
 
@@ -190,5 +238,28 @@ mod tests {
         drop(clone);
         assert!(starting.pending().is_empty());
         Started::default().signal();
+    }
+
+    #[test]
+    fn a_started_source_in_trouble_is_said_until_it_recovers_or_goes() {
+        let starting = Starting::default();
+        let nats = starting.enter("nats worker w1");
+        nats.signal();
+        let trouble = nats.trouble();
+        trouble.set(Some("connection lost".into()));
+        assert_eq!(
+            starting.troubled(),
+            [("nats worker w1".to_owned(), "connection lost".to_owned())]
+        );
+        assert!(starting.pending().is_empty());
+        trouble.set(None);
+        assert!(starting.troubled().is_empty());
+        trouble.set(Some("connection lost".into()));
+        // the source gone, its trouble goes with it, and a late report is a no-op
+        drop(nats);
+        assert!(starting.troubled().is_empty());
+        trouble.set(Some("after it".into()));
+        assert!(starting.troubled().is_empty());
+        Started::default().trouble().set(Some("no-op".into()));
     }
 }
