@@ -258,6 +258,21 @@ def test_dashboard_in_chromium(daemon: tuple[str, str], driver: Any, fleet: dict
     fleet_json = {a["asset_id"]: a["simulated"] for a in httpx.get(f"{base}/v1/assets", timeout=10).json()["assets"]}
     assert fleet_json == {"dyno-unit-U1": True, "dyno-unit-U2": True, "dyno-unit-U3": False}, fleet_json
 
+    # A run longer than the live chart keeps (3,000 points, 60 s) streamed while its asset is
+    # shown: every series keeps the same points (a helper's trial: past 60 s the pressure and
+    # its band kept their oldest values while the times moved on).
+    click_row("dyno-unit-U2")
+    wait("dyno-unit-U2 selected", lambda: driver.find_element(By.ID, "asset-title").text == "dyno-unit-U2")
+    time.sleep(1.0)  # its history seeded
+    check_reports([stream_run(listen, fleet[2][3.0])], 1)
+    time.sleep(1.0)  # the last events drawn
+    lengths = driver.execute_script("return [S.live.x, S.live.p, S.live.lo, S.live.hi].map((a) => a.length)")
+    assert lengths == [3000] * 4, lengths
+    last = driver.execute_script("return [S.live.x.at(-1), S.live.p.at(-1)]")
+    newest = httpx.get(f"{base}/v1/assets/dyno-unit-U2?history=1", timeout=10).json()["history"][-1]
+    assert abs(last[0] - newest["t_ns"] / 1e9) < 1e-6, (last, newest)
+    assert abs(last[1] - newest["pressure_avg_bar"]) < 1e-9, (last, newest)
+
     out = ROOT / "out"
     out.mkdir(exist_ok=True)
     for path in (out / "dashboard.png", tmp_path / "dashboard.png"):

@@ -331,7 +331,10 @@ function pushLive(ev) {
   L.p.push(fin(ev.pressure_avg_bar) ? ev.pressure_avg_bar : ev.pressure_bar);
   L.lo.push(ev.pressure_lo_bar);
   L.hi.push(ev.pressure_hi_bar);
-  if (L.x.length > MAX_LIVE) for (const k of ["x", "p", "lo", "hi"]) L[k].splice(0, L.x.length - MAX_LIVE);
+  // the same count off every series (a helper's trial: counted after `x` was cut, the others
+  // kept their oldest values, and past 60 s the curve was drawn against the wrong times)
+  const extra = L.x.length - MAX_LIVE;
+  if (extra > 0) for (const k of ["x", "p", "lo", "hi"]) L[k].splice(0, extra);
   S.liveDirty = true;
 }
 
