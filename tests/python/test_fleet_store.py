@@ -206,6 +206,9 @@ def test_trend_history_and_restart(world: dict[str, Path], tmp_path: Path, daemo
     assert [a["asset_id"] for a in d2.get("/v1/assets")["assets"]] == ["dyno-unit-A"]
     # The simulator's logs say so, and the mark survives the restart with the rest.
     assert [a["simulated"] for a in d2.get("/v1/assets")["assets"]] == [True]
+    # its last update on the gateway's clock, as before the restart (not the 2023 data's)
+    seen_s = d2.get("/v1/assets")["assets"][0]["last_update_unix_ms"] / 1e3
+    assert time.time() - 600 < seen_s <= time.time(), seen_s
     assert before["runs"] and all(r["simulated"] is True for r in before["runs"]), before["runs"]
     assert d2.get("/v1/assets/dyno-unit-A/runs")["runs"] == before["runs"]
     assert d2.get("/v1/assets/dyno-unit-A/history", since=start, until=end, step_s=1)["points"] == before["hist"]

@@ -216,7 +216,10 @@ impl LiveState {
                 expected_bar: config.asset(&st.asset_id).nominal_bar,
                 health: last.map_or(Health::Unknown, |p| p.health),
                 last_t_ns: None,
-                last_update_unix_ms: last.map_or(0, |p| u64::try_from(p.t_ms).unwrap_or(0)),
+                // wall-clock time, as while the daemon runs (the data's own
+                // clock before: an old upload read "1107 d ago" after a
+                // restart; a helper's trial); 0, unknown, for older stores
+                last_update_unix_ms: st.seen_ms.map_or(0, |ms| u64::try_from(ms).unwrap_or(0)),
                 ticks: st.ticks,
                 active_runs: 0,
                 // An asset known only by its baseline has no run yet.

@@ -259,6 +259,9 @@ pub struct AssetState {
     pub last_run_road: Option<crate::server::sink::RoadRead>,
     /// Whether the latest run's log says it is simulated.
     pub simulated: Option<bool>,
+    /// The gateway's wall-clock time (Unix ms) of the latest write of any of
+    /// its runs; `None` for runs kept before the store's schema 14.
+    pub seen_ms: Option<i64>,
 }
 
 /// One write of the daemon, applied in order by the writer thread.

@@ -25,7 +25,7 @@ use super::{
 };
 
 /// The schema version this build writes.
-pub const SCHEMA_VERSION: i64 = 13;
+pub const SCHEMA_VERSION: i64 = 14;
 
 /// Migration `i` takes the schema from version `i` to `i + 1`.
 const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
@@ -142,6 +142,12 @@ ALTER TABLE runs ADD COLUMN simulated INTEGER;
     // readings; NULL: none.
     r"
 ALTER TABLE baselines ADD COLUMN other_excitations TEXT;
+",
+    // The gateway's wall-clock time (Unix ms) of the run's last write: the
+    // asset's `last_update_unix_ms` after a restart (the data's own clock
+    // before, which read "1107 d ago" for an old upload). NULL: not kept.
+    r"
+ALTER TABLE runs ADD COLUMN seen_ms INTEGER;
 ",
 ];
 
@@ -370,7 +376,13 @@ impl SqliteStore {
         f(&c).map_err(|e| self.sqlite_err(e))
     }
 
-    fn apply_one(tx: &rusqlite::Transaction<'_>, op: &StoreOp) -> rusqlite::Result<()> {
+    /// Applies `op` within `tx`; `now_ms`: the gateway's clock (a run's
+    /// `seen_ms`).
+    fn apply_one(
+        tx: &rusqlite::Transaction<'_>,
+        op: &StoreOp,
+        now_ms: i64,
+    ) -> rusqlite::Result<()> {
         let asset_id = match op {
             StoreOp::RunStarted { asset_id, .. }
             | StoreOp::Sample { asset_id, .. }
@@ -391,10 +403,12 @@ impl SqliteStore {
             } => {
                 tx.prepare_cached(&format!(
                     "INSERT OR REPLACE INTO runs \
-                     (key, asset, run_id, source, start_ms, status, simulated) \
-                     VALUES (?2, {ASSET}, ?3, ?4, ?5, 'running', ?6)"
+                     (key, asset, run_id, source, start_ms, status, simulated, seen_ms) \
+                     VALUES (?2, {ASSET}, ?3, ?4, ?5, 'running', ?6, ?7)"
                 ))?
-                .execute(params![asset_id, key, run_id, source, start_ms, simulated])?;
+                .execute(params![
+                    asset_id, key, run_id, source, start_ms, simulated, now_ms
+                ])?;
             }
             StoreOp::Sample { point: p, .. } => {
                 tx.prepare_cached(&format!(
@@ -429,12 +443,14 @@ impl SqliteStore {
                 key, end_ms, ticks, ..
             } => {
                 tx.prepare_cached(
-                    "UPDATE runs SET end_ms = ?2, ticks = ?3 WHERE key = ?1 AND status = 'running'",
+                    "UPDATE runs SET end_ms = ?2, ticks = ?3, seen_ms = ?4 \
+                     WHERE key = ?1 AND status = 'running'",
                 )?
                 .execute(params![
                     key,
                     end_ms,
-                    i64::try_from(*ticks).unwrap_or(i64::MAX)
+                    i64::try_from(*ticks).unwrap_or(i64::MAX),
+                    now_ms
                 ])?;
             }
             StoreOp::RunEnded {
@@ -451,7 +467,7 @@ impl SqliteStore {
                 tx.prepare_cached(
                     "UPDATE runs SET end_ms = ?2, ticks = ?3, status = ?4, reason = ?5, \
                      summary_t_ms = ?6, summary_bar = ?7, summary_sd_bar = ?8, observer = ?9, \
-                     road = ?10 WHERE key = ?1",
+                     road = ?10, seen_ms = ?11 WHERE key = ?1",
                 )?
                 .execute(params![
                     key,
@@ -464,6 +480,7 @@ impl SqliteStore {
                     summary.map(|s| s.sd_bar),
                     observer.map(|o| serde_json::to_string(&o).unwrap_or_default()),
                     road.map(|r| serde_json::to_string(&r).unwrap_or_default()),
+                    now_ms,
                 ])?;
             }
         }
@@ -505,10 +522,11 @@ impl FleetStore for SqliteStore {
         if ops.is_empty() {
             return Ok(());
         }
+        let now_ms = super::wall_now_ms();
         self.with_writer(|c| {
             let tx = c.transaction()?;
             for op in ops {
-                Self::apply_one(&tx, op)?;
+                Self::apply_one(&tx, op, now_ms)?;
             }
             tx.commit()
         })
@@ -520,7 +538,8 @@ impl FleetStore for SqliteStore {
                 "SELECT a.asset_id, r.run_id, r.status, r.reason, \
                    (SELECT coalesce(sum(ticks), 0) FROM runs WHERE asset = a.id), \
                    s.t_ms, s.pressure_bar, s.lo_bar, s.hi_bar, s.health, s.excited, \
-                   r.observer, r.road, r.simulated, a.shown_ms \
+                   r.observer, r.road, r.simulated, a.shown_ms, \
+                   (SELECT max(seen_ms) FROM runs WHERE asset = a.id) \
                  FROM (SELECT id, asset_id, \
                          (SELECT max(t_ms) FROM samples WHERE asset = assets.id AND t_ms <= ?1) \
                            AS shown_ms \
@@ -551,6 +570,7 @@ impl FleetStore for SqliteStore {
                     simulated: r.get(13)?,
                     ticks: r.get::<_, i64>(4)?.max(0) as u64,
                     shown_ms: r.get(14)?,
+                    seen_ms: r.get(15)?,
                     last: if t_ms.is_some() {
                         Some(point_from_row(r, 5)?)
                     } else {
@@ -897,6 +917,37 @@ mod tests {
             store.asset_states().unwrap()[0].last_run_road,
             Some(got[0].clone())
         );
+    }
+
+    /// An asset's last update after a restart is when the gateway last wrote
+    /// one of its runs, on its own clock, as while it runs (the data's clock
+    /// before: a 2023 upload read "1107 d ago"; a helper's trial); a store
+    /// from before the column says nothing.
+    #[test]
+    fn the_last_update_is_kept_on_the_gateways_clock() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fleet.sqlite");
+        let started = |key: &str| StoreOp::RunStarted {
+            key: key.into(),
+            asset_id: "van-07".into(),
+            run_id: key.into(),
+            source: "test".into(),
+            start_ms: 1_700_000_000_000, // 2023: the data's clock
+            simulated: Some(true),
+        };
+        {
+            let store = SqliteStore::open(&path).unwrap();
+            let before = super::super::wall_now_ms();
+            store.apply(&[started("d001")]).unwrap();
+            let seen = store.asset_states().unwrap()[0].seen_ms.unwrap();
+            assert!((before..=super::super::wall_now_ms()).contains(&seen), "{seen}");
+        }
+        // a run of schema 13 has none
+        let c = Connection::open(&path).unwrap();
+        c.execute("UPDATE runs SET seen_ms = NULL", []).unwrap();
+        drop(c);
+        let store = SqliteStore::open(&path).unwrap();
+        assert_eq!(store.asset_states().unwrap()[0].seen_ms, None);
     }
 
     /// The live view shows as an asset's last run the one whose estimates
