@@ -332,6 +332,20 @@ pub enum StoreOp {
     },
 }
 
+impl StoreOp {
+    /// The asset written.
+    #[must_use]
+    pub fn asset_id(&self) -> &str {
+        match self {
+            Self::RunStarted { asset_id, .. }
+            | Self::Sample { asset_id, .. }
+            | Self::Health { asset_id, .. }
+            | Self::RunProgress { asset_id, .. }
+            | Self::RunEnded { asset_id, .. } => asset_id,
+        }
+    }
+}
+
 /// The daemon's durable fleet memory. Writes come from one thread (the
 /// store's writer), reads from the HTTP handlers; implementations are
 /// shared across threads. `SQLite` today; a distributed deployment puts

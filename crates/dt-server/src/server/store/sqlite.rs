@@ -383,13 +383,7 @@ impl SqliteStore {
         op: &StoreOp,
         now_ms: i64,
     ) -> rusqlite::Result<()> {
-        let asset_id = match op {
-            StoreOp::RunStarted { asset_id, .. }
-            | StoreOp::Sample { asset_id, .. }
-            | StoreOp::Health { asset_id, .. }
-            | StoreOp::RunProgress { asset_id, .. }
-            | StoreOp::RunEnded { asset_id, .. } => asset_id,
-        };
+        let asset_id = op.asset_id();
         tx.prepare_cached("INSERT OR IGNORE INTO assets (asset_id) VALUES (?1)")?
             .execute([asset_id])?;
         match op {
@@ -940,7 +934,10 @@ mod tests {
             let before = super::super::wall_now_ms();
             store.apply(&[started("d001")]).unwrap();
             let seen = store.asset_states().unwrap()[0].seen_ms.unwrap();
-            assert!((before..=super::super::wall_now_ms()).contains(&seen), "{seen}");
+            assert!(
+                (before..=super::super::wall_now_ms()).contains(&seen),
+                "{seen}"
+            );
         }
         // a run of schema 13 has none
         let c = Connection::open(&path).unwrap();
