@@ -243,6 +243,35 @@ def test_dashboard_in_chromium(daemon: tuple[str, str], driver: Any, fleet: dict
     assert [rank[h] for h in healths] == sorted(rank[h] for h in healths), healths
     assert sorted(row_ids()) == ["dyno-unit-U1", "dyno-unit-U2", "dyno-unit-U3"], row_ids()
 
+    # The keyboard alone selects an asset: Tab reaches the fleet's rows, the arrows move between
+    # them, Enter selects (a helper's trial: without a mouse no asset could be selected).
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    def focused_row() -> str | None:
+        return cast(str | None, driver.execute_script(
+            "const r = document.activeElement?.closest?.('#fleet tr[data-asset-id]'); return r ? r.dataset.assetId : null"))
+
+    driver.execute_script("document.activeElement?.blur(); window.scrollTo(0, 0)")
+    for _ in range(40):
+        ActionChains(driver).send_keys(Keys.TAB).perform()
+        if focused_row():
+            break
+    # (Chrome starts Tab from the row clicked last, so which row comes first is the browser's)
+    order, at = row_ids(), focused_row()
+    assert at in order, (at, order)
+    i = order.index(at)
+    key, want = (Keys.ARROW_DOWN, order[i + 1]) if i + 1 < len(order) else (Keys.ARROW_UP, order[i - 1])
+    ActionChains(driver).send_keys(key).perform()
+    assert focused_row() == want, (focused_row(), order)
+    ActionChains(driver).send_keys(Keys.ENTER).perform()
+    wait(f"{want} selected from the keyboard", lambda: driver.find_element(By.ID, "asset-title").text == want)
+    time.sleep(1.5)  # redrawn at least once: the focus stays on the row
+    assert focused_row() == want, focused_row()
+    click_row("dyno-unit-U1")
+    wait("dyno-unit-U1 selected again", lambda: driver.find_element(By.ID, "asset-title").text == "dyno-unit-U1")
+    time.sleep(1.0)
+
     # Simulated assets and runs are marked one by one; U3's log said it was not simulated.
     marked = cast(dict[str, bool], driver.execute_script(
         "return Object.fromEntries([...document.querySelectorAll('#fleet tr[data-asset-id]')]"

@@ -50,7 +50,16 @@ function duration(t0, t1) {
 const simPill = (simulated, text = "simulated") => simulated === true
   ? ` <span class="pill sim" title="the log says it is simulated (its metadata's simulated key): not a measurement of a real damper">${text}</span>`
   : "";
-const badge = (h) => `<span class="badge ${esc(h || "unknown")}">${esc(h || "unknown")}</span>`;
+// `unknown` says why in its tooltip (a helper's trial: most of a fleet without baselines is a
+// grey UNKNOWN, and nothing said why)
+const BADGE_TITLE = {
+  unknown: "no verdict: not excited yet, or the 95 % interval reaches across a threshold " +
+    "(a unit baseline, read at a known charge, narrows it)",
+  leak: "the 95 % interval lies below the fault threshold",
+  low: "the 95 % interval lies below the warn threshold",
+  ok: "the 95 % interval lies above the warn threshold",
+};
+const badge = (h) => `<span class="badge ${esc(h || "unknown")}" title="${BADGE_TITLE[h || "unknown"] || ""}">${esc(h || "unknown")}</span>`;
 
 // With bearer tokens on (docs/daemon.md, "Exposing the daemon"), open the dashboard as
 // /#token=<read token>: the fragment never reaches the server or its logs; it is kept in
@@ -118,11 +127,21 @@ function leakCell(t) {
   return `${num(t.leak_rate_bar_per_day, 3)}<span class="small">${half}</span>`;
 }
 
+// Days from now to a predicted crossing at `s` (Unix s): the leak goes on between runs, so the
+// count is from today, not from the asset's last run (a helper's trial: "in 1.2 d" for a
+// crossing long past); one already past says so.
+function fromNow(s) {
+  const d = (s - Date.now() / 1000) / DAY_S, n = Math.abs(d) < 10 ? Math.abs(d).toFixed(1) : Math.abs(d).toFixed(0);
+  return d >= 0 ? `in ${n} d` : `<span class="bad">passed ${n} d ago</span>`;
+}
+
 function faultCell(t) {
   const c = t?.fault;
   if (c && c.t) {
-    const days = fin(t.days_to_fault) ? ` <span class="small">in ${t.days_to_fault.toFixed(1)} d</span>` : "";
-    return `${fmtDate(tsec(c.t))}${days}`;
+    const last = fin(t.days_to_fault)
+      ? `; ${t.days_to_fault.toFixed(1)} d after the asset's last run` : "";
+    return `<span title="predicted crossing of the fault threshold${last}">${fmtDate(tsec(c.t))}</span>` +
+      ` <span class="small">${fromNow(tsec(c.t))}</span>`;
   }
   const why = c?.reason || (t && t.status !== "ok" ? t.reason : null);
   return why ? `<span class="small">${esc(why)}</span>` : DASH;
@@ -132,6 +151,8 @@ function renderFleet() {
   S.fleetDirty = false;
   S.fleetDrawn = Date.now();
   const rows = [...S.assets.values()].sort(riskOrder);
+  // the row with the keyboard's focus keeps it through the redraw
+  const focused = document.activeElement?.closest?.("#fleet tr[data-asset-id]")?.dataset.assetId;
   $("fleet-empty").hidden = rows.length > 0;
   $("fleet").hidden = rows.length === 0;
   $("fleet").tBodies[0].innerHTML = rows.map((a) => {
@@ -145,12 +166,12 @@ function renderFleet() {
         // one reading per excitation: a run is corrected by the nearest
         (b?.other_excitations ?? []).map((o) => `; ${num(o.read_bar, 2)} ± ${num(o.read_sd_bar, 2)} bar at ` +
           `a known ${num(o.charge_bar, 1)} bar${excitation(o.accel_range_mps2)}`).join("");
-    const base = b ? ` <span class="pill" title="unit baseline (${esc(b.source)}${b.set_at ? `, ${esc(b.set_at)}` : ""}): ` +
+    const base = b ? ` <span class="pill" title="unit baseline (${esc(b.source)}${b.set_at ? `, ${fmtTime(tsec(b.set_at))} UTC` : ""}): ` +
       `${read}">baseline</span>` : "";
     const road = a.road ? ` <span class="pill road" title="driven on roads: the road observer reads the charge ` +
       `from 10 s blocks of drive (its estimate changes once a block)">road</span>` : "";
     const sv = a.service;   // a service reported at a known charge: the next drive is read into a baseline
-    const svc = sv ? ` <span class="pill" title="service at ${num(sv.charge_bar, 1)} bar reported ${esc(sv.set_at)}: ` +
+    const svc = sv ? ` <span class="pill" title="service at ${num(sv.charge_bar, 1)} bar reported ${fmtTime(tsec(sv.set_at))} UTC: ` +
       `the unit's next drive is read into its baseline${sv.last_refusal ? `; last run: ${esc(sv.last_refusal)}` : ""}">service pending</span>` : "";
     const obs = a.last_run_observer?.not_calibrated_here ? ` <span class="pill bad obs-uncal" title="${esc(observerText(a.last_run_observer))}` +
       `: the estimate kept its prior; calibrate the observer at this excitation (python -m train.observer fit)">observer not calibrated here</span>` : "";
@@ -158,11 +179,13 @@ function renderFleet() {
       `">road: no block read</span>` : "";
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
-    return `<tr data-asset-id="${esc(a.asset_id)}" class="${a.asset_id === S.selected ? "sel" : ""}">
+    return `<tr data-asset-id="${esc(a.asset_id)}" tabindex="0" class="${a.asset_id === S.selected ? "sel" : ""}"` +
+      `${a.asset_id === S.selected ? ' aria-current="true"' : ""}>
       <td class="id">${esc(a.asset_id)}${sim}${run}${road}${base}${svc}${obs}${rn}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td class="fault">${faultCell(a.trend)}</td>
       <td title="${a.last_update_unix_ms ? iso(a.last_update_unix_ms / 1000) : ""}">${ago(a.last_update_unix_ms)}${failed}</td></tr>`;
   }).join("");
+  if (focused) $("fleet").querySelector(`tr[data-asset-id="${CSS.escape(focused)}"]`)?.focus({ preventScroll: true });
 }
 
 async function refreshFleet() {
@@ -170,6 +193,7 @@ async function refreshFleet() {
     const body = await getJSON("v1/assets");
     S.assets = new Map(body.assets.map((a) => [a.asset_id, a]));
     showError($("error"), null);
+    $("fleet").classList.remove("stale");
     if (!S.selected && body.assets.length) {
       const wanted = decodeURIComponent(location.hash.slice(1));
       select(wanted || [...S.assets.values()].sort(riskOrder)[0].asset_id);
@@ -179,7 +203,11 @@ async function refreshFleet() {
     }
     renderFleet();
   } catch (err) {
-    showError($("error"), err);
+    // a network failure says only "Failed to fetch" (a helper's trial): say what it means
+    showError($("error"), err instanceof TypeError
+      ? `the daemon does not answer (${err.message}): the table shows what it said last; trying again every ${REFRESH_MS / 1000} s`
+      : err);
+    $("fleet").classList.toggle("stale", err instanceof TypeError);
   }
   scheduleRefresh(REFRESH_MS);
 }
@@ -305,6 +333,12 @@ function renderChanges(changes) {
 
 // ---- live chart ----------------------------------------------------------------------
 function chartWidth(el) { return Math.max(300, el.clientWidth); }
+// A chart made while its panel was hidden took the 300 px floor and kept it (a helper's
+// trial: an asset opened before it existed): its width follows the panel's.
+function fitWidth(chart, el) {
+  const w = chartWidth(el);
+  if (Math.abs(chart.width - w) > 1) chart.setSize({ width: w, height: 260 });
+}
 
 const RUN_GAP_S = 60;   // history points further apart than this belong to different runs
 function seedLive(points) {
@@ -350,7 +384,7 @@ function drawLive() {
   $("live-note").textContent = S.live.x.length
     ? `${S.live.x.length} points, ${fmtTime(S.live.x[0])} – ${fmtTime(S.live.x[S.live.x.length - 1])}`
     : "no estimates yet for this asset";
-  if (S.liveChart) { S.liveChart.setData(data); return; }
+  if (S.liveChart) { fitWidth(S.liveChart, el); S.liveChart.setData(data); return; }
   const line = (label, stroke, extra = {}) =>
     ({ label, stroke, width: 1, points: { show: false }, value: (u, v) => num(v), ...extra });
   S.liveChart = new uPlot({
@@ -450,10 +484,13 @@ function trendText(t) {
     ? (t.leak_rate_hi_bar_per_day - t.leak_rate_lo_bar_per_day) / 2 : null;
   const c = (name, x) => {
     if (!x || !x.t) return `${name}: ${esc(x?.reason || "not predicted")}`;
-    const hi = x.t_hi ? fmtDate(tsec(x.t_hi)) : "unbounded";
-    return `${name} ≈ <b>${fmtDate(tsec(x.t))}</b> [${x.t_lo ? fmtDate(tsec(x.t_lo)) : DASH} – ${hi}]`;
+    // to the minute when the interval is under two days (by date it read "[2023-11-20 –
+    // 2023-11-20]", an interval of no width; a helper's trial)
+    const span = x.t_lo && x.t_hi ? tsec(x.t_hi) - tsec(x.t_lo) : Infinity;
+    const at = (v) => `<span class="nw">${span < 2 * DAY_S ? `${fmtTime(tsec(v)).slice(0, 16)} UTC` : fmtDate(tsec(v))}</span>`;
+    return `${name} ≈ <b>${at(x.t)}</b> [${x.t_lo ? at(x.t_lo) : DASH} – ${x.t_hi ? at(x.t_hi) : "unbounded"}]`;
   };
-  const since = t.since ? ` since the unit baseline or service of ${fmtDate(tsec(t.since))}` : "";
+  const since = t.since ? ` since the unit baseline or service of <span class="nw">${fmtDate(tsec(t.since))}</span>` : "";
   const before = t.fit && fin(t.fit.slope_before_bar_per_day) ? -t.fit.slope_before_bar_per_day : null;
   const onset = t.onset ? ` since the rate changed on <b>${fmtDate(tsec(t.onset))}</b>` +
     (before === null ? "" : ` (${num(before, 3)} bar/day before)`) : "";
@@ -524,6 +561,19 @@ function init() {
   $("fleet").tBodies[0].addEventListener("click", (e) => {
     const tr = e.target.closest("tr[data-asset-id]");
     if (tr && tr.dataset.assetId !== S.selected) select(tr.dataset.assetId);
+  });
+  // The keyboard: Tab reaches the rows, Enter or Space selects, the arrows move between rows
+  // (a helper's trial: no asset could be selected without a mouse).
+  $("fleet").tBodies[0].addEventListener("keydown", (e) => {
+    const tr = e.target.closest("tr[data-asset-id]");
+    if (!tr) return;
+    if (e.key === "Enter" || e.key === " ") {
+      e.preventDefault();
+      if (tr.dataset.assetId !== S.selected) select(tr.dataset.assetId);
+    } else if (e.key === "ArrowDown" || e.key === "ArrowUp") {
+      e.preventDefault();
+      (e.key === "ArrowDown" ? tr.nextElementSibling : tr.previousElementSibling)?.focus();
+    }
   });
   window.addEventListener("resize", () => {
     for (const [chart, el] of [[S.liveChart, "live-chart"], [S.trendChart, "trend-chart"]]) {

@@ -633,8 +633,11 @@ impl TrendView {
         if let Some(t) = since_ms {
             let at = rfc3339_ms(t);
             if let Some(reason) = &mut self.reason {
+                // read by people (the dashboard shows it): to the minute,
+                // without the `T` and milliseconds of the `since` field
                 reason.push_str(" since the unit baseline or service of ");
-                reason.push_str(&at);
+                reason.push_str(&at.get(..16).unwrap_or(&at).replace('T', " "));
+                reason.push_str(" UTC");
             }
             self.since = Some(at);
         }
