@@ -217,8 +217,10 @@ def test_bad_params_are_named(full_log, tmp_path: Path):
     params["thermal"]["c_oil"] = -5.0
     with pytest.raises(shocktwin.ParamsError, match="c_oil"):
         shocktwin.features(full_log, params, ["position"])
-    with pytest.raises(FileNotFoundError, match="nope.json"):
+    with pytest.raises(FileNotFoundError, match="nope.json") as missing:
         shocktwin.features(full_log, tmp_path / "nope.json", ["position"])
+    # and a ShocktwinError, as the exceptions module says of every error (it was the builtin alone)
+    assert isinstance(missing.value, shocktwin.ParamsNotFoundError), type(missing.value)
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="twin.json"):
         shocktwin.features(full_log, tmp_path / "empty", ["position"])
@@ -348,8 +350,16 @@ def test_road_blocks_takes_the_calibration_as_text_or_path(tmp_path: Path):
         assert got.keys() == by_text.keys()
         for k in by_text:
             np.testing.assert_array_equal(np.asarray(got[k]), np.asarray(by_text[k]))
-    with pytest.raises(OSError, match="no-such.json"):
+    with pytest.raises(shocktwin.ParamsNotFoundError, match="no-such.json"):
         shocktwin.road_blocks(str(run), tmp_path / "no-such.json")
+    # physics.json given as the calibration is said to be one (it read "written by an older fit")
+    physics = tmp_path / "physics.json"
+    physics.write_text(json.dumps(shocktwin.default_params()))
+    with pytest.raises(shocktwin.ParamsError, match=r"physics.json: a physics file .* not a road calibration"):
+        shocktwin.road_blocks(str(run), physics)
+    # a charge without its drive was ignored without a word
+    with pytest.raises(shocktwin.InputError, match="baseline_bar given without baseline"):
+        shocktwin.road_blocks(str(run), cal, baseline_bar=12.0)
     with pytest.raises(TypeError, match="calibration: expected JSON text or a path, got int"):
         shocktwin.road_blocks(str(run), 42)
 

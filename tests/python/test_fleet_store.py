@@ -360,6 +360,12 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     # the file `train.observer baseline` writes, as it is; a bad one names the field
     whole = shocktwin.estimate(run, world["bundle"], observer_baseline=json.loads((tmp_path / "unit.json").read_text()))
     assert np.array_equal(whole["pressure_bar"], est["pressure_bar"], equal_nan=True)
+    # or its path, str or Path, as `road_blocks` takes its files (it said "invalid type: string")
+    for given in (tmp_path / "unit.json", str(tmp_path / "unit.json")):
+        by_path = shocktwin.estimate(run, world["bundle"], observer_baseline=given)
+        assert np.array_equal(by_path["pressure_bar"], est["pressure_bar"], equal_nan=True)
+    with pytest.raises(shocktwin.ParamsNotFoundError, match="nope.json"):
+        shocktwin.estimate(run, world["bundle"], observer_baseline=tmp_path / "nope.json")
     with pytest.raises(shocktwin.ParamsError, match=r"observer_baseline: missing field `read_sd_bar` \(a baseline needs charge_bar"):
         shocktwin.estimate(run, world["bundle"], observer_baseline={"charge_bar": 12.0, "read_bar": 10.5})
     config = tmp_path / "serve.toml"
@@ -794,6 +800,23 @@ def test_replay_says_when_the_observer_is_not_calibrated_at_a_runs_excitation(
     uncalibrated = lambda line: int(re.search(r"(\d+) at an excitation", line).group(1))  # noqa: E731
     assert read(at2[0]) > 20 and "kept its prior" not in at2[0], at2
     assert read(at4[0]) == 0 and uncalibrated(at4[0]) > 20 and "kept its prior" in at4[0], at4
+
+
+def test_a_prior_kept_for_reversals_too_weak_to_read_is_said(world: dict[str, Path], tmp_path: Path) -> None:
+    """A 0.5 Hz sine: its reversals are too weak to read (|ÿ_r| below the observer's floor),
+    so the estimate keeps the observer's prior. The bindings warned only when the calibration
+    did not cover the excitation, and a notebook got 6.75 bar for 12 without a word (a
+    helper's trial); now they warn, and `replay` says so, for every cause."""
+    simulate(tmp_path / "slow", "--pressures", "12", "--frequencies", "0.5", "--seed", "9")
+    (run,) = (tmp_path / "slow").glob("*.mcap")
+    with pytest.warns(RuntimeWarning, match=r"charge observer: \d+ reversals, none read \((\d+) failed their window"):
+        est = shocktwin.estimate(run, world["bundle"])
+    assert est["health"][-1] == "unknown"
+    proc = subprocess.run([str(BIN), "replay", "--model", str(world["bundle"]), str(run), "--out",
+                           str(tmp_path / "slow.csv")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    (line,) = [ln for ln in proc.stdout.splitlines() if "charge observer:" in ln]
+    assert " 0 read" in line and "kept its prior" in line, line
 
 
 def test_on_a_road_the_observer_reads_no_chance_match_and_keeps_an_honest_prior(

@@ -2708,6 +2708,34 @@ impl ObserverCounters {
     pub fn not_calibrated_here(&self) -> bool {
         self.used == 0 && self.uncalibrated > self.detected / 2
     }
+
+    /// Why the estimate kept the observer's prior, when it detected
+    /// reversals and read none; `None` when it read one or detected none.
+    /// Not only for want of calibration ([`Self::not_calibrated_here`]): a
+    /// 0.5 Hz sine's reversals are too weak to read (`|ÿ_r|` below
+    /// [`ObserverParams::min_reversal_accel_mps2`]), and a notebook got the
+    /// prior (6.75 bar for 12) without a word (a helper's trial).
+    #[must_use]
+    pub fn why_prior_kept(&self) -> Option<String> {
+        if self.detected == 0 || self.used > 0 {
+            return None;
+        }
+        if self.not_calibrated_here() {
+            return Some(format!(
+                "{} reversals, none read, {} at an excitation the calibration does not cover: \
+                 the estimate kept its prior (calibrate the observer at this excitation, \
+                 `python -m train.observer fit`)",
+                self.detected, self.uncalibrated
+            ));
+        }
+        Some(format!(
+            "{} reversals, none read ({} failed their window: a reversal too weak to read \
+             (`observer.min_reversal_accel_mps2`), a gap or a poor fit; {} rejected by the \
+             innovation gate; {} at an excitation the calibration does not cover): the estimate \
+             kept its prior",
+            self.detected, self.skipped, self.rejected, self.uncalibrated
+        ))
+    }
 }
 
 impl std::ops::AddAssign for ObserverCounters {
@@ -4003,6 +4031,32 @@ impl LeastSquaresProblem<f64, Dyn, U5> for WindowFit<'_> {
 
 #[cfg(test)]
 mod tests {
+
+    /// The prior kept is said whatever the cause: no calibration there,
+    /// or reversals too weak or too poor to read; a run read, or one
+    /// without reversals, says nothing.
+    #[test]
+    fn why_the_prior_was_kept_is_said_for_every_cause() {
+        let c = |detected, skipped, uncalibrated, used| super::ObserverCounters {
+            detected,
+            skipped,
+            uncalibrated,
+            used,
+            ..Default::default()
+        };
+        assert_eq!(c(0, 0, 0, 0).why_prior_kept(), None);
+        assert_eq!(c(60, 10, 0, 50).why_prior_kept(), None);
+        let weak = c(60, 60, 0, 0).why_prior_kept().unwrap();
+        assert!(
+            weak.contains("60 failed their window") && weak.contains("kept its prior"),
+            "{weak}"
+        );
+        let there = c(60, 0, 60, 0).why_prior_kept().unwrap();
+        assert!(
+            there.contains("60 at an excitation the calibration does not cover:"),
+            "{there}"
+        );
+    }
     use super::*;
 
     /// The sd of `p = (r − u_f) / (1 + u_s)` by the delta method: the raw

@@ -193,6 +193,13 @@ impl RoadCalibration {
     pub fn from_json(source: &str, text: &str) -> Result<Self, String> {
         let v: serde_json::Value =
             serde_json::from_str(text).map_err(|e| format!("{source}: not JSON: {e}"))?;
+        if v.get("filters").is_none() && (v.get("force").is_some() || v.get("thermal").is_some()) {
+            // a helper's trial: physics.json given here read "written by an older fit"
+            return Err(format!(
+                "{source}: a physics file (`thermal`, `force`: train.fit_physics), not a road \
+                 calibration (`python -m train.road_observer fit` writes one)"
+            ));
+        }
         if v.get("filters").is_none() {
             return Err(format!(
                 "{source}: no `filters` section: written by an older `python -m train.road_observer fit`; fit again"

@@ -279,8 +279,9 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// new segment after a 2 s gap). ``observer_baseline`` (a dict with
 /// ``charge_bar``, ``read_bar``, ``read_sd_bar`` and optionally the unit's
 /// own ``damping_law``, a ``second`` reading and ``runs_averaged``, as ``python -m train.observer baseline [--unit-law]``
-/// writes under that key; the whole document it writes is taken too) is
-/// this unit's charge-observer baseline, for a bundle that reads the observer.
+/// writes under that key; the whole document it writes is taken too, or
+/// the path of that file) is this unit's charge-observer baseline, for a
+/// bundle that reads the observer.
 ///
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
@@ -292,8 +293,9 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// no value) and ``health`` (str: ``ok``, ``low``, ``leak``, ``unknown``).
 /// Raises ``MissingTopicsError`` when the log lacks a topic the bundle's
 /// groups need. Warns (``RuntimeWarning``) when the charge observer read
-/// none of the run's reversals because the calibration does not cover its
-/// excitation: the estimate is then the observer's prior.
+/// none of the run's reversals, saying why (the calibration does not cover
+/// its excitation; reversals too weak, e.g. a 0.5 Hz sine, or too poor to
+/// read): the estimate is then the observer's prior.
 ///
 /// >>> import shocktwin
 /// >>> shocktwin.estimate("no/such/run.mcap", "no/such/bundle")
@@ -340,23 +342,30 @@ pub(crate) fn estimate<'py>(
         // as `train.observer baseline` writes it (nested) or bare, as the
         // daemon's API takes it; the error names the field (it said
         // "invalid physics parameters")
-        let b = dt_core::charge::UnitBaseline::from_document(crate::params::py_to_json(obj, what)?)
+        // a dict, or the path of the file `train.observer baseline` wrote
+        // (`road_blocks` took a path; this said "invalid type: string")
+        let (what, doc) = if obj.is_instance_of::<pyo3::types::PyDict>() {
+            (what.to_owned(), crate::params::py_to_json(obj, what)?)
+        } else if let Ok(path) = obj.extract::<std::path::PathBuf>() {
+            let file = format!("{what} {}", path.display());
+            let text = std::fs::read_to_string(&path)
+                .map_err(|e| crate::exceptions::io_error(&file, &e))?;
+            let doc = serde_json::from_str(&text)
+                .map_err(|e| CoreError::Params(format!("{file}: not JSON: {e}")))?;
+            (file, doc)
+        } else {
+            (what.to_owned(), crate::params::py_to_json(obj, what)?)
+        };
+        let b = dt_core::charge::UnitBaseline::from_document(doc)
             .map_err(|e| CoreError::Params(format!("{what}: {e}")))?;
         cfg.observer_baseline = Some(b);
     }
     let origin_ns = run.t0_ns().unwrap_or(0);
     let (estimates, counters) =
         interruptible(py, move || estimate_log(bundle, cfg, &run))?.map_err(CoreError::from)?;
-    let o = &counters.observer;
-    if o.not_calibrated_here() {
+    if let Some(why) = counters.observer.why_prior_kept() {
         // `shocktwin replay` says so; a notebook got the prior without a word
-        let text = format!(
-            "charge observer: {} reversals, none read, {} at an excitation the calibration does \
-             not cover: the estimate kept its prior (calibrate the observer at this excitation, \
-             `python -m train.observer fit`)",
-            o.detected, o.uncalibrated
-        );
-        let msg = std::ffi::CString::new(text).unwrap_or_default();
+        let msg = std::ffi::CString::new(format!("charge observer: {why}")).unwrap_or_default();
         PyErr::warn(py, &py.get_type::<PyRuntimeWarning>(), &msg, 1)?;
     }
     let column = |f: fn(&dt_core::estimate::Estimate) -> f64| -> Vec<f64> {

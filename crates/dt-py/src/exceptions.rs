@@ -10,7 +10,6 @@ use dt_core::bundle::BundleError;
 use dt_core::error::PhysicsError;
 use dt_core::estimator::EstimatorError;
 use dt_core::log::LogError;
-use pyo3::exceptions::{PyFileNotFoundError, PyOSError};
 use pyo3::PyErr;
 
 /// The Python-defined exception classes (imported from
@@ -21,6 +20,8 @@ mod py {
     pyo3::import_exception!(shocktwin.exceptions, LogReadError);
     pyo3::import_exception!(shocktwin.exceptions, MissingTopicsError);
     pyo3::import_exception!(shocktwin.exceptions, ParamsError);
+    pyo3::import_exception!(shocktwin.exceptions, ParamsReadError);
+    pyo3::import_exception!(shocktwin.exceptions, ParamsNotFoundError);
     pyo3::import_exception!(shocktwin.exceptions, PhysicsError);
     pyo3::import_exception!(shocktwin.exceptions, BundleError);
     pyo3::import_exception!(shocktwin.exceptions, BundleReadError);
@@ -137,14 +138,22 @@ pub(crate) fn input_error(message: String) -> PyErr {
     py::InputError::new_err(message)
 }
 
-/// A file that is not a run log cannot be read: the builtin OS error class.
-fn io_error(file: &str, source: &std::io::Error) -> PyErr {
+/// A parameter or calibration file cannot be read: `ParamsReadError`, an
+/// `OSError` (`ParamsNotFoundError`, a `FileNotFoundError`, when it is
+/// missing). It was the builtin class alone, which `except ShocktwinError`
+/// missed (a helper's trial).
+pub(crate) fn io_error(file: &str, source: &std::io::Error) -> PyErr {
     let message = format!("{file}: {source}");
     if source.kind() == std::io::ErrorKind::NotFound {
-        PyFileNotFoundError::new_err(message)
+        py::ParamsNotFoundError::new_err(message)
     } else {
-        PyOSError::new_err(message)
+        py::ParamsReadError::new_err(message)
     }
+}
+
+/// A parameter or calibration that cannot be used: `ParamsError`.
+pub(crate) fn params_error(message: String) -> PyErr {
+    py::ParamsError::new_err(message)
 }
 
 fn physics_error(err: &PhysicsError) -> PyErr {

@@ -449,8 +449,11 @@ pub(crate) fn add_constants(m: &Bound<'_, PyModule>) -> PyResult<()> {
 /// ``reading_sd_bar``, ``estimate_bar``, ``lo_bar``, ``hi_bar``; and
 /// ``health`` (a list of str). ``baseline`` (a path or Log, and its charge
 /// ``baseline_bar``): the unit's drive at a known charge, read first.
-/// Raises ``MissingTopicsError`` when the log lacks a topic it needs and
-/// ``ValueError`` for a calibration it cannot use.
+/// Raises ``MissingTopicsError`` when the log lacks a topic it needs,
+/// ``ParamsReadError`` (an ``OSError``) for a calibration file it cannot
+/// read, ``ParamsError`` for a calibration it cannot use and ``InputError``
+/// for a baseline without its charge (or the reverse) or a baseline drive
+/// it cannot read.
 #[pyfunction]
 #[pyo3(signature = (log, calibration, baseline=None, baseline_bar=None))]
 pub(crate) fn road_blocks<'py>(
@@ -480,16 +483,22 @@ pub(crate) fn road_blocks<'py>(
             ))
         })?;
         let json = std::fs::read_to_string(&path).map_err(|e| {
-            pyo3::exceptions::PyOSError::new_err(format!("calibration {}: {e}", path.display()))
+            crate::exceptions::io_error(&format!("calibration {}", path.display()), &e)
         })?;
         (format!("calibration {}", path.display()), json)
     };
-    let mut cal = RoadCalibration::from_json(&name, &json)
-        .map_err(pyo3::exceptions::PyValueError::new_err)?;
+    let mut cal =
+        RoadCalibration::from_json(&name, &json).map_err(crate::exceptions::params_error)?;
     let health = dt_core::bundle::HealthConfig::default();
+    if baseline.is_none() && baseline_bar.is_some() {
+        // it was ignored without a word (a helper's trial)
+        return Err(crate::exceptions::input_error(
+            "baseline_bar given without baseline (the drive at that known charge)".into(),
+        ));
+    }
     if let Some(base) = baseline {
         let bar = baseline_bar.ok_or_else(|| {
-            pyo3::exceptions::PyValueError::new_err("baseline given without baseline_bar")
+            crate::exceptions::input_error("baseline given without baseline_bar".into())
         })?;
         let run = run_from(py, base)?;
         let c = cal.clone();
@@ -497,7 +506,7 @@ pub(crate) fn road_blocks<'py>(
             interruptible(py, move || read_run(&run, &c, health))?.map_err(CoreError::from)?;
         cal = cal
             .with_baseline(&blocks, bar)
-            .map_err(pyo3::exceptions::PyValueError::new_err)?;
+            .map_err(crate::exceptions::input_error)?;
     }
     let run = run_from(py, log)?;
     let blocks =

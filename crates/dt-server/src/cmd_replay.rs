@@ -1006,6 +1006,11 @@ fn observer_line(o: &dt_core::charge::ObserverCounters) -> Option<String> {
             " (the estimate kept its prior: calibrate the observer at this excitation, \
              `python -m train.observer fit`)",
         );
+    } else if o.why_prior_kept().is_some() {
+        line.push_str(
+            " (none read: the estimate kept its prior; a failed window is a reversal too weak \
+             to read, `observer.min_reversal_accel_mps2`, a gap or a poor fit)",
+        );
     }
     Some(line)
 }

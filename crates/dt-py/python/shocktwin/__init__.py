@@ -29,8 +29,9 @@ The models are dt-core's (Rust); this package is a thin shell: numpy arrays
 - ``GROUPS``, ``COLUMNS``, ``group_columns``, ``group_topics``, ``suite``,
   ``SENSOR_COSTS_AUD``, ``PERMUTATIONS`` / ``permutations()``: the input
   groups, sensor costs and the paper's 13 permutations, as data;
-  ``extra_permutations()`` ours beyond them (14–16, with the causal-window
-  groups ``signature`` and ``residual``).
+  ``extra_permutations()`` ours beyond them (14–19: 14–16 with the
+  causal-window groups ``signature`` and ``residual``, 17–19 reading the
+  charge observer, group ``observer``).
 
 Times on the Python side are in seconds (float64); the core works in
 integer nanoseconds, so input times are rounded to the nanosecond.
@@ -84,6 +85,8 @@ from shocktwin.exceptions import (
     LogReadError,
     MissingTopicsError,
     ParamsError,
+    ParamsNotFoundError,
+    ParamsReadError,
     PhysicsError,
     ShocktwinError,
 )
@@ -130,6 +133,8 @@ __all__ = [
     "LogReadError",
     "MissingTopicsError",
     "ParamsError",
+    "ParamsReadError",
+    "ParamsNotFoundError",
     "PhysicsError",
     "BundleError",
     "BundleReadError",

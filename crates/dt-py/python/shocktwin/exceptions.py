@@ -20,6 +20,8 @@ __all__ = [
     "LogReadError",
     "MissingTopicsError",
     "ParamsError",
+    "ParamsReadError",
+    "ParamsNotFoundError",
     "PhysicsError",
     "BundleError",
     "BundleReadError",
@@ -55,6 +57,15 @@ class MissingTopicsError(LogError):
 
 class ParamsError(ShocktwinError, ValueError):
     """A physics parameter is missing, unknown or out of its valid range."""
+
+
+class ParamsReadError(ParamsError, OSError):
+    """A parameter or calibration file (``physics.json``, a road calibration) could not
+    be read (the OS error is in the message)."""
+
+
+class ParamsNotFoundError(ParamsReadError, FileNotFoundError):
+    """A parameter or calibration file is missing."""
 
 
 class PhysicsError(ShocktwinError, ArithmeticError):

@@ -751,6 +751,8 @@ fn log_observer(source: &str, asset_id: &str, o: &dt_core::charge::ObserverCount
              not cover, so the estimate keeps its prior; calibrate the observer there \
              (`python -m train.observer fit` on runs at that excitation)"
         );
+    } else if let Some(why) = o.why_prior_kept() {
+        tracing::warn!(source = %source, asset = %asset_id, "charge observer: {why}");
     } else {
         tracing::info!(
             source = %source,
