@@ -50,3 +50,36 @@ def test_the_tmpfiles_example_removes_old_recordings_and_done_files_only(tmp_pat
     assert [p for p in gone if p.exists()] == []
     assert [p for p in kept if not p.exists()] == []
     assert (state / "estimates" / "van-07").is_dir() and (state / "inbox" / "done").is_dir()
+
+
+def test_a_processed_inbox_file_is_dated_when_it_is_moved(shocktwin_bin: Path, tmp_path: Path) -> None:
+    """`done/` is cleaned by age: a run copied in with its logger's date kept (`rsync -a`,
+    `scp -p`) is dated when the daemon moves it there, or the next clean would remove it."""
+    from conftest import ServeProcess
+
+    runs = tmp_path / "runs"
+    subprocess.run([str(shocktwin_bin), "simulate", "--quick", "--pressures", "12", "--frequencies", "2",
+                    "--out", str(runs)], check=True, capture_output=True, timeout=300)
+    (run,) = runs.glob("*.mcap")
+    old = time.time() - 40 * DAY_S
+    os.utime(run, (old, old))
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    bundle = ROOT / "crates" / "dt-core" / "tests" / "fixtures" / "bundle-mlp13"
+    d = ServeProcess([str(shocktwin_bin), "serve", "--inbox", str(inbox), "--model", str(bundle), "--listen",
+                      "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
+    try:
+        import httpx
+
+        deadline = time.monotonic() + 60
+        while httpx.get(f"http://{d.http}/readyz", timeout=5).status_code != 200:
+            assert time.monotonic() < deadline, d.text()[-3000:]
+            time.sleep(0.2)
+        os.replace(run, inbox / run.name)  # renamed in: taken at once, its date kept
+        deadline = time.monotonic() + 120
+        while not (done := inbox / "done" / run.name).exists():
+            assert time.monotonic() < deadline, d.text()[-3000:]
+            time.sleep(0.2)
+        assert time.time() - done.stat().st_mtime < 600, done.stat().st_mtime
+    finally:
+        d.stop()

@@ -361,7 +361,7 @@ def test_an_assets_observer_baseline_reaches_its_estimates(world: dict[str, Path
     whole = shocktwin.estimate(run, world["bundle"], observer_baseline=json.loads((tmp_path / "unit.json").read_text()))
     assert np.array_equal(whole["pressure_bar"], est["pressure_bar"], equal_nan=True)
     # or its path, str or Path, as `road_blocks` takes its files (it said "invalid type: string")
-    for given in (tmp_path / "unit.json", str(tmp_path / "unit.json")):
+    for given in (tmp_path / "unit.json", str(tmp_path / "unit.json"), (tmp_path / "unit.json").read_text()):
         by_path = shocktwin.estimate(run, world["bundle"], observer_baseline=given)
         assert np.array_equal(by_path["pressure_bar"], est["pressure_bar"], equal_nan=True)
     with pytest.raises(shocktwin.ParamsNotFoundError, match="nope.json"):

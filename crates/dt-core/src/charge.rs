@@ -2717,7 +2717,9 @@ impl ObserverCounters {
     /// prior (6.75 bar for 12) without a word (a helper's trial).
     #[must_use]
     pub fn why_prior_kept(&self) -> Option<String> {
-        if self.detected == 0 || self.used > 0 {
+        // spared: not read because one more reading could not narrow the
+        // interval, so the estimate is not the prior's (a baseline's, say)
+        if self.detected == 0 || self.used > 0 || self.spared > 0 {
             return None;
         }
         if self.not_calibrated_here() {
@@ -4046,6 +4048,12 @@ mod tests {
         };
         assert_eq!(c(0, 0, 0, 0).why_prior_kept(), None);
         assert_eq!(c(60, 10, 0, 50).why_prior_kept(), None);
+        let spared = super::ObserverCounters {
+            detected: 60,
+            spared: 60,
+            ..Default::default()
+        };
+        assert_eq!(spared.why_prior_kept(), None);
         let weak = c(60, 60, 0, 0).why_prior_kept().unwrap();
         assert!(
             weak.contains("60 failed their window") && weak.contains("kept its prior"),

@@ -145,6 +145,16 @@ impl ThermalModel {
         if t_s.is_empty() {
             return Ok((oil, cyl));
         }
+        if !(oil0_c.is_finite() && cyl0_c.is_finite()) {
+            // not blamed on the first step's inputs (a review)
+            return Err(PhysicsError::Numerical {
+                model: "thermal",
+                t_ns: (t_s[0] * 1e9) as i64,
+                what: format!(
+                    "initial temperatures oil0_c = {oil0_c}, cyl0_c = {cyl0_c} must be finite"
+                ),
+            });
+        }
         let mut state = ThermalState {
             oil_c: oil0_c,
             cyl_c: cyl0_c,

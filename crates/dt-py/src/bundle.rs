@@ -279,9 +279,9 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// new segment after a 2 s gap). ``observer_baseline`` (a dict with
 /// ``charge_bar``, ``read_bar``, ``read_sd_bar`` and optionally the unit's
 /// own ``damping_law``, a ``second`` reading and ``runs_averaged``, as ``python -m train.observer baseline [--unit-law]``
-/// writes under that key; the whole document it writes is taken too, or
-/// the path of that file) is this unit's charge-observer baseline, for a
-/// bundle that reads the observer.
+/// writes under that key; the whole document it writes is taken too, as a
+/// dict, as JSON text or as the path of that file) is this unit's
+/// charge-observer baseline, for a bundle that reads the observer.
 ///
 /// Returns a dict of equal-length arrays, one element per 50 Hz tick:
 /// ``t_s`` (seconds since the run's first message), ``pressure_bar``,
@@ -344,7 +344,16 @@ pub(crate) fn estimate<'py>(
         // "invalid physics parameters")
         // a dict, or the path of the file `train.observer baseline` wrote
         // (`road_blocks` took a path; this said "invalid type: string")
-        let (what, doc) = if obj.is_instance_of::<pyo3::types::PyDict>() {
+        let text = obj
+            .extract::<String>()
+            .ok()
+            .filter(|t| t.trim_start().starts_with('{'));
+        let (what, doc) = if let Some(text) = text {
+            // JSON text, as `road_blocks` takes its calibration (a review)
+            let doc = serde_json::from_str(&text)
+                .map_err(|e| CoreError::Params(format!("{what}: not JSON: {e}")))?;
+            (what.to_owned(), doc)
+        } else if obj.is_instance_of::<pyo3::types::PyDict>() {
             (what.to_owned(), crate::params::py_to_json(obj, what)?)
         } else if let Ok(path) = obj.extract::<std::path::PathBuf>() {
             let file = format!("{what} {}", path.display());

@@ -75,8 +75,12 @@ impl PyThermalModel {
     /// Integrates over the non-decreasing grid ``t_s`` (s) from
     /// ``(oil0_c, cyl0_c)`` at ``t_s[0]``: one RK4 step per interval with the
     /// heat input ``power_w[i]`` (W) and ``ambient_c[i]`` (°C) held over
-    /// ``[t_s[i], t_s[i+1]]``. Returns ``(oil_c, cyl_c)``, each as long as
-    /// ``t_s`` and starting with the initial state.
+    /// ``[t_s[i], t_s[i+1]]``; an interval longer than 2 s in equal steps of
+    /// at most 2 s (a coarser grid, e.g. one a minute, stays stable). Returns
+    /// ``(oil_c, cyl_c)``, each as long as ``t_s`` and starting with the
+    /// initial state. Raises ``PhysicsError`` when a temperature is not
+    /// finite (naming the grid point), ``InputError`` for inputs of
+    /// different lengths or times that go backwards.
     #[allow(clippy::type_complexity)]
     fn simulate<'py>(
         &self,

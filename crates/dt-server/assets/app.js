@@ -73,9 +73,18 @@ const TOKEN = (() => {
   return sessionStorage.getItem("shocktwin-token");
 })();
 
+// A request that never reached the daemon (it is down, the network is): said as such, and
+// told apart from an error of this page's own code (a review: a TypeError of ours read
+// "the daemon does not answer").
+class Unreachable extends Error {}
 async function getJSON(path) {
   const headers = TOKEN ? { Authorization: `Bearer ${TOKEN}` } : {};
-  const r = await fetch(path, { cache: "no-store", headers });
+  let r;
+  try {
+    r = await fetch(path, { cache: "no-store", headers });
+  } catch (err) {
+    throw new Unreachable(`${path}: ${err.message || err}`);
+  }
   if (r.status === 401) throw new Error(`${path}: 401 — this daemon needs a read token: open /#token=<token>`);
   if (!r.ok) {
     let msg = r.statusText;
@@ -93,7 +102,9 @@ function showError(el, err) {
 function riskOrder(a, b) {
   const h = (HEALTH_RANK[a.health] ?? 2) - (HEALTH_RANK[b.health] ?? 2);
   if (h) return h;
-  const da = a.trend?.days_to_fault, db = b.trend?.days_to_fault;
+  // by the predicted crossing's date, as the column shows it (`days_to_fault` counts from each
+  // asset's own last run; a review)
+  const da = tsec(a.trend?.fault?.t), db = tsec(b.trend?.fault?.t);
   if (fin(da) !== fin(db)) return fin(da) ? -1 : 1;   // null last
   if (fin(da) && da !== db) return da - db;
   return a.asset_id.localeCompare(b.asset_id);
@@ -131,6 +142,7 @@ function leakCell(t) {
 // count is from today, not from the asset's last run (a helper's trial: "in 1.2 d" for a
 // crossing long past); one already past says so.
 function fromNow(s) {
+  if (!fin(s)) return "";
   const d = (s - Date.now() / 1000) / DAY_S, n = Math.abs(d) < 10 ? Math.abs(d).toFixed(1) : Math.abs(d).toFixed(0);
   return d >= 0 ? `in ${n} d` : `<span class="bad">passed ${n} d ago</span>`;
 }
@@ -179,7 +191,10 @@ function renderFleet() {
       `">road: no block read</span>` : "";
     const failed = a.last_run_status && a.last_run_status !== "completed"
       ? ` <span class="small bad" title="${esc(a.last_run_reason || "")}">last run ${esc(a.last_run_status)}</span>` : "";
-    return `<tr data-asset-id="${esc(a.asset_id)}" tabindex="0" class="${a.asset_id === S.selected ? "sel" : ""}"` +
+    // one tab stop in the table (the selected row, else the first): the arrows move between
+    // rows, and Tab leaves the table at once however many assets it lists (a review)
+    const stop = a.asset_id === S.selected || (!S.assets.has(S.selected) && a === rows[0]);
+    return `<tr data-asset-id="${esc(a.asset_id)}" tabindex="${stop ? 0 : -1}" class="${a.asset_id === S.selected ? "sel" : ""}"` +
       `${a.asset_id === S.selected ? ' aria-current="true"' : ""}>
       <td class="id">${esc(a.asset_id)}${sim}${run}${road}${base}${svc}${obs}${rn}</td><td>${badge(a.health)}</td><td>${pressureCell(a)}</td>
       <td>${leakCell(a.trend)}</td><td class="fault">${faultCell(a.trend)}</td>
@@ -204,10 +219,10 @@ async function refreshFleet() {
     renderFleet();
   } catch (err) {
     // a network failure says only "Failed to fetch" (a helper's trial): say what it means
-    showError($("error"), err instanceof TypeError
+    showError($("error"), err instanceof Unreachable
       ? `the daemon does not answer (${err.message}): the table shows what it said last; trying again every ${REFRESH_MS / 1000} s`
       : err);
-    $("fleet").classList.toggle("stale", err instanceof TypeError);
+    $("fleet").classList.toggle("stale", err instanceof Unreachable);
   }
   scheduleRefresh(REFRESH_MS);
 }

@@ -135,10 +135,15 @@ impl NatsConfig {
             ));
         }
         let age = self.telemetry_max_age_s;
-        if !(age.is_finite() && age > 0.0 && age <= 100.0 * 365.0 * 86_400.0) {
+        let least = DUPLICATE_WINDOW.as_secs_f64();
+        if !(age.is_finite() && age >= least && age <= 100.0 * 365.0 * 86_400.0) {
+            // the server refuses a stream kept for less than its de-duplication
+            // window, and the set-up would be tried again for ever (a review)
             return Err((
                 "nats.telemetry_max_age_s",
-                format!("{age}: must be a positive number of seconds (at most 100 years)"),
+                format!(
+                    "{age}: must be {least} s (the estimate stream's de-duplication window) to 100 years"
+                ),
             ));
         }
         Ok(())
@@ -301,7 +306,7 @@ async fn wait_connected(
 pub const PATIENT_WARN_EVERY: Duration = Duration::from_secs(10);
 
 /// How long a daemon's NATS part waits before it tries a failed set-up
-/// again ([`retry_set_up`]).
+/// again ([`SetUpRetries::after`]).
 pub const SET_UP_RETRY_EVERY: Duration = Duration::from_secs(5);
 
 /// Why a NATS part's set-up (streams, buckets, consumer) failed: tried again
@@ -393,6 +398,8 @@ struct Seen {
     connected: bool,
     /// Connected before: a connection now is a reconnection.
     was_connected: bool,
+    /// When a failing reconnection was last said in the log.
+    said_at: Option<std::time::Instant>,
 }
 
 impl LastError {
@@ -422,20 +429,34 @@ impl LastError {
             }
             Event::Disconnected => {
                 seen.connected = false;
-                tracing::warn!("{name}: NATS connection lost; reconnecting (`/readyz` says degraded meanwhile)");
-                let since = humantime::format_rfc3339_seconds(std::time::SystemTime::now());
-                seen.trouble.set(Some(format!(
-                    "NATS connection lost at {since}; reconnecting"
-                )));
+                seen.said_at = Some(std::time::Instant::now());
+                tracing::warn!(
+                    "{name}: NATS connection lost; reconnecting (`/readyz` says degraded if it lasts {} s)",
+                    crate::server::source::TROUBLE_GRACE.as_secs()
+                );
+                seen.trouble
+                    .set(Some("NATS connection lost; reconnecting".into()));
             }
             Event::ClientError(_) | Event::ServerError(_) => {
-                // while connecting, the waits above say the last one
+                seen.error = Some(event.to_string());
                 if seen.connected {
                     tracing::warn!("{name}: NATS {event}");
+                } else if seen.was_connected {
+                    // reconnecting: why it fails, in `/readyz` and, every
+                    // PATIENT_WARN_EVERY, in the log (a review: one "lost"
+                    // line, then silence)
+                    let now = std::time::Instant::now();
+                    if seen.said_at.is_none_or(|at| now - at >= PATIENT_WARN_EVERY) {
+                        tracing::warn!("{name}: NATS still reconnecting (last: {event})");
+                        seen.said_at = Some(now);
+                    }
+                    seen.trouble.set(Some(format!(
+                        "NATS connection lost; reconnecting (last: {event})"
+                    )));
                 } else {
+                    // the first connection's waits say the last one
                     tracing::debug!("{name}: NATS {event}");
                 }
-                seen.error = Some(event.to_string());
             }
             Event::Draining | Event::Closed => tracing::debug!("{name}: NATS {event}"),
             Event::LameDuckMode | Event::SlowConsumer(_) => tracing::warn!("{name}: NATS {event}"),
@@ -664,7 +685,8 @@ mod tests {
         assert_eq!(settings(&|c| c.partitions = 128), Ok(()));
         assert_eq!(settings(&|c| c.partitions = 129), Err("nats.partitions"));
         assert_eq!(settings(&|c| c.partitions = 0), Err("nats.partitions"));
-        for age in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        assert_eq!(settings(&|c| c.telemetry_max_age_s = 300.0), Ok(()));
+        for age in [0.0, -1.0, 60.0, f64::NAN, f64::INFINITY] {
             let refused = settings(&|c| c.telemetry_max_age_s = age);
             assert_eq!(refused, Err("nats.telemetry_max_age_s"), "{age}");
         }

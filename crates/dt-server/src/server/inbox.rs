@@ -527,10 +527,26 @@ async fn free_path(dir: &Path, name: &str) -> PathBuf {
     unreachable!("an unbounded range ends only by returning")
 }
 
+/// Moves `from` to `to`, and dates it now: `done/` is cleaned by age
+/// (`deploy/shocktwin.tmpfiles`), and a file copied in with its logger's
+/// times kept (`rsync -a`, `scp -p`) would have gone on the next clean (a
+/// review). A date that cannot be set is logged; the move stands.
 async fn move_to(from: &Path, to: &Path) -> Result<(), String> {
     tokio::fs::rename(from, to)
         .await
-        .map_err(|e| format!("cannot move {} to {}: {e}", from.display(), to.display()))
+        .map_err(|e| format!("cannot move {} to {}: {e}", from.display(), to.display()))?;
+    let moved = to.to_owned();
+    let dated = tokio::task::spawn_blocking(move || {
+        std::fs::File::options()
+            .write(true)
+            .open(&moved)?
+            .set_modified(std::time::SystemTime::now())
+    })
+    .await;
+    if let Ok(Err(e)) = dated {
+        tracing::warn!(file = %to.display(), "moved, but its modification time could not be set: {e}");
+    }
+    Ok(())
 }
 
 #[cfg(test)]

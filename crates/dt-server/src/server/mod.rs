@@ -357,19 +357,30 @@ fn spawn_sources(
         // `/readyz` could answer ready in between (a review)
         let held = ctx.started.clone();
         tracker.spawn(async move {
-            let why = match source.run(ctx).await {
-                Err(e) => {
+            // a panic is a stop too (a review: it left `/readyz` ready)
+            let ran = std::panic::AssertUnwindSafe(source.run(ctx));
+            let why = match futures_util::FutureExt::catch_unwind(ran).await {
+                Err(panic) => {
+                    let what = panic
+                        .downcast_ref::<String>()
+                        .map(String::as_str)
+                        .or_else(|| panic.downcast_ref::<&str>().copied())
+                        .unwrap_or("a panic");
+                    tracing::error!(source = %name, "source panicked: {what}");
+                    Some(format!("panicked: {what}"))
+                }
+                Ok(Err(e)) => {
                     tracing::error!(source = %name, "source stopped: {e}");
                     Some(e.to_string())
                 }
                 // every source runs until the daemon stops; one that ends
                 // before takes no more work either (a review: the fleet
                 // view's stream ending left `/readyz` ready)
-                Ok(()) if !cancel.is_cancelled() => {
+                Ok(Ok(())) if !cancel.is_cancelled() => {
                     tracing::error!(source = %name, "source ended while the daemon runs");
                     Some("ended".to_owned())
                 }
-                Ok(()) => None,
+                Ok(Ok(())) => None,
             };
             if let Some(why) = why.filter(|_| !cancel.is_cancelled()) {
                 starting.stopped(&name, &why);

@@ -7,6 +7,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, PoisonError, Weak};
+use std::time::{Duration, Instant};
 
 use futures_util::future::BoxFuture;
 use tokio_util::sync::CancellationToken;
@@ -42,10 +43,16 @@ struct Pending {
     names: BTreeMap<u64, (String, Option<String>)>,
     /// Sources that stopped with an error while the daemon ran, and why.
     stopped: Vec<(String, String)>,
-    /// Sources that took work and cannot for now (a lost connection),
-    /// and why ([`Trouble`]).
-    troubled: BTreeMap<u64, (String, String)>,
+    /// Sources that took work and cannot for now (a lost connection):
+    /// their name, why, and since when ([`Trouble`]).
+    troubled: BTreeMap<u64, (String, String, Instant)>,
 }
+
+/// How long a source's trouble lasts before `/readyz` says it: a server's
+/// restart or a lame-duck handover is a blip that should not take the whole
+/// daemon (its TCP ingest, inbox and dashboard still work) out of a load
+/// balancer's rotation (a review).
+pub const TROUBLE_GRACE: Duration = Duration::from_secs(10);
 
 impl Starting {
     /// A source named `name` is starting until its handle is signalled.
@@ -90,10 +97,27 @@ impl Starting {
         pending.stopped.clone()
     }
 
-    /// The sources that cannot take work for now (see [`Trouble`]), and why.
+    /// The sources that cannot take work for now (see [`Trouble`]) and
+    /// have not for [`TROUBLE_GRACE`] or more, and why (with how long).
+    #[must_use]
     pub fn troubled(&self) -> Vec<(String, String)> {
+        self.troubled_for(TROUBLE_GRACE)
+    }
+
+    /// [`Self::troubled`] with another grace.
+    fn troubled_for(&self, grace: Duration) -> Vec<(String, String)> {
         let pending = self.0.lock().unwrap_or_else(PoisonError::into_inner);
-        pending.troubled.values().cloned().collect()
+        pending
+            .troubled
+            .values()
+            .filter(|(_, _, since)| since.elapsed() >= grace)
+            .map(|(name, why, since)| {
+                (
+                    name.clone(),
+                    format!("{why} ({} s)", since.elapsed().as_secs()),
+                )
+            })
+            .collect()
     }
 }
 
@@ -152,9 +176,14 @@ impl Trouble {
             .unwrap_or_else(PoisonError::into_inner);
         match why {
             Some(why) => {
+                // since the trouble began: a new reason does not restart it
+                let since = pending
+                    .troubled
+                    .get(&handle.id)
+                    .map_or_else(Instant::now, |t| t.2);
                 pending
                     .troubled
-                    .insert(handle.id, (handle.name.clone(), why));
+                    .insert(handle.id, (handle.name.clone(), why, since));
             }
             None => {
                 pending.troubled.remove(&handle.id);
@@ -204,6 +233,7 @@ pub trait Source: Send + 'static {
 #[cfg(test)]
 mod tests {
     use super::{Started, Starting};
+    use std::time::Duration;
 
     #[test]
     fn a_source_is_pending_until_its_handle_signals_or_goes() {
@@ -247,19 +277,24 @@ mod tests {
         nats.signal();
         let trouble = nats.trouble();
         trouble.set(Some("connection lost".into()));
+        // said only after the grace
+        assert!(starting.troubled().is_empty());
         assert_eq!(
-            starting.troubled(),
-            [("nats worker w1".to_owned(), "connection lost".to_owned())]
+            starting.troubled_for(Duration::ZERO),
+            [(
+                "nats worker w1".to_owned(),
+                "connection lost (0 s)".to_owned()
+            )]
         );
         assert!(starting.pending().is_empty());
         trouble.set(None);
-        assert!(starting.troubled().is_empty());
+        assert!(starting.troubled_for(Duration::ZERO).is_empty());
         trouble.set(Some("connection lost".into()));
         // the source gone, its trouble goes with it, and a late report is a no-op
         drop(nats);
-        assert!(starting.troubled().is_empty());
+        assert!(starting.troubled_for(Duration::ZERO).is_empty());
         trouble.set(Some("after it".into()));
-        assert!(starting.troubled().is_empty());
+        assert!(starting.troubled_for(Duration::ZERO).is_empty());
         Started::default().trouble().set(Some("no-op".into()));
     }
 }
