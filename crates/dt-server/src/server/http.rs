@@ -345,24 +345,19 @@ async fn readyz(State(app): State<AppState>) -> Response {
     if !app.ready.load(Ordering::Relaxed) {
         return (StatusCode::SERVICE_UNAVAILABLE, "not ready\n").into_response();
     }
-    let stopped = app.starting.failed();
-    if !stopped.is_empty() {
-        let said: Vec<String> = stopped
-            .iter()
-            .map(|(name, why)| format!("source {name} stopped: {why}"))
-            .collect();
-        return (
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("degraded: {}\n", said.join("; ")),
-        )
-            .into_response();
-    }
-    let troubled = app.starting.troubled();
-    if !troubled.is_empty() {
-        let said: Vec<String> = troubled
-            .iter()
-            .map(|(name, why)| format!("source {name}: {why}"))
-            .collect();
+    // sources that stopped, then those that cannot take work for now
+    let stopped = app
+        .starting
+        .failed()
+        .into_iter()
+        .map(|(name, why)| format!("source {name} stopped: {why}"));
+    let troubled = app
+        .starting
+        .troubled()
+        .into_iter()
+        .map(|(name, why)| format!("source {name}: {why}"));
+    let said: Vec<String> = stopped.chain(troubled).collect();
+    if !said.is_empty() {
         return (
             StatusCode::SERVICE_UNAVAILABLE,
             format!("degraded: {}\n", said.join("; ")),
