@@ -112,8 +112,14 @@ def test_predict_inputs():
     assert got[0] == pytest.approx(want[0], abs=BAR * (1 + abs(want[0]))) and np.isnan(got[1])
     with pytest.raises(shocktwin.InputError, match="11 columns.*reads 12"):
         bundle.predict(rows[:, :11])
-    with pytest.raises(TypeError):
-        bundle.predict(rows[0])  # one row must still be 2-D
+    # one row must still be 2-D, and the error says so (numpy's own said only
+    # that an ndarray "cannot be converted to 'PyArray<T, D>'")
+    with pytest.raises(TypeError, match=r"argument 'x': expected a 2-D .* 1-D value of shape \(12,\).*reshape\(1, -1\)"):
+        bundle.predict(rows[0])
+    with pytest.raises(TypeError, match=r"expected a 2-D .* 3-D value of shape \(1, 2, 12\)"):
+        bundle.predict(rows[:2][None])
+    with pytest.raises(TypeError, match="dtype `<U1`, which is not a real number type"):
+        bundle.predict([["a"] * 12])
 
 
 def test_missing_and_bad_bundles_are_named(tmp_path: Path):

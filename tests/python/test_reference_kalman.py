@@ -160,6 +160,11 @@ def test_bad_inputs_are_named():
     with pytest.raises(shocktwin.InputError, match="a_rel"):
         kf.run([0.0, 0.001], [0.0], [0.0], [0.0])
     assert isinstance(shocktwin.InputError("x"), ValueError)
+    # an input of the wrong shape names the argument and says what it got
+    with pytest.raises(TypeError, match=r"argument 't_pos': expected a 1-D .* 0-D value.*list of one"):
+        kf.run([0.0], [0.0], 0.0, [0.0])
+    with pytest.raises(TypeError, match=r"argument 'a_rel': expected a 1-D .* shape \(1, 2\)"):
+        kf.run([0.0, 0.001], [[0.0, 0.0]], [0.0], [0.0])
 
 
 def test_bad_sigma_names_the_parameter():

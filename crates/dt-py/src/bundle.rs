@@ -9,12 +9,12 @@ use dt_core::error::PhysicsError;
 use dt_core::estimator::{estimate_log, EstimatorConfig};
 use dt_core::features::TopicSet;
 use dt_core::log::RunLog;
-use numpy::{AllowTypeChange, PyArray1, PyArrayLike2};
+use numpy::PyArray1;
 use pyo3::exceptions::{PyRuntimeWarning, PyTypeError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyString};
 
-use crate::convert::{ns_to_seconds, to_numpy};
+use crate::convert::{ns_to_seconds, to_numpy, ArrayLike2};
 use crate::exceptions::{input_error, CoreError};
 use crate::gil::{interruptible, without_gil};
 use crate::log::{read_log, PyLog};
@@ -61,7 +61,7 @@ impl PyBundle {
     fn predict_with<'py>(
         &self,
         py: Python<'py>,
-        x: &PyArrayLike2<'py, f64, AllowTypeChange>,
+        x: &ArrayLike2<'py>,
         path: fn(&Bundle, &[f64]) -> Result<Vec<f64>, BundleError>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let rows = rows_of(&self.bundle, x)?;
@@ -73,7 +73,7 @@ impl PyBundle {
 
 /// Row-major values of a 2-D array of feature rows, checked against the
 /// bundle's width.
-fn rows_of(bundle: &Bundle, x: &PyArrayLike2<'_, f64, AllowTypeChange>) -> PyResult<Vec<f64>> {
+fn rows_of(bundle: &Bundle, x: &ArrayLike2<'_>) -> PyResult<Vec<f64>> {
     let view = x.as_array();
     let k = bundle.n_inputs();
     if view.ncols() != k {
@@ -105,7 +105,7 @@ impl PyBundle {
     fn predict<'py>(
         &self,
         py: Python<'py>,
-        x: PyArrayLike2<'py, f64, AllowTypeChange>,
+        x: ArrayLike2<'py>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         self.predict_with(py, &x, Bundle::predict)
     }
@@ -115,7 +115,7 @@ impl PyBundle {
     fn predict_f64<'py>(
         &self,
         py: Python<'py>,
-        x: PyArrayLike2<'py, f64, AllowTypeChange>,
+        x: ArrayLike2<'py>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         self.predict_with(py, &x, Bundle::predict_f64)
     }
@@ -125,7 +125,7 @@ impl PyBundle {
     fn predict_reference<'py>(
         &self,
         py: Python<'py>,
-        x: PyArrayLike2<'py, f64, AllowTypeChange>,
+        x: ArrayLike2<'py>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         self.predict_with(py, &x, Bundle::predict_reference)
     }

@@ -1,13 +1,86 @@
 //! numpy in, numpy out: conversions shared by every binding.
 
-use numpy::{AllowTypeChange, IntoPyArray, PyArray1, PyArrayLike1};
+use std::ops::Deref;
+
+use numpy::{AllowTypeChange, IntoPyArray, PyArray1, PyArrayLike1, PyArrayLike2};
+use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
+use pyo3::types::PyTuple;
 
 use crate::exceptions::input_error;
 
 /// Any 1-D array-like of numbers (a numpy array of any real dtype, a list,
-/// a tuple), converted to float64 by numpy.
-pub(crate) type ArrayLike<'py> = PyArrayLike1<'py, f64, AllowTypeChange>;
+/// a tuple), converted to float64 by numpy. Anything else is a `TypeError`
+/// that says what was given: numpy's own says only that an `ndarray` "cannot
+/// be converted to `PyArray<T, D>`" (the seventieth session's analyst).
+pub(crate) struct ArrayLike<'py>(PyArrayLike1<'py, f64, AllowTypeChange>);
+
+/// Any 2-D array-like of numbers (rows of samples), converted to float64;
+/// anything else is a `TypeError` that says what was given, as [`ArrayLike`].
+pub(crate) struct ArrayLike2<'py>(PyArrayLike2<'py, f64, AllowTypeChange>);
+
+impl<'py> Deref for ArrayLike<'py> {
+    type Target = PyArrayLike1<'py, f64, AllowTypeChange>;
+    fn deref(&self) -> &Self::Target {
+        &self.0
+    }
+}
+
+impl<'py> Deref for ArrayLike2<'py> {
+    type Target = PyArrayLike2<'py, f64, AllowTypeChange>;
+    fn deref(&self) -> &Self::Target {
+        &self.0
+    }
+}
+
+impl<'py> FromPyObject<'py> for ArrayLike<'py> {
+    fn extract_bound(ob: &Bound<'py, PyAny>) -> PyResult<Self> {
+        ob.extract()
+            .map(Self)
+            .map_err(|e| what_was_given(ob, 1).unwrap_or(e))
+    }
+}
+
+impl<'py> FromPyObject<'py> for ArrayLike2<'py> {
+    fn extract_bound(ob: &Bound<'py, PyAny>) -> PyResult<Self> {
+        ob.extract()
+            .map(Self)
+            .map_err(|e| what_was_given(ob, 2).unwrap_or(e))
+    }
+}
+
+/// The `TypeError` for `ob`, which did not convert to a float64 array of
+/// `ndim` dimensions: its shape or its dtype, and what to pass instead
+/// (pyo3 prefixes the argument's name). `None` when numpy cannot even say
+/// (then numpy's own error stands).
+fn what_was_given(ob: &Bound<'_, PyAny>, ndim: usize) -> Option<PyErr> {
+    let numpy = ob.py().import("numpy").ok()?;
+    let array = numpy.call_method1("asarray", (ob,)).ok()?;
+    let shape: Vec<usize> = array.getattr("shape").ok()?.extract().ok()?;
+    let shape_text = PyTuple::new(ob.py(), &shape).ok()?.repr().ok()?.to_string();
+    let wanted = if ndim == 1 {
+        "a 1-D array of numbers (one value per sample)"
+    } else {
+        "a 2-D array of numbers (one row per sample, one column per feature)"
+    };
+    let message = if shape.len() == ndim {
+        let dtype = array.getattr("dtype").ok()?.str().ok()?.to_string();
+        format!(
+            "expected {wanted}, got an array of dtype `{dtype}`, which is not a real number type"
+        )
+    } else {
+        let hint = match (ndim, shape.len()) {
+            (1, 0) => ": pass a single sample as a list of one value",
+            (2, 1) => ": pass one sample as one row, e.g. `x.reshape(1, -1)`",
+            _ => "",
+        };
+        format!(
+            "expected {wanted}, got a {}-D value of shape {shape_text}{hint}",
+            shape.len()
+        )
+    };
+    Some(PyTypeError::new_err(message))
+}
 
 /// Copies a 1-D array-like into an owned vector (any strides).
 pub(crate) fn to_vec(array: &ArrayLike<'_>) -> Vec<f64> {
