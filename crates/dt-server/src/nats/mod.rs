@@ -430,10 +430,15 @@ impl LastError {
             Event::Disconnected => {
                 seen.connected = false;
                 seen.said_at = Some(std::time::Instant::now());
-                tracing::warn!(
-                    "{name}: NATS connection lost; reconnecting (`/readyz` says degraded if it lasts {} s)",
-                    crate::server::source::TROUBLE_GRACE.as_secs()
-                );
+                if seen.trouble.is_said() {
+                    tracing::warn!(
+                        "{name}: NATS connection lost; reconnecting (`/readyz` says degraded if it lasts {} s)",
+                        crate::server::source::TROUBLE_GRACE.as_secs()
+                    );
+                } else {
+                    // a CLI (`shocktwin publish`) has no `/readyz`
+                    tracing::warn!("{name}: NATS connection lost; reconnecting");
+                }
                 seen.trouble
                     .set(Some("NATS connection lost; reconnecting".into()));
             }

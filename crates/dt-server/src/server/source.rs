@@ -165,6 +165,13 @@ impl Drop for Handle {
 pub struct Trouble(Option<Weak<Handle>>);
 
 impl Trouble {
+    /// Whether a daemon's source is behind it (`/readyz` says its trouble);
+    /// not for a CLI's connection (`shocktwin publish`).
+    #[must_use]
+    pub fn is_said(&self) -> bool {
+        self.0.is_some()
+    }
+
     /// `Some(why)`: the source cannot take work for now; `None`: it can.
     pub fn set(&self, why: Option<String>) {
         let Some(handle) = self.0.as_ref().and_then(Weak::upgrade) else {
