@@ -226,6 +226,11 @@ pub struct HeldOutInterval {
 /// `CROSS_VALIDATED`).
 pub const HELD_OUT_METHODS: [&str; 2] = ["held-out", "cross-validated"];
 
+/// The provenance key under which `train.train` lists the `excitation`
+/// metadata of the runs a bundle's network was trained on, distinct and
+/// sorted ([`Bundle::untrained_excitation`]).
+pub const TRAINED_EXCITATIONS: &str = "trained_excitations";
+
 /// Contents of `twin.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TwinJson {
@@ -312,6 +317,54 @@ impl Bundle {
     #[must_use]
     pub fn n_inputs(&self) -> usize {
         self.twin.permutation.columns.len()
+    }
+
+    /// The `excitation` metadata (SPEC §2) of the runs its network was
+    /// trained on, as `train.train` records them in the provenance
+    /// ([`TRAINED_EXCITATIONS`]); `None` for a bundle that does not say.
+    #[must_use]
+    pub fn trained_excitations(&self) -> Option<Vec<&str>> {
+        self.twin
+            .provenance
+            .get(TRAINED_EXCITATIONS)?
+            .as_array()?
+            .iter()
+            .map(serde_json::Value::as_str)
+            .collect()
+    }
+
+    /// Why this bundle's estimate of a run with metadata `meta` is an
+    /// extrapolation: the bundle reads no charge observer (which says so
+    /// itself, per reversal), records the excitations its network was
+    /// trained on, and the run's `excitation` is none of them (a road run, a
+    /// sine at another frequency or stroke). `None` when nothing says so,
+    /// e.g. a log without `excitation` (a seventieth-session analyst: such a
+    /// bundle answered a road run without a word).
+    #[must_use]
+    pub fn untrained_excitation(&self, meta: &crate::log::RunMetadata) -> Option<String> {
+        const SHOWN: usize = 6;
+        if self.groups.contains(&Group::Observer) {
+            return None;
+        }
+        let run = meta.excitation.as_deref()?.trim();
+        let trained = self.trained_excitations()?;
+        if trained.is_empty() || trained.iter().any(|t| t.trim() == run) {
+            return None;
+        }
+        let mut list = trained
+            .iter()
+            .take(SHOWN)
+            .map(|t| format!("`{t}`"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        if trained.len() > SHOWN {
+            list = format!("{list} … ({} in all)", trained.len());
+        }
+        Some(format!(
+            "the run's excitation `{run}` is none of those the bundle's network was trained on \
+             ({list}): its estimate is an extrapolation, and its interval, taken over runs of \
+             those excitations, does not cover it"
+        ))
     }
 
     /// The physics parameters.

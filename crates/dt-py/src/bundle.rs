@@ -295,7 +295,10 @@ fn bundle_arg(bundle: &Bound<'_, PyAny>) -> PyResult<Given<Arc<Bundle>>> {
 /// groups need. Warns (``RuntimeWarning``) when the charge observer read
 /// none of the run's reversals, saying why (the calibration does not cover
 /// its excitation; reversals too weak, e.g. a 0.5 Hz sine, or too poor to
-/// read): the estimate is then the observer's prior.
+/// read): the estimate is then the observer's prior. Warns too when the
+/// bundle, without the observer, records the excitations its network was
+/// trained on and the log's ``excitation`` metadata is none of them (a road
+/// run, a sine at another frequency): the estimate is an extrapolation.
 ///
 /// >>> import shocktwin
 /// >>> shocktwin.estimate("no/such/run.mcap", "no/such/bundle")
@@ -369,12 +372,17 @@ pub(crate) fn estimate<'py>(
             .map_err(|e| CoreError::Params(format!("{what}: {e}")))?;
         cfg.observer_baseline = Some(b);
     }
+    let untrained = bundle.untrained_excitation(&run.metadata);
     let origin_ns = run.t0_ns().unwrap_or(0);
     let (estimates, counters) =
         interruptible(py, move || estimate_log(bundle, cfg, &run))?.map_err(CoreError::from)?;
     if let Some(why) = counters.observer.why_prior_kept() {
         // `shocktwin replay` says so; a notebook got the prior without a word
         let msg = std::ffi::CString::new(format!("charge observer: {why}")).unwrap_or_default();
+        PyErr::warn(py, &py.get_type::<PyRuntimeWarning>(), &msg, 1)?;
+    }
+    if let Some(why) = untrained {
+        let msg = std::ffi::CString::new(why).unwrap_or_default();
         PyErr::warn(py, &py.get_type::<PyRuntimeWarning>(), &msg, 1)?;
     }
     let column = |f: fn(&dt_core::estimate::Estimate) -> f64| -> Vec<f64> {

@@ -73,6 +73,9 @@ struct Replayed {
     counters: EstimatorCounters,
     samples: usize,
     seconds: f64,
+    /// Why the estimate is an extrapolation of the network
+    /// ([`Bundle::untrained_excitation`]).
+    untrained: Option<String>,
 }
 
 /// A unit baseline file: the three numbers of [`UnitBaseline`], bare or
@@ -242,6 +245,15 @@ impl Model {
 }
 
 /// With `--road`: a dyno sine run is refused ([`dt_core::road::refuse_dyno_run`]).
+/// Why the network's estimate of a run with `meta` is an extrapolation (not
+/// for a road asset, which the road observer reads).
+fn untrained(est: &Estimator, meta: &RunMetadata) -> Option<String> {
+    if est.road().is_some() {
+        return None;
+    }
+    est.bundle().untrained_excitation(meta)
+}
+
 fn refuse_dyno_run(file: &Path, est: &Estimator, meta: &RunMetadata) -> Result<()> {
     if est.road().is_some() {
         dt_core::road::refuse_dyno_run(meta)
@@ -706,6 +718,9 @@ fn replay_events(
                     )?);
                 }
                 rows = Some(Rows::new(out.format, out.table.as_deref_mut(), &m, 0));
+                if let Some(rows) = rows.as_mut() {
+                    rows.untrained = untrained(&est, &m);
+                }
                 continue;
             }
             Decoded::GiveWay => return Ok(None),
@@ -777,6 +792,7 @@ fn replay_whole(
         &log.metadata,
         t0(&log),
     );
+    rows.untrained = untrained(&est, &log.metadata);
     let mut writer = match out.format {
         Format::Mcap => {
             let path = (out.mcap_out)(&log.metadata.run_id);
@@ -851,6 +867,8 @@ struct Rows<'p> {
     t0_ns: i64,
     tally: Tally,
     line: String,
+    /// See [`Replayed::untrained`].
+    untrained: Option<String>,
 }
 
 impl<'p> Rows<'p> {
@@ -864,6 +882,7 @@ impl<'p> Rows<'p> {
             t0_ns,
             tally: Tally::default(),
             line: String::new(),
+            untrained: None,
         }
     }
 
@@ -929,6 +948,7 @@ impl<'p> Rows<'p> {
             counters,
             samples,
             seconds: started.elapsed().as_secs_f64(),
+            untrained: self.untrained,
         }
     }
 }
@@ -1055,6 +1075,9 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
         }
         if let Some(line) = observer_line(&c.observer) {
             println!("  {}: {line}", r.file.display());
+        }
+        if let Some(why) = &r.untrained {
+            println!("  {}: {why}", r.file.display());
         }
         if let Some(road) = c.road {
             println!(

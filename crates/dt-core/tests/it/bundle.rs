@@ -409,3 +409,41 @@ fn every_part_must_be_present() {
         assert_eq!(i.method.as_deref(), method);
     }
 }
+
+/// A run at an excitation the network was not trained on is named, with the
+/// ones it was; a bundle or a log that does not say, or a bundle that reads
+/// the charge observer (which says it per reversal), gives no such word.
+#[test]
+fn an_untrained_excitation_is_named() {
+    use dt_core::log::RunMetadata;
+    let trained = ["sine 1 Hz 80 mm p-p", "sine 2 Hz 80 mm p-p"];
+    let dir = edited("bundle-mlp13", |t| {
+        t["provenance"]["trained_excitations"] = serde_json::json!(trained);
+    });
+    let b = Bundle::load(dir.path()).unwrap();
+    assert_eq!(b.trained_excitations().unwrap(), trained);
+    let meta = |e: Option<&str>| RunMetadata {
+        excitation: e.map(str::to_owned),
+        ..RunMetadata::default()
+    };
+    assert_eq!(
+        b.untrained_excitation(&meta(Some("sine 2 Hz 80 mm p-p"))),
+        None
+    );
+    assert_eq!(b.untrained_excitation(&meta(None)), None);
+    let why = b
+        .untrained_excitation(&meta(Some("road class C 60 km/h")))
+        .unwrap();
+    for part in [
+        "`road class C 60 km/h`",
+        "`sine 1 Hz 80 mm p-p`",
+        "`sine 2 Hz 80 mm p-p`",
+        "extrapolation",
+    ] {
+        assert!(why.contains(part), "{why}");
+    }
+    // a bundle from before the record says nothing
+    let older = Bundle::load(fixture("bundle-mlp13")).unwrap();
+    assert_eq!(older.trained_excitations(), None);
+    assert_eq!(older.untrained_excitation(&meta(Some("road"))), None);
+}

@@ -27,6 +27,9 @@ use super::ServeError;
 pub struct EstimatorFactory {
     bundle: Arc<Bundle>,
     road: Option<Arc<RoadCalibration>>,
+    /// The run excitations the bundle's network was not trained on that the
+    /// log has said (once each: a fleet's every run may be one).
+    untrained_said: Arc<std::sync::Mutex<std::collections::HashSet<String>>>,
 }
 
 impl EstimatorFactory {
@@ -54,7 +57,11 @@ impl EstimatorFactory {
     /// Uses an already loaded bundle (no road calibration).
     #[must_use]
     pub fn new(bundle: Arc<Bundle>) -> Self {
-        Self { bundle, road: None }
+        Self {
+            bundle,
+            road: None,
+            untrained_said: Arc::default(),
+        }
     }
 
     /// The road calibration, when one was loaded.
@@ -134,6 +141,19 @@ impl TwinFactory for EstimatorFactory {
         if est.road().is_some() {
             // a dyno run of a road asset is refused, as `shocktwin road` does
             dt_core::road::refuse_dyno_run(meta)?;
+        } else if let Some(why) = self.bundle.untrained_excitation(meta) {
+            let excitation = meta.excitation.clone().unwrap_or_default();
+            let mut said = self
+                .untrained_said
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            if said.insert(excitation) {
+                tracing::warn!(
+                    asset = %meta.asset_id,
+                    run = %meta.run_id,
+                    "{why} (said once per excitation)"
+                );
+            }
         }
         let mut service = None;
         if let Some(s) = asset.read_service {
