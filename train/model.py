@@ -29,7 +29,7 @@ import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
@@ -209,6 +209,13 @@ def add_interval(bundle_dir: Path, interval: dict[str, Any]) -> None:
     twin = json.loads(path.read_text())
     twin["interval"] = interval
     path.write_text(json.dumps(twin, indent=2) + "\n")
+
+
+def trained_excitations(runs: Iterable[Any]) -> list[str]:
+    """The distinct ``excitation`` metadata (SPEC §2) of the runs a network is trained on,
+    sorted: the bundle's ``provenance.trained_excitations``, from which the estimator (dt-core
+    ``Bundle::untrained_excitation``) says when a run's excitation is none of them."""
+    return sorted({str(e).strip() for r in runs if (e := r.log.metadata.get("excitation"))})
 
 
 # What a bundle's provenance must say (SPEC §5; dt-core ``bundle::PROVENANCE_KEYS``).

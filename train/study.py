@@ -855,6 +855,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                provenance={"campaign": campaign.root.name, "campaign_digest": campaign.digest(),
                                            "split": "none (all runs)", "seed": cfg.seed, "per_run": cfg.per_run,
                                            "augmentation": evaluate.AUGMENTATION,
+                                           "trained_excitations": model.trained_excitations(campaign.runs),
                                            "metrics": next(r for r in table2 if r["perm"]["id"] == perm["id"])["held_out"],
                                            "simulated_data": True})
             interval = next(r for r in table2 if r["perm"]["id"] == perm["id"]).get("interval")

@@ -159,8 +159,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     metrics: dict[str, Any] = {}
     held_out: list[Any] = []
+    trained_on = [t.run for t in tables]
     if args.split == "runs":
         test_idx = set(split_runs(len(tables), args.seed).tolist())
+        trained_on = [t.run for i, t in enumerate(tables) if i not in test_idx]
         masks = [np.full(len(t.t_s), i not in test_idx) for i, t in enumerate(tables)]
         x, y = evaluate.training_set(tables, columns, excited, masks, args.per_run, seed=args.seed,
                                       augment=not args.no_augment)
@@ -205,6 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "per_run": args.per_run,
             "max_iter": args.max_iter,
             "augmentation": None if args.no_augment else evaluate.AUGMENTATION,
+            "trained_excitations": model.trained_excitations(trained_on),
             "metrics": metrics,
             "simulated_data": campaign.simulated,
         },

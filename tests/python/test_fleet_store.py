@@ -819,6 +819,50 @@ def test_a_prior_kept_for_reversals_too_weak_to_read_is_said(world: dict[str, Pa
     assert " 0 read" in line and "kept its prior" in line, line
 
 
+def test_a_run_at_an_excitation_the_network_was_not_trained_on_is_said(
+        calibrated_campaign: tuple[Path, Path], at_2_and_4_hz: dict[int, Path], daemons: list[Daemon],
+        tmp_path: Path) -> None:
+    """A bundle without the charge observer answers any run, and a road run or a sine it never
+    saw got an extrapolation without a word (the seventieth session's analyst). `train.train`
+    now records the excitations it trained on; the bindings warn, `replay` says so and the
+    daemon logs it once per excitation. A run at a trained excitation gets no such word."""
+    campaign, physics = calibrated_campaign  # 1 and 2 Hz
+    bundle = tmp_path / "perm12"
+    assert train_tool.main(["--campaign", str(campaign), "--permutation", "12", "--physics", str(physics),
+                            "--out", str(bundle), "--split", "none", "--per-run", "50", "--max-iter", "5"]) == 0
+    twin = json.loads((bundle / "twin.json").read_text())
+    assert twin["provenance"]["trained_excitations"] == ["sine 1 Hz 80 mm p-p", "sine 2 Hz 80 mm p-p"], twin["provenance"]
+    untrained = "excitation `sine 4 Hz 80 mm p-p` is none of those the bundle's network was trained on"
+
+    with pytest.warns(RuntimeWarning, match=re.escape(untrained)):
+        shocktwin.estimate(at_2_and_4_hz[4], bundle)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        shocktwin.estimate(at_2_and_4_hz[2], bundle)
+
+    said = {}
+    for hz, run in at_2_and_4_hz.items():
+        proc = subprocess.run([str(BIN), "replay", "--model", str(bundle), str(run), "--out",
+                               str(tmp_path / f"{hz}.csv")], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        said[hz] = [ln for ln in proc.stdout.splitlines() if "none of those the bundle's network" in ln]
+    assert said[2] == [] and len(said[4]) == 1 and untrained in said[4][0] and "extrapolation" in said[4][0], said
+
+    # the daemon: two runs at 4 Hz, one at 2 Hz; said once
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    d = Daemon(bundle, tmp_path / "fleet.sqlite", inbox)
+    daemons.append(d)
+    for name, run in [("a.mcap", at_2_and_4_hz[4]), ("b.mcap", at_2_and_4_hz[4]), ("c.mcap", at_2_and_4_hz[2])]:
+        shutil.copy(run, inbox / f".{name}")
+        (inbox / f".{name}").rename(inbox / name)
+    asset = shocktwin.read_log(at_2_and_4_hz[4]).metadata["asset_id"]
+    d.wait_runs(asset, 3)
+    lines = d.logged("none of those the bundle's network was trained on")
+    assert len(lines) == 1 and "sine 4 Hz" in lines[0], lines
+
+
 def test_on_a_road_the_observer_reads_no_chance_match_and_keeps_an_honest_prior(
         world: dict[str, Path], tmp_path: Path) -> None:
     """A whole 12 bar run on the simulated class C road at 60 km/h (a drive file, not a sine):

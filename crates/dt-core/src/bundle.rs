@@ -347,6 +347,9 @@ impl Bundle {
             return None;
         }
         let run = meta.excitation.as_deref()?.trim();
+        if run.is_empty() {
+            return None;
+        }
         let trained = self.trained_excitations()?;
         if trained.is_empty() || trained.iter().any(|t| t.trim() == run) {
             return None;
@@ -360,10 +363,14 @@ impl Bundle {
         if trained.len() > SHOWN {
             list = format!("{list} … ({} in all)", trained.len());
         }
+        let interval = if self.twin.interval.is_some() {
+            ", which the bundle's interval (from held-out runs) may not cover"
+        } else {
+            ""
+        };
         Some(format!(
             "the run's excitation `{run}` is none of those the bundle's network was trained on \
-             ({list}): its estimate is an extrapolation, and its interval, taken over runs of \
-             those excitations, does not cover it"
+             ({list}): its estimate is an extrapolation{interval}"
         ))
     }
 

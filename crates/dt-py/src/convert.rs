@@ -3,7 +3,7 @@
 use std::ops::Deref;
 
 use numpy::{AllowTypeChange, IntoPyArray, PyArray1, PyArrayLike1, PyArrayLike2};
-use pyo3::exceptions::PyTypeError;
+use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
@@ -35,25 +35,30 @@ impl<'py> Deref for ArrayLike2<'py> {
 
 impl<'py> FromPyObject<'py> for ArrayLike<'py> {
     fn extract_bound(ob: &Bound<'py, PyAny>) -> PyResult<Self> {
-        ob.extract()
-            .map(Self)
-            .map_err(|e| what_was_given(ob, 1).unwrap_or(e))
+        ob.extract().map(Self).map_err(|e| what_was_given(ob, 1, e))
     }
 }
 
 impl<'py> FromPyObject<'py> for ArrayLike2<'py> {
     fn extract_bound(ob: &Bound<'py, PyAny>) -> PyResult<Self> {
-        ob.extract()
-            .map(Self)
-            .map_err(|e| what_was_given(ob, 2).unwrap_or(e))
+        ob.extract().map(Self).map_err(|e| what_was_given(ob, 2, e))
     }
 }
 
-/// The `TypeError` for `ob`, which did not convert to a float64 array of
-/// `ndim` dimensions: its shape or its dtype, and what to pass instead
-/// (pyo3 prefixes the argument's name). `None` when numpy cannot even say
-/// (then numpy's own error stands).
-fn what_was_given(ob: &Bound<'_, PyAny>, ndim: usize) -> Option<PyErr> {
+/// The error for `ob`, which did not convert to a float64 array of `ndim`
+/// dimensions with error `err`: a `TypeError` saying its shape or its dtype,
+/// and what to pass instead (pyo3 prefixes the argument's name). `err`
+/// itself when it is not a type or value error (an interrupt, memory), or
+/// when numpy cannot even say.
+fn what_was_given(ob: &Bound<'_, PyAny>, ndim: usize, err: PyErr) -> PyErr {
+    let py = ob.py();
+    if !(err.is_instance_of::<PyTypeError>(py) || err.is_instance_of::<PyValueError>(py)) {
+        return err;
+    }
+    described(ob, ndim).unwrap_or(err)
+}
+
+fn described(ob: &Bound<'_, PyAny>, ndim: usize) -> Option<PyErr> {
     let numpy = ob.py().import("numpy").ok()?;
     let array = numpy.call_method1("asarray", (ob,)).ok()?;
     let shape: Vec<usize> = array.getattr("shape").ok()?.extract().ok()?;
@@ -63,11 +68,15 @@ fn what_was_given(ob: &Bound<'_, PyAny>, ndim: usize) -> Option<PyErr> {
     } else {
         "a 2-D array of numbers (one row per sample, one column per feature)"
     };
-    let message = if shape.len() == ndim {
-        let dtype = array.getattr("dtype").ok()?.str().ok()?.to_string();
-        format!(
-            "expected {wanted}, got an array of dtype `{dtype}`, which is not a real number type"
-        )
+    let dtype = array.getattr("dtype").ok()?;
+    let numeric = "biuf".contains(&*dtype.getattr("kind").ok()?.extract::<String>().ok()?);
+    let message = if shape.len() == ndim || !numeric {
+        let kind = if shape.is_empty() {
+            format!("a `{}`", ob.get_type().name().ok()?)
+        } else {
+            format!("an array of dtype `{}`", dtype.str().ok()?)
+        };
+        format!("expected {wanted}, got {kind}, which is not a real number type")
     } else {
         let hint = match (ndim, shape.len()) {
             (1, 0) => ": pass a single sample as a list of one value",

@@ -22,8 +22,10 @@ const S = {
   fleetDirty: false, fleetDrawn: 0, liveDirty: false, detailTimer: null, refreshTimer: null,
   liveChart: null, trendChart: null, trendKey: null,
   uploads: new Set(),            // run ids of uploads (inbox, POST v1/runs) seen starting
-  liveRun: null, liveRunAt: 0,   // the run the live chart draws, and when it last sent (ms; 0: ended)
-  otherRun: null, otherRunAt: 0, // another run of the asset streaming meanwhile, not drawn
+  // The processing of a run (`seq` of the events) the live chart draws, its run id, and when it
+  // last sent (ms; 0: ended); another one of the asset streaming meanwhile, not drawn.
+  liveSeq: null, liveRunId: null, liveRunAt: 0,
+  otherSeq: null, otherRunId: null, otherRunAt: 0,
 };
 
 // ---- formatting --------------------------------------------------------------------
@@ -241,8 +243,7 @@ function select(id) {
   S.selected = id;
   history.replaceState(null, "", `#${encodeURIComponent(id)}`);
   S.live = { x: [], p: [], lo: [], hi: [] };
-  S.liveRun = null;
-  S.otherRun = null;
+  S.liveSeq = S.otherSeq = null;
   S.seeded = false;
   S.trendKey = null;
   $("asset").hidden = false;
@@ -333,16 +334,18 @@ function roadCell(r) {
 }
 
 // A run sent again (a vehicle retrying, a file uploaded twice) is listed once per processing,
-// but the trend counts each run once: its completed copy, else the newest (the daemon's
-// `one_point_per_run`). The other copies say so (a helper's trial: the same run listed twice).
+// but the trend counts each run once: of its copies with a summary, the completed one, else the
+// newest (the daemon's `one_point_per_run`). The others say so (a helper's trial: the same run
+// listed twice). The run ids with a counted copy -> that copy.
 function countedCopies(runs) {
   const best = new Map();
   for (const r of runs) {
+    if (!fin(r.summary_bar)) continue;
     const key = [r.status === "completed" ? 1 : 0, tsec(r.start) ?? -Infinity];
     const b = best.get(r.run_id);
     if (!b || key[0] > b.key[0] || (key[0] === b.key[0] && key[1] > b.key[1])) best.set(r.run_id, { key, r });
   }
-  return new Set([...best.values()].map((b) => b.r));
+  return new Map([...best].map(([id, b]) => [id, b.r]));
 }
 const REPEAT_TITLE = "the same run as another row, sent again: the trend counts the run once " +
   "(its completed copy, else the newest)";
@@ -352,7 +355,7 @@ function renderRuns(runs) {
   if (!runs.length) { tb.innerHTML = `<tr><td colspan="7" class="muted">no runs recorded</td></tr>`; return; }
   const counted = countedCopies(runs);
   tb.innerHTML = runs.slice(0, 20).map((r) => `<tr data-run-id="${esc(r.run_id)}">
-    <td>${esc(r.run_id)}${simPill(r.simulated, "sim")}${counted.has(r) ? "" : `<span class="pill repeat" title="${REPEAT_TITLE}">repeat</span>`}</td><td class="small src" title="${esc(r.source || "")}">${esc(r.source || DASH)}</td>
+    <td>${esc(r.run_id)}${simPill(r.simulated, "sim")}${!counted.has(r.run_id) || counted.get(r.run_id) === r ? "" : `<span class="pill repeat" title="${REPEAT_TITLE}">repeat</span>`}</td><td class="small src" title="${esc(r.source || "")}">${esc(r.source || DASH)}</td>
     <td>${fmtTime(tsec(r.start))}</td><td>${duration(tsec(r.start), tsec(r.end))}</td><td>${r.ticks ?? DASH}</td>
     <td class="${r.status === "failed" || r.status === "interrupted" ? "bad" : ""}">${esc(r.status || DASH)}</td>${r.road ? roadCell(r.road) : observerCell(r.observer)}</tr>` +
     (r.reason ? `<tr><td></td><td colspan="6" class="reason">${esc(r.reason)}</td></tr>` : "") +
@@ -395,16 +398,19 @@ function seedLive(points) {
 function pushLive(ev) {
   // One run at a time: two runs of one asset streaming together (a file uploaded twice, a
   // replay beside the vehicle) interleaved their estimates, and the chart started afresh at
-  // every step back in time (a helper's trial). The run drawn keeps the chart until it ends
-  // (its `run` event) or falls silent; then the next run's estimate takes it.
+  // every step back in time (a helper's trial). The run drawn (one processing: copies of a run
+  // share its id, not their `seq`) keeps the chart until it ends (its `run` event) or falls
+  // silent; then the next run's estimate takes it, afresh if it was streaming alongside.
   const now = Date.now();
-  if (S.liveRun !== null && ev.run_id !== S.liveRun && now - S.liveRunAt < LIVE_SILENT_MS) {
-    S.otherRun = ev.run_id;
-    S.otherRunAt = now;
+  if (S.liveSeq !== null && ev.seq !== S.liveSeq && now - S.liveRunAt < LIVE_SILENT_MS) {
+    [S.otherSeq, S.otherRunId, S.otherRunAt] = [ev.seq, ev.run_id, now];
     return;
   }
-  S.liveRun = ev.run_id;
-  S.liveRunAt = now;
+  if (S.liveSeq !== null && ev.seq !== S.liveSeq && ev.seq === S.otherSeq) {
+    S.live = { x: [], p: [], lo: [], hi: [] };   // not one line across the two runs
+  }
+  if (ev.seq === S.otherSeq) S.otherSeq = null;
+  [S.liveSeq, S.liveRunId, S.liveRunAt] = [ev.seq, ev.run_id, now];
   const L = S.live, t = ev.t_ns / 1e9;
   if (L.x.length && t <= L.x[L.x.length - 1]) {   // a new run on an earlier clock: start afresh
     S.live = { x: [], p: [], lo: [], hi: [] };
@@ -430,8 +436,9 @@ function liveData() {
 function drawLive() {
   S.liveDirty = false;
   const el = $("live-chart"), data = liveData();
-  const other = S.otherRun !== null && Date.now() - S.otherRunAt < OTHER_NOTE_MS
-    ? ` · run ${S.liveRun} drawn; run ${S.otherRun} of this asset is streaming too` : "";
+  const other = S.otherSeq === null || Date.now() - S.otherRunAt >= OTHER_NOTE_MS ? ""
+    : S.otherRunId === S.liveRunId ? ` · run ${S.liveRunId} drawn; another copy of it is streaming too`
+      : ` · run ${S.liveRunId} drawn; run ${S.otherRunId} of this asset is streaming too`;
   $("live-note").textContent = S.live.x.length
     ? `${S.live.x.length} points, ${fmtTime(S.live.x[0])} – ${fmtTime(S.live.x[S.live.x.length - 1])}${other}`
     : "no estimates yet for this asset";
@@ -592,7 +599,7 @@ function connect() {
     if (upload && r.status === "started") S.uploads.add(r.run_id);
     else if (upload) S.uploads.delete(r.run_id);
     if (r.asset_id === S.selected) scheduleDetail();
-    if (r.asset_id === S.selected && r.run_id === S.liveRun && r.status !== "started") S.liveRunAt = 0;   // ended
+    if (r.asset_id === S.selected && r.seq === S.liveSeq && r.status !== "started") S.liveRunAt = 0;   // ended
     if (r.status !== "started") scheduleRefresh(700);   // its trend may have moved
   });
   es.addEventListener("lagged", (e) => conn(`live (skipped ${e.data} events)`, "up"));
@@ -604,8 +611,8 @@ function frame() {
   const e = S.lastEvent;
   if (e) $("last-event").textContent = `${e.asset_id} @ ${fmtTime(e.t_ns / 1e9)}`;
   if (S.fleetDirty && Date.now() - S.fleetDrawn > 1000) renderFleet();   // rows stay clickable
-  if (S.otherRun !== null && Date.now() - S.otherRunAt >= OTHER_NOTE_MS) {   // the note goes with it
-    S.otherRun = null;
+  if (S.otherSeq !== null && Date.now() - S.otherRunAt >= OTHER_NOTE_MS) {   // the note goes with it
+    S.otherSeq = null;
     S.liveDirty = true;
   }
   if (S.liveDirty && S.selected) drawLive();

@@ -244,7 +244,6 @@ impl Model {
     }
 }
 
-/// With `--road`: a dyno sine run is refused ([`dt_core::road::refuse_dyno_run`]).
 /// Why the network's estimate of a run with `meta` is an extrapolation (not
 /// for a road asset, which the road observer reads).
 fn untrained(est: &Estimator, meta: &RunMetadata) -> Option<String> {
@@ -254,6 +253,7 @@ fn untrained(est: &Estimator, meta: &RunMetadata) -> Option<String> {
     est.bundle().untrained_excitation(meta)
 }
 
+/// With `--road`: a dyno sine run is refused ([`dt_core::road::refuse_dyno_run`]).
 fn refuse_dyno_run(file: &Path, est: &Estimator, meta: &RunMetadata) -> Result<()> {
     if est.road().is_some() {
         dt_core::road::refuse_dyno_run(meta)

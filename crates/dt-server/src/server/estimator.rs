@@ -22,6 +22,9 @@ use super::store::AssetBaseline;
 use super::twin::{AssetTwin, TwinCounters, TwinError, TwinFactory};
 use super::ServeError;
 
+/// How many distinct untrained excitations the daemon says (then no more).
+const UNTRAINED_SAID_MAX: usize = 64;
+
 /// Makes one [`Estimator`] per run from a loaded bundle.
 #[derive(Debug, Clone)]
 pub struct EstimatorFactory {
@@ -142,12 +145,13 @@ impl TwinFactory for EstimatorFactory {
             // a dyno run of a road asset is refused, as `shocktwin road` does
             dt_core::road::refuse_dyno_run(meta)?;
         } else if let Some(why) = self.bundle.untrained_excitation(meta) {
-            let excitation = meta.excitation.clone().unwrap_or_default();
+            let excitation = meta.excitation.as_deref().unwrap_or_default().trim();
             let mut said = self
                 .untrained_said
                 .lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner);
-            if said.insert(excitation) {
+            // bounded: a log's free text may differ from run to run
+            if said.len() < UNTRAINED_SAID_MAX && said.insert(excitation.to_owned()) {
                 tracing::warn!(
                     asset = %meta.asset_id,
                     run = %meta.run_id,

@@ -24,6 +24,10 @@ pub enum LiveEvent {
         asset_id: String,
         /// Run.
         run_id: String,
+        /// This processing of the run ([`RunInfo::seq`]): two copies of one
+        /// run streamed together (a file uploaded twice) have the same
+        /// `run_id` and different `seq`s.
+        seq: u64,
         /// The estimate (its fields inline).
         #[serde(flatten)]
         estimate: Estimate,
@@ -47,6 +51,8 @@ pub enum LiveEvent {
         asset_id: String,
         /// Run.
         run_id: String,
+        /// See [`LiveEvent::Estimate`]'s.
+        seq: u64,
         /// Source (`tcp ADDR`, `inbox FILE`).
         source: String,
         /// `started`, `completed`, `failed`, `interrupted`.
@@ -298,6 +304,7 @@ impl LiveState {
         LiveEvent::Run {
             asset_id: run.meta.asset_id.clone(),
             run_id: run.meta.run_id.clone(),
+            seq: run.seq,
             source: run.source.clone(),
             status,
             reason,
@@ -436,6 +443,7 @@ impl Sink for LiveSink {
             state.publish(LiveEvent::Estimate {
                 asset_id: run.meta.asset_id.clone(),
                 run_id: run.meta.run_id.clone(),
+                seq: run.seq,
                 estimate: *e,
             });
         }
