@@ -654,6 +654,17 @@ impl Estimator {
         &self.bundle
     }
 
+    /// Why this estimator's answer for a run with metadata `meta` is an
+    /// extrapolation of the bundle's network ([`Bundle::untrained_excitation`]);
+    /// `None` on a road asset, which the road observer reads instead.
+    #[must_use]
+    pub fn untrained_excitation(&self, meta: &crate::log::RunMetadata) -> Option<String> {
+        if self.road().is_some() {
+            return None;
+        }
+        self.bundle.untrained_excitation(meta)
+    }
+
     /// Samples held in the re-order window.
     #[must_use]
     pub fn held(&self) -> usize {

@@ -244,15 +244,6 @@ impl Model {
     }
 }
 
-/// Why the network's estimate of a run with `meta` is an extrapolation (not
-/// for a road asset, which the road observer reads).
-fn untrained(est: &Estimator, meta: &RunMetadata) -> Option<String> {
-    if est.road().is_some() {
-        return None;
-    }
-    est.bundle().untrained_excitation(meta)
-}
-
 /// With `--road`: a dyno sine run is refused ([`dt_core::road::refuse_dyno_run`]).
 fn refuse_dyno_run(file: &Path, est: &Estimator, meta: &RunMetadata) -> Result<()> {
     if est.road().is_some() {
@@ -719,7 +710,7 @@ fn replay_events(
                 }
                 rows = Some(Rows::new(out.format, out.table.as_deref_mut(), &m, 0));
                 if let Some(rows) = rows.as_mut() {
-                    rows.untrained = untrained(&est, &m);
+                    rows.untrained = est.untrained_excitation(&m);
                 }
                 continue;
             }
@@ -792,7 +783,7 @@ fn replay_whole(
         &log.metadata,
         t0(&log),
     );
-    rows.untrained = untrained(&est, &log.metadata);
+    rows.untrained = est.untrained_excitation(&log.metadata);
     let mut writer = match out.format {
         Format::Mcap => {
             let path = (out.mcap_out)(&log.metadata.run_id);

@@ -144,7 +144,8 @@ impl TwinFactory for EstimatorFactory {
         if est.road().is_some() {
             // a dyno run of a road asset is refused, as `shocktwin road` does
             dt_core::road::refuse_dyno_run(meta)?;
-        } else if let Some(why) = self.bundle.untrained_excitation(meta) {
+        }
+        if let Some(why) = est.untrained_excitation(meta) {
             let excitation = meta.excitation.as_deref().unwrap_or_default().trim();
             let mut said = self
                 .untrained_said
