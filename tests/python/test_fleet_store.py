@@ -859,7 +859,7 @@ def test_a_run_at_an_excitation_the_network_was_not_trained_on_is_said(
         (inbox / f".{name}").rename(inbox / name)
     asset = shocktwin.read_log(at_2_and_4_hz[4]).metadata["asset_id"]
     d.wait_runs(asset, 3)
-    lines = d.logged("none of those the bundle's network was trained on")
+    lines = d.logged("none of those the bundle's network was trained on", wait_s=5.0)
     assert len(lines) == 1 and "sine 4 Hz" in lines[0], lines
 
 
