@@ -53,3 +53,33 @@ def current_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def test_two_inputs_of_one_run_id_are_not_mixed(shocktwin_bin: Path, make_log, tmp_path: Path):
+    """The same run imported into two folders and replayed in one call (a helper trying the
+    product as a test engineer): to several MCAP outputs both wrote `out-<run_id>.mcap` at once
+    and left a corrupt file; to a table, both runs' rows went under one `run_id`. The later input
+    is refused, naming the other; the first is replayed, and a third run beside them too."""
+    from mcap.reader import make_reader
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first = make_log("a/run.mcap", duration_s=4.0)
+    again = make_log("b/run.mcap", duration_s=4.0)
+    other = make_log("other.mcap", duration_s=4.0,
+                     metadata={"asset_id": "unit-1", "run_id": "run-2", "charge_pressure_bar": "12"})
+    for jobs in ("1", "2"):
+        out = tmp_path / f"est-{jobs}.mcap"
+        done = replay(shocktwin_bin, "--jobs", jobs, first, again, other, "--out", out)
+        assert done.returncode == 1, done.stderr
+        assert "run id `run-1` is also the run id of" in done.stderr and str(first) in done.stderr, done.stderr
+        for run_id in ("run-1", "run-2"):
+            with open(tmp_path / f"est-{jobs}-{run_id}.mcap", "rb") as fh:  # readable, whole
+                n = sum(1 for _ in make_reader(fh).iter_messages(topics=["/estimate"]))
+            assert n == 200, (jobs, run_id, n)
+
+    table = tmp_path / "est.csv"
+    done = replay(shocktwin_bin, first, again, other, "--out", table)
+    assert done.returncode == 1 and str(again) in done.stderr, done.stderr
+    got = rows(table)
+    assert [sum(r["run_id"] == i for r in got) for i in ("run-1", "run-2")] == [200, 200]

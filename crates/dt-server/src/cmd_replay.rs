@@ -132,6 +132,7 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
     // a thread of its own beside its estimator.
     let pipelined = 2 * workers <= cores;
     let next = AtomicUsize::new(0);
+    let runs = RunIds::new(&args.files);
     let results: Mutex<Vec<Done>> = Mutex::new(Vec::new());
     // The table (CSV, JSONL), created before any work: one input's rows go
     // straight into it, several inputs' into a part each ([`write_table`]).
@@ -149,9 +150,10 @@ pub fn run(args: &ReplayArgs) -> Result<std::process::ExitCode> {
                     _ if several && format != Format::Mcap => Part::beside(&args.out).map(Some),
                     _ => Ok(None),
                 };
+                let run_out = |run_id: &str| runs.claim(i, run_id).map(|()| mcap_out(run_id));
                 let (res, part) = match table {
                     Ok(table) => {
-                        replay_rows(file, &model, &cfg, format, &mcap_out, pipelined, table)
+                        replay_rows(file, &model, &cfg, format, &run_out, pipelined, table)
                     }
                     Err(e) => (Err(e), None),
                 };
@@ -279,13 +281,13 @@ fn replay_rows(
     model: &Model,
     cfg: &EstimatorConfig,
     format: Format,
-    mcap_out: &dyn Fn(&str) -> PathBuf,
+    run_out: &dyn Fn(&str) -> Result<PathBuf>,
     pipelined: bool,
     mut table: Option<Part>,
 ) -> (Result<Replayed>, Option<TempPath>) {
     let mut out = Output {
         format,
-        mcap_out,
+        run_out,
         table: table.as_mut(),
     };
     let res = replay_file(file, model, cfg, &mut out, pipelined);
@@ -314,11 +316,52 @@ fn write_table(mut table: Part, parts: &[TempPath]) -> Result<()> {
     table.done(true).map(|_| ())
 }
 
+/// The run ids of several inputs, each claimed by the first input that
+/// reads it: two inputs of one run id (the same run given twice, or two
+/// imports under one `--run-id`) would write one `OUT-<run_id>.mcap` at once
+/// (a corrupt file) or mix their rows under one `run_id` in the table, so
+/// the later is refused, naming the other.
+struct RunIds<'a> {
+    files: &'a [PathBuf],
+    claimed: Mutex<std::collections::HashMap<String, usize>>,
+}
+
+impl<'a> RunIds<'a> {
+    fn new(files: &'a [PathBuf]) -> Self {
+        Self {
+            files,
+            claimed: Mutex::default(),
+        }
+    }
+
+    /// Claims `run_id` for input `i` (again, for a replay read whole after
+    /// its streamed read gave way); an error when another input holds it.
+    fn claim(&self, i: usize, run_id: &str) -> Result<()> {
+        let mut claimed = self
+            .claimed
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let holder = *claimed.entry(run_id.to_owned()).or_insert(i);
+        if holder == i {
+            return Ok(());
+        }
+        bail!(
+            "{}: run id `{run_id}` is also the run id of {}, replayed in this call: their \
+             estimates cannot be told apart in one output (rows under one `run_id`, one \
+             `<out>-{run_id}.mcap`); not replayed. Replay it on its own, or import it again \
+             with another `--run-id`",
+            self.files[i].display(),
+            self.files[holder].display()
+        )
+    }
+}
+
 /// Where a replay's estimates go.
 struct Output<'a> {
     format: Format,
-    /// A run's MCAP output, by its run id (`.mcap`).
-    mcap_out: &'a dyn Fn(&str) -> PathBuf,
+    /// The run's MCAP output by its run id (`.mcap`), once the run id is
+    /// claimed among the inputs' ([`RunIds::claim`]).
+    run_out: &'a dyn Fn(&str) -> Result<PathBuf>,
     /// The run's table rows (`.csv`, `.jsonl`).
     table: Option<&'a mut Part>,
 }
@@ -701,12 +744,9 @@ fn replay_events(
             Decoded::Sample(s) => s,
             Decoded::Metadata(m) => {
                 refuse_dyno_run(file, &est, &m)?;
+                let path = (out.run_out)(&m.run_id)?;
                 if out.format == Format::Mcap {
-                    writer = Some(LogWriter::create(
-                        (out.mcap_out)(&m.run_id),
-                        &m,
-                        WriteOptions::default(),
-                    )?);
+                    writer = Some(LogWriter::create(path, &m, WriteOptions::default())?);
                 }
                 rows = Some(Rows::new(out.format, out.table.as_deref_mut(), &m, 0));
                 if let Some(rows) = rows.as_mut() {
@@ -777,6 +817,7 @@ fn replay_whole(
     }
     let mut est = model.estimator(cfg, &file.display().to_string())?;
     refuse_dyno_run(file, &est, &log.metadata)?;
+    let path = (out.run_out)(&log.metadata.run_id)?;
     let mut rows = Rows::new(
         out.format,
         out.table.as_deref_mut(),
@@ -785,14 +826,11 @@ fn replay_whole(
     );
     rows.untrained = est.untrained_excitation(&log.metadata);
     let mut writer = match out.format {
-        Format::Mcap => {
-            let path = (out.mcap_out)(&log.metadata.run_id);
-            Some(LogWriter::create(
-                &path,
-                &log.metadata,
-                WriteOptions::default(),
-            )?)
-        }
+        Format::Mcap => Some(LogWriter::create(
+            &path,
+            &log.metadata,
+            WriteOptions::default(),
+        )?),
         _ => None,
     };
     for s in log.samples_in_order() {
@@ -1245,10 +1283,10 @@ mod tests {
     fn with_rows<T>(replay: impl FnOnce(&mut Output) -> T) -> (T, Vec<String>) {
         let dir = tempfile::tempdir().unwrap();
         let mut part = Part::beside(&dir.path().join("rows.csv")).unwrap();
-        let no_mcap = |_: &str| PathBuf::new();
+        let no_mcap = |_: &str| Ok(PathBuf::new());
         let res = replay(&mut Output {
             format: Format::Csv,
-            mcap_out: &no_mcap,
+            run_out: &no_mcap,
             table: Some(&mut part),
         });
         let path = part.done(true).unwrap().expect("a part keeps its file");
