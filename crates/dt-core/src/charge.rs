@@ -3103,6 +3103,22 @@ impl ChargeObserver {
         &self.p
     }
 
+    /// Forgets what a gap in the data breaks (the estimator's new segment
+    /// after a forward clock jump): the buffered samples, a reversal waiting
+    /// for its window, the stroke's direction, the last reversal and the
+    /// potentiometer's recent samples. The charge's state is kept: a gas
+    /// charge does not move in the seconds a logger drops out, and its
+    /// variance grows with the time since its last update, the gap
+    /// included, as between any two reversals.
+    pub fn resume_after_gap(&mut self) {
+        self.buf.clear();
+        self.pending = None;
+        self.outside = None;
+        self.last_reversal_ns = None;
+        self.last_reversal_y_m = None;
+        self.pot.clear();
+    }
+
     /// Sets the gas temperature (the twin's oil temperature), °C; a
     /// non-finite value is ignored.
     pub fn set_gas_temp_c(&mut self, temp_c: f64) {

@@ -20,7 +20,9 @@
 //! - **Clock jumps.** A forward jump of more than `max_gap_ns` between
 //!   released samples (a logger restart, a lost link) starts a new segment:
 //!   a fresh pipeline (new tick origin), average and health (`unknown` until
-//!   excited again). Counted. A sample that far ahead of the newest one is
+//!   excited again), which takes over the damper's slow state — its heat,
+//!   carried through the gap by the thermal model, and the charge
+//!   observer's reading ([`FeaturePipeline::carry_over`]). Counted. A sample that far ahead of the newest one is
 //!   first held aside: the jump is taken once [`JUMP_CONFIRM`] samples
 //!   agree on the new time; if the stream goes on at its old time instead,
 //!   the held samples were corrupt timestamps — counted as
@@ -776,12 +778,15 @@ impl Estimator {
     fn release(&mut self, q: Queued) -> Result<(), EstimatorError> {
         if let Some((last_t, _)) = self.s.released {
             if self.s.finished {
-                self.new_segment()?;
+                self.new_run_segment()?;
             } else if q.key.0.saturating_sub(last_t) > self.s.cfg.max_gap_ns {
                 self.s.counters.clock_jumps += 1;
                 self.s.pipe.finish();
                 self.take_rows()?;
-                self.new_segment()?;
+                #[allow(clippy::cast_precision_loss)] // a gap in ns, read in s
+                let gap_s = q.key.0.saturating_sub(last_t) as f64 * 1e-9;
+                let prev = self.new_segment()?;
+                self.s.pipe.carry_over(prev, gap_s);
             }
         }
         self.s.released = Some(q.key);
@@ -793,21 +798,33 @@ impl Estimator {
         self.take_rows()
     }
 
-    fn new_segment(&mut self) -> Result<(), EstimatorError> {
+    /// Starts a new segment: a fresh pipeline, 1 s average and health; the
+    /// segment's pipeline before is returned, for the slow state a clock
+    /// jump carries over ([`FeaturePipeline::carry_over`], whose observer
+    /// goes on counting: its counts are then not added here).
+    fn new_segment(&mut self) -> Result<FeaturePipeline, EstimatorError> {
         self.s.finished = false;
         self.s.counters.missing_samples += self.s.seg_missing;
         self.s.counters.gaps += self.s.seg_gaps;
         self.s.seg_missing = 0;
         self.s.seg_gaps = 0;
         self.s.prev_gaps = GapCounters::default();
-        if let Some(o) = self.s.pipe.observer() {
-            self.s.counters.observer += o.counters();
-        }
-        self.s.pipe =
+        let pipe =
             FeaturePipeline::new(&pipeline_params(&self.bundle, &self.s.cfg)?, self.s.topics)?;
+        let prev = std::mem::replace(&mut self.s.pipe, pipe);
         self.s.avg = [f64::NAN; EXCITATION_WINDOW_TICKS];
         self.s.avg_idx = 0;
         self.s.health = HealthMachine::new(self.s.cfg.health);
+        Ok(prev)
+    }
+
+    /// A new segment after [`finish`](Self::finish): a run of its own,
+    /// nothing carried over (its observer's counts added to the totals).
+    fn new_run_segment(&mut self) -> Result<(), EstimatorError> {
+        let prev = self.new_segment()?;
+        if let Some(o) = prev.observer() {
+            self.s.counters.observer += o.counters();
+        }
         Ok(())
     }
 
