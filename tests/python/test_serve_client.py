@@ -253,3 +253,80 @@ def test_sigterm_right_after_start_is_a_clean_stop(shocktwin: Path, tmp_path: Pa
                 proc.send_signal(signal.SIGTERM)
                 break
         assert proc.wait(30) == 0
+
+
+def test_a_run_sent_again_keeps_its_recording(daemon: Daemon, sim_run: Path) -> None:
+    """A vehicle's retries (a helper trying the daemon as a gateway operator): a second copy of a
+    run streamed while the first was still being recorded wrote the same `.part` file (a corrupt
+    recording, and a `sink` error in the report); a cut copy after a complete one replaced the
+    run's whole recording by its first 20 s. Now the copy is recorded apart
+    (`<run_id>~<seq>.<part>.mcap`) and the run's own recording stays whole."""
+    import io
+
+    asset_id, run_id = "van-retry", "r1"
+    rec_dir = daemon.record_dir / asset_id
+
+    # the first copy, all but its last chunk sent; the second, whole, meanwhile
+    host, port = daemon.listen.rsplit(":", 1)
+    with socket.create_connection((host, int(port)), timeout=60) as sock, open(sim_run, "rb") as fh:
+        writer = Writer(cast(IO[bytes], SocketStream(sock)), compression=CompressionType.ZSTD, chunk_size=4096)
+        writer.start(profile="", library="shocktwin test client (python mcap)")
+        copy_log(make_reader(fh), writer, {"asset_id": asset_id, "run_id": run_id})
+        second, _ = stream_run(daemon.listen, sim_run, asset_id, run_id, chunked=True)
+        writer.finish()
+        sock.shutdown(socket.SHUT_WR)
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    first = json.loads(reply.decode())
+    for report in (first, second):
+        assert report["status"] == "completed" and report["flushed"] is True and "kind" not in report, report
+    ticks = first["ticks"]
+    assert len(recorded_estimates(daemon.record_dir, asset_id, run_id)) == ticks  # the first copy's, whole
+    (aside,) = rec_dir.glob(f"{run_id}~*.0000.mcap")
+    with open(aside, "rb") as fh:
+        assert sum(1 for _ in make_reader(fh).iter_messages(topics=["/estimate"])) == ticks
+
+    # a copy cut half way (the vehicle powered off): failed, recorded apart
+    buf = io.BytesIO()
+    with open(sim_run, "rb") as fh:
+        writer = Writer(cast(IO[bytes], buf), compression=CompressionType.ZSTD, chunk_size=4096)
+        writer.start(profile="", library="shocktwin test client (python mcap)")
+        copy_log(make_reader(fh), writer, {"asset_id": asset_id, "run_id": run_id})
+        writer.finish()
+    with socket.create_connection((host, int(port)), timeout=60) as sock:
+        sock.sendall(buf.getvalue()[: len(buf.getvalue()) // 2])
+        sock.shutdown(socket.SHUT_WR)
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    cut = json.loads(reply.decode())
+    assert cut["status"] == "failed" and 0 < cut["ticks"] < ticks, cut
+    assert len(recorded_estimates(daemon.record_dir, asset_id, run_id)) == ticks
+    copies = sorted(rec_dir.glob(f"{run_id}~*.0000.mcap"))
+    assert len(copies) == 2, copies
+    counts = []
+    for path in copies:
+        with open(path, "rb") as fh:
+            counts.append(sum(1 for _ in make_reader(fh).iter_messages(topics=["/estimate"])))
+    assert sorted(counts) == sorted([ticks, cut["ticks"]]), (counts, ticks, cut)
+    assert any("recorded apart" in line for line in daemon.log), "".join(daemon.log[-20:])
+
+
+def test_sighup_is_said_and_survived(daemon: Daemon, sim_run: Path) -> None:
+    """SIGHUP (what operators send after rotating certificates) ended the daemon at once, with
+    no log line, no drain and no report to its clients (a helper's trial). It is said, and the
+    daemon goes on serving; SIGTERM still stops it cleanly."""
+    import time
+
+    daemon.proc.send_signal(signal.SIGHUP)
+    for _ in range(100):
+        if any("SIGHUP received" in line for line in daemon.log):
+            break
+        time.sleep(0.1)
+    assert any("SIGHUP received" in line and "restart it" in line for line in daemon.log), "".join(daemon.log[-20:])
+    assert daemon.proc.poll() is None
+    report, _ = stream_run(daemon.listen, sim_run, "after-hup", "r1", chunked=True)
+    assert report["status"] == "completed", report
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert daemon.proc.wait(30) == 0, "".join(daemon.log[-20:])

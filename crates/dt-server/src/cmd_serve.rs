@@ -88,13 +88,19 @@ fn twin_factory(config: &Config) -> anyhow::Result<Arc<dyn TwinFactory>> {
 /// Resolves on SIGTERM or Ctrl-C. The handlers are installed when this is
 /// called (not when the future is first polled), so that a signal arriving
 /// while the daemon is still starting is not lost to its default action.
+/// SIGHUP, which operators send after rotating certificates or tokens, is
+/// said and survived: its default action ended the daemon without a word,
+/// a drain or a report to its clients, and systemd's `Restart=on-failure`
+/// takes such an end for a clean one (a helper's trial). Nothing is
+/// reloaded: the log says to restart.
 fn shutdown_signal() -> impl std::future::Future<Output = ()> {
     #[cfg(unix)]
-    let (term, int) = {
+    let (term, int, hup) = {
         use tokio::signal::unix::{signal, SignalKind};
         (
             signal(SignalKind::terminate()),
             signal(SignalKind::interrupt()),
+            signal(SignalKind::hangup()),
         )
     };
     async move {
@@ -112,9 +118,25 @@ fn shutdown_signal() -> impl std::future::Future<Output = ()> {
                     }
                 }
             };
+            let hups = async move {
+                match hup {
+                    Ok(mut s) => {
+                        while s.recv().await.is_some() {
+                            tracing::warn!(
+                                "SIGHUP received: the daemon reloads nothing (its configuration, \
+                                 certificates, tokens and model are read at start) and goes on; \
+                                 restart it to take new ones (`systemctl restart shocktwin`)"
+                            );
+                        }
+                    }
+                    Err(e) => tracing::error!("cannot listen for SIGHUP: {e}"),
+                }
+                std::future::pending::<()>().await;
+            };
             tokio::select! {
                 () = wait(term, "SIGTERM") => {}
                 () = wait(int, "Ctrl-C") => {}
+                () = hups => {}
             }
         }
         #[cfg(not(unix))]

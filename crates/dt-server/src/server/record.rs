@@ -5,8 +5,15 @@
 //! Files are `<record_dir>/<asset_id>/<run_id>.<part>.mcap` (part 0, 1, …).
 //! A file is written as `….mcap.part` and renamed when finished (on rotation,
 //! at the end of its run, or at shutdown), so a `.mcap` file is always
-//! complete. Names are deterministic: processing the same run again (an inbox
-//! file after a crash) rewrites the same files.
+//! complete. Names are deterministic: processing the same run again to its
+//! end (an inbox file after a crash, a vehicle's retry) rewrites the same
+//! files. Two things would lose a recording that way, and are kept apart as
+//! `<run_id>~<seq>.<part>.mcap` ([`RunInfo::seq`]; `~` is in no run id)
+//! with a warning: a copy of a run processed while another is being
+//! recorded (both wrote one `.part` at once: a corrupt file), and a
+//! processing that did not complete (failed, interrupted) whose last part's
+//! name a finished recording already holds (a cut retry replaced the whole
+//! run's recording).
 
 use std::collections::HashMap;
 use std::fs::File;
@@ -19,7 +26,7 @@ use dt_core::estimate::{Estimate, ESTIMATE_SCHEMA_JSON};
 use dt_core::log::{topic, LogWriter, WriteOptions};
 
 use super::config::RecordConfig;
-use super::sink::{RunEnd, RunInfo, Sink, SinkError};
+use super::sink::{RunEnd, RunInfo, RunOutcome, Sink, SinkError};
 
 /// A writer that knows how far it has written (for rotation by size).
 #[derive(Debug)]
@@ -63,6 +70,9 @@ struct Recording {
     writer: Writer,
     part_path: PathBuf,
     final_path: PathBuf,
+    /// The name kept apart ([`McapRecorder::aside_of`]), when the final
+    /// one is another copy's.
+    aside_path: PathBuf,
     part: u32,
     first_t_ns: i64,
     bytes: Arc<AtomicU64>,
@@ -109,8 +119,27 @@ impl McapRecorder {
         dir.join(asset_id).join(format!("{run_id}.{part:04}.mcap"))
     }
 
+    /// Where a copy of a run's part is kept apart from the run's own
+    /// recording (see the module's doc).
+    fn aside_of(dir: &Path, run: &RunInfo, part: u32) -> PathBuf {
+        let run_id = format!("{}~{}", run.meta.run_id, run.seq);
+        Self::path_of(dir, &run.meta.asset_id, &run_id, part)
+    }
+
     fn start(&self, run: &RunInfo, part: u32, first_t_ns: i64) -> Result<Recording, SinkError> {
-        let final_path = Self::path_of(&self.dir, &run.meta.asset_id, &run.meta.run_id, part);
+        let own = Self::path_of(&self.dir, &run.meta.asset_id, &run.meta.run_id, part);
+        let aside_path = Self::aside_of(&self.dir, run, part);
+        let final_path = if self.open.values().any(|r| r.final_path == own) {
+            tracing::warn!(
+                asset_id = %run.meta.asset_id,
+                run_id = %run.meta.run_id,
+                file = %aside_path.display(),
+                "another copy of this run is being recorded: this one is recorded apart"
+            );
+            aside_path.clone()
+        } else {
+            own
+        };
         let part_path = final_path.with_extension("mcap.part");
         if let Some(parent) = final_path.parent() {
             std::fs::create_dir_all(parent)
@@ -142,19 +171,33 @@ impl McapRecorder {
             writer,
             part_path,
             final_path,
+            aside_path,
             part,
             first_t_ns,
             bytes,
         })
     }
 
-    fn finish(rec: Recording) -> Result<PathBuf, SinkError> {
+    /// Finishes a part: renamed to its final name, or kept apart when that
+    /// name holds a finished recording and this part is the last of a
+    /// processing that did not complete (`whole` false).
+    fn finish(rec: Recording, whole: bool) -> Result<PathBuf, SinkError> {
         let Recording {
             writer,
             part_path,
-            final_path,
+            mut final_path,
+            aside_path,
             ..
         } = rec;
+        if !whole && final_path != aside_path && final_path.exists() {
+            tracing::warn!(
+                file = %aside_path.display(),
+                recorded = %final_path.display(),
+                "a processing of an already recorded run did not complete: its estimates are \
+                 kept apart, the run's recording as it was"
+            );
+            final_path = aside_path;
+        }
         let counting = writer
             .finish()
             .map_err(|e| err(format!("{}: {e}", part_path.display())))?;
@@ -202,7 +245,7 @@ impl Sink for McapRecorder {
             };
             if let Some(next) = rotate {
                 let old = self.open.remove(&run.seq).expect("checked above");
-                Self::finish(old)?;
+                Self::finish(old, true)?; // a whole part
                 self.open.insert(run.seq, self.start(run, next, e.t_ns)?);
             } else if !self.open.contains_key(&run.seq) {
                 self.open.insert(run.seq, self.start(run, 0, e.t_ns)?);
@@ -215,9 +258,10 @@ impl Sink for McapRecorder {
         Ok(())
     }
 
-    fn run_ended(&mut self, run: &RunInfo, _end: &RunEnd) -> Result<(), SinkError> {
+    fn run_ended(&mut self, run: &RunInfo, end: &RunEnd) -> Result<(), SinkError> {
+        let whole = matches!(end.outcome, RunOutcome::Completed);
         match self.open.remove(&run.seq) {
-            Some(rec) => Self::finish(rec).map(|_| ()),
+            Some(rec) => Self::finish(rec, whole).map(|_| ()),
             None => Ok(()),
         }
     }
@@ -225,7 +269,7 @@ impl Sink for McapRecorder {
     fn close(&mut self) -> Result<(), SinkError> {
         let mut first = Ok(());
         for (_, rec) in self.open.drain() {
-            if let Err(e) = Self::finish(rec) {
+            if let Err(e) = Self::finish(rec, false) {
                 if first.is_ok() {
                     first = Err(e);
                 }
