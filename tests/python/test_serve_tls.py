@@ -281,3 +281,50 @@ def test_baselines_are_set_with_the_ingest_role(daemon: ServeProcess, setup: dic
         assert r.status_code == 409 and "observer" in r.json()["error"], r.text
         assert http.get(url, headers={"Authorization": f"Bearer {setup['read']}"}).status_code == 404
         assert http.delete(url, headers={"Authorization": f"Bearer {setup['read']}"}).status_code == 403
+
+
+def test_silent_https_connections_are_bounded_and_closed(setup: dict[str, Any], tmp_path: Path) -> None:
+    """Connections to the HTTPS API that finish their handshake and send no request (a helper
+    trying the daemon as a gateway operator held 377 of them for minutes, until the daemon ran
+    out of file descriptors and its ingest, inbox and API failed): at most
+    `limits.max_http_connections` are held, one beyond them is closed at once, and a silent one
+    is closed after `limits.first_data_timeout_s`; the API then answers again."""
+    pki = setup["pki"]
+    config = tmp_path / "shocktwin.toml"
+    config.write_text(setup["config"].read_text().replace(
+        "[limits]\n", "[limits]\nmax_http_connections = 3\nfirst_data_timeout_s = 2.0\n"))
+    d = ServeProcess([str(BIN), "serve", "--config", str(config), "--listen", "127.0.0.1:0",
+                      "--http", "127.0.0.1:0", "--model", str(BUNDLE), "--no-db"])
+    try:
+        host, port = d.http.rsplit(":", 1)
+        context = ssl.create_default_context(cafile=str(pki.ca_pem))
+        context.set_alpn_protocols(["http/1.1"])
+
+        def silent() -> ssl.SSLSocket:
+            sock = context.wrap_socket(socket.create_connection((host, int(port)), timeout=10),
+                                       server_hostname="127.0.0.1")
+            sock.settimeout(10)
+            return sock
+
+        held = [silent() for _ in range(3)]
+        t0 = time.monotonic()
+        with pytest.raises((ssl.SSLError, ConnectionError, OSError)):  # the fourth: closed at once
+            silent().recv(1)
+        assert time.monotonic() - t0 < 5
+        for _ in range(50):  # the log's reader thread may lag
+            if any("serving its limit of 3 connections" in line for line in d.log):
+                break
+            time.sleep(0.05)
+        assert any("serving its limit of 3 connections" in line for line in d.log), d.text()
+        for sock in held:  # closed by the daemon after first_data_timeout_s without a request
+            try:
+                assert sock.recv(1) == b""
+            except (ssl.SSLError, ConnectionError):
+                pass
+        assert time.monotonic() - t0 < 8, "the silent connections were held past their timeout"
+        for sock in held:
+            sock.close()
+        with client(setup) as http:
+            assert http.get(f"https://{d.http}/healthz").status_code == 200
+    finally:
+        assert d.stop() == 0, d.text()

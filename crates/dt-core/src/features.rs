@@ -1103,9 +1103,11 @@ impl FeaturePipeline {
         let Some(mut state) = prev.thermal else {
             return;
         };
-        if !(gap_s.is_finite() && gap_s > 0.0 && gap_s <= CARRY_THERMAL_MAX_S)
-            || !prev.prev_ambient_c.is_finite()
-        {
+        let carried = gap_s.is_finite()
+            && gap_s > 0.0
+            && gap_s <= CARRY_THERMAL_MAX_S
+            && prev.prev_ambient_c.is_finite();
+        if !carried {
             return;
         }
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)] // ≤ 10,800

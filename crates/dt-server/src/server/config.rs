@@ -146,6 +146,10 @@ pub struct Limits {
     /// connections (a token bucket with one second of burst); a faster peer
     /// is slowed down (read more slowly), not cut off. 0: no limit.
     pub max_ingest_bytes_per_s_per_peer: u64,
+    /// Concurrent connections to the HTTPS API (dashboards, event streams,
+    /// uploads); a client beyond them is closed at once. With TLS only: the
+    /// plain API listens on loopback (or with `--insecure`).
+    pub max_http_connections: usize,
 }
 
 impl Limits {
@@ -171,6 +175,7 @@ impl Default for Limits {
             idle_timeout_s: 120.0,
             history_len: 500,
             max_ingest_bytes_per_s_per_peer: 16 << 20,
+            max_http_connections: 256,
         }
     }
 }
@@ -463,6 +468,7 @@ impl Config {
     }
 
     /// Checks limits and thresholds; the error names the key.
+    #[allow(clippy::too_many_lines)] // one check per key, each naming it
     pub fn validate(&self) -> Result<(), ServeError> {
         let invalid = |key: &str, reason: &str| ServeError::Invalid {
             key: key.to_owned(),
@@ -470,8 +476,13 @@ impl Config {
         };
         self.check_nats()?;
         let l = &self.limits;
-        if l.max_connections == 0 {
-            return Err(invalid("limits.max_connections", "must be at least 1"));
+        for (key, n) in [
+            ("limits.max_connections", l.max_connections),
+            ("limits.max_http_connections", l.max_http_connections),
+        ] {
+            if n == 0 {
+                return Err(invalid(key, "must be at least 1"));
+            }
         }
         if l.max_connections_per_peer == 0 {
             return Err(invalid(

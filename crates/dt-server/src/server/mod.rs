@@ -21,6 +21,7 @@ pub mod baselines;
 pub mod config;
 pub mod estimator;
 pub mod http;
+pub mod http_limits;
 pub mod inbox;
 pub mod ingest;
 pub mod lock;
@@ -231,6 +232,7 @@ fn spawn_https(
     listener: TcpListener,
     app: axum::Router,
     tls: Arc<rustls::ServerConfig>,
+    limits: &config::Limits,
     stop: CancellationToken,
 ) -> Result<tokio::task::JoinHandle<std::io::Result<()>>, ServeError> {
     let io = |source| ServeError::Io {
@@ -239,12 +241,20 @@ fn spawn_https(
     };
     let listener = listener.into_std().map_err(io)?;
     let handle = axum_server::Handle::new();
-    let server = axum_server::from_tcp_rustls(
+    let held = http_limits::Bounded::new(limits.max_http_connections);
+    let mut server = axum_server::from_tcp_rustls(
         listener,
         axum_server::tls_rustls::RustlsConfig::from_config(tls),
     )
     .map_err(io)?
+    .map(|tls| {
+        http_limits::FirstBytesWithin::new(
+            tls.acceptor(held),
+            Duration::from_secs_f64(limits.first_data_timeout_s),
+        )
+    })
     .handle(handle.clone());
+    http_limits::bound_requests(server.http_builder(), limits);
     tokio::spawn(async move {
         stop.cancelled().await;
         handle.graceful_shutdown(Some(Duration::from_secs(5)));
@@ -479,7 +489,7 @@ pub async fn run(
                 .with_graceful_shutdown(http_stop.clone().cancelled_owned())
                 .into_future(),
         ),
-        Some(tls) => spawn_https(listeners.http, app, tls, http_stop.clone())?,
+        Some(tls) => spawn_https(listeners.http, app, tls, &config.limits, http_stop.clone())?,
     };
     tracing::info!(http = %http_addr, twin = %twins.describe(), "serving");
 

@@ -1,0 +1,260 @@
+//! Bounds of the HTTPS API against clients that hold connections open.
+//!
+//! A helper trying the daemon as a gateway operator opened 377 TLS
+//! connections to the API that finished their handshake and sent no
+//! request: they were held for ever, until the daemon ran out of file
+//! descriptors and its TCP ingest, inbox and API all failed (a vehicle's
+//! report took 400 s). Now:
+//! - at most `limits.max_http_connections` connections are held at once; one
+//!   beyond them is closed as soon as it is accepted, before its TLS
+//!   handshake (and said in the log, as the ingest's refusals are);
+//! - after its TLS handshake a connection must send its first bytes within
+//!   `limits.first_data_timeout_s` ([`FirstBytes`]), and an HTTP/1
+//!   request's head, once begun, must be whole within as long (hyper's
+//!   header-read timeout, which starts with the head's first bytes), else
+//!   the connection is closed;
+//! - an HTTP/2 connection's peer is pinged every `limits.idle_timeout_s` and
+//!   dropped when it does not answer within `first_data_timeout_s`.
+//!
+//! The TLS handshake itself is bounded by axum-server (10 s). A client that
+//! keeps its connections busy can still take the API's slots (not the
+//! ingest's, nor the inbox's): `docs/security.md` says so.
+
+use std::future::{Future, Ready};
+use std::io;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::Duration;
+
+use axum_server::accept::Accept;
+use hyper_util::rt::{TokioExecutor, TokioTimer};
+use hyper_util::server::conn::auto::Builder;
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::TcpStream;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::time::Sleep;
+
+use super::config::Limits;
+
+/// The request bounds of the list above, set on the server's builder.
+pub fn bound_requests(builder: &mut Builder<TokioExecutor>, limits: &Limits) {
+    let first = Duration::from_secs_f64(limits.first_data_timeout_s);
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .header_read_timeout(first);
+    builder
+        .http2()
+        .timer(TokioTimer::new())
+        .keep_alive_interval(Duration::from_secs_f64(limits.idle_timeout_s))
+        .keep_alive_timeout(first);
+}
+
+/// An acceptor (before TLS) that holds one of a fixed number of slots for
+/// each connection, and closes one for which none is free.
+#[derive(Debug, Clone)]
+pub struct Bounded {
+    slots: Arc<Semaphore>,
+    max: usize,
+}
+
+impl Bounded {
+    /// At most `max` connections at once.
+    #[must_use]
+    pub fn new(max: usize) -> Self {
+        Self {
+            slots: Arc::new(Semaphore::new(max)),
+            max,
+        }
+    }
+}
+
+impl<S> Accept<TcpStream, S> for Bounded {
+    type Stream = Held<TcpStream>;
+    type Service = S;
+    type Future = Ready<io::Result<(Self::Stream, Self::Service)>>;
+
+    fn accept(&self, stream: TcpStream, service: S) -> Self::Future {
+        let Ok(slot) = Arc::clone(&self.slots).try_acquire_owned() else {
+            let peer = stream
+                .peer_addr()
+                .map_or_else(|e| e.to_string(), |a| a.to_string());
+            let reason = format!(
+                "the API is serving its limit of {} connections (limits.max_http_connections)",
+                self.max
+            );
+            tracing::warn!(%peer, "HTTPS connection closed: {reason}");
+            return std::future::ready(Err(io::Error::other(reason)));
+        };
+        let held = Held {
+            inner: stream,
+            _slot: slot,
+        };
+        std::future::ready(Ok((held, service)))
+    }
+}
+
+/// A connection and the slot it holds until it is dropped.
+#[derive(Debug)]
+pub struct Held<T> {
+    inner: T,
+    _slot: OwnedSemaphorePermit,
+}
+
+impl<T: AsyncRead + Unpin> AsyncRead for Held<T> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for Held<T> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[io::IoSlice<'_>],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+}
+
+/// An acceptor around another (the TLS one) whose streams must bring their
+/// first bytes within a deadline ([`FirstBytes`]).
+#[derive(Debug, Clone)]
+pub struct FirstBytesWithin<A> {
+    inner: A,
+    within: Duration,
+}
+
+impl<A> FirstBytesWithin<A> {
+    /// `inner`'s streams, each closed unless it sends within `within`.
+    pub fn new(inner: A, within: Duration) -> Self {
+        Self { inner, within }
+    }
+}
+
+impl<A, I, S> Accept<I, S> for FirstBytesWithin<A>
+where
+    A: Accept<I, S>,
+    A::Future: Send + 'static,
+{
+    type Stream = FirstBytes<A::Stream>;
+    type Service = A::Service;
+    type Future = Pin<Box<dyn Future<Output = io::Result<(Self::Stream, Self::Service)>> + Send>>;
+
+    fn accept(&self, stream: I, service: S) -> Self::Future {
+        let accepted = self.inner.accept(stream, service);
+        let within = self.within;
+        Box::pin(async move {
+            let (stream, service) = accepted.await?;
+            Ok((
+                FirstBytes {
+                    inner: stream,
+                    deadline: Some(Box::pin(tokio::time::sleep(within))),
+                },
+                service,
+            ))
+        })
+    }
+}
+
+/// A stream whose reads fail with `TimedOut` when its first bytes do not
+/// come before its deadline (then it reads as the stream it wraps).
+pub struct FirstBytes<T> {
+    inner: T,
+    deadline: Option<Pin<Box<Sleep>>>,
+}
+
+impl<T> std::fmt::Debug for FirstBytes<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FirstBytes")
+            .field("waiting", &self.deadline.is_some())
+            .finish_non_exhaustive()
+    }
+}
+
+impl<T: AsyncRead + Unpin> AsyncRead for FirstBytes<T> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        let before = buf.filled().len();
+        let this = &mut *self;
+        match Pin::new(&mut this.inner).poll_read(cx, buf) {
+            Poll::Ready(Ok(())) if buf.filled().len() > before => {
+                this.deadline = None;
+                Poll::Ready(Ok(()))
+            }
+            Poll::Pending => {
+                let late = this
+                    .deadline
+                    .as_mut()
+                    .is_some_and(|deadline| deadline.as_mut().poll(cx).is_ready());
+                if late {
+                    Poll::Ready(Err(io::Error::new(
+                        io::ErrorKind::TimedOut,
+                        "no request within limits.first_data_timeout_s",
+                    )))
+                } else {
+                    Poll::Pending
+                }
+            }
+            other @ Poll::Ready(_) => other,
+        }
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for FirstBytes<T> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[io::IoSlice<'_>],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+}
