@@ -476,3 +476,38 @@ def test_a_slow_logger_keeps_its_rate_and_a_stub_is_refused(tmp_path: Path) -> N
         t, rows = topics[topic]
         assert np.array_equal(t, np.arange(30) * 2_000_000_000), (topic, t[:5])
         assert np.allclose([r[field] for r in rows], want, rtol=0, atol=1e-12), topic
+
+
+def test_a_glitch_in_a_slow_channel_is_dropped_and_said(exports: dict[str, Path], tmp_path: Path) -> None:
+    """One row of a logger's glitch (a displacement of 25 m; a thermocouple's -999 degC error
+    value over a few rows) was imported as read: the resampler smeared the displacement over
+    0.1 s of +-65 mm, and a run's estimate read 2,509 bar there and stayed 4 bar off (a helper's
+    trial). Such rows are dropped, counted by reason in the report, and the rest of the run is
+    imported as its clean twin is."""
+    src = exports["csv"] / "dyno-unit-A_101.5psi_2Hz_s1.csv"
+    lines = src.read_text().splitlines(keepends=True)
+    header = next(i for i, line in enumerate(lines) if line.startswith("Timestamp,"))
+    cols = lines[header].strip().split(",")
+    bad = list(lines)
+    n_rows = len(lines) - header - 1
+    spike_at = header + 1 + n_rows // 3
+    row = bad[spike_at].rstrip("\n").split(",")
+    row[cols.index("Displacement [mm]")] = "25000.0"
+    bad[spike_at] = ",".join(row) + "\n"
+    for k in range(3):
+        row = bad[header + 1 + 2 * n_rows // 3 + k].rstrip("\n").split(",")
+        row[cols.index("Temperature [°C]")] = "-999.0"
+        bad[header + 1 + 2 * n_rows // 3 + k] = ",".join(row) + "\n"
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / src.name).write_text("".join(bad))
+    done = shocktwin("import", "--map", MAP, "--out", tmp_path / "bad-out", tmp_path / "bad" / src.name)
+    assert 'skipped 1 rows: column "Displacement [mm]": far off the samples around it (a glitch)' in done.stdout, done.stdout
+    assert 'skipped 3 rows: column "Temperature [°C]": below absolute zero' in done.stdout, done.stdout
+    shocktwin("import", "--map", MAP, "--out", tmp_path / "clean-out", src)
+    _, got = read_mcap(tmp_path / "bad-out" / (src.stem + ".mcap"))
+    _, want = read_mcap(tmp_path / "clean-out" / (src.stem + ".mcap"))
+    # (one row fewer moves the resampled positions beside it by a tenth of a millimetre)
+    for topic, field, tolerance in [("/position", "position_m", 5e-4), ("/temperature/shock", "temperature_c", 0.5)]:
+        x_got = np.array([r[field] for r in got[topic][1]])
+        x_want = np.interp(got[topic][0], want[topic][0], np.array([r[field] for r in want[topic][1]]))
+        assert np.max(np.abs(x_got - x_want)) < tolerance, (topic, np.max(np.abs(x_got - x_want)))

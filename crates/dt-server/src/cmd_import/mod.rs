@@ -130,6 +130,10 @@ fn import_file(
             *t += dt;
         }
     }
+    drop_glitches(map, &mut table);
+    if table.t_ns.len() < 2 {
+        bail!("{file}: fewer than two data rows left: nothing to import");
+    }
     if let (Some(stroke), Some(position)) = (map.stroke_pp_m, &map.position) {
         // the position is the first value column (`Mapping::value_columns`)
         check_stroke(&file, &position.name, &table.values[0], stroke)?;
@@ -549,6 +553,87 @@ fn resample_stretches(
         series,
         left_out,
     })
+}
+
+/// The samples around each one that [`drop_glitches`] compares it with.
+const GLITCH_HALF_WINDOW: usize = 3;
+
+/// Drops the rows where a slow channel reads what it cannot: a temperature
+/// below absolute zero (a thermocouple's open-circuit value, −999 °F), or a
+/// position or temperature far off the median of the samples around it
+/// (more than half the column's span between its 0.1 % and 99.9 % points,
+/// and at least 5 mm or 20 °C): one bad row of a logger. Kept, one position
+/// sample of 999 in among 70,000 was smeared by the resampler over 0.1 s of
+/// ±65 mm, and the run's estimate read 2,509 bar there and stayed 4 bar off
+/// for the rest of the run (a helper's trial). The rows are counted as
+/// skipped, by reason, in the import's report. Accelerations and forces are
+/// left as they are: a knock is a real spike.
+fn drop_glitches(map: &Mapping, table: &mut table::Table) {
+    const ABSOLUTE_ZERO_C: f64 = -273.15;
+    let columns = map.value_columns();
+    let slow = |c: &map::Column| -> Option<f64> {
+        let is = |o: Option<&map::Column>| o.is_some_and(|o| std::ptr::eq(o, c));
+        if is(map.position.as_ref()) {
+            Some(0.005)
+        } else if is(map.temp_shock.as_ref()) || is(map.temp_ambient.as_ref()) {
+            Some(20.0)
+        } else {
+            None
+        }
+    };
+    for (j, column) in columns.iter().enumerate() {
+        let Some(floor) = slow(column) else { continue };
+        let v = &table.values[j];
+        let temperature = floor > 1.0;
+        let below_zero: Vec<bool> = v
+            .iter()
+            .map(|&x| temperature && x < ABSOLUTE_ZERO_C)
+            .collect();
+        if below_zero.iter().any(|&b| b) {
+            table.drop_rows(
+                &below_zero,
+                &format!(
+                    "column {:?}: below absolute zero (a thermocouple's error value)",
+                    column.name
+                ),
+            );
+        }
+        let v = &table.values[j];
+        let n = v.len();
+        if n < 2 * GLITCH_HALF_WINDOW + 1 {
+            continue;
+        }
+        let mut sorted = v.clone();
+        sorted.sort_by(f64::total_cmp);
+        #[allow(
+            clippy::cast_possible_truncation,
+            clippy::cast_sign_loss,
+            clippy::cast_precision_loss
+        )]
+        let at = |q: f64| sorted[((n - 1) as f64 * q).round() as usize];
+        let limit = (0.5 * (at(0.999) - at(0.001))).max(floor);
+        let mut window = Vec::with_capacity(2 * GLITCH_HALF_WINDOW + 1);
+        let far: Vec<bool> = (0..n)
+            .map(|i| {
+                let lo = i.saturating_sub(GLITCH_HALF_WINDOW);
+                let hi = (i + GLITCH_HALF_WINDOW + 1).min(n);
+                window.clear();
+                window.extend_from_slice(&v[lo..hi]);
+                let mid = window.len() / 2;
+                let median = *window.select_nth_unstable_by(mid, f64::total_cmp).1;
+                (v[i] - median).abs() > limit
+            })
+            .collect();
+        if far.iter().any(|&b| b) {
+            table.drop_rows(
+                &far,
+                &format!(
+                    "column {:?}: far off the samples around it (a glitch)",
+                    column.name
+                ),
+            );
+        }
+    }
 }
 
 /// The positions may span at most this many times the stated stroke: beyond

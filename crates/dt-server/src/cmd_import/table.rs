@@ -56,11 +56,29 @@ impl Table {
         }
     }
 
+    /// Drops the rows where `bad` is true, counted as skipped for `reason`.
+    pub fn drop_rows(&mut self, bad: &[bool], reason: &str) {
+        for (i, _) in bad.iter().enumerate().filter(|(_, b)| **b) {
+            self.skip(reason.to_owned(), self.lines[i]);
+        }
+        keep_rows(&mut self.t_ns, bad);
+        keep_rows(&mut self.lines, bad);
+        for v in &mut self.values {
+            keep_rows(v, bad);
+        }
+    }
+
     /// Total skipped rows.
     #[must_use]
     pub fn skipped_rows(&self) -> u64 {
         self.skipped.values().map(|(n, _)| n).sum()
     }
+}
+
+/// `v` without the rows where `bad` is true.
+fn keep_rows<T>(v: &mut Vec<T>, bad: &[bool]) {
+    let mut k = bad.iter();
+    v.retain(|_| !k.next().copied().unwrap_or(false));
 }
 
 /// Line numbers of byte offsets of a file, whatever its line ends: `\n`,
