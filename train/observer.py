@@ -777,6 +777,12 @@ def own_model_on_the_line(cal: dict[str, Any], alt: dict[str, Any], fastest: flo
     return out
 
 
+def data_kind(campaign: Any) -> str:
+    """``simulated data`` or ``dyno data``, as the campaign's logs say (``train.fit_physics``'s
+    words): a calibration on a real damper's runs was printed as simulated."""
+    return "simulated data" if campaign.simulated else "dyno data"
+
+
 def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
                    per_run: int, min_span_k: float, beta_per_k: float | None = None,
                    form: str = "hinges", loadcell: bool = False, complete: bool = True) -> dict[str, Any] | None:
@@ -836,7 +842,7 @@ def damping_law_of(campaign: Any, physics: dict[str, Any], obs: dict[str, Any],
             fit = fit_twin_law_windows(wins, physics, obs, start=fit, loadcell=rows)
             print(f"damping law with the loadcell rows: the loadcell {fit['loadcell_rms_n']:.1f} N RMS")
     print(f"damping law near reversals from {fit['windows']} reversal windows of {len(runs)} "
-          f"{'runs' if complete else 'nominal runs'} (simulated data): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
+          f"{'runs' if complete else 'nominal runs'} ({data_kind(campaign)}): residual {fit['residual_rms_mps2']:.3f} m/s² RMS "
           f"(viscosity coefficient {fit['law']['beta_per_k']:.4f} /K, "
           f"{'fitted' if beta_per_k is None else 'the datasheet oil'})")
     return fit["law"]
@@ -1084,7 +1090,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             r.name: (k if np.isfinite(k) else None) for r, k in zip(campaign.runs, rod_scales)}
     out = args.out or args.physics
     out.write_text(json.dumps(physics, indent=2) + "\n")
-    print("Charge observer calibration (simulated data), measurement model alpha = "
+    print(f"Charge observer calibration ({data_kind(campaign)}), measurement model alpha = "
           f"{o['step_offset_n']:.2f} {o['step_dir_n']:+.2f} sgn(a) {o['step_per_accel_ns2pm']:+.3f} |a| "
           f"+ ({o['step_per_bar_n']:.3f} {o['step_per_bar_accel']:+.4f} |a|) p_g  (N), per-reversal sd "
           f"{o['step_sd_n']:.2f} N")
