@@ -326,5 +326,23 @@ def test_silent_https_connections_are_bounded_and_closed(setup: dict[str, Any], 
             sock.close()
         with client(setup) as http:
             assert http.get(f"https://{d.http}/healthz").status_code == 200
+
+        # The same on the TCP ingest: a vehicle with its certificate that sends nothing after its
+        # handshake was held for the whole idle timeout (120 s), not first_data_timeout_s.
+        vehicle = ssl.create_default_context(cafile=str(pki.ca_pem))
+        pki.vehicle.configure_cert(vehicle)
+        ihost, iport = d.listen.rsplit(":", 1)
+        t1 = time.monotonic()
+        with vehicle.wrap_socket(socket.create_connection((ihost, int(iport)), timeout=10),
+                                 server_hostname="localhost") as sock:
+            sock.settimeout(10)
+            reply = b""
+            try:
+                while chunk := sock.recv(65536):
+                    reply += chunk
+            except (ssl.SSLError, ConnectionError):
+                pass
+        assert time.monotonic() - t1 < 6, "a silent vehicle was held past first_data_timeout_s"
+        assert b"first_data_timeout_s" in reply, reply
     finally:
         assert d.stop() == 0, d.text()

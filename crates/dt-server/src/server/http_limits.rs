@@ -171,22 +171,27 @@ where
         let within = self.within;
         Box::pin(async move {
             let (stream, service) = accepted.await?;
-            Ok((
-                FirstBytes {
-                    inner: stream,
-                    deadline: Some(Box::pin(tokio::time::sleep(within))),
-                },
-                service,
-            ))
+            Ok((FirstBytes::new(stream, within), service))
         })
     }
 }
 
 /// A stream whose reads fail with `TimedOut` when its first bytes do not
-/// come before its deadline (then it reads as the stream it wraps).
+/// come before its deadline (then it reads as the stream it wraps). The
+/// TCP ingest's TLS connections use it too.
 pub struct FirstBytes<T> {
     inner: T,
     deadline: Option<Pin<Box<Sleep>>>,
+}
+
+impl<T> FirstBytes<T> {
+    /// `inner`, whose first bytes must come within `within`.
+    pub fn new(inner: T, within: Duration) -> Self {
+        Self {
+            inner,
+            deadline: Some(Box::pin(tokio::time::sleep(within))),
+        }
+    }
 }
 
 impl<T> std::fmt::Debug for FirstBytes<T> {
@@ -218,7 +223,7 @@ impl<T: AsyncRead + Unpin> AsyncRead for FirstBytes<T> {
                 if late {
                     Poll::Ready(Err(io::Error::new(
                         io::ErrorKind::TimedOut,
-                        "no request within limits.first_data_timeout_s",
+                        "nothing sent within limits.first_data_timeout_s of the TLS handshake",
                     )))
                 } else {
                     Poll::Pending

@@ -228,6 +228,10 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
                     let acceptor = tokio_rustls::TlsAcceptor::from(config);
                     match tokio::time::timeout(limits.first_data, acceptor.accept(socket)).await {
                         Ok(Ok(stream)) => {
+                            // Its first bytes within as long after the
+                            // handshake: a vehicle's certificate does not buy
+                            // a silent slot for the whole idle timeout.
+                            let stream = super::http_limits::FirstBytes::new(stream, limits.first_data);
                             serve_connection(&ingest, stream, peer, &cancel, limits.idle, rate)
                                 .await;
                         }
