@@ -330,3 +330,18 @@ def test_sighup_is_said_and_survived(daemon: Daemon, sim_run: Path) -> None:
     assert report["status"] == "completed", report
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(30) == 0, "".join(daemon.log[-20:])
+
+
+def test_a_missing_inbox_is_said_when_created(shocktwin: Path, tmp_path: Path) -> None:
+    """A mistyped inbox path was created without a word (a helper's trial: the warning the inbox
+    had was never reached, the lock file having made the directory first), and files dropped
+    into the real inbox were never taken."""
+    from conftest import ServeProcess
+
+    d = ServeProcess([str(shocktwin), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
+                      "--model", str(BUNDLE), "--no-db", "--inbox", str(tmp_path / "nope-inbox")])
+    try:
+        assert any("the inbox's directory did not exist: created it" in line and "nope-inbox" in line
+                   for line in d.log), d.text()
+    finally:
+        assert d.stop() == 0, d.text()

@@ -58,6 +58,12 @@ fn lock(what: &'static str, path: &Path) -> Result<File, ServeError> {
         error,
     };
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        if !parent.exists() {
+            // a mistyped inbox was created without a word (the inbox's own
+            // warning came after this had made it), and files dropped into
+            // the real one were never taken
+            tracing::warn!(dir = %parent.display(), "the {what}'s directory did not exist: created it");
+        }
         std::fs::create_dir_all(parent).map_err(io)?;
     }
     let mut file = OpenOptions::new()
