@@ -217,6 +217,28 @@ def test_a_wrong_tls_or_token_file_is_named_for_what_it_is(setup: dict[str, Any]
     err = refusal(f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\n',
                   f'[auth]\nread_tokens_file = "{tmp_path / "nope.tokens"}"\n')
     assert "configuration `auth`" in err and "nope.tokens" in err, err
+    # token files as operators get them wrong (another helper's trial): the header's `Bearer `
+    # copied in (the real token then failed with 401), one token in both files (it had the read
+    # role alone), a short token (accepted without a word)
+    tls = f'[tls]\ncert = "{pki.cert}"\nkey = "{pki.key}"\n'
+    bearer = tmp_path / "bearer.tokens"
+    bearer.write_text("# dashboard\nBearer " + "x" * 32 + "\n")
+    err = refusal(tls, f'[auth]\nread_tokens_file = "{bearer}"\n')
+    assert "bearer.tokens:2: the line starts with `Bearer `" in err, err
+    both = tmp_path / "both.tokens"
+    both.write_text("y" * 32 + "\n")
+    err = refusal(tls, f'[auth]\nread_tokens_file = "{both}"\ningest_tokens_file = "{both}"\n')
+    assert "in both the read_tokens_file and the ingest_tokens_file" in err, err
+    short = tmp_path / "short.tokens"
+    short.write_text("abc12\n")
+    short.chmod(0o600)
+    d = ServeProcess([str(BIN), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--model", str(BUNDLE),
+                      "--no-db", "--config", str(_write(tmp_path / "short.toml", tls + f'[auth]\nread_tokens_file = "{short}"\n'))])
+    try:
+        assert any("a token of 5 characters is easy to guess" in line for line in d.log), d.text()
+        assert "abc12" not in d.text()
+    finally:
+        assert d.stop() == 0, d.text()
     # a protected daemon says so when it starts
     d = ServeProcess([str(BIN), "serve", "--config", str(setup["config"]), "--listen", "127.0.0.1:0",
                       "--http", "127.0.0.1:0", "--model", str(BUNDLE), "--no-db"])
@@ -346,3 +368,8 @@ def test_silent_https_connections_are_bounded_and_closed(setup: dict[str, Any], 
         assert b"first_data_timeout_s" in reply, reply
     finally:
         assert d.stop() == 0, d.text()
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path

@@ -80,6 +80,9 @@ fn warn_if_shared(path: &std::path::Path) {
     let _ = path;
 }
 
+/// A token shorter than this is warned of at start.
+const MIN_TOKEN_CHARS: usize = 16;
+
 fn digest(token: &str) -> [u8; 32] {
     Sha256::digest(token.as_bytes()).into()
 }
@@ -95,12 +98,36 @@ impl Tokens {
                 key: "auth".into(),
                 reason: format!("{}: cannot read it: {e}", path.display()),
             })?;
-            let tokens: Vec<[u8; 32]> = text
-                .lines()
-                .map(str::trim)
-                .filter(|l| !l.is_empty() && !l.starts_with('#'))
-                .map(digest)
-                .collect();
+            let mut tokens = Vec::new();
+            for (i, line) in text.lines().enumerate() {
+                let token = line.trim();
+                if token.is_empty() || token.starts_with('#') {
+                    continue;
+                }
+                // what an operator gets wrong (a helper's trial): the header's
+                // word copied in made the real token fail with 401
+                if token.len() > 7 && token[..7].eq_ignore_ascii_case("bearer ") {
+                    return Err(ServeError::Invalid {
+                        key: "auth".into(),
+                        reason: format!(
+                            "{}:{}: the line starts with `Bearer `: write the token alone (clients \
+                             send it as `Authorization: Bearer <token>`)",
+                            path.display(),
+                            i + 1
+                        ),
+                    });
+                }
+                if token.len() < MIN_TOKEN_CHARS {
+                    tracing::warn!(
+                        file = %path.display(),
+                        line = i + 1,
+                        "a token of {} characters is easy to guess: use at least {MIN_TOKEN_CHARS} \
+                         random ones (`openssl rand -hex 32`)",
+                        token.len()
+                    );
+                }
+                tokens.push(digest(token));
+            }
             if tokens.is_empty() {
                 return Err(ServeError::Invalid {
                     key: "auth".into(),
@@ -110,10 +137,21 @@ impl Tokens {
             warn_if_shared(path);
             Ok(tokens)
         };
-        Ok(Self {
+        let tokens = Self {
             read: read(&config.auth.read_tokens_file)?,
             ingest: read(&config.auth.ingest_tokens_file)?,
-        })
+        };
+        // One token in both files had the read role alone, and its uploads
+        // were refused as a read token's (a helper's trial).
+        if tokens.read.iter().any(|t| tokens.ingest.contains(t)) {
+            return Err(ServeError::Invalid {
+                key: "auth".into(),
+                reason: "a token is in both the read_tokens_file and the ingest_tokens_file: give \
+                         each token one role (a client that reads and uploads uses two)"
+                    .into(),
+            });
+        }
+        Ok(tokens)
     }
 
     /// Tokens from lists (tests).
