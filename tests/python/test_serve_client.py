@@ -345,3 +345,25 @@ def test_a_missing_inbox_is_said_when_created(shocktwin: Path, tmp_path: Path) -
                    for line in d.log), d.text()
     finally:
         assert d.stop() == 0, d.text()
+
+
+def test_a_service_for_an_asset_never_seen_is_noted(shocktwin: Path, sim_run: Path, tmp_path: Path) -> None:
+    """A service reported for a mistyped asset id was answered `202` like any other (a helper's
+    trial): it would wait for a run that never comes. The answer (and the log) now says the
+    asset has not been seen; one the daemon knows gets no such note."""
+    from conftest import ServeProcess
+
+    d = ServeProcess([str(shocktwin), "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
+                      "--model", str(ROOT / "docs" / "study" / "bundles" / "perm-18"),
+                      "--db", str(tmp_path / "fleet.sqlite")])
+    try:
+        with httpx.Client(timeout=30) as client:
+            r = client.put(f"http://{d.http}/v1/assets/van-O7/service", json={"charge_bar": 12})
+            assert r.status_code == 202, r.text
+            assert "has not been seen by this daemon" in r.json()["note"], r.json()
+            report, _ = stream_run(d.listen, sim_run, "van-07", "r1", chunked=True)
+            assert report["status"] == "completed", report
+            r = client.put(f"http://{d.http}/v1/assets/van-07/service", json={"charge_bar": 12})
+            assert r.status_code == 202 and "note" not in r.json(), r.json()
+    finally:
+        assert d.stop() == 0, d.text()

@@ -750,7 +750,18 @@ async fn put_service(
         return r;
     }
     tracing::info!(asset = %id, charge_bar, "service reported; the unit's baseline is read from its next run");
-    (StatusCode::ACCEPTED, Json(view)).into_response()
+    let mut answer = serde_json::to_value(&view).unwrap_or_default();
+    // A mistyped asset id was accepted like any other (a helper's trial):
+    // its service would wait for a run that never comes.
+    if app.live.detail(&id, Some(0)).is_none() && !app.config.assets.contains_key(&id) {
+        let note = format!(
+            "asset `{id}` has not been seen by this daemon nor is it in its configuration: the \
+             service waits for its first run (is the id right? GET /v1/assets lists the known ones)"
+        );
+        tracing::warn!(asset = %id, "{note}");
+        answer["note"] = note.into();
+    }
+    (StatusCode::ACCEPTED, Json(answer)).into_response()
 }
 
 async fn delete_service(State(app): State<AppState>, Path(id): Path<String>) -> Response {
