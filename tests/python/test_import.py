@@ -511,3 +511,21 @@ def test_a_glitch_in_a_slow_channel_is_dropped_and_said(exports: dict[str, Path]
         x_got = np.array([r[field] for r in got[topic][1]])
         x_want = np.interp(got[topic][0], want[topic][0], np.array([r[field] for r in want[topic][1]]))
         assert np.max(np.abs(x_got - x_want)) < tolerance, (topic, np.max(np.abs(x_got - x_want)))
+
+
+def test_a_time_column_in_milliseconds_read_as_seconds_is_warned_of(tmp_path: Path) -> None:
+    """A time column in ms without a unit in its header imported a 70 s run as 19 h at 1 Hz
+    without a word, and its replay wrote 3.5 M rows (a helper's trial); the report warns now."""
+    t_ms = np.arange(3000) * (1000.0 / 300.0)
+    pos = 40.0 * np.sin(2 * np.pi * 2.0 * t_ms / 1000.0)
+    csv = tmp_path / "ms.csv"
+    csv.write_text("Time,Pos\n" + "".join(f"{t:.3f},{p:.3f}\n" for t, p in zip(t_ms, pos)))
+    done = shocktwin("import", "--time", "Time", "--position", "Pos", "--position-unit", "mm", "--asset-id", "u1",
+                     "--charge", "12 bar", "--out", tmp_path / "out", csv)
+    assert "warning: the rows come at" in done.stdout and "--time-format elapsed_ms" in done.stdout, done.stdout
+    done = shocktwin("import", "--time", "Time", "--time-format", "elapsed_ms", "--position", "Pos", "--position-unit",
+                     "mm", "--asset-id", "u1", "--charge", "12 bar", "--out", tmp_path / "out2", csv)
+    assert "warning: the rows come at" not in done.stdout, done.stdout
+    done = shocktwin("import", "--time", "Time", "--time-format", "elapsed_ms", "--position", "Pos", "--position-unit",
+                     "mm", "--asset-id", "u1", "--charge=-3 bar", "--out", tmp_path / "out3", csv, check=False)
+    assert done.returncode != 0 and "below vacuum" in done.stderr, done.stderr

@@ -754,18 +754,36 @@ pub fn charge_bar(label: &str) -> anyhow::Result<f64> {
     let value: f64 = number.trim().parse().map_err(|_| {
         anyhow::anyhow!("charge {label:?}: expected a number and a unit, e.g. \"150 psi\"")
     })?;
+    if unit.starts_with(',') && unit[1..].starts_with(|c: char| c.is_ascii_digit()) {
+        bail!(
+            "charge {label:?}: written with a decimal comma? write it with a point (\"1.2 bar\")"
+        );
+    }
     let unit = unit.trim().to_ascii_lowercase();
     let bar = match unit.as_str() {
         "bar" | "barg" => value,
         "bara" => value - ATM_BAR,
+        "mbar" => value / 1000.0,
         "psi" | "psig" => value / dt_sim::export::PSI_PER_BAR,
         "psia" => value / dt_sim::export::PSI_PER_BAR - ATM_BAR,
+        "pa" => value / 1e5,
         "kpa" => value / 100.0,
         "mpa" => value * 10.0,
-        _ => bail!("charge {label:?}: unit {unit:?} is not one of psi, psia, bar, bara, kPa, MPa"),
+        _ => bail!(
+            "charge {label:?}: unit {unit:?} is not one of psi, psia, bar, bara, mbar, Pa, kPa, MPa"
+        ),
     };
     if !bar.is_finite() {
         bail!("charge {label:?}: not a finite pressure");
+    }
+    // A gauge pressure below vacuum cannot be (a helper's trial: `-3 bar` was
+    // imported as a label, and scored against).
+    if bar < -ATM_BAR {
+        bail!(
+            "charge {label:?}: {bar:.3} bar gauge is below vacuum ({:.3} bar gauge): is the \
+             sign or the unit wrong?",
+            -ATM_BAR
+        );
     }
     Ok(bar)
 }
@@ -963,6 +981,14 @@ mod tests {
         let err = charge_bar("150 atm").unwrap_err().to_string();
         assert!(err.contains("\"atm\"") && err.contains("psi"), "{err}");
         assert!(charge_bar("lots psi").is_err());
+        // what a helper's trial found: units fit_physics takes, a decimal comma, below vacuum
+        assert!((charge_bar("5000 mbar").unwrap() - 5.0).abs() < 1e-12);
+        assert!((charge_bar("500000 Pa").unwrap() - 5.0).abs() < 1e-12);
+        let err = charge_bar("1,2 bar").unwrap_err().to_string();
+        assert!(err.contains("decimal comma"), "{err}");
+        let err = charge_bar("-3 bar").unwrap_err().to_string();
+        assert!(err.contains("below vacuum"), "{err}");
+        assert!((charge_bar("-0.5 bar").unwrap() + 0.5).abs() < 1e-12);
     }
 
     #[test]

@@ -248,6 +248,17 @@ fn import_file(
     for what in convention_warnings(&samples, map.stroke_pp_m) {
         let _ = write!(report, "\n  warning: {what}");
     }
+    if rate.hz() < SLOWEST_PLAUSIBLE_ROWS_HZ {
+        // a time column in ms read as seconds imported a 70 s run as 19 h at
+        // 1 Hz without a word, and its replay wrote 3.5 M rows (a helper's trial)
+        let _ = write!(
+            report,
+            "\n  warning: the rows come at {rate} Hz, {duration_s:.0} s in all: a dyno logs at \
+             hundreds of rows a second. Is the time column in milliseconds or microseconds read \
+             as seconds (`[time] format`, --time-format elapsed_ms; it was read as {})?",
+            map.time_format.key()
+        );
+    }
     for (topic, what) in [
         (
             "/acceleration",
@@ -554,6 +565,10 @@ fn resample_stretches(
         left_out,
     })
 }
+
+/// Rows slower than this are warned of: the time column's unit is likely
+/// wrong.
+const SLOWEST_PLAUSIBLE_ROWS_HZ: f64 = 20.0;
 
 /// The samples around each one that [`drop_glitches`] compares it with.
 const GLITCH_HALF_WINDOW: usize = 3;
