@@ -1082,7 +1082,11 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
             r.run_id,
             r.label_bar.map_or("-".into(), |l| format!("{l:.2}")),
             r.tally.ticks,
-            last.map_or("-".into(), |e| format!("{:.2}", e.pressure_avg_bar)),
+            last.map_or("-".into(), |e| if e.pressure_avg_bar.is_finite() {
+                format!("{:.2}", e.pressure_avg_bar)
+            } else {
+                "n/a".into() // no usable tick in the run's last second
+            }),
             inst,
             avg,
             last.map_or("-".into(), |e| e.health.to_string()),
