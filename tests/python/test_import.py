@@ -183,7 +183,9 @@ def good_rows(n: int = 600, start_ms: int = 0) -> list[str]:
 @pytest.mark.parametrize(
     ("damage", "expected"),
     [
-        (lambda r: r.__setitem__(100, r[100].replace(",25.0", ",")), [":103:", "Temperature [°C]", "empty"]),
+        # (an empty thermocouple cell holds the value above it: a slow channel's export style)
+        (lambda r: r.__setitem__(100, ",".join([r[100].split(",")[0], "", *r[100].split(",")[2:]])),
+         [":103:", "Force [N]", "empty"]),
         (lambda r: r.__setitem__(200, r[200].replace("25.0", "hot")), [":203:", "Temperature [°C]", '"hot"']),
         (lambda r: r.__setitem__(300, r[290]), [":303:", "Timestamp", "not after line 302"]),
         (lambda r: r.__setitem__(50, "yesterday" + r[50][24:]), [":53:", "Timestamp", "yesterday"]),
@@ -529,3 +531,35 @@ def test_a_time_column_in_milliseconds_read_as_seconds_is_warned_of(tmp_path: Pa
     done = shocktwin("import", "--time", "Time", "--time-format", "elapsed_ms", "--position", "Pos", "--position-unit",
                      "mm", "--asset-id", "u1", "--charge=-3 bar", "--out", tmp_path / "out3", csv, check=False)
     assert done.returncode != 0 and "below vacuum" in done.stderr, done.stderr
+
+
+def test_a_thermocouple_written_every_so_many_rows_holds_its_value(exports: dict[str, Path], tmp_path: Path) -> None:
+    """A slow channel written once in so many rows, blank between (a common export style): each
+    blank cell was a bad row, and `--skip-bad-rows` kept 71 rows of 70,001 (a helper's trial).
+    Blank thermocouple cells now hold the value above them (the first value, before it), the
+    report says how many, and the run imports as its twin with every cell written does."""
+    src = exports["csv"] / "dyno-unit-A_101.5psi_2Hz_s1.csv"
+    lines = src.read_text().splitlines(keepends=True)
+    header = next(i for i, line in enumerate(lines) if line.startswith("Timestamp,"))
+    k = lines[header].strip().split(",").index("Temperature [°C]")
+    sparse = lines[: header + 1]
+    blanks = 0
+    for i, line in enumerate(lines[header + 1:]):
+        cells = line.rstrip("\n").split(",")
+        if i % 300 != 5:  # written once a second (the first five rows blank too)
+            cells[k] = ""
+            blanks += 1
+        sparse.append(",".join(cells) + "\n")
+    (tmp_path / "sparse").mkdir()
+    (tmp_path / "sparse" / src.name).write_text("".join(sparse))
+    done = shocktwin("import", "--map", MAP, "--out", tmp_path / "sparse-out", tmp_path / "sparse" / src.name)
+    assert f'column "Temperature [°C]": {blanks} blank cells read as the value above them' in done.stdout, done.stdout
+    assert "skipped" not in done.stdout, done.stdout
+    shocktwin("import", "--map", MAP, "--out", tmp_path / "clean-out", src)
+    _, got = read_mcap(tmp_path / "sparse-out" / (src.stem + ".mcap"))
+    _, want = read_mcap(tmp_path / "clean-out" / (src.stem + ".mcap"))
+    assert len(got["/position"][1]) == len(want["/position"][1])
+    t_got = np.array([r["temperature_c"] for r in got["/temperature/shock"][1]])
+    t_want = np.array([r["temperature_c"] for r in want["/temperature/shock"][1]])
+    # the thermocouple reads in 0.25 degC steps and changes slowly: a second's hold moves it by a step
+    assert len(t_got) == len(t_want) and np.max(np.abs(t_got - t_want)) <= 0.5, np.max(np.abs(t_got - t_want))

@@ -225,6 +225,13 @@ fn import_file(
             cells.join(", ")
         );
     }
+    for (column, n) in &table.held {
+        let _ = write!(
+            report,
+            "\n  column {column:?}: {n} blank cells read as the value above them (a channel \
+             written less often than the rows)"
+        );
+    }
     for (reason, (n, first)) in &table.skipped {
         let _ = write!(
             report,

@@ -30,6 +30,10 @@ pub struct Table {
     pub units_row: Option<(u64, Vec<String>)>,
     /// Lines where a time of day without a date crossed midnight.
     pub midnights: Vec<u64>,
+    /// Blank cells of a thermocouple column (a slow channel written only
+    /// every so many rows) read as the value above them (the first value,
+    /// before it): per such column, its name and how many.
+    pub held: Vec<(String, u64)>,
 }
 
 /// A time of day going back by more than this is the next day's (a logger
@@ -53,6 +57,7 @@ impl Table {
             rows: r.len() as u64,
             units_row: None,
             midnights: Vec::new(),
+            held: Vec::new(),
         }
     }
 
@@ -379,7 +384,19 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
     let mut time_format = map.time_format.clone();
     let time_of_day = matches!(&map.time_format, TimeFormat::Layout(l) if l.is_time_of_day());
     let mut day_ns = 0_i64;
-    let mut row = vec![0.0; wanted.len() - 1];
+    // A thermocouple written once in so many rows, blank between (a common
+    // export): each blank cell holds the value above it. Read as a bad row
+    // instead, `--skip-bad-rows` kept 71 rows of 70,001 (a helper's trial).
+    let is = |o: Option<&crate::cmd_import::map::Column>, c: &crate::cmd_import::map::Column| {
+        o.is_some_and(|o| std::ptr::eq(o, c))
+    };
+    let holds: Vec<bool> = map
+        .value_columns()
+        .into_iter()
+        .map(|c| is(map.temp_shock.as_ref(), c) || is(map.temp_ambient.as_ref(), c))
+        .collect();
+    let mut held = vec![0_u64; holds.len()];
+    let mut row = vec![f64::NAN; wanted.len() - 1];
     for record in records {
         let record = record.map_err(|e| unreadable(path, e, map, &mut line_at))?;
         let line = line_at(byte_of(&record))?;
@@ -402,7 +419,11 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             &scales,
             map.decimal,
             &mut time_format,
-            &mut row,
+            &mut RowOut {
+                values: &mut row,
+                holds: &holds,
+                held: &mut held,
+            },
         ) {
             Ok(t_ns) => {
                 let mut t_ns = t_ns + day_ns;
@@ -450,6 +471,21 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             "{file}: {} usable data rows after the header at line {header_line}: nothing to import",
             table.t_ns.len()
         );
+    }
+    for (k, values) in table.values.iter_mut().enumerate() {
+        if !holds[k] {
+            continue;
+        }
+        // blank cells before the column's first value take that value
+        let Some(first) = values.iter().copied().find(|v| v.is_finite()) else {
+            bail!("{file}: column {:?}: every cell is empty", wanted[k + 1]);
+        };
+        for v in values.iter_mut().take_while(|v| v.is_nan()) {
+            *v = first;
+        }
+        if held[k] > 0 {
+            table.held.push((wanted[k + 1].to_owned(), held[k]));
+        }
     }
     Ok(table)
 }
@@ -508,6 +544,14 @@ struct BadRow {
     reason: String,
 }
 
+/// Where [`parse_row`] puts a row: its values (SPEC units), and for the
+/// columns that hold a blank cell's value above it, how many they held.
+struct RowOut<'a> {
+    values: &'a mut [f64],
+    holds: &'a [bool],
+    held: &'a mut [u64],
+}
+
 fn parse_row(
     record: &csv::StringRecord,
     names: &[&str],
@@ -515,8 +559,13 @@ fn parse_row(
     scales: &[(f64, f64)],
     decimal: u8,
     time_format: &mut TimeFormat,
-    row: &mut [f64],
+    out: &mut RowOut<'_>,
 ) -> Result<i64, BadRow> {
+    let RowOut {
+        values: row,
+        holds,
+        held,
+    } = out;
     let cell = |k: usize| -> Result<&str, BadRow> {
         record.get(index[k]).ok_or_else(|| BadRow {
             message: format!(
@@ -549,6 +598,10 @@ fn parse_row(
     })?;
     for k in 1..names.len() {
         let raw = cell(k)?;
+        if raw.is_empty() && holds[k - 1] {
+            held[k - 1] += 1; // the row keeps the value above (NaN before any)
+            continue;
+        }
         let text = with_point(raw, decimal, false).map_err(|why| BadRow {
             message: format!("column {:?}: {why}", names[k]),
             reason: format!("column {:?}: a point in a decimal-comma number", names[k]),
