@@ -314,7 +314,7 @@ def test_silent_https_connections_are_bounded_and_closed(setup: dict[str, Any], 
     pki = setup["pki"]
     config = tmp_path / "shocktwin.toml"
     config.write_text(setup["config"].read_text().replace(
-        "[limits]\n", "[limits]\nmax_http_connections = 3\nfirst_data_timeout_s = 2.0\n"))
+        "[limits]\n", "[limits]\nmax_http_connections = 3\nfirst_data_timeout_s = 2.0\nmax_connections = 1\n"))
     d = ServeProcess([str(BIN), "serve", "--config", str(config), "--listen", "127.0.0.1:0",
                       "--http", "127.0.0.1:0", "--model", str(BUNDLE), "--no-db"])
     try:
@@ -354,6 +354,16 @@ def test_silent_https_connections_are_bounded_and_closed(setup: dict[str, Any], 
         vehicle = ssl.create_default_context(cafile=str(pki.ca_pem))
         pki.vehicle.configure_cert(vehicle)
         ihost, iport = d.listen.rsplit(":", 1)
+        # beyond the ingest's max_connections (1 here), a TLS client is closed at once: a plain
+        # `refused` line read to it as a broken handshake (WRONG_VERSION_NUMBER)
+        with vehicle.wrap_socket(socket.create_connection((ihost, int(iport)), timeout=10),
+                                 server_hostname="localhost"):
+            with pytest.raises((ssl.SSLError, ConnectionError, OSError)) as refused:
+                with vehicle.wrap_socket(socket.create_connection((ihost, int(iport)), timeout=10),
+                                         server_hostname="localhost") as second:
+                    second.recv(1)
+            assert "WRONG_VERSION_NUMBER" not in str(refused.value), refused.value
+        time.sleep(0.2)  # the first one's slot given back
         t1 = time.monotonic()
         with vehicle.wrap_socket(socket.create_connection((ihost, int(iport)), timeout=10),
                                  server_hostname="localhost") as sock:

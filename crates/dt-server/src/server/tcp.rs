@@ -201,7 +201,15 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
             };
             m.error(kind);
             tracing::warn!(%peer, "connection refused: {reason}");
-            ctx.tracker.spawn(refuse(socket, reason));
+            if src.tls.is_some() {
+                // A plain line on a TLS listener reads to the client as a
+                // broken handshake (`WRONG_VERSION_NUMBER`, a helper's trial),
+                // and a handshake to say it would cost a refused flood the
+                // work the limit saves: closed at once.
+                drop(socket);
+            } else {
+                ctx.tracker.spawn(refuse(socket, reason));
+            }
             continue;
         };
         m.connections_active.inc();
