@@ -201,15 +201,7 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
             };
             m.error(kind);
             tracing::warn!(%peer, "connection refused: {reason}");
-            if src.tls.is_some() {
-                // A plain line on a TLS listener reads to the client as a
-                // broken handshake (`WRONG_VERSION_NUMBER`, a helper's trial),
-                // and a handshake to say it would cost a refused flood the
-                // work the limit saves: closed at once.
-                drop(socket);
-            } else {
-                ctx.tracker.spawn(refuse(socket, reason));
-            }
+            ctx.tracker.spawn(refuse(socket, reason, src.tls.is_some()));
             continue;
         };
         m.connections_active.inc();
@@ -271,8 +263,15 @@ fn peers_full(peers: &Peers, ip: IpAddr, max: usize) -> bool {
     map.get(&ip).is_some_and(|&n| n >= max)
 }
 
-/// Answers a connection beyond the limits with one `refused` line and closes it.
-async fn refuse(mut socket: tokio::net::TcpStream, reason: String) {
+/// Answers a connection beyond the limits with one `refused` line and closes
+/// it. On a TLS listener it is closed without a line: a plain line reads to
+/// the client as a broken handshake (`WRONG_VERSION_NUMBER`, a helper's
+/// trial), and a handshake to say it would cost a refused flood the work the
+/// limit saves.
+async fn refuse(mut socket: tokio::net::TcpStream, reason: String, tls: bool) {
+    if tls {
+        return;
+    }
     let line = serde_json::json!({ "status": "refused", "reason": reason }).to_string() + "\n";
     let _ = tokio::time::timeout(Duration::from_secs(2), async {
         let _ = socket.write_all(line.as_bytes()).await;
