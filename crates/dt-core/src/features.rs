@@ -1083,17 +1083,15 @@ impl FeaturePipeline {
     ///   a fresh run's does (after hours it is at the ambient anyway);
     /// - the modelled thermocouple keeps its offset and follows its lag
     ///   through the gap;
-    /// - the charge observer keeps its state ([`ChargeObserver::resume_after_gap`]);
-    /// - the last temperatures are held until new ones come.
+    /// - the charge observer keeps its state ([`ChargeObserver::resume_after_gap`]),
+    ///   whatever the gap;
+    /// - the last temperatures are held until new ones come (with the thermal
+    ///   state only).
     ///
     /// Restarted from the shock thermocouple instead, a 2 s dropout left the
     /// modelled oil 3–4 °C low for the rest of a run and the estimate 1.3 bar
     /// off (a helper's trial on an imported dyno run).
     pub fn carry_over(&mut self, prev: FeaturePipeline, gap_s: f64) {
-        self.first_shock_c = prev.first_shock_c;
-        self.temp_shock_c = prev.temp_shock_c;
-        self.temp_ambient_c = prev.temp_ambient_c;
-        self.prev_ambient_c = prev.prev_ambient_c;
         if self.observer.is_some() {
             if let Some(mut obs) = prev.observer {
                 obs.resume_after_gap();
@@ -1108,8 +1106,15 @@ impl FeaturePipeline {
             && gap_s <= CARRY_THERMAL_MAX_S
             && prev.prev_ambient_c.is_finite();
         if !carried {
-            return;
+            return; // the thermal model starts from the new segment's thermocouple
         }
+        // the shock's first reading stands for the ambient without an
+        // ambient thermocouple, and the thermocouple model's offset is taken
+        // from it: both the carried state's; the last readings are held
+        self.first_shock_c = prev.first_shock_c;
+        self.temp_shock_c = prev.temp_shock_c;
+        self.temp_ambient_c = prev.temp_ambient_c;
+        self.prev_ambient_c = prev.prev_ambient_c;
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)] // ≤ 10,800
         let steps = (gap_s / crate::thermal::MAX_STEP_S).ceil().max(1.0) as u32;
         let h = gap_s / f64::from(steps);

@@ -373,6 +373,27 @@ fn forward_clock_jump_starts_a_new_segment() {
     assert_ne!(before[before.len() - 1].estimate.health, Health::Unknown);
 }
 
+#[test]
+fn past_six_hours_the_thermal_model_restarts_from_the_new_thermocouple() {
+    // The review: the carried first shock reading stayed past the limit, and
+    // the model restarted from the first segment's, hours old.
+    let b = bundle("bundle-mlp13");
+    let first = synth_log(T0, 5, 0.04, 5);
+    let t1 = T0 + 5_000 * MS + 7 * 3_600_000 * MS;
+    let mut second = synth_log(t1, 6, 0.04, 6);
+    for s in &mut second.temp_shock {
+        s.1 += 25.0; // the damper warmer after the gap
+    }
+    let mut samples = sorted_samples(&first);
+    samples.extend(sorted_samples(&second));
+    let mut est = estimator(&b);
+    let ticks = stream(&mut est, &samples);
+    let ta = compute_features(&first, b.physics(), &b.groups).unwrap();
+    let tb = compute_features(&second, b.physics(), &b.groups).unwrap();
+    assert_eq!(est.counters().clock_jumps, 1);
+    assert_same_as_batch(&b, &ticks[ta.n_rows()..], &tb);
+}
+
 /// The time of the last sample of `log`, ns.
 fn last_sample_ns(log: &RunLog) -> i64 {
     sorted_samples(log).last().unwrap().t_ns()

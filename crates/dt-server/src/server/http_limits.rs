@@ -9,10 +9,10 @@
 //!   beyond them is closed as soon as it is accepted, before its TLS
 //!   handshake (and said in the log, as the ingest's refusals are);
 //! - after its TLS handshake a connection must send its first bytes within
-//!   `limits.first_data_timeout_s` ([`FirstBytes`]), and an HTTP/1
-//!   request's head, once begun, must be whole within as long (hyper's
-//!   header-read timeout, which starts with the head's first bytes), else
-//!   the connection is closed;
+//!   `limits.first_data_timeout_s` ([`FirstBytes`]), else it is closed;
+//! - an HTTP/1 connection waiting for a request head (one sent in part, or
+//!   none between two requests on a kept-alive connection) is closed after
+//!   `limits.idle_timeout_s` (hyper's header-read timeout);
 //! - an HTTP/2 connection's peer is pinged every `limits.idle_timeout_s` and
 //!   dropped when it does not answer within `first_data_timeout_s`.
 //!
@@ -43,7 +43,7 @@ pub fn bound_requests(builder: &mut Builder<TokioExecutor>, limits: &Limits) {
     builder
         .http1()
         .timer(TokioTimer::new())
-        .header_read_timeout(first);
+        .header_read_timeout(Duration::from_secs_f64(limits.idle_timeout_s));
     builder
         .http2()
         .timer(TokioTimer::new())
@@ -85,7 +85,7 @@ impl<S> Accept<TcpStream, S> for Bounded {
                 self.max
             );
             tracing::warn!(%peer, "HTTPS connection closed: {reason}");
-            return std::future::ready(Err(io::Error::other(reason)));
+            return std::future::ready(Err(io::Error::other(LimitReached(reason))));
         };
         let held = Held {
             inner: stream,
@@ -94,6 +94,19 @@ impl<S> Accept<TcpStream, S> for Bounded {
         std::future::ready(Ok((held, service)))
     }
 }
+
+/// Why [`Bounded`] closed a connection (said by it, not again as a failed
+/// handshake).
+#[derive(Debug)]
+struct LimitReached(String);
+
+impl std::fmt::Display for LimitReached {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for LimitReached {}
 
 /// A connection and the slot it holds until it is dropped.
 #[derive(Debug)]
@@ -142,18 +155,38 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for Held<T> {
     }
 }
 
+/// What is done with a connection that failed its TLS handshake (logged and
+/// counted: the HTTPS API's were dropped without a word, so a server
+/// certificate that had expired showed only at the clients; a helper's
+/// trial).
+pub type OnHandshakeError = Arc<dyn Fn(&io::Error) + Send + Sync>;
+
 /// An acceptor around another (the TLS one) whose streams must bring their
-/// first bytes within a deadline ([`FirstBytes`]).
-#[derive(Debug, Clone)]
+/// first bytes within a deadline ([`FirstBytes`]); a failed handshake is
+/// handed to `on_error`.
+#[derive(Clone)]
 pub struct FirstBytesWithin<A> {
     inner: A,
     within: Duration,
+    on_error: OnHandshakeError,
+}
+
+impl<A> std::fmt::Debug for FirstBytesWithin<A> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FirstBytesWithin")
+            .field("within", &self.within)
+            .finish_non_exhaustive()
+    }
 }
 
 impl<A> FirstBytesWithin<A> {
     /// `inner`'s streams, each closed unless it sends within `within`.
-    pub fn new(inner: A, within: Duration) -> Self {
-        Self { inner, within }
+    pub fn new(inner: A, within: Duration, on_error: OnHandshakeError) -> Self {
+        Self {
+            inner,
+            within,
+            on_error,
+        }
     }
 }
 
@@ -169,16 +202,26 @@ where
     fn accept(&self, stream: I, service: S) -> Self::Future {
         let accepted = self.inner.accept(stream, service);
         let within = self.within;
+        let on_error = Arc::clone(&self.on_error);
         Box::pin(async move {
-            let (stream, service) = accepted.await?;
-            Ok((FirstBytes::new(stream, within), service))
+            match accepted.await {
+                Ok((stream, service)) => Ok((FirstBytes::new(stream, within), service)),
+                Err(e) => {
+                    let said = e
+                        .get_ref()
+                        .is_some_and(<dyn std::error::Error + Send + Sync>::is::<LimitReached>);
+                    if !said {
+                        on_error(&e);
+                    }
+                    Err(e)
+                }
+            }
         })
     }
 }
 
 /// A stream whose reads fail with `TimedOut` when its first bytes do not
-/// come before its deadline (then it reads as the stream it wraps). The
-/// TCP ingest's TLS connections use it too.
+/// come before its deadline (then it reads as the stream it wraps).
 pub struct FirstBytes<T> {
     inner: T,
     deadline: Option<Pin<Box<Sleep>>>,

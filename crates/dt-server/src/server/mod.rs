@@ -228,11 +228,31 @@ fn secure(
 
 /// HTTPS through axum-server's rustls acceptor (handshakes run per
 /// connection, not in the accept loop); stops gracefully with `stop`.
+/// Serves the HTTP API: plain, or HTTPS with its bounds ([`spawn_https`]).
+fn spawn_http(
+    listener: TcpListener,
+    app: axum::Router,
+    tls: Option<Arc<rustls::ServerConfig>>,
+    limits: &config::Limits,
+    metrics: Arc<Metrics>,
+    stop: CancellationToken,
+) -> Result<tokio::task::JoinHandle<std::io::Result<()>>, ServeError> {
+    match tls {
+        None => Ok(tokio::spawn(
+            axum::serve(listener, app)
+                .with_graceful_shutdown(stop.cancelled_owned())
+                .into_future(),
+        )),
+        Some(tls) => spawn_https(listener, app, tls, limits, metrics, stop),
+    }
+}
+
 fn spawn_https(
     listener: TcpListener,
     app: axum::Router,
     tls: Arc<rustls::ServerConfig>,
     limits: &config::Limits,
+    metrics: Arc<Metrics>,
     stop: CancellationToken,
 ) -> Result<tokio::task::JoinHandle<std::io::Result<()>>, ServeError> {
     let io = |source| ServeError::Io {
@@ -251,6 +271,10 @@ fn spawn_https(
         http_limits::FirstBytesWithin::new(
             tls.acceptor(held),
             Duration::from_secs_f64(limits.first_data_timeout_s),
+            Arc::new(move |e: &std::io::Error| {
+                metrics.error("https_handshake");
+                tracing::warn!("HTTPS: TLS handshake failed: {e}");
+            }),
         )
     })
     .handle(handle.clone());
@@ -461,6 +485,7 @@ pub async fn run(
     let ready = Arc::new(AtomicBool::new(false));
     let http_stop = CancellationToken::new();
     let app_uploads = http::Uploads::new(ingest.clone(), cancel.clone());
+    let https_metrics = Arc::clone(&metrics);
     let app = http::router(AppState {
         live,
         store,
@@ -483,14 +508,14 @@ pub async fn run(
         .map_or_else(|e| e.to_string(), |a| a.to_string());
     // Ready before the API is served, so that its first `/readyz` says so.
     ready.store(true, Ordering::Relaxed);
-    let http_task = match tls.map(|t| t.http) {
-        None => tokio::spawn(
-            axum::serve(listeners.http, app)
-                .with_graceful_shutdown(http_stop.clone().cancelled_owned())
-                .into_future(),
-        ),
-        Some(tls) => spawn_https(listeners.http, app, tls, &config.limits, http_stop.clone())?,
-    };
+    let http_task = spawn_http(
+        listeners.http,
+        app,
+        tls.map(|t| t.http),
+        &config.limits,
+        https_metrics,
+        http_stop.clone(),
+    )?;
     tracing::info!(http = %http_addr, twin = %twins.describe(), "serving");
 
     shutdown.await;

@@ -70,9 +70,16 @@ struct Recording {
     writer: Writer,
     part_path: PathBuf,
     final_path: PathBuf,
-    /// The name kept apart ([`McapRecorder::aside_of`]), when the final
+    /// The name kept apart ([`McapRecorder::aside_base`]), when the final
     /// one is another copy's.
     aside_path: PathBuf,
+    /// The run (asset id, run id).
+    run: (String, String),
+    /// This copy's name apart from the run's own (`<run_id>~<seq>`), chosen
+    /// at its first part and kept through its rotations.
+    aside_base: String,
+    /// Recorded apart from its first part: another copy was being recorded.
+    apart: bool,
     part: u32,
     first_t_ns: i64,
     bytes: Arc<AtomicU64>,
@@ -119,26 +126,54 @@ impl McapRecorder {
         dir.join(asset_id).join(format!("{run_id}.{part:04}.mcap"))
     }
 
-    /// Where a copy of a run's part is kept apart from the run's own
-    /// recording (see the module's doc).
-    fn aside_of(dir: &Path, run: &RunInfo, part: u32) -> PathBuf {
-        let run_id = format!("{}~{}", run.meta.run_id, run.seq);
-        Self::path_of(dir, &run.meta.asset_id, &run_id, part)
+    /// The base name under which a copy of a run is kept apart from the
+    /// run's own recording (see the module's doc): `<run_id>~<seq>`, or with
+    /// `-2`, `-3`, … when a copy of an earlier daemon's life (whose `seq`s
+    /// start again at 1) holds it.
+    fn aside_base(&self, run: &RunInfo) -> String {
+        let taken = |base: &str| {
+            let path = Self::path_of(&self.dir, &run.meta.asset_id, base, 0);
+            path.exists() || path.with_extension("mcap.part").exists()
+        };
+        let base = format!("{}~{}", run.meta.run_id, run.seq);
+        if !taken(&base) {
+            return base;
+        }
+        // one more name than the directory holds files: one is free
+        let files = std::fs::read_dir(self.dir.join(&run.meta.asset_id)).map_or(0, Iterator::count);
+        (2..=files + 2)
+            .map(|k| format!("{base}-{k}"))
+            .find(|b| !taken(b))
+            .unwrap_or(base)
     }
 
-    fn start(&self, run: &RunInfo, part: u32, first_t_ns: i64) -> Result<Recording, SinkError> {
-        let own = Self::path_of(&self.dir, &run.meta.asset_id, &run.meta.run_id, part);
-        let aside_path = Self::aside_of(&self.dir, run, part);
-        let final_path = if self.open.values().any(|r| r.final_path == own) {
-            tracing::warn!(
-                asset_id = %run.meta.asset_id,
-                run_id = %run.meta.run_id,
-                file = %aside_path.display(),
-                "another copy of this run is being recorded: this one is recorded apart"
-            );
+    /// Opens part `part` of `run`'s recording; `rotated`: the base name
+    /// apart and whether the copy is recorded apart, from its part before.
+    fn start(
+        &self,
+        run: &RunInfo,
+        part: u32,
+        first_t_ns: i64,
+        rotated: Option<(String, bool)>,
+    ) -> Result<Recording, SinkError> {
+        let key = (run.meta.asset_id.clone(), run.meta.run_id.clone());
+        let (aside_base, apart) = rotated.unwrap_or_else(|| {
+            let apart = self.open.values().any(|r| r.run == key);
+            (self.aside_base(run), apart)
+        });
+        let aside_path = Self::path_of(&self.dir, &run.meta.asset_id, &aside_base, part);
+        let final_path = if apart {
+            if part == 0 {
+                tracing::warn!(
+                    asset_id = %run.meta.asset_id,
+                    run_id = %run.meta.run_id,
+                    file = %aside_path.display(),
+                    "another copy of this run is being recorded: this one is recorded apart"
+                );
+            }
             aside_path.clone()
         } else {
-            own
+            Self::path_of(&self.dir, &run.meta.asset_id, &run.meta.run_id, part)
         };
         let part_path = final_path.with_extension("mcap.part");
         if let Some(parent) = final_path.parent() {
@@ -172,6 +207,9 @@ impl McapRecorder {
             part_path,
             final_path,
             aside_path,
+            run: key,
+            aside_base,
+            apart,
             part,
             first_t_ns,
             bytes,
@@ -187,9 +225,10 @@ impl McapRecorder {
             part_path,
             mut final_path,
             aside_path,
+            apart,
             ..
         } = rec;
-        if !whole && final_path != aside_path && final_path.exists() {
+        if !whole && !apart && final_path.exists() {
             tracing::warn!(
                 file = %aside_path.display(),
                 recorded = %final_path.display(),
@@ -245,10 +284,12 @@ impl Sink for McapRecorder {
             };
             if let Some(next) = rotate {
                 let old = self.open.remove(&run.seq).expect("checked above");
+                let rotated = (old.aside_base.clone(), old.apart);
                 Self::finish(old, true)?; // a whole part
-                self.open.insert(run.seq, self.start(run, next, e.t_ns)?);
+                self.open
+                    .insert(run.seq, self.start(run, next, e.t_ns, Some(rotated))?);
             } else if !self.open.contains_key(&run.seq) {
-                self.open.insert(run.seq, self.start(run, 0, e.t_ns)?);
+                self.open.insert(run.seq, self.start(run, 0, e.t_ns, None)?);
             }
             let rec = self.open.get_mut(&run.seq).expect("opened above");
             rec.writer
@@ -282,5 +323,100 @@ impl Sink for McapRecorder {
 impl Recording {
     fn writer_len(&self) -> u64 {
         self.bytes.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::server::config::AssetConfig;
+    use crate::server::sink::SourceKind;
+    use dt_core::estimate::Health;
+    use dt_core::log::RunMetadata;
+
+    fn run(seq: u64) -> RunInfo {
+        RunInfo {
+            seq,
+            kind: SourceKind::Tcp,
+            source: format!("tcp copy {seq}"),
+            meta: RunMetadata {
+                asset_id: "van-1".into(),
+                run_id: "r1".into(),
+                ..RunMetadata::default()
+            },
+            asset: AssetConfig::default(),
+            started: std::time::SystemTime::now(),
+        }
+    }
+
+    fn estimate(t_s: i64) -> Estimate {
+        Estimate {
+            t_ns: t_s * 1_000_000_000,
+            pressure_bar: 7.0,
+            pressure_avg_bar: 7.0,
+            pressure_lo_bar: f64::NAN,
+            pressure_hi_bar: f64::NAN,
+            expected_bar: 12.0,
+            health: Health::Unknown,
+            velocity_mps: 0.0,
+            force_model_n: 0.0,
+            oil_temp_c: 20.0,
+            unfloored_bar: f64::NAN,
+            unfloored_half_bar: f64::NAN,
+        }
+    }
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir.join("van-1"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// The review: a copy recorded apart went back to the run's own name at
+    /// its first rotation (the clash was looked for on the same part only),
+    /// and a copy started while the first was on a later part overwrote the
+    /// first's part 0.
+    #[test]
+    fn a_copy_recorded_apart_stays_apart_through_its_rotations() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = RecordConfig {
+            max_file_s: 10.0,
+            ..RecordConfig::default()
+        };
+        let mut rec = McapRecorder::new(dir.path(), config).unwrap();
+        let (a, b) = (run(1), run(2));
+        let done = RunEnd {
+            outcome: RunOutcome::Completed,
+            observer: None,
+            road: None,
+        };
+        // A on its part 1 when B starts; B then rotates to its part 1, 2.
+        rec.estimates(&a, &[estimate(0), estimate(12)]).unwrap();
+        rec.estimates(&b, &[estimate(0), estimate(12), estimate(24)])
+            .unwrap();
+        rec.run_ended(&b, &done).unwrap();
+        rec.estimates(&a, &[estimate(25)]).unwrap();
+        rec.run_ended(&a, &done).unwrap();
+        assert_eq!(
+            names(dir.path()),
+            [
+                "r1.0000.mcap",
+                "r1.0001.mcap",
+                "r1.0002.mcap",
+                "r1~2.0000.mcap",
+                "r1~2.0001.mcap",
+                "r1~2.0002.mcap"
+            ]
+        );
+        // a copy of a later life of the daemon (its seq 2 again) does not
+        // overwrite the kept-apart one
+        let mut rec = McapRecorder::new(dir.path(), RecordConfig::default()).unwrap();
+        rec.estimates(&a, &[estimate(0)]).unwrap();
+        rec.estimates(&b, &[estimate(0)]).unwrap();
+        rec.close().unwrap();
+        assert!(names(dir.path()).contains(&"r1~2-2.0000.mcap".to_owned()));
     }
 }

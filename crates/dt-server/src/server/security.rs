@@ -106,7 +106,10 @@ impl Tokens {
                 }
                 // what an operator gets wrong (a helper's trial): the header's
                 // word copied in made the real token fail with 401
-                if token.len() > 7 && token[..7].eq_ignore_ascii_case("bearer ") {
+                if token
+                    .get(..7)
+                    .is_some_and(|p| p.eq_ignore_ascii_case("bearer "))
+                {
                     return Err(ServeError::Invalid {
                         key: "auth".into(),
                         reason: format!(

@@ -19,7 +19,7 @@ use std::time::Duration;
 
 use futures_util::future::BoxFuture;
 use futures_util::StreamExt;
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncBufReadExt, AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tokio_util::io::{ReaderStream, StreamReader};
@@ -210,41 +210,16 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
         let tls = src.tls.clone();
         let rate = src.rate.clone();
         ctx.tracker.spawn(async move {
+            let link = Accepted {
+                ingest: &ingest,
+                peer,
+                limits,
+                cancel: &cancel,
+                rate,
+            };
             match tls {
-                None => {
-                    // Silent connections do not hold a slot for the whole idle timeout.
-                    let mut first = [0u8; 1];
-                    if tokio::time::timeout(limits.first_data, socket.peek(&mut first))
-                        .await
-                        .is_err()
-                    {
-                        ingest.metrics().error("first_data_timeout");
-                        tracing::warn!(%peer, "closed: nothing sent within {:?}", limits.first_data);
-                    } else {
-                        serve_connection(&ingest, socket, peer, &cancel, limits.idle, rate).await;
-                    }
-                }
-                Some(config) => {
-                    let acceptor = tokio_rustls::TlsAcceptor::from(config);
-                    match tokio::time::timeout(limits.first_data, acceptor.accept(socket)).await {
-                        Ok(Ok(stream)) => {
-                            // Its first bytes within as long after the
-                            // handshake: a vehicle's certificate does not buy
-                            // a silent slot for the whole idle timeout.
-                            let stream = super::http_limits::FirstBytes::new(stream, limits.first_data);
-                            serve_connection(&ingest, stream, peer, &cancel, limits.idle, rate)
-                                .await;
-                        }
-                        Ok(Err(e)) => {
-                            ingest.metrics().error("tls_handshake");
-                            tracing::warn!(%peer, "TLS handshake failed: {e}");
-                        }
-                        Err(_) => {
-                            ingest.metrics().error("tls_handshake");
-                            tracing::warn!(%peer, "TLS handshake timed out");
-                        }
-                    }
-                }
+                None => link.serve_plain(socket).await,
+                Some(config) => link.serve_tls(socket, config).await,
             }
             // The slots first: once the gauge reads the connection gone, a
             // new one finds its slot free.
@@ -252,6 +227,67 @@ async fn accept_loop(src: TcpSource, ctx: SourceContext) -> Result<(), ServeErro
             drop(slot);
             ingest.metrics().connections_active.dec();
         });
+    }
+}
+
+/// An accepted connection's context, for the ingest to serve it.
+struct Accepted<'a> {
+    ingest: &'a super::ingest::Ingest,
+    peer: SocketAddr,
+    limits: ConnectionLimits,
+    cancel: &'a tokio_util::sync::CancellationToken,
+    rate: Option<Arc<PeerRate>>,
+}
+
+impl Accepted<'_> {
+    /// A plain connection, once it has sent something: silent connections
+    /// do not hold a slot for the whole idle timeout.
+    async fn serve_plain(self, socket: tokio::net::TcpStream) {
+        let mut first = [0u8; 1];
+        if tokio::time::timeout(self.limits.first_data, socket.peek(&mut first))
+            .await
+            .is_err()
+        {
+            self.ingest.metrics().error("first_data_timeout");
+            tracing::warn!(peer = %self.peer, "closed: nothing sent within {:?}", self.limits.first_data);
+        } else {
+            let (peer, idle) = (self.peer, self.limits.idle);
+            serve_connection(self.ingest, socket, peer, self.cancel, idle, self.rate).await;
+        }
+    }
+
+    /// A TLS connection: its handshake, then its first bytes, each within
+    /// `first_data` (a vehicle's certificate does not buy a silent slot for
+    /// the whole idle timeout either).
+    async fn serve_tls(self, socket: tokio::net::TcpStream, config: Arc<rustls::ServerConfig>) {
+        let (peer, first_data) = (self.peer, self.limits.first_data);
+        let acceptor = tokio_rustls::TlsAcceptor::from(config);
+        match tokio::time::timeout(first_data, acceptor.accept(socket)).await {
+            Ok(Ok(stream)) => {
+                let mut stream = tokio::io::BufReader::new(stream);
+                if tokio::time::timeout(first_data, stream.fill_buf())
+                    .await
+                    .is_err()
+                {
+                    self.ingest.metrics().error("first_data_timeout");
+                    tracing::warn!(
+                        %peer,
+                        "closed: nothing sent within {first_data:?} of the TLS handshake"
+                    );
+                } else {
+                    let idle = self.limits.idle;
+                    serve_connection(self.ingest, stream, peer, self.cancel, idle, self.rate).await;
+                }
+            }
+            Ok(Err(e)) => {
+                self.ingest.metrics().error("tls_handshake");
+                tracing::warn!(%peer, "TLS handshake failed: {e}");
+            }
+            Err(_) => {
+                self.ingest.metrics().error("tls_handshake");
+                tracing::warn!(%peer, "TLS handshake timed out");
+            }
+        }
     }
 }
 
