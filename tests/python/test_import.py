@@ -484,8 +484,8 @@ def test_a_glitch_in_a_slow_channel_is_dropped_and_said(exports: dict[str, Path]
     """One row of a logger's glitch (a displacement of 25 m; a thermocouple's -999 degC error
     value over a few rows) was imported as read: the resampler smeared the displacement over
     0.1 s of +-65 mm, and a run's estimate read 2,509 bar there and stayed 4 bar off (a helper's
-    trial). Such rows are dropped, counted by reason in the report, and the rest of the run is
-    imported as its clean twin is."""
+    trial). The position's row is dropped and counted in the report, the thermocouple's error
+    values are read as blank cells (held), and the run is imported as its clean twin is."""
     src = exports["csv"] / "dyno-unit-A_101.5psi_2Hz_s1.csv"
     lines = src.read_text().splitlines(keepends=True)
     header = next(i for i, line in enumerate(lines) if line.startswith("Timestamp,"))
@@ -503,8 +503,10 @@ def test_a_glitch_in_a_slow_channel_is_dropped_and_said(exports: dict[str, Path]
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / src.name).write_text("".join(bad))
     done = shocktwin("import", "--map", MAP, "--out", tmp_path / "bad-out", tmp_path / "bad" / src.name)
-    assert 'skipped 1 rows: column "Displacement [mm]": far off the samples around it (a glitch)' in done.stdout, done.stdout
-    assert 'skipped 3 rows: column "Temperature [°C]": below absolute zero' in done.stdout, done.stdout
+    assert 'skipped 1 rows: column "Displacement [mm]": far outside the stroke' in done.stdout, done.stdout
+    # a thermocouple's error value is read as a blank cell: the row (and its other channels) kept
+    assert 'column "Temperature [°C]": 3 cells outside -273.15..300 °C' in done.stdout, done.stdout
+    assert "skipped 3 rows" not in done.stdout, done.stdout
     shocktwin("import", "--map", MAP, "--out", tmp_path / "clean-out", src)
     _, got = read_mcap(tmp_path / "bad-out" / (src.stem + ".mcap"))
     _, want = read_mcap(tmp_path / "clean-out" / (src.stem + ".mcap"))
@@ -563,3 +565,18 @@ def test_a_thermocouple_written_every_so_many_rows_holds_its_value(exports: dict
     t_want = np.array([r["temperature_c"] for r in want["/temperature/shock"][1]])
     # the thermocouple reads in 0.25 degC steps and changes slowly: a second's hold moves it by a step
     assert len(t_got) == len(t_want) and np.max(np.abs(t_got - t_want)) <= 0.5, np.max(np.abs(t_got - t_want))
+
+
+def test_a_stroke_with_few_samples_a_cycle_is_not_taken_for_glitches(tmp_path: Path) -> None:
+    """The first glitch rule (half the span off the median of seven samples) dropped every row of
+    a sine sampled four times a cycle, half of them at five or six (the review). A stroke's own
+    samples are never taken for glitches, however few a cycle has."""
+    for per_cycle in (4, 5, 6, 7):
+        t_s = np.arange(600) / (2.0 * per_cycle)  # a 2 Hz stroke
+        pos = 40.0 * np.sin(2 * np.pi * 2.0 * t_s + 0.3)
+        csv = tmp_path / f"few{per_cycle}.csv"
+        csv.write_text("Time,Pos\n" + "".join(f"{t:.4f},{p:.3f}\n" for t, p in zip(t_s, pos)))
+        done = shocktwin("import", "--time", "Time", "--time-format", "elapsed_s", "--position", "Pos",
+                         "--position-unit", "mm", "--asset-id", "u1", "--charge", "12 bar", "--out",
+                         tmp_path / f"out{per_cycle}", csv)
+        assert "skipped" not in done.stdout and "600 rows" in done.stdout, done.stdout

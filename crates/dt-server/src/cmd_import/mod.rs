@@ -225,6 +225,14 @@ fn import_file(
             cells.join(", ")
         );
     }
+    for (column, n) in &table.error_values {
+        let (lo, hi) = table::THERMOCOUPLE_RANGE_C;
+        let _ = write!(
+            report,
+            "\n  column {column:?}: {n} cells outside {lo}..{hi} °C (a thermocouple's error \
+             value) read as blank, the value above them holding"
+        );
+    }
     for (column, n) in &table.held {
         let _ = write!(
             report,
@@ -577,84 +585,49 @@ fn resample_stretches(
 /// wrong.
 const SLOWEST_PLAUSIBLE_ROWS_HZ: f64 = 20.0;
 
-/// The samples around each one that [`drop_glitches`] compares it with.
-const GLITCH_HALF_WINDOW: usize = 3;
-
-/// Drops the rows where a slow channel reads what it cannot: a temperature
-/// below absolute zero (a thermocouple's open-circuit value, −999 °F), or a
-/// position or temperature far off the median of the samples around it
-/// (more than half the column's span between its 0.1 % and 99.9 % points,
-/// and at least 5 mm or 20 °C): one bad row of a logger. Kept, one position
-/// sample of 999 in among 70,000 was smeared by the resampler over 0.1 s of
-/// ±65 mm, and the run's estimate read 2,509 bar there and stayed 4 bar off
-/// for the rest of the run (a helper's trial). The rows are counted as
-/// skipped, by reason, in the import's report. Accelerations and forces are
-/// left as they are: a knock is a real spike.
+/// Drops the rows whose position lies outside the column's range (between
+/// its 0.1 % and 99.9 % points) by more than that range's span (at least
+/// 5 mm): one bad row of a logger, which no stroke reaches. Kept, one
+/// position sample of 999 in among 70,000 was smeared by the resampler over
+/// 0.1 s of ±65 mm, and the run's estimate read 2,509 bar there and stayed
+/// 4 bar off for the rest of the run (a helper's trial). The rows are
+/// counted as skipped, by reason, in the import's report. A stroke's own
+/// samples are never so far, however few a cycle has. (A thermocouple's
+/// error values are read as blank cells instead: [`table::read`].)
+/// Accelerations and forces are left as they are: a knock is a real spike.
 fn drop_glitches(map: &Mapping, table: &mut table::Table) {
-    const ABSOLUTE_ZERO_C: f64 = -273.15;
-    let columns = map.value_columns();
-    let slow = |c: &map::Column| -> Option<f64> {
-        let is = |o: Option<&map::Column>| o.is_some_and(|o| std::ptr::eq(o, c));
-        if is(map.position.as_ref()) {
-            Some(0.005)
-        } else if is(map.temp_shock.as_ref()) || is(map.temp_ambient.as_ref()) {
-            Some(20.0)
-        } else {
-            None
-        }
-    };
-    for (j, column) in columns.iter().enumerate() {
-        let Some(floor) = slow(column) else { continue };
-        let v = &table.values[j];
-        let temperature = floor > 1.0;
-        let below_zero: Vec<bool> = v
-            .iter()
-            .map(|&x| temperature && x < ABSOLUTE_ZERO_C)
-            .collect();
-        if below_zero.iter().any(|&b| b) {
-            table.drop_rows(
-                &below_zero,
-                &format!(
-                    "column {:?}: below absolute zero (a thermocouple's error value)",
-                    column.name
-                ),
-            );
-        }
-        let v = &table.values[j];
-        let n = v.len();
-        if n < 2 * GLITCH_HALF_WINDOW + 1 {
-            continue;
-        }
-        let mut sorted = v.clone();
-        sorted.sort_by(f64::total_cmp);
-        #[allow(
-            clippy::cast_possible_truncation,
-            clippy::cast_sign_loss,
-            clippy::cast_precision_loss
-        )]
-        let at = |q: f64| sorted[((n - 1) as f64 * q).round() as usize];
-        let limit = (0.5 * (at(0.999) - at(0.001))).max(floor);
-        let mut window = Vec::with_capacity(2 * GLITCH_HALF_WINDOW + 1);
-        let far: Vec<bool> = (0..n)
-            .map(|i| {
-                let lo = i.saturating_sub(GLITCH_HALF_WINDOW);
-                let hi = (i + GLITCH_HALF_WINDOW + 1).min(n);
-                window.clear();
-                window.extend_from_slice(&v[lo..hi]);
-                let mid = window.len() / 2;
-                let median = *window.select_nth_unstable_by(mid, f64::total_cmp).1;
-                (v[i] - median).abs() > limit
-            })
-            .collect();
-        if far.iter().any(|&b| b) {
-            table.drop_rows(
-                &far,
-                &format!(
-                    "column {:?}: far off the samples around it (a glitch)",
-                    column.name
-                ),
-            );
-        }
+    const FLOOR_M: f64 = 0.005;
+    if map.position.is_none() {
+        return;
+    }
+    // the position is the first value column (`Mapping::value_columns`)
+    let v = &table.values[0];
+    let n = v.len();
+    if n < 2 {
+        return;
+    }
+    let mut sorted = v.clone();
+    sorted.sort_by(f64::total_cmp);
+    #[allow(
+        clippy::cast_possible_truncation,
+        clippy::cast_sign_loss,
+        clippy::cast_precision_loss
+    )]
+    let at = |q: f64| sorted[((n - 1) as f64 * q).round() as usize];
+    let (lo, hi) = (at(0.001), at(0.999));
+    let reach = (hi - lo).max(FLOOR_M);
+    let far: Vec<bool> = v
+        .iter()
+        .map(|&x| x < lo - reach || x > hi + reach)
+        .collect();
+    if far.iter().any(|&b| b) {
+        let name = map.position.as_ref().map_or("", |c| c.name.as_str());
+        table.drop_rows(
+            &far,
+            &format!(
+                "column {name:?}: far outside the stroke the rest of the column spans (a glitch)"
+            ),
+        );
     }
 }
 

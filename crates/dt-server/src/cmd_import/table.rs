@@ -34,7 +34,15 @@ pub struct Table {
     /// every so many rows) read as the value above them (the first value,
     /// before it): per such column, its name and how many.
     pub held: Vec<(String, u64)>,
+    /// A thermocouple's error values (outside [`THERMOCOUPLE_RANGE_C`]),
+    /// read as blank cells: per such column, its name and how many.
+    pub error_values: Vec<(String, u64)>,
 }
+
+/// A thermocouple cell outside this range (°C) is its error value (an open
+/// circuit's −999 °F, below absolute zero; or hotter than any damper runs),
+/// read as a blank cell: a held value in a row kept, not a dropped row.
+pub const THERMOCOUPLE_RANGE_C: (f64, f64) = (-273.15, 300.0);
 
 /// A time of day going back by more than this is the next day's (a logger
 /// stamping `hh:mm:ss` runs across midnight); less is a time going back.
@@ -58,6 +66,7 @@ impl Table {
             units_row: None,
             midnights: Vec::new(),
             held: Vec::new(),
+            error_values: Vec::new(),
         }
     }
 
@@ -396,7 +405,13 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         .map(|c| is(map.temp_shock.as_ref(), c) || is(map.temp_ambient.as_ref(), c))
         .collect();
     let mut held = vec![0_u64; holds.len()];
+    let mut errors = vec![0_u64; holds.len()];
     let mut row = vec![f64::NAN; wanted.len() - 1];
+    // a row is parsed into `scratch`, and taken into `row` (the last kept
+    // row, whose values blank cells hold) only when it is kept
+    let mut scratch = row.clone();
+    let mut blank = vec![false; holds.len()];
+    let mut error = vec![false; holds.len()];
     for record in records {
         let record = record.map_err(|e| unreadable(path, e, map, &mut line_at))?;
         let line = line_at(byte_of(&record))?;
@@ -412,6 +427,7 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             }
         }
         table.rows += 1;
+        scratch.copy_from_slice(&row);
         match parse_row(
             &record,
             &wanted,
@@ -420,9 +436,10 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
             map.decimal,
             &mut time_format,
             &mut RowOut {
-                values: &mut row,
+                values: &mut scratch,
                 holds: &holds,
-                held: &mut held,
+                blank: &mut blank,
+                error: &mut error,
             },
         ) {
             Ok(t_ns) => {
@@ -453,8 +470,13 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
                 }
                 table.t_ns.push(t_ns);
                 table.lines.push(line);
+                row.copy_from_slice(&scratch);
                 for (col, v) in table.values.iter_mut().zip(&row) {
                     col.push(*v);
+                }
+                for k in 0..holds.len() {
+                    held[k] += u64::from(blank[k]);
+                    errors[k] += u64::from(error[k]);
                 }
             }
             Err(bad) => {
@@ -478,13 +500,21 @@ pub fn read(path: &Path, map: &Mapping, skip_bad: bool) -> anyhow::Result<Table>
         }
         // blank cells before the column's first value take that value
         let Some(first) = values.iter().copied().find(|v| v.is_finite()) else {
-            bail!("{file}: column {:?}: every cell is empty", wanted[k + 1]);
+            bail!(
+                "{file}: column {:?}: every cell is empty or a thermocouple's error value",
+                wanted[k + 1]
+            );
         };
         for v in values.iter_mut().take_while(|v| v.is_nan()) {
             *v = first;
         }
         if held[k] > 0 {
             table.held.push((wanted[k + 1].to_owned(), held[k]));
+        }
+        if errors[k] > 0 {
+            table
+                .error_values
+                .push((wanted[k + 1].to_owned(), errors[k]));
         }
     }
     Ok(table)
@@ -544,12 +574,14 @@ struct BadRow {
     reason: String,
 }
 
-/// Where [`parse_row`] puts a row: its values (SPEC units), and for the
-/// columns that hold a blank cell's value above it, how many they held.
+/// Where [`parse_row`] puts a row: its values (SPEC units, a blank cell of
+/// a column that `holds` left as it was), and for those columns whether the
+/// cell was blank, or an error value read as blank.
 struct RowOut<'a> {
     values: &'a mut [f64],
     holds: &'a [bool],
-    held: &'a mut [u64],
+    blank: &'a mut [bool],
+    error: &'a mut [bool],
 }
 
 fn parse_row(
@@ -564,8 +596,11 @@ fn parse_row(
     let RowOut {
         values: row,
         holds,
-        held,
+        blank,
+        error,
     } = out;
+    blank.fill(false);
+    error.fill(false);
     let cell = |k: usize| -> Result<&str, BadRow> {
         record.get(index[k]).ok_or_else(|| BadRow {
             message: format!(
@@ -599,7 +634,7 @@ fn parse_row(
     for k in 1..names.len() {
         let raw = cell(k)?;
         if raw.is_empty() && holds[k - 1] {
-            held[k - 1] += 1; // the row keeps the value above (NaN before any)
+            blank[k - 1] = true; // the row keeps the value above (NaN before any)
             continue;
         }
         let text = with_point(raw, decimal, false).map_err(|why| BadRow {
@@ -629,6 +664,10 @@ fn parse_row(
                 ),
                 reason: format!("column {:?}: out of range", names[k]),
             });
+        }
+        if holds[k - 1] && !(THERMOCOUPLE_RANGE_C.0..=THERMOCOUPLE_RANGE_C.1).contains(&si) {
+            error[k - 1] = true; // read as blank: the value above holds
+            continue;
         }
         row[k - 1] = si;
     }
