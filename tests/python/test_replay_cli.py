@@ -58,8 +58,8 @@ def current_umask() -> int:
 def test_two_inputs_of_one_run_id_are_not_mixed(shocktwin_bin: Path, make_log, tmp_path: Path):
     """The same run imported into two folders and replayed in one call (a helper trying the
     product as a test engineer): to several MCAP outputs both wrote `out-<run_id>.mcap` at once
-    and left a corrupt file; to a table, both runs' rows went under one `run_id`. The later input
-    is refused, naming the other; the first is replayed, and a third run beside them too."""
+    and left a corrupt file; to a table, both runs' rows went under one `run_id`. The one read
+    second is refused, naming the other; the other is replayed, and a third run beside them too."""
     from mcap.reader import make_reader
 
     (tmp_path / "a").mkdir()
@@ -72,7 +72,8 @@ def test_two_inputs_of_one_run_id_are_not_mixed(shocktwin_bin: Path, make_log, t
         out = tmp_path / f"est-{jobs}.mcap"
         done = replay(shocktwin_bin, "--jobs", jobs, first, again, other, "--out", out)
         assert done.returncode == 1, done.stderr
-        assert "run id `run-1` is also the run id of" in done.stderr and str(first) in done.stderr, done.stderr
+        assert "run id `run-1` is also the run id of" in done.stderr, done.stderr
+        assert str(first) in done.stderr and str(again) in done.stderr, done.stderr
         for run_id in ("run-1", "run-2"):
             with open(tmp_path / f"est-{jobs}-{run_id}.mcap", "rb") as fh:  # readable, whole
                 n = sum(1 for _ in make_reader(fh).iter_messages(topics=["/estimate"]))

@@ -320,7 +320,9 @@ fn write_table(mut table: Part, parts: &[TempPath]) -> Result<()> {
 /// reads it: two inputs of one run id (the same run given twice, or two
 /// imports under one `--run-id`) would write one `OUT-<run_id>.mcap` at once
 /// (a corrupt file) or mix their rows under one `run_id` in the table, so
-/// the later is refused, naming the other.
+/// the one read second is refused, naming the other (with several workers
+/// that need not be the one given second: the metadata is read as each
+/// file streams).
 struct RunIds<'a> {
     files: &'a [PathBuf],
     claimed: Mutex<std::collections::HashMap<String, usize>>,
