@@ -7,7 +7,8 @@
 //! report took 400 s). Now:
 //! - at most `limits.max_http_connections` connections are held at once; one
 //!   beyond them is closed as soon as it is accepted, before its TLS
-//!   handshake (and said in the log, as the ingest's refusals are);
+//!   handshake (and said in the log, as the ingest's refusals are)
+//!   ([`Bounded`]);
 //! - after its TLS handshake a connection must send its first bytes within
 //!   `limits.first_data_timeout_s` ([`FirstBytes`]), else it is closed;
 //! - an HTTP/1 connection waiting for a request head (one sent in part, or
@@ -20,7 +21,7 @@
 //! keeps its connections busy can still take the API's slots (not the
 //! ingest's, nor the inbox's): `docs/security.md` says so.
 
-use std::future::{Future, Ready};
+use std::future::Future;
 use std::io;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -51,29 +52,59 @@ pub fn bound_requests(builder: &mut Builder<TokioExecutor>, limits: &Limits) {
         .keep_alive_timeout(first);
 }
 
-/// An acceptor (before TLS) that holds one of a fixed number of slots for
-/// each connection, and closes one for which none is free.
-#[derive(Debug, Clone)]
-pub struct Bounded {
+/// What is done with a connection that failed its TLS handshake (logged and
+/// counted: the HTTPS API's were dropped without a word, so a server
+/// certificate that had expired showed only at the clients; a helper's
+/// trial).
+pub type OnHandshakeError = Arc<dyn Fn(&io::Error) + Send + Sync>;
+
+/// An acceptor around the TLS one: each connection takes one of a fixed
+/// number of slots before its handshake (one for which none is free is
+/// closed at once), holds it until it is dropped, and must bring its first
+/// bytes within a deadline after the handshake ([`FirstBytes`]); a failed
+/// handshake is handed to `on_error`.
+#[derive(Clone)]
+pub struct Bounded<A> {
+    inner: A,
     slots: Arc<Semaphore>,
     max: usize,
+    within: Duration,
+    on_error: OnHandshakeError,
 }
 
-impl Bounded {
-    /// At most `max` connections at once.
-    #[must_use]
-    pub fn new(max: usize) -> Self {
+impl<A> std::fmt::Debug for Bounded<A> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bounded")
+            .field("max", &self.max)
+            .field("within", &self.within)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<A> Bounded<A> {
+    /// `inner`'s connections, at most `max` at once, each closed unless it
+    /// sends within `within` of its handshake.
+    pub fn new(inner: A, max: usize, within: Duration, on_error: OnHandshakeError) -> Self {
         Self {
+            inner,
             slots: Arc::new(Semaphore::new(max)),
             max,
+            within,
+            on_error,
         }
     }
 }
 
-impl<S> Accept<TcpStream, S> for Bounded {
-    type Stream = Held<TcpStream>;
-    type Service = S;
-    type Future = Ready<io::Result<(Self::Stream, Self::Service)>>;
+impl<A, S> Accept<TcpStream, S> for Bounded<A>
+where
+    A: Accept<TcpStream, S>,
+    A::Future: Send + 'static,
+    A::Stream: Send + 'static,
+    A::Service: Send + 'static,
+{
+    type Stream = FirstBytes<A::Stream>;
+    type Service = A::Service;
+    type Future = Pin<Box<dyn Future<Output = io::Result<(Self::Stream, Self::Service)>> + Send>>;
 
     fn accept(&self, stream: TcpStream, service: S) -> Self::Future {
         let Ok(slot) = Arc::clone(&self.slots).try_acquire_owned() else {
@@ -85,134 +116,16 @@ impl<S> Accept<TcpStream, S> for Bounded {
                 self.max
             );
             tracing::warn!(%peer, "HTTPS connection closed: {reason}");
-            return std::future::ready(Err(io::Error::other(LimitReached(reason))));
+            return Box::pin(std::future::ready(Err(io::Error::other(reason))));
         };
-        let held = Held {
-            inner: stream,
-            _slot: slot,
-        };
-        std::future::ready(Ok((held, service)))
-    }
-}
-
-/// Why [`Bounded`] closed a connection (said by it, not again as a failed
-/// handshake).
-#[derive(Debug)]
-struct LimitReached(String);
-
-impl std::fmt::Display for LimitReached {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for LimitReached {}
-
-/// A connection and the slot it holds until it is dropped.
-#[derive(Debug)]
-pub struct Held<T> {
-    inner: T,
-    _slot: OwnedSemaphorePermit,
-}
-
-impl<T: AsyncRead + Unpin> AsyncRead for Held<T> {
-    fn poll_read(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_read(cx, buf)
-    }
-}
-
-impl<T: AsyncWrite + Unpin> AsyncWrite for Held<T> {
-    fn poll_write(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &[u8],
-    ) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.inner).poll_write(cx, buf)
-    }
-
-    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_flush(cx)
-    }
-
-    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_shutdown(cx)
-    }
-
-    fn poll_write_vectored(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        bufs: &[io::IoSlice<'_>],
-    ) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.inner).poll_write_vectored(cx, bufs)
-    }
-
-    fn is_write_vectored(&self) -> bool {
-        self.inner.is_write_vectored()
-    }
-}
-
-/// What is done with a connection that failed its TLS handshake (logged and
-/// counted: the HTTPS API's were dropped without a word, so a server
-/// certificate that had expired showed only at the clients; a helper's
-/// trial).
-pub type OnHandshakeError = Arc<dyn Fn(&io::Error) + Send + Sync>;
-
-/// An acceptor around another (the TLS one) whose streams must bring their
-/// first bytes within a deadline ([`FirstBytes`]); a failed handshake is
-/// handed to `on_error`.
-#[derive(Clone)]
-pub struct FirstBytesWithin<A> {
-    inner: A,
-    within: Duration,
-    on_error: OnHandshakeError,
-}
-
-impl<A> std::fmt::Debug for FirstBytesWithin<A> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("FirstBytesWithin")
-            .field("within", &self.within)
-            .finish_non_exhaustive()
-    }
-}
-
-impl<A> FirstBytesWithin<A> {
-    /// `inner`'s streams, each closed unless it sends within `within`.
-    pub fn new(inner: A, within: Duration, on_error: OnHandshakeError) -> Self {
-        Self {
-            inner,
-            within,
-            on_error,
-        }
-    }
-}
-
-impl<A, I, S> Accept<I, S> for FirstBytesWithin<A>
-where
-    A: Accept<I, S>,
-    A::Future: Send + 'static,
-{
-    type Stream = FirstBytes<A::Stream>;
-    type Service = A::Service;
-    type Future = Pin<Box<dyn Future<Output = io::Result<(Self::Stream, Self::Service)>> + Send>>;
-
-    fn accept(&self, stream: I, service: S) -> Self::Future {
         let accepted = self.inner.accept(stream, service);
         let within = self.within;
         let on_error = Arc::clone(&self.on_error);
         Box::pin(async move {
             match accepted.await {
-                Ok((stream, service)) => Ok((FirstBytes::new(stream, within), service)),
+                Ok((stream, service)) => Ok((FirstBytes::new(stream, within, slot), service)),
                 Err(e) => {
-                    let said = e
-                        .get_ref()
-                        .is_some_and(<dyn std::error::Error + Send + Sync>::is::<LimitReached>);
-                    if !said {
-                        on_error(&e);
-                    }
+                    on_error(&e);
                     Err(e)
                 }
             }
@@ -221,18 +134,21 @@ where
 }
 
 /// A stream whose reads fail with `TimedOut` when its first bytes do not
-/// come before its deadline (then it reads as the stream it wraps).
+/// come before its deadline (then it reads as the stream it wraps), and the
+/// connection slot it holds until it is dropped.
 pub struct FirstBytes<T> {
     inner: T,
     deadline: Option<Pin<Box<Sleep>>>,
+    _slot: OwnedSemaphorePermit,
 }
 
 impl<T> FirstBytes<T> {
-    /// `inner`, whose first bytes must come within `within`.
-    pub fn new(inner: T, within: Duration) -> Self {
+    /// `inner`, whose first bytes must come within `within`, holding `slot`.
+    pub fn new(inner: T, within: Duration, slot: OwnedSemaphorePermit) -> Self {
         Self {
             inner,
             deadline: Some(Box::pin(tokio::time::sleep(within))),
+            _slot: slot,
         }
     }
 }

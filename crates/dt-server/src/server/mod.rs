@@ -261,15 +261,15 @@ fn spawn_https(
     };
     let listener = listener.into_std().map_err(io)?;
     let handle = axum_server::Handle::new();
-    let held = http_limits::Bounded::new(limits.max_http_connections);
     let mut server = axum_server::from_tcp_rustls(
         listener,
         axum_server::tls_rustls::RustlsConfig::from_config(tls),
     )
     .map_err(io)?
     .map(|tls| {
-        http_limits::FirstBytesWithin::new(
-            tls.acceptor(held),
+        http_limits::Bounded::new(
+            tls,
+            limits.max_http_connections,
             Duration::from_secs_f64(limits.first_data_timeout_s),
             Arc::new(move |e: &std::io::Error| {
                 metrics.error("https_handshake");
