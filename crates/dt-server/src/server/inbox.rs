@@ -59,11 +59,7 @@ impl InboxSource {
     /// Watches `dir` (created with `done/` and `failed/` if missing); takes
     /// a file once it has not changed for `settle`.
     pub fn new(dir: &Path, rescan: Duration, settle: Duration) -> Result<Self, ServeError> {
-        if !dir.exists() {
-            // a mistyped path was created without a word, and files dropped
-            // into the real inbox were never taken
-            tracing::warn!(inbox = %dir.display(), "the inbox did not exist: created it");
-        }
+        // (a missing inbox is said where the daemon first makes it: its lock, `lock::hold`)
         for d in [dir.to_owned(), dir.join(DONE_DIR), dir.join(FAILED_DIR)] {
             std::fs::create_dir_all(&d).map_err(|source| ServeError::Io {
                 path: d,
