@@ -580,3 +580,18 @@ def test_a_stroke_with_few_samples_a_cycle_is_not_taken_for_glitches(tmp_path: P
                          "--position-unit", "mm", "--asset-id", "u1", "--charge", "12 bar", "--out",
                          tmp_path / f"out{per_cycle}", csv)
         assert "skipped" not in done.stdout and "600 rows" in done.stdout, done.stdout
+
+
+def test_a_closed_pipe_ends_the_printing_not_the_import(exports: dict[str, Path], tmp_path: Path) -> None:
+    """`shocktwin import … | head -1` panicked at its second report (a helper's trial):
+    `println!` on a pipe whose reader has gone. The files after it must still be imported,
+    and the pipe's end is no error."""
+    files = sorted(exports["csv"].glob("*.csv"))
+    proc = subprocess.Popen([str(BIN), "import", "--map", MAP, "--out", tmp_path, *files],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={"CI": "true"})
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader goes before the first report
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 0, err
+    assert "panicked" not in err and "Broken pipe" not in err, err
+    assert sorted(p.name for p in tmp_path.glob("*.mcap")) == [f.with_suffix(".mcap").name for f in files]

@@ -16,9 +16,9 @@ pub fn run(args: &InspectArgs) -> anyhow::Result<ExitCode> {
     // into a message-only error so that it prints as one line.
     let report = dt_core::log::inspect(&args.file).map_err(|err| anyhow::anyhow!("{err}"))?;
     if args.json {
-        println!("{}", report.to_json());
+        crate::outln!("{}", report.to_json());
     } else {
-        print!("{report}");
+        crate::out!("{report}");
     }
     Ok(ExitCode::SUCCESS)
 }

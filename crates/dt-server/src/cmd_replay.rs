@@ -1067,7 +1067,7 @@ fn observer_line(o: &dt_core::charge::ObserverCounters) -> Option<String> {
 }
 
 fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
-    println!(
+    crate::outln!(
         "{:<28} {:>9} {:>8} {:>8} {:>11} {:>11} {:>8} {:>9}",
         "run", "label", "ticks", "final 1s", "RMSE inst", "RMSE 1 s", "health", "speed"
     );
@@ -1079,7 +1079,7 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
         let (inst, avg) = rmse(r).map_or(("n/a".into(), "n/a".into()), |(i, a, _)| {
             (format!("{i:.3}"), format!("{a:.3}"))
         });
-        println!(
+        crate::outln!(
             "{:<28} {:>9} {:>8} {:>8} {:>11} {:>11} {:>8} {:>8.0}x",
             r.run_id,
             r.label_bar.map_or("-".into(), |l| format!("{l:.2}")),
@@ -1096,7 +1096,7 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
         );
         let c = r.counters;
         if c.late_dropped + c.clock_jumps + c.missing_samples + c.timestamp_outliers > 0 {
-            println!(
+            crate::outln!(
                 "  {}: {} samples, {} late dropped, {} re-ordered, {} clock jumps, {} timestamp outliers, {} missing, {} ticks without inputs",
                 r.file.display(),
                 r.samples,
@@ -1109,13 +1109,13 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
             );
         }
         if let Some(line) = observer_line(&c.observer) {
-            println!("  {}: {line}", r.file.display());
+            crate::outln!("  {}: {line}", r.file.display());
         }
         if let Some(why) = &r.untrained {
-            println!("  {}: {why}", r.file.display());
+            crate::outln!("  {}: {why}", r.file.display());
         }
         if let Some(road) = c.road {
-            println!(
+            crate::outln!(
                 "  {}: road observer: {} blocks read, {} at rest, {} slower than calibrated, {} without positions, {} settling, {} unsolved{}",
                 r.file.display(),
                 road.read,
@@ -1128,7 +1128,7 @@ fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
             );
         }
     }
-    println!(
+    crate::outln!(
         "replayed {} run(s), {:.0} s of data in {:.2} s wall ({:.0}x real time); estimates in {}{}",
         runs.len(),
         data_s,

@@ -135,17 +135,17 @@ fn reported(b: &RoadBlock) -> (f64, f64, f64) {
 /// The per-run table (Markdown) on stdout.
 fn print_table(runs: &[Read], health: &HealthConfig, simulated: bool) {
     if simulated {
-        println!("(calibrated on SIMULATED DATA)");
+        crate::outln!("(calibrated on SIMULATED DATA)");
     }
-    println!("| run | asset | charge, bar | blocks | estimate, bar | 95 % interval | health | error, bar | coverage | right from |");
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    crate::outln!("| run | asset | charge, bar | blocks | estimate, bar | 95 % interval | health | error, bar | coverage | right from |");
+    crate::outln!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for r in runs {
         let Some(last) = r.blocks.last() else {
             let why = r
                 .counters
                 .why_none()
                 .unwrap_or_else(|| "no complete block: the run is shorter than one".into());
-            println!(
+            crate::outln!(
                 "| {} | {} | {} | 0 | — | — | unknown ({why}) | | | |",
                 r.run_id,
                 r.asset_id,
@@ -174,7 +174,7 @@ fn print_table(runs: &[Read], health: &HealthConfig, simulated: bool) {
             None => ("—".into(), String::new(), String::new(), String::new()),
         };
         let (estimate, lo, hi) = reported(last);
-        println!(
+        crate::outln!(
             "| {} | {} | {label} | {} | {estimate:.2} | [{lo:.2}, {hi:.2}] | {} | {err} | {cover} | {right} |",
             r.run_id,
             r.asset_id,
@@ -252,7 +252,7 @@ pub fn run(args: &RoadArgs) -> Result<std::process::ExitCode> {
     print_table(&runs, &health, cal.simulated);
     if let Some(out) = &args.out {
         write_rows(out, &runs)?;
-        println!("wrote {} ({} runs)", out.display(), runs.len());
+        crate::outln!("wrote {} ({} runs)", out.display(), runs.len());
     }
     Ok(if failed {
         std::process::ExitCode::FAILURE

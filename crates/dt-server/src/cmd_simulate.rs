@@ -90,7 +90,7 @@ fn report(summaries: &[dt_sim::RunSummary], started: std::time::Instant, args: &
             .path
             .as_ref()
             .map_or_else(|| s.run_id.clone(), |p| p.display().to_string());
-        println!(
+        crate::outln!(
             "{file}: {:.0} s ({:.0} s excitation, ended by {}), shock thermocouple {:.1} C, oil {:.1} C, {} {}{}",
             s.duration_s,
             s.excitation_s,
@@ -107,7 +107,7 @@ fn report(summaries: &[dt_sim::RunSummary], started: std::time::Instant, args: &
         );
     }
     let total_s: f64 = summaries.iter().map(|s| s.duration_s).sum();
-    println!(
+    crate::outln!(
         "SIMULATED DATA (dt-sim truth plant, not a real dyno): {} run{} of {}, {:.0} s simulated in {:.1} s, written to {}",
         summaries.len(),
         if summaries.len() == 1 { "" } else { "s" },

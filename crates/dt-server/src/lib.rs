@@ -13,3 +13,4 @@ pub mod cmd_simulate;
 pub mod nats;
 pub mod progress;
 pub mod server;
+pub mod stdout;

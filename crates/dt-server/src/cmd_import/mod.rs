@@ -49,7 +49,7 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<ExitCode> {
         bar.set_message(file.display().to_string());
         match import_file(file, &map, args, &written) {
             Ok(done) => {
-                bar.suspend(|| println!("{}", done.report));
+                bar.suspend(|| crate::outln!("{}", done.report));
                 skipped += done.skipped;
                 written.insert(done.run_id, file.clone());
             }
@@ -61,7 +61,7 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<ExitCode> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    println!(
+    crate::outln!(
         "imported {} of {} files into {}{}",
         written.len(),
         args.files.len(),
