@@ -1069,7 +1069,14 @@ fn observer_line(o: &dt_core::charge::ObserverCounters) -> Option<String> {
 fn print_summary(runs: &[Replayed], wall_s: f64, out: &Path, pattern: bool) {
     crate::outln!(
         "{:<28} {:>9} {:>8} {:>8} {:>11} {:>11} {:>8} {:>9}",
-        "run", "label", "ticks", "final 1s", "RMSE inst", "RMSE 1 s", "health", "speed"
+        "run",
+        "label",
+        "ticks",
+        "final 1s",
+        "RMSE inst",
+        "RMSE 1 s",
+        "health",
+        "speed"
     );
     let mut data_s = 0.0;
     for r in runs {
