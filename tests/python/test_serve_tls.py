@@ -105,6 +105,13 @@ def test_https_api_needs_a_read_token(daemon: ServeProcess, setup: dict[str, Any
         ok = http.get(f"{base}/v1/assets", headers={"Authorization": f"Bearer {setup['read']}"})
         assert ok.status_code == 200 and "assets" in ok.json()
         assert http.get(f"{base}/metrics", params={"access_token": setup["read"]}).status_code == 200
+    # Each refusal is logged with the peer, method and path (for an operator or fail2ban);
+    # the token never is (the fixture checks the whole log).
+    log = daemon.text()
+    for why in ["HTTP 401: no token", "HTTP 401: an unknown token", "HTTP 403: an ingest token on a read route"]:
+        line = next((l for l in log.splitlines() if why in l and "/v1/assets" in l), None)
+        assert line is not None and "peer=127.0.0.1:" in line and "method=GET" in line, (why, log[-3000:])
+    assert "not-a-token" not in log
     # Plain HTTP on the TLS port gets nothing.
     with pytest.raises(httpx.HTTPError):
         httpx.get(f"http://{daemon.http}/healthz", timeout=5)
@@ -266,6 +273,9 @@ def test_runs_upload_over_https_with_the_ingest_role(daemon: ServeProcess, setup
         assets = http.get(f"https://{daemon.http}/v1/assets",
                           headers={"Authorization": f"Bearer {setup['read']}"}).json()["assets"]
     assert report["asset_id"] in {a["asset_id"] for a in assets}
+    # The upload's source names its peer (it was "http upload" for every client).
+    assert "source=http upload from 127.0.0.1:" in daemon.text(), daemon.text()[-3000:]
+    assert "HTTP 403: a read token on an ingest route" in daemon.text()
 
 
 def test_a_refused_upload_is_seen_over_http2(daemon: ServeProcess, setup: dict[str, Any]) -> None:

@@ -135,7 +135,9 @@ impl Uploads {
 }
 
 /// `POST /v1/runs`: the body is one run's MCAP stream.
-async fn post_run(State(app): State<AppState>, body: axum::body::Body) -> Response {
+async fn post_run(State(app): State<AppState>, req: axum::extract::Request) -> Response {
+    let source = format!("http upload from {}", Peer::of(&req));
+    let body = req.into_body();
     let Some(ingest) = app.uploads.get() else {
         // Not drained: the daemon is stopping and waits for no upload.
         return (StatusCode::SERVICE_UNAVAILABLE, "the daemon is stopping\n").into_response();
@@ -148,7 +150,7 @@ async fn post_run(State(app): State<AppState>, body: axum::body::Body) -> Respon
     let report = ingest
         .ingest_stream(
             super::sink::SourceKind::Http,
-            "http upload".to_owned(),
+            source,
             &mut reader,
             &app.uploads.cancel,
             Some(idle),
@@ -305,7 +307,32 @@ fn unauthorized(error: Option<&str>) -> Response {
         .into_response()
 }
 
-/// Token check in front of every route (a no-op while auth is off).
+/// A request's peer address, as the listener accepted it (absent when the
+/// router is driven without a listener, as in unit tests).
+struct Peer(Option<std::net::SocketAddr>);
+
+impl Peer {
+    fn of(req: &axum::extract::Request) -> Self {
+        Self(
+            req.extensions()
+                .get::<axum::extract::ConnectInfo<std::net::SocketAddr>>()
+                .map(|info| info.0),
+        )
+    }
+}
+
+impl std::fmt::Display for Peer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            Some(addr) => write!(f, "{addr}"),
+            None => f.write_str("an unknown peer"),
+        }
+    }
+}
+
+/// Token check in front of every route (a no-op while auth is off). Every
+/// refusal is logged with the peer, the method and the path (never the
+/// token), one line each, for an operator or fail2ban to read.
 async fn require_token(
     State(app): State<AppState>,
     req: axum::extract::Request,
@@ -315,25 +342,39 @@ async fn require_token(
         return next.run(req).await;
     }
     let upload = is_write(req.method(), req.uri().path());
-    let refusal = match bearer(&req).map(|token| app.tokens.role(&token)) {
-        None => unauthorized(None),
+    let (refusal, why) = match bearer(&req).map(|token| app.tokens.role(&token)) {
+        None => (unauthorized(None), "no token"),
         Some(Some(Role::Read)) if !upload => return next.run(req).await,
         Some(Some(Role::Ingest)) if upload => return next.run(req).await,
         Some(Some(Role::Ingest)) => (
-            StatusCode::FORBIDDEN,
-            "this token may ingest runs and set baselines, not read the API\n",
-        )
-            .into_response(),
+            (
+                StatusCode::FORBIDDEN,
+                "this token may ingest runs and set baselines, not read the API\n",
+            )
+                .into_response(),
+            "an ingest token on a read route",
+        ),
         Some(Some(Role::Read)) => (
-            StatusCode::FORBIDDEN,
-            "this token may read the API, not upload runs or set baselines\n",
-        )
-            .into_response(),
+            (
+                StatusCode::FORBIDDEN,
+                "this token may read the API, not upload runs or set baselines\n",
+            )
+                .into_response(),
+            "a read token on an ingest route",
+        ),
         Some(None) => {
             app.metrics.error("auth");
-            unauthorized(Some("invalid_token"))
+            (unauthorized(Some("invalid_token")), "an unknown token")
         }
     };
+    let (peer, method, path) = (Peer::of(&req), req.method(), req.uri().path());
+    let status = refusal.status().as_u16();
+    if why == "no token" {
+        // a client not yet given its token: said, but not as a warning
+        tracing::info!(%peer, %method, path, "HTTP {status}: {why}");
+    } else {
+        tracing::warn!(%peer, %method, path, "HTTP {status}: {why}");
+    }
     // The client of a refused upload sees the refusal (see `drain`).
     if upload {
         drain_request(req).await;

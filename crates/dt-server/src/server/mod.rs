@@ -239,9 +239,12 @@ fn spawn_http(
 ) -> Result<tokio::task::JoinHandle<std::io::Result<()>>, ServeError> {
     match tls {
         None => Ok(tokio::spawn(
-            axum::serve(listener, app)
-                .with_graceful_shutdown(stop.cancelled_owned())
-                .into_future(),
+            axum::serve(
+                listener,
+                app.into_make_service_with_connect_info::<std::net::SocketAddr>(),
+            )
+            .with_graceful_shutdown(stop.cancelled_owned())
+            .into_future(),
         )),
         Some(tls) => spawn_https(listener, app, tls, limits, metrics, stop),
     }
@@ -283,7 +286,9 @@ fn spawn_https(
         stop.cancelled().await;
         handle.graceful_shutdown(Some(Duration::from_secs(5)));
     });
-    Ok(tokio::spawn(server.serve(app.into_make_service())))
+    Ok(tokio::spawn(server.serve(
+        app.into_make_service_with_connect_info::<std::net::SocketAddr>(),
+    )))
 }
 
 /// The fleet store, if any, and the unit baselines it keeps.
