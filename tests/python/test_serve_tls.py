@@ -175,6 +175,37 @@ def test_refuses_to_expose_without_tls_unless_insecure(tmp_path: Path) -> None:
         assert d.stop() == 0
 
 
+@pytest.mark.parametrize(("days_from_now", "said"), [(-3, "expired on"), (5, "expires on"), (None, None)],
+                         ids=["expired", "near-its-end", "fine"])
+def test_a_server_certificate_near_or_past_its_end_is_warned_of(setup: dict[str, Any], tmp_path: Path,
+                                                                days_from_now: int | None, said: str | None) -> None:
+    """An expired server certificate started without a word: every client's handshake then
+    failed (a helper's trial). The daemon still starts (the operator tests a renewal with
+    it up), but says so at start, naming the file; a certificate valid for months is not named."""
+    import datetime
+
+    pki = setup["pki"]
+    now = datetime.datetime.now(datetime.timezone.utc)
+    not_after = now + datetime.timedelta(days=days_from_now if days_from_now is not None else 200)
+    leaf = pki.server_ca.issue_cert("127.0.0.1", not_before=now - datetime.timedelta(days=30), not_after=not_after)
+    cert, key = tmp_path / "server.pem", tmp_path / "server.key"
+    leaf.cert_chain_pems[0].write_to_path(str(cert))
+    leaf.private_key_pem.write_to_path(str(key))
+    config = tmp_path / "shocktwin.toml"
+    config.write_text(f'[tls]\ncert = "{cert}"\nkey = "{key}"\n')
+    d = ServeProcess([str(BIN), "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
+                      "--model", str(BUNDLE), "--no-db"])
+    try:
+        warned = [line for line in d.log if "the server certificate" in line]
+        if said is None:
+            assert not warned, d.text()
+        else:
+            assert len(warned) == 1 and str(cert) in warned[0] and said in warned[0], d.text()
+            assert f"{abs(days_from_now):.0f}." in warned[0] or f"{abs(days_from_now) - 1}." in warned[0], warned[0]
+    finally:
+        assert d.stop() == 0, d.text()
+
+
 def test_a_token_file_others_can_read_is_warned_of(setup: dict[str, Any], tmp_path: Path) -> None:
     """A token file other users of the machine can read gives them its role: the daemon warns,
     naming the file and its mode, and says what to do; a file only its owner reads is not named.

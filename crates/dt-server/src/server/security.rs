@@ -221,6 +221,44 @@ pub(crate) fn pem_problem(e: &rustls::pki_types::pem::Error) -> String {
     }
 }
 
+/// How long before its end a server certificate is warned of at start.
+pub const CERT_EXPIRY_WARNING_DAYS: i64 = 14;
+
+/// What is wrong with a server certificate's validity at `now` (Unix
+/// seconds): not yet valid, expired, or within
+/// [`CERT_EXPIRY_WARNING_DAYS`] of its end; `None` when it is fine or
+/// cannot be read as X.509 (rustls then says why, if it matters).
+///
+/// Before, a daemon started with an expired certificate said nothing: every
+/// client's handshake failed, and the operator read only
+/// `errors_total{kind="https_handshake"}` climbing.
+#[must_use]
+pub fn validity_problem(der: &CertificateDer<'_>, now: i64) -> Option<String> {
+    let (_, cert) = x509_parser::parse_x509_certificate(der.as_ref()).ok()?;
+    let validity = cert.validity();
+    let (start, end) = (validity.not_before, validity.not_after);
+    let days = |s: i64| s as f64 / 86_400.0;
+    if now < start.timestamp() {
+        return Some(format!(
+            "is not valid until {start} (in {:.1} days): clients will refuse it",
+            days(start.timestamp() - now)
+        ));
+    }
+    let left = end.timestamp() - now;
+    if left < 0 {
+        return Some(format!(
+            "expired on {end} ({:.1} days ago): clients will refuse it; renew it and restart",
+            days(-left)
+        ));
+    }
+    (left < CERT_EXPIRY_WARNING_DAYS * 86_400).then(|| {
+        format!(
+            "expires on {end} (in {:.1} days); renew it and restart",
+            days(left)
+        )
+    })
+}
+
 fn tls_error(path: &Path, what: &str, e: impl std::fmt::Display) -> ServeError {
     ServeError::Invalid {
         key: "tls".into(),
@@ -244,6 +282,14 @@ pub fn server_configs(config: &Config) -> Result<Option<TlsConfigs>, ServeError>
         return Ok(None);
     };
     let certs = pem_certificates(cert).map_err(|why| tls_error(cert, "certificate chain", why))?;
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_secs()).unwrap_or(i64::MAX));
+    if let Some(problem) = validity_problem(&certs[0], now) {
+        // Started anyway: clients then say why they refuse (an operator
+        // renewing the certificate needs the daemon up to test it).
+        tracing::warn!("{}: the server certificate {problem}", cert.display());
+    }
     let key_der = PrivateKeyDer::from_pem_file(key)
         .map_err(|e| tls_error(key, "private key", pem_problem(&e)))?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
