@@ -251,21 +251,31 @@ def test_sign_and_mid_stroke_mistakes_are_warned(tmp_path: Path) -> None:
     csv.write_text("t,travel,F,a1,a2\n" + "".join(f"{a:.4f},{b:.5f},{c:.3f},{d:.5f},0\n"
                                                 for a, b, c, d in zip(t, travel_mm, force_n, a1)))
 
-    def run(*flags: str) -> str:
+    def run(*flags: str, accels: tuple[str, str] = ("a1", "a2")) -> str:
         done = shocktwin("import", "--time", "t", "--time-format", "elapsed_s", "--position", "travel",
-                         "--position-unit", "mm", "--force", "F", "--a1", "a1", "--a2", "a2", "--accel-unit", "m/s2",
+                         "--position-unit", "mm", "--force", "F", "--a1", accels[0], "--a2", accels[1],
+                         "--accel-unit", "m/s2",
                          "--stroke-pp-mm", "80", "--asset-id", "b", "--charge", "from-name", "--overwrite",
                          "--out", tmp_path / "out", *flags, csv)
         return done.stdout
 
     assert "warning" not in run("--mid-stroke", "40")
     flipped = run("--mid-stroke", "40", "--position-positive", "compression")
-    assert "a1) and the position's second derivative disagree in sign (correlation -1.00)" in flipped, flipped
+    assert "(a1 − a2) and the position's second derivative disagree in sign (correlation -1.00)" in flipped, flipped
     assert "the force is against the velocity" in flipped
     force = run("--mid-stroke", "40", "--force-positive", "compression")
     assert "the force is against the velocity" in force and "second derivative" not in force, force
     no_mid = run()
     assert "the positions never cross mid-stroke (0.1 to 79.9 mm for a 80.0 mm stroke)" in no_mid, no_mid
+    # The two accelerometer columns swapped (a helper's trial): the body end's near-still column
+    # read as the rod's passed the rod accelerometer's own check; a1 − a2 against the stroke does not.
+    body = 0.05 * np.sin(7 * t)  # the body end: a slow sway, not the stroke
+    csv.write_text("t,travel,F,rod,body\n" + "".join(f"{a:.4f},{b:.5f},{c:.3f},{d:.5f},{e:.5f}\n"
+                                                  for a, b, c, d, e in zip(t, travel_mm, force_n, a1, body)))
+    assert "warning" not in run("--mid-stroke", "40", accels=("rod", "body"))
+    swapped = run("--mid-stroke", "40", accels=("body", "rod"))
+    assert "the accelerometers look swapped: the body-end column (a2) follows the stroke (correlation 1.00" \
+        in swapped and "swap `[acceleration] a1` and `a2`" in swapped, swapped
 
 
 def test_a_time_of_day_crosses_midnight(tmp_path: Path) -> None:

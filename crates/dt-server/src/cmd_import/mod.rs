@@ -367,19 +367,32 @@ const SIGN_CORRELATION: f64 = -0.5;
 /// flipped position sign read a 12 bar unit as −17 bar, a flipped force
 /// tripled the error, a missing `mid_stroke` moved the estimate; all imported
 /// without a word):
-/// - the rod accelerometer `a1` against the position's second derivative
-///   (SPEC §2: both extension positive, they agree in sign);
+/// - the relative acceleration `a1 − a2` against the position's second
+///   derivative (SPEC §2: both extension positive, they agree in sign); when
+///   they disagree and the body-end column `a2` is the one that follows the
+///   stroke, the two columns are taken to be swapped (a helper's trial: a
+///   swapped pair imported without a word, the rod accelerometer's check
+///   reading the body's near-still column);
 /// - the force against the velocity (positive in tension: a damper's force
 ///   follows the extension velocity);
 /// - with a stated stroke, positions that never cross mid-stroke (0).
 fn convention_warnings(samples: &[Sample], stroke_pp_m: Option<f64>) -> Vec<String> {
     let mut pos: Vec<(f64, f64)> = Vec::new();
-    let mut acc: Vec<(f64, f64)> = Vec::new();
+    let (mut rel, mut rod, mut body) = (Vec::new(), Vec::new(), Vec::new());
     let mut force: Vec<(f64, f64)> = Vec::new();
     for s in samples {
         match *s {
             Sample::Position { t_ns, position_m } => pos.push((t_ns as f64 * 1e-9, position_m)),
-            Sample::Acceleration { t_ns, a1_mps2, .. } => acc.push((t_ns as f64 * 1e-9, a1_mps2)),
+            Sample::Acceleration {
+                t_ns,
+                a1_mps2,
+                a2_mps2,
+            } => {
+                let t = t_ns as f64 * 1e-9;
+                rel.push((t, a1_mps2 - a2_mps2));
+                rod.push((t, a1_mps2));
+                body.push((t, a2_mps2));
+            }
             Sample::Force { t_ns, force_n } => force.push((t_ns as f64 * 1e-9, force_n)),
             _ => {}
         }
@@ -403,13 +416,25 @@ fn convention_warnings(samples: &[Sample], stroke_pp_m: Option<f64>) -> Vec<Stri
             second.push((w[1].0, (w[2].1 - 2.0 * w[1].1 + w[0].1) / (h0 * h1)));
         }
     }
-    if let Some(r) = correlation_at(&second, &acc) {
+    if let Some(r) = correlation_at(&second, &rel) {
         if r < SIGN_CORRELATION {
-            out.push(format!(
-                "the rod accelerometer (a1) and the position's second derivative disagree in \
-                 sign (correlation {r:.2}): is the position's sign (`[position] positive`) or the \
-                 accelerometers' flipped? SPEC §2 counts both positive in extension"
-            ));
+            let r1 = correlation_at(&second, &rod).unwrap_or(f64::NAN);
+            let r2 = correlation_at(&second, &body).unwrap_or(f64::NAN);
+            out.push(if r2 > -SIGN_CORRELATION && r1.abs() < -SIGN_CORRELATION {
+                format!(
+                    "the accelerometers look swapped: the body-end column (a2) follows the \
+                     stroke (correlation {r2:.2} with the position's second derivative), the \
+                     rod-end one (a1) does not ({r1:.2}); swap `[acceleration] a1` and `a2` \
+                     (--a1, --a2)"
+                )
+            } else {
+                format!(
+                    "the relative acceleration (a1 − a2) and the position's second derivative \
+                     disagree in sign (correlation {r:.2}): is the position's sign (`[position] \
+                     positive`) or the accelerometers' flipped, or a1 and a2 swapped? SPEC §2 \
+                     counts both positive in extension"
+                )
+            });
         }
     }
     if let Some(r) = correlation_at(&vel, &force) {
