@@ -608,6 +608,21 @@ def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(
                                server.url.replace("nats://", "nats://wrong-s3cret@"), str(runs[0])],
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode != 0 and "wrong-s3cret" not in proc.stderr and "***@" in proc.stderr, proc.stderr
+        # the right token in the URL connects (async-nats reads none from a URL; nats-py does)
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats",
+                               server.url.replace("nats://", "nats://s3cret-nats@"), "--rename-assets", "tok-",
+                               str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0 and "s3cret-nats" not in proc.stderr + proc.stdout, proc.stderr
+        # a mistyped scheme is refused before anything is tried, by publish and by serve
+        typo = server.url.replace("nats://", "nat://")
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", typo, str(runs[0])],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode != 0 and "not a NATS server URL" in proc.stderr, proc.stderr
+        proc = subprocess.run([str(shocktwin_bin), "serve", "--nats", typo, "--model", str(BUNDLE),
+                               "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode != 0 and "nats.url" in proc.stderr and "not a NATS server URL" in proc.stderr, \
+            proc.stderr
         # a daemon whose `[nats]` names a missing CA does not start, and says which setting and file
         config = tmp_path / "worker.toml"
         config.write_text(f'[nats]\nurl = "{server.url}"\nca_file = "{tmp_path / "caX.pem"}"\n'
@@ -848,3 +863,54 @@ def test_a_service_of_a_road_asset_is_read_by_the_worker_into_a_road_baseline(
     finally:
         w.stop()
         view.stop()
+
+
+def test_a_worker_stops_when_told_while_nats_is_away(shocktwin_bin: Path, nats_server: NatsServer) -> None:
+    """SIGTERM while the server was down waited until NATS came back, or for ever (a helper's
+    trial: systemd's stop then ends in SIGKILL). The final checkpoints are bounded: the worker
+    leaves without them, says so, and exits 0; its partitions restart from their last checkpoints."""
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        deadline = time.monotonic() + 60
+        while "joined the worker group" not in w.text() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "joined the worker group" in w.text(), w.text()[-3000:]
+        nats_server.stop()
+        time.sleep(1)
+        began = time.monotonic()
+        assert w.stop() == 0, w.text()[-3000:]  # SIGKILL after 20 s would give -9
+        took = time.monotonic() - began
+    finally:
+        w.stop()
+    assert took < 19, took
+    assert "left the worker group without its final checkpoints" in w.text(), w.text()[-3000:]
+
+
+def test_one_assets_runs_in_one_publish_go_one_after_another(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path]) -> None:
+    """`publish leak/*.mcap` (one unit's runs) sent every file at once: the runs of one asset
+    interleaved on its subject, and the worker ended all but one as interrupted (a helper's
+    trial). Now one asset's runs go one after another, in the order given: every one completes.
+    A bad `--rename-assets` prefix is refused before anything is sent."""
+    proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--rename-assets", "x*",
+                           str(runs[0])], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "--rename-assets \"x*\"" in proc.stderr and "[A-Za-z0-9._-]" in proc.stderr, \
+        proc.stderr
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
+                               *map(str, runs)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        asset = json.loads(subprocess.run([str(shocktwin_bin), "inspect", "--json", str(runs[0])],
+                                          capture_output=True, text=True, check=True).stdout)["run"]["asset_id"]
+        deadline = time.monotonic() + 120
+        while True:
+            ends = [json.loads(d) for _, d, _, _ in read_stream(nats_server.url, ["shocktwin.run.*"])]
+            ends = [e for e in ends if e["event"] == "ended" and e["asset_id"] == asset]
+            if len(ends) >= len(runs) or time.monotonic() > deadline:
+                break
+            time.sleep(1)
+        assert [e["meta"]["outcome"] for e in ends] == ["completed"] * len(runs), (ends, w.text()[-3000:])
+        assert [e["run_id"] for e in ends] == [r.stem for r in runs], ends  # in the order given
+    finally:
+        assert w.stop() == 0

@@ -7,11 +7,12 @@ use dt_server::cli::{Cli, Command};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    // The NATS client logs each of its events at info (a reconnection
-    // attempt a second per part while the server is away); the daemon says
-    // the ones that matter itself (`nats::LastError`).
+    // The NATS client logs each of its events (a reconnection attempt a
+    // second per part while the server is away, a refused connection at
+    // error every few seconds); the daemon says the ones that matter itself
+    // (`nats::LastError`), so the client's own lines are off by default.
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,async_nats=warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,async_nats=off"));
     // Structured (JSON) logs: `serve --log-format json` or SHOCKTWIN_LOG_FORMAT=json.
     let json_logs = match &cli.command {
         Command::Serve(args) if args.log_format.is_some() => {

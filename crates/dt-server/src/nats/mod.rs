@@ -124,6 +124,9 @@ impl NatsConfig {
     /// use: before, 200 partitions made a stream no worker could join, and a
     /// negative age stopped the part with a panic.
     pub fn check_settings(&self) -> Result<(), (&'static str, String)> {
+        if let Some(url) = &self.url {
+            server_addrs(url).map_err(|why| ("nats.url", why))?;
+        }
         if !(1..=worker::MAX_PARTITIONS).contains(&self.partitions) {
             return Err((
                 "nats.partitions",
@@ -222,6 +225,35 @@ pub fn without_credentials(url: &str) -> String {
         })
         .collect::<Vec<_>>()
         .join(",")
+}
+
+/// The server addresses of `url` (comma separated), or why one is not one,
+/// its credentials hidden. Before, `nat://…` (a typo) started the daemon,
+/// whose NATS parts then stopped with "invalid scheme" behind `/healthz` 200
+/// (a helper's trial): the client is made with `retry_on_initial_connect`,
+/// which parses the URL only once it runs.
+pub fn server_addrs(url: &str) -> Result<Vec<async_nats::ServerAddr>, String> {
+    url.split(',')
+        .map(|u| {
+            u.trim().parse::<async_nats::ServerAddr>().map_err(|e| {
+                format!(
+                    "{}: not a NATS server URL ({e}; nats://host:4222 or tls://host:4222)",
+                    without_credentials(u.trim())
+                )
+            })
+        })
+        .collect()
+}
+
+/// The credentials written in the first server URL that has any: a
+/// `user:password@` pair, or a `token@` alone (the NATS clients' convention).
+/// async-nats reads neither from the URL (a helper's trial: `nats://token@host`
+/// was refused with "authorization violation", where nats-py connects).
+fn url_credentials(url: &str) -> Option<(String, Option<String>)> {
+    server_addrs(url).ok()?.into_iter().find_map(|a| {
+        a.username()
+            .map(|u| (u.to_owned(), a.password().map(str::to_owned)))
+    })
 }
 
 /// Connects with the configured TLS and credentials, waiting at most 10 s
@@ -504,6 +536,12 @@ async fn client_for(
     if let Some(f) = &cfg.token_file {
         let token = read_token(f).map_err(|why| NatsError::new("token file", why))?;
         opts = opts.token(token);
+    } else {
+        match url_credentials(&url) {
+            Some((user, Some(password))) => opts = opts.user_and_password(user, password),
+            Some((token, None)) => opts = opts.token(token),
+            None => {}
+        }
     }
     // `retry_on_initial_connect` makes connect return at once; the callers
     // wait for the first connection
@@ -663,6 +701,38 @@ mod tests {
             super::without_credentials("s3cret@h:4222,plain:2"),
             "***@h:4222,plain:2"
         );
+    }
+
+    /// A URL that is not a NATS server's is refused at start, its
+    /// credentials hidden; those written in it are used.
+    #[test]
+    fn a_mistyped_url_is_refused_and_its_credentials_are_used() {
+        assert_eq!(
+            super::server_addrs("nats://a:1, tls://b:2,c:3")
+                .unwrap()
+                .len(),
+            3
+        );
+        let why = super::server_addrs("nats://a:1,nat://s3cret@b:2").unwrap_err();
+        assert!(
+            why.starts_with("nat://***@b:2: not a NATS server URL"),
+            "{why}"
+        );
+        assert!(!why.contains("s3cret"), "{why}");
+        let cfg = super::NatsConfig {
+            url: Some("nat://127.0.0.1:4222".into()),
+            ..super::NatsConfig::default()
+        };
+        assert_eq!(cfg.check_settings().unwrap_err().0, "nats.url");
+        assert_eq!(
+            super::url_credentials("nats://plain:1,nats://s3cret@h:2"),
+            Some(("s3cret".into(), None))
+        );
+        assert_eq!(
+            super::url_credentials("tls://u:p@h:2"),
+            Some(("u".into(), Some("p".into())))
+        );
+        assert_eq!(super::url_credentials("nats://h:2"), None);
     }
 
     /// A wrong file is said at once, naming the setting and the file.

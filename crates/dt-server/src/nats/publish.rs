@@ -42,6 +42,21 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
         token_file: args.nats_token_file.clone(),
         ..NatsConfig::default()
     };
+    if let Err((_, why)) = cfg.check_settings() {
+        bail!("--nats {why}");
+    }
+    if let Some(prefix) = &args.rename_assets {
+        // the longest id it makes: the charset and length are all that vary
+        // (a helper's trial: `x*` published 701 batches a run, every one
+        // dead-lettered by the workers; `Bad Id-` was retried for a minute)
+        let longest = format!("{prefix}{}", args.files.len().saturating_sub(1));
+        if !dt_core::log::is_valid_id(&longest) {
+            bail!(
+                "--rename-assets {prefix:?}: makes asset ids such as {longest:?}, not {}",
+                dt_core::log::ID_FORMAT
+            );
+        }
+    }
     if let Err((key, why)) = cfg.check_files() {
         let flag = match key {
             "nats.ca_file" => "--nats-ca",
@@ -55,23 +70,22 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
     let js = jetstream::new(client);
     ensure_topology(&js, &cfg).await?;
     let js = Arc::new(js);
+    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel();
     let mut tasks = tokio::task::JoinSet::new();
-    for (i, file) in args.files.iter().enumerate() {
+    for group in by_asset(args).await {
         let js = Arc::clone(&js);
-        let file = file.clone();
-        let opts = FileOptions {
-            batch_ns: i64::from(args.batch_ms) * 1_000_000,
-            speed: if args.realtime { Some(1.0) } else { args.speed },
-            asset: args.rename_assets.as_ref().map(|p| format!("{p}{i}")),
-        };
+        let (tx, opts) = (done_tx.clone(), group);
         tasks.spawn(async move {
-            let r = publish_file(&js, &file, &opts).await;
-            (file, r)
+            // one asset's runs one after another, in the order given
+            for (file, opts) in opts {
+                let r = publish_file(&js, &file, &opts).await;
+                let _ = tx.send((file, r));
+            }
         });
     }
+    drop(done_tx);
     let mut failed = 0;
-    while let Some(joined) = tasks.join_next().await {
-        let (file, r) = joined.context("publish task")?;
+    while let Some((file, r)) = done_rx.recv().await {
         match r {
             Ok(p) => eprintln!(
                 "published {}: asset {} run {}, {} batches, {} samples{}",
@@ -100,11 +114,52 @@ async fn publish_all(args: &PublishArgs) -> Result<std::process::ExitCode> {
             }
         }
     }
+    while let Some(joined) = tasks.join_next().await {
+        joined.context("publish task")?;
+    }
     Ok(if failed > 0 {
         std::process::ExitCode::FAILURE
     } else {
         std::process::ExitCode::SUCCESS
     })
+}
+
+/// The files with their options, grouped by the asset they are published
+/// as: the groups go side by side, a group's files one after another in the
+/// order given. Before, every file went at once, and several runs of one
+/// asset (`publish leak/*.mcap`, a unit's daily runs) were interleaved: the
+/// workers ended all but one as interrupted (a helper's trial). Without
+/// `--rename-assets` each file's asset id is read first (a second read of
+/// the file; one that cannot be read goes alone and fails as before).
+async fn by_asset(args: &PublishArgs) -> Vec<Vec<(PathBuf, FileOptions)>> {
+    let mut groups: Vec<Vec<(PathBuf, FileOptions)>> = Vec::new();
+    let mut group_of: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
+    for (i, file) in args.files.iter().enumerate() {
+        let opts = FileOptions {
+            batch_ns: i64::from(args.batch_ms) * 1_000_000,
+            speed: if args.realtime { Some(1.0) } else { args.speed },
+            asset: args.rename_assets.as_ref().map(|p| format!("{p}{i}")),
+        };
+        let asset = if let Some(a) = &opts.asset {
+            Some(a.clone())
+        } else {
+            let path = file.clone();
+            tokio::task::spawn_blocking(move || read_log(&path).ok())
+                .await
+                .ok()
+                .flatten()
+                .map(|log| log.metadata.asset_id)
+        };
+        match asset.map(|a| group_of.get(&a).copied().ok_or(a)) {
+            Some(Ok(g)) => groups[g].push((file.clone(), opts)),
+            Some(Err(a)) => {
+                group_of.insert(a, groups.len());
+                groups.push(vec![(file.clone(), opts)]);
+            }
+            None => groups.push(vec![(file.clone(), opts)]),
+        }
+    }
+    groups
 }
 
 struct FileOptions {
@@ -163,6 +218,16 @@ async fn publish_file(
             tokio::time::sleep_until(started + due).await;
         }
         let payload: bytes::Bytes = serde_json::to_vec(&b)?.into();
+        let most = js.client().server_info().max_payload;
+        if most > 0 && payload.len() > most {
+            // refused by the client at every retry (a helper's trial: a minute's silence)
+            bail!(
+                "batch {batch_no} is {} bytes, over the server's max_payload of {most}: \
+                 use a shorter --batch-ms (now {} ms)",
+                payload.len(),
+                opts.batch_ns / 1_000_000
+            );
+        }
         let id = format!("{}/{}/{}", meta.asset_id, meta.run_id, batch_no);
         if send_with_retry(js, &subject, &payload, &id)
             .await

@@ -65,6 +65,10 @@ use crate::server::{EstimatorFactory, ServeError};
 
 /// Version of the partition checkpoint encoding.
 const CHECKPOINT_VERSION: u32 = 1;
+
+/// How long a stopping worker waits for its final checkpoints and for
+/// giving its leases back (systemd's unit allows 60 s for the whole stop).
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
 /// A partition waits for its publish acknowledgements once this many are
 /// outstanding (the context allows [`MAX_ACKS_IN_FLIGHT`] for all partitions
 /// together: a partition never waits for a permit another one holds).
@@ -226,7 +230,54 @@ impl NatsWorker {
                 () = ctx.cancel.cancelled() => break,
                 _ = tick.tick() => {}
             }
-            if let Err(e) = leases.put(&heartbeat, Bytes::from_static(b"1")).await {
+            // A step waits on the server (each request up to the client's
+            // timeout): a stop during an outage must not wait for it.
+            let step =
+                self.renew_and_rebalance(&leases, &heartbeat, &mut held, partitions, &part, &ctx);
+            tokio::select! {
+                () = ctx.cancel.cancelled() => break,
+                () = step => {}
+            }
+        }
+        // Shutdown: final checkpoints, then the leases go back at once;
+        // bounded, for a server that is away (a helper's trial: a SIGTERM
+        // during an outage waited until NATS came back, or for ever). Without
+        // them a partition restarts from its last periodic checkpoint once
+        // its lease expires, as after `kill -9`.
+        let leave = async {
+            for (p, h) in std::mem::take(&mut held) {
+                release(&leases, p, h).await;
+            }
+            let _ = leases.delete(&heartbeat).await;
+        };
+        if tokio::time::timeout(SHUTDOWN_GRACE, leave).await.is_err() {
+            tracing::warn!(
+                worker = %self.id,
+                "left the worker group without its final checkpoints: NATS did not answer within {} s \
+                 (the partitions restart from their last checkpoints once their leases expire)",
+                SHUTDOWN_GRACE.as_secs()
+            );
+        } else {
+            tracing::info!(worker = %self.id, "left the worker group");
+        }
+        Ok(())
+    }
+}
+
+impl NatsWorker {
+    /// One beat: the heartbeat, the held leases renewed (a partition whose
+    /// lease is lost is dropped without writing), then [`Self::rebalance`].
+    async fn renew_and_rebalance(
+        &self,
+        leases: &kv::Store,
+        heartbeat: &str,
+        held: &mut BTreeMap<u32, Held>,
+        partitions: u32,
+        part: &PartCtx,
+        ctx: &SourceContext,
+    ) {
+        {
+            if let Err(e) = leases.put(heartbeat, Bytes::from_static(b"1")).await {
                 tracing::warn!(worker = %self.id, "heartbeat: {e}");
             }
             // Renew; a lease we cannot renew is lost: drop the partition
@@ -235,7 +286,7 @@ impl NatsWorker {
             // one line for the leases lost together (every one after an
             // outage longer than their lifetime: a line each before)
             let mut lost_why: Option<String> = None;
-            for (&p, h) in &mut held {
+            for (&p, h) in held.iter_mut() {
                 if h.task.is_finished() {
                     lost.push((p, true));
                     continue;
@@ -272,20 +323,10 @@ impl NatsWorker {
                     }
                 }
             }
-            self.rebalance(&leases, &mut held, partitions, &part, &ctx)
-                .await;
+            self.rebalance(leases, held, partitions, part, ctx).await;
         }
-        // Shutdown: final checkpoints, then the leases go back at once.
-        for (p, h) in std::mem::take(&mut held) {
-            release(&leases, p, h).await;
-        }
-        let _ = leases.delete(&heartbeat).await;
-        tracing::info!(worker = %self.id, "left the worker group");
-        Ok(())
     }
-}
 
-impl NatsWorker {
     /// Gives away one partition above the fair share, or takes free ones up
     /// to it.
     async fn rebalance(
