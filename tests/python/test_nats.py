@@ -914,3 +914,74 @@ def test_one_assets_runs_in_one_publish_go_one_after_another(
         assert [e["run_id"] for e in ends] == [r.stem for r in runs], ends  # in the order given
     finally:
         assert w.stop() == 0
+
+
+def test_a_run_sent_again_within_the_window_ends_again(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path]) -> None:
+    """A run re-sent within JetStream's 5 min de-duplication window (its batches under new
+    message ids, as a vehicle's uploader retrying a run would) was estimated again, but its
+    `started` and `ended` events carried the first sending's message ids and were dropped:
+    the run stayed `running` in every fleet view (a helper's trial). They now carry the
+    stream sequence of the run's batch 0."""
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
+                               "--rename-assets", "again-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        wait_ended(nats_server.url, {"again-0"}, 120, [w])
+        batches = read_stream(nats_server.url, ["shocktwin.telemetry.*.again-0"], "SHOCKTWIN_TELEMETRY")
+        assert batches and json.loads(batches[-1][1])["end"], len(batches)
+
+        async def resend() -> None:
+            import nats
+
+            nc = await nats.connect(nats_server.url)
+            js = nc.jetstream()
+            for k, (_, data, _, _) in enumerate(batches):  # stored under the partition's subject
+                await js.publish("shocktwin.telemetry.again-0", data, headers={"Nats-Msg-Id": f"resent/{k}"})
+            await nc.close()
+
+        asyncio.run(resend())
+        deadline = time.monotonic() + 120
+        while True:
+            events = [json.loads(d) for _, d, _, _ in read_stream(nats_server.url, ["shocktwin.run.again-0"])]
+            if sum(e["event"] == "ended" for e in events) >= 2 or time.monotonic() > deadline:
+                break
+            time.sleep(1)
+        assert [e["event"] for e in events] == ["started", "ended", "started", "ended"], (events, w.text()[-3000:])
+        assert all(e["meta"]["outcome"] == "completed" for e in events if e["event"] == "ended"), events
+    finally:
+        assert w.stop() == 0
+
+
+def test_a_worker_with_another_model_is_warned_of(shocktwin_bin: Path, nats_server: NatsServer) -> None:
+    """A worker started with another bundle joined without a word, and a failover onto it
+    lost the runs it took over (their checkpoints belong to the other model; a helper's
+    trial). Each worker's heartbeat now carries its model, and a worker seeing another one
+    says so, naming the other worker; workers of one model say nothing of each other."""
+    other = ROOT / "docs" / "study" / "bundles" / "perm-18"
+    a = worker(shocktwin_bin, nats_server)
+    b = worker(shocktwin_bin, nats_server)
+    c = ServeProcess([str(shocktwin_bin), "serve", "--nats", nats_server.url, "--model", str(other),
+                      "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-db"])
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (
+                "runs model" in a.text() and "runs model" in b.text()
+                and sum("runs model" in line for line in c.text().splitlines()) >= 2):
+            time.sleep(0.2)
+        joined = re.compile(r"joined the worker group.*worker=(worker-[0-9a-f-]+)")
+        ids = {}
+        for name, w in {"a": a, "b": b, "c": c}.items():
+            m = joined.search(w.text())
+            assert m, (name, w.text()[-2000:])
+            ids[name] = m.group(1)
+        for name, w in {"a": a, "b": b}.items():
+            warned = [line for line in w.text().splitlines() if "runs model" in line]
+            assert len(warned) == 1 and f"{ids['c']}: runs model" in warned[0], (name, w.text()[-3000:])
+        warned_c = [line for line in c.text().splitlines() if "runs model" in line]
+        assert len(warned_c) == 2 and {ids["a"], ids["b"]} == {
+            next(i for i in ids.values() if i in line) for line in warned_c}, c.text()[-3000:]
+    finally:
+        for w in (a, b, c):
+            w.stop()

@@ -123,7 +123,8 @@ struct Checkpoint {
 /// SHA-256 (hex, first 16 bytes) of the bundle's `twin.json` contents: the
 /// model a checkpoint belongs to (the network file's digest is in it when
 /// the bundle records one).
-fn model_digest(bundle: &Bundle) -> String {
+#[must_use]
+pub fn model_digest(bundle: &Bundle) -> String {
     use sha2::{Digest, Sha256};
     use std::fmt::Write as _;
     let json = serde_json::to_vec(&bundle.twin).unwrap_or_default();

@@ -220,9 +220,22 @@ impl NatsWorker {
             }
         };
         tracing::info!(worker = %self.id, partitions, "joined the worker group");
+        if partitions != self.cfg.partitions {
+            // the stream's count is fixed when it is made (a helper's trial:
+            // `partitions = 8` against a stream of 16 said nothing)
+            tracing::warn!(
+                "nats.partitions = {} is not used: the telemetry stream exists with {partitions} \
+                 partitions, fixed when it was made (delete the stream SHOCKTWIN_TELEMETRY, \
+                 losing its telemetry, to change it)",
+                self.cfg.partitions
+            );
+        }
         ctx.started.signal(); // connected and set up (a review: not before)
         let mut held: BTreeMap<u32, Held> = BTreeMap::new();
         let heartbeat = format!("worker.{}", self.id);
+        // the heartbeat's value: this worker's model, which the others compare
+        let model = dt_core::estimator::model_digest(self.factory.bundle());
+        let mut others = BTreeMap::new();
         let mut tick = tokio::time::interval(RENEW_EVERY / 2);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -232,8 +245,11 @@ impl NatsWorker {
             }
             // A step waits on the server (each request up to the client's
             // timeout): a stop during an outage must not wait for it.
-            let step =
-                self.renew_and_rebalance(&leases, &heartbeat, &mut held, partitions, &part, &ctx);
+            let step = async {
+                self.renew_and_rebalance(&leases, &heartbeat, &mut held, partitions, &part, &ctx)
+                    .await;
+                check_models(&leases, &model, &mut others).await;
+            };
             tokio::select! {
                 () = ctx.cancel.cancelled() => break,
                 () = step => {}
@@ -277,7 +293,8 @@ impl NatsWorker {
         ctx: &SourceContext,
     ) {
         {
-            if let Err(e) = leases.put(heartbeat, Bytes::from_static(b"1")).await {
+            let model = dt_core::estimator::model_digest(self.factory.bundle());
+            if let Err(e) = leases.put(heartbeat, Bytes::from(model)).await {
                 tracing::warn!(worker = %self.id, "heartbeat: {e}");
             }
             // Renew; a lease we cannot renew is lost: drop the partition
@@ -411,6 +428,42 @@ async fn live_workers(leases: &kv::Store) -> u32 {
     n
 }
 
+/// Warns when a worker of the group runs another model than `model` (read
+/// from the heartbeats; said once per worker and model). A failover between
+/// two such workers cannot restore the runs (the checkpoints belong to one
+/// model): they restart with their next batch 0, and batches before it are
+/// dead-lettered (a helper's trial: a worker started with another bundle
+/// joined without a word, and a failover onto it lost two runs).
+async fn check_models(leases: &kv::Store, model: &str, seen: &mut BTreeMap<String, String>) {
+    let Ok(mut keys) = leases.keys().await else {
+        return;
+    };
+    let mut workers = Vec::new();
+    while let Some(k) = keys.next().await {
+        if let Ok(k) = k {
+            if k.starts_with("worker.") {
+                workers.push(k);
+            }
+        }
+    }
+    for key in workers {
+        let Ok(Some(value)) = leases.get(&key).await else {
+            continue;
+        };
+        let theirs = String::from_utf8_lossy(&value).into_owned();
+        // "1": a worker from before the heartbeat carried its model
+        if theirs != model && theirs != "1" && seen.get(&key) != Some(&theirs) {
+            tracing::warn!(
+                "{}: runs model {theirs}, this worker {model}: the group's workers need one \
+                 bundle (a failover between them restarts the runs it moves, and loses their \
+                 batches until the next run starts)",
+                key.trim_start_matches("worker.")
+            );
+        }
+        seen.insert(key, theirs);
+    }
+}
+
 /// FNV-1a: a stable spread of the workers' first choices.
 fn hash32(s: &str) -> u32 {
     s.bytes().fold(0x811c_9dc5_u32, |h, b| {
@@ -432,6 +485,10 @@ struct SavedRun {
     /// The run's first sample time, ns.
     #[serde(default)]
     first_t_ns: Option<i64>,
+    /// The telemetry stream sequence of the run's batch 0 (0 in a
+    /// checkpoint written before it was kept).
+    #[serde(default)]
+    start_seq: u64,
 }
 
 #[derive(Debug, Default, Serialize, Deserialize)]
@@ -454,6 +511,13 @@ struct OpenRun {
     service: Option<(ServiceToRead, ServiceReading)>,
     /// The run's first sample time, ns.
     first_t_ns: Option<i64>,
+    /// The telemetry stream sequence of the run's batch 0: part of the
+    /// message ids of what the run publishes, so that a run sent again (a
+    /// new batch 0) is not taken for a duplicate of its first sending by the
+    /// stream's de-duplication window, while a failover's replay of the same
+    /// batches still is (a helper's trial: a run re-sent within 5 minutes
+    /// stayed "running" in every fleet view, its `ended` event dropped).
+    start_seq: u64,
 }
 
 impl OpenRun {
@@ -581,6 +645,7 @@ async fn restore_partition(p: u32, ctx: PartCtx) -> Result<(Option<u64>, Partiti
                         est: Box::new(est),
                         service: s.service,
                         first_t_ns: s.first_t_ns,
+                        start_seq: s.start_seq,
                     },
                 );
             }
@@ -630,6 +695,7 @@ impl Partition {
                             estimator: serde_bytes::ByteBuf::from(r.est.checkpoint()),
                             service: r.service,
                             first_t_ns: r.first_t_ns,
+                            start_seq: r.start_seq,
                         },
                     )
                 })
@@ -664,7 +730,7 @@ impl Partition {
                 self.dead_letter(token, e.kind(), &e.to_string(), payload, seq)
                     .await
             }
-            Ok(b) => match Box::pin(self.apply(b)).await {
+            Ok(b) => match Box::pin(self.apply(b, seq)).await {
                 Ok(()) => Ok(()),
                 Err(Refused::Publish(e)) => Err(e),
                 Err(Refused::Input(kind, reason)) => {
@@ -740,7 +806,7 @@ impl Partition {
         Ok((est, service))
     }
 
-    async fn apply(&mut self, b: TelemetryBatch) -> Result<(), Refused> {
+    async fn apply(&mut self, b: TelemetryBatch, seq: u64) -> Result<(), Refused> {
         let asset = b.asset_id.clone();
         if b.batch == 0 {
             if let Some(open) = self.runs.get(&asset) {
@@ -765,7 +831,7 @@ impl Partition {
             let mut map = meta.to_map();
             map.remove("asset_id");
             map.remove("run_id");
-            self.run_event(&asset, &b.run_id, "started", &map, None)
+            self.run_event(&asset, &b.run_id, seq, "started", &map, None)
                 .await?;
             tracing::info!(partition = self.p, asset, run = %b.run_id, "run started");
             self.runs.insert(
@@ -778,6 +844,7 @@ impl Partition {
                     est: Box::new(est),
                     service,
                     first_t_ns: None,
+                    start_seq: seq,
                 },
             );
         } else {
@@ -855,8 +922,15 @@ impl Partition {
             observer,
             road: counters.road,
         };
-        self.run_event(asset, &open.run_id, "ended", &map, Some(ended))
-            .await?;
+        self.run_event(
+            asset,
+            &open.run_id,
+            open.start_seq,
+            "ended",
+            &map,
+            Some(ended),
+        )
+        .await?;
         tracing::info!(partition = self.p, asset, run = %open.run_id, outcome, "run ended");
         Ok(())
     }
@@ -933,7 +1007,7 @@ impl Partition {
                 unfloored_half_bar: e.unfloored_half_bar,
             })
             .map_err(|err| Refused::Publish(NatsError::new("estimate encoding", err)))?;
-            let id = format!("e/{asset}/{}/{}", open.run_id, e.t_ns);
+            let id = format!("e/{asset}/{}/{}/{}", open.run_id, open.start_seq, e.t_ns);
             self.publish(
                 subject.clone(),
                 Publish::build().payload(payload.into()).message_id(id),
@@ -949,7 +1023,7 @@ impl Partition {
                 };
                 let payload = serde_json::to_vec(&msg)
                     .map_err(|err| Refused::Publish(NatsError::new("health encoding", err)))?;
-                let id = format!("h/{asset}/{}/{}", open.run_id, e.t_ns);
+                let id = format!("h/{asset}/{}/{}/{}", open.run_id, open.start_seq, e.t_ns);
                 self.publish(
                     format!("shocktwin.health.{token}"),
                     Publish::build().payload(payload.into()).message_id(id),
@@ -967,6 +1041,7 @@ impl Partition {
         &mut self,
         asset: &str,
         run_id: &str,
+        start_seq: u64,
         event: &str,
         meta: &BTreeMap<String, String>,
         ended: Option<RunEnded>,
@@ -982,7 +1057,7 @@ impl Partition {
             road: ended.and_then(|e| e.road),
         })
         .map_err(|e| Refused::Publish(NatsError::new("run event encoding", e)))?;
-        let id = format!("r/{asset}/{run_id}/{event}");
+        let id = format!("r/{asset}/{run_id}/{start_seq}/{event}");
         self.publish(
             format!("shocktwin.run.{token}"),
             Publish::build().payload(payload.into()).message_id(id),
