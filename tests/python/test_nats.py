@@ -985,3 +985,47 @@ def test_a_worker_with_another_model_is_warned_of(shocktwin_bin: Path, nats_serv
     finally:
         for w in (a, b, c):
             w.stop()
+
+
+def test_a_server_back_with_an_empty_store_is_set_up_again(
+        shocktwin_bin: Path, nats_server: NatsServer, runs: list[Path]) -> None:
+    """NATS restarted with an empty store (a store under /tmp after a reboot) left the group
+    dead: the worker logged "no stream found" for ever, `/readyz` said ready, and no run was
+    estimated or shown again (a helper's trial). The worker now sets the group up again and
+    the fleet view subscribes again: a run published afterwards is estimated and shown."""
+    import shutil
+
+    import httpx
+
+    w = worker(shocktwin_bin, nats_server)
+    try:
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
+                               "--rename-assets", "before-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        wait_ended(nats_server.url, {"before-0"}, 120, [w])
+        nats_server.stop()
+        shutil.rmtree(nats_server.workdir / "jetstream")
+        nats_server.start()
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
+                               "--rename-assets", "after-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        done = wait_ended(nats_server.url, {"after-0"}, 120, [w])
+        assert done["after-0"]["meta"]["outcome"] == "completed", done
+        assert "setting the group up again" in w.text(), w.text()[-3000:]
+        # The fleet view notices when its consumer's heartbeat is missed (about 15 s) and reads
+        # from then on: the runs of that gap show at their next run; a later run shows.
+        deadline = time.monotonic() + 60
+        while "fleet view: subscribing again" not in w.text() and time.monotonic() < deadline:
+            time.sleep(0.5)
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
+                               "--rename-assets", "later-", str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            assets = httpx.get(f"http://{w.http}/v1/assets", timeout=10).json()["assets"]
+            if "later-0" in {a["asset_id"] for a in assets}:
+                break
+            time.sleep(1)
+        assert "later-0" in {a["asset_id"] for a in assets}, (assets, w.text()[-3000:])
+    finally:
+        assert w.stop() == 0

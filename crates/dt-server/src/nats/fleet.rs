@@ -126,6 +126,30 @@ async fn subscribe(
         .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?)
 }
 
+/// Consecutive errors of the view's subscription before it is made again
+/// (at once when its consumer or stream is not found).
+const RESUBSCRIBE_AFTER: u32 = 5;
+
+/// [`subscribe`], tried again (see [`SetUpRetries`]) until it works; `None`
+/// once the daemon stops first.
+async fn subscribe_patiently(
+    js: &jetstream::Context,
+    cfg: &NatsConfig,
+    ctx: &SourceContext,
+    retries: &mut SetUpRetries,
+) -> Result<Option<consumer::pull::Ordered>, NatsError> {
+    loop {
+        match subscribe(js, cfg).await {
+            Ok(messages) => return Ok(Some(messages)),
+            Err(e) => {
+                if !retries.after("shocktwin fleet view", e, ctx).await? {
+                    return Ok(None);
+                }
+            }
+        }
+    }
+}
+
 async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
     const NAME: &str = "shocktwin fleet view";
     let Some(client) = connect_patiently(cfg, NAME, &ctx).await? else {
@@ -133,17 +157,14 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
     };
     let js = jetstream::new(client);
     let mut retries = SetUpRetries::default();
-    let mut messages = loop {
-        match subscribe(&js, cfg).await {
-            Ok(messages) => break messages,
-            Err(e) => {
-                if !retries.after(NAME, e, &ctx).await? {
-                    return Ok(()); // stopped while waiting
-                }
-            }
-        }
+    let Some(mut messages) = subscribe_patiently(&js, cfg, &ctx, &mut retries).await? else {
+        return Ok(()); // stopped while waiting
     };
     ctx.started.signal(); // connected and subscribed (a review: not before)
+                          // consecutive errors of the subscription: past a few, it is made again
+                          // (a helper's trial: after NATS came back with an empty store, the view
+                          // said "stream not found" for ever and showed no run again)
+    let mut failing = 0u32;
     let mut runs: HashMap<String, RunHandle> = HashMap::new();
     let mut tick = tokio::time::interval(FLUSH_EVERY);
     // kept with each run and served by the API: no credentials (a review)
@@ -165,9 +186,22 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
                 None => break,
                 Some(Err(e)) => {
                     tracing::warn!("fleet view: {e}");
-                    tokio::time::sleep(Duration::from_millis(200)).await;
+                    failing += 1;
+                    // its consumer or stream gone (the ordered consumer does
+                    // not make them again), or errors in a row
+                    if failing >= RESUBSCRIBE_AFTER || e.to_string().contains("not found") {
+                        tracing::warn!("fleet view: subscribing again (the streams are set up again when missing)");
+                        let Some(again) = subscribe_patiently(&js, cfg, &ctx, &mut retries).await? else {
+                            break;
+                        };
+                        messages = again;
+                        failing = 0;
+                    } else {
+                        tokio::time::sleep(Duration::from_millis(200)).await;
+                    }
                 }
                 Some(Ok(msg)) => {
+                    failing = 0;
                     let arrived = Instant::now();
                     let mut parts = msg.subject.splitn(3, '.');
                     let (kind, token) = (parts.nth(1).unwrap_or_default(), parts.next().unwrap_or_default());

@@ -200,6 +200,27 @@ impl NatsWorker {
         Ok((partitions, leases, part))
     }
 
+    /// [`Self::set_up`], tried again (see [`SetUpRetries`]) until it works;
+    /// `None` once the daemon stops first.
+    async fn set_up_patiently(
+        &self,
+        js: &jetstream::Context,
+        ctx: &SourceContext,
+        name: &str,
+        retries: &mut SetUpRetries,
+    ) -> Result<Option<(u32, kv::Store, PartCtx)>, NatsError> {
+        loop {
+            match self.set_up(js, ctx).await {
+                Ok(set_up) => return Ok(Some(set_up)),
+                Err(e) => {
+                    if !retries.after(name, e, ctx).await? {
+                        return Ok(None);
+                    }
+                }
+            }
+        }
+    }
+
     async fn serve(self, ctx: SourceContext) -> Result<(), NatsError> {
         let name = format!("shocktwin worker {}", self.id);
         let Some(client) = connect_patiently(&self.cfg, &name, &ctx).await? else {
@@ -209,15 +230,10 @@ impl NatsWorker {
             .max_ack_inflight(MAX_ACKS_IN_FLIGHT)
             .build(client);
         let mut retries = SetUpRetries::default();
-        let (partitions, leases, part) = loop {
-            match self.set_up(&js, &ctx).await {
-                Ok(set_up) => break set_up,
-                Err(e) => {
-                    if !retries.after(&name, e, &ctx).await? {
-                        return Ok(()); // stopped while waiting
-                    }
-                }
-            }
+        let Some((mut partitions, mut leases, mut part)) =
+            Box::pin(self.set_up_patiently(&js, &ctx, &name, &mut retries)).await?
+        else {
+            return Ok(()); // stopped while waiting
         };
         tracing::info!(worker = %self.id, partitions, "joined the worker group");
         if partitions != self.cfg.partitions {
@@ -246,13 +262,42 @@ impl NatsWorker {
             // A step waits on the server (each request up to the client's
             // timeout): a stop during an outage must not wait for it.
             let step = async {
-                self.renew_and_rebalance(&leases, &heartbeat, &mut held, partitions, &part, &ctx)
+                let gone = self
+                    .renew_and_rebalance(&leases, &heartbeat, &mut held, partitions, &part, &ctx)
                     .await;
-                check_models(&leases, &model, &mut others).await;
+                if !gone {
+                    check_models(&leases, &model, &mut others).await;
+                }
+                gone
             };
-            tokio::select! {
+            let gone = tokio::select! {
                 () = ctx.cancel.cancelled() => break,
-                () = step => {}
+                gone = step => gone,
+            };
+            if gone {
+                // The server lost the group's streams and buckets (restarted
+                // with an empty store): they are made again, and the
+                // partitions start afresh (a helper's trial: the workers
+                // logged "no stream found" twice a second for ever while
+                // `/readyz` said ready, and no run was estimated again).
+                tracing::warn!(
+                    worker = %self.id,
+                    "the worker group's buckets are gone (a NATS server restarted with an empty \
+                     store?): setting the group up again; its partitions start afresh"
+                );
+                for (_, h) in std::mem::take(&mut held) {
+                    h.lost.store(true, Ordering::SeqCst); // nothing to write to
+                    h.stop.cancel();
+                    let _ = h.task.await;
+                }
+                let Some(again) =
+                    Box::pin(self.set_up_patiently(&js, &ctx, &name, &mut retries)).await?
+                else {
+                    break;
+                };
+                (partitions, leases, part) = again;
+                ctx.started.note(None);
+                tracing::info!(worker = %self.id, partitions, "joined the worker group again");
             }
         }
         // Shutdown: final checkpoints, then the leases go back at once;
@@ -283,6 +328,8 @@ impl NatsWorker {
 impl NatsWorker {
     /// One beat: the heartbeat, the held leases renewed (a partition whose
     /// lease is lost is dropped without writing), then [`Self::rebalance`].
+    /// Returns whether the lease bucket is gone (the heartbeat found no
+    /// stream): the caller sets the group up again.
     async fn renew_and_rebalance(
         &self,
         leases: &kv::Store,
@@ -291,10 +338,14 @@ impl NatsWorker {
         partitions: u32,
         part: &PartCtx,
         ctx: &SourceContext,
-    ) {
+    ) -> bool {
         {
             let model = dt_core::estimator::model_digest(self.factory.bundle());
             if let Err(e) = leases.put(heartbeat, Bytes::from(model)).await {
+                let why = e.to_string();
+                if why.contains("no stream found") || why.contains("stream not found") {
+                    return true;
+                }
                 tracing::warn!(worker = %self.id, "heartbeat: {e}");
             }
             // Renew; a lease we cannot renew is lost: drop the partition
@@ -342,6 +393,7 @@ impl NatsWorker {
             }
             self.rebalance(leases, held, partitions, part, ctx).await;
         }
+        false
     }
 
     /// Gives away one partition above the fair share, or takes free ones up
