@@ -970,7 +970,7 @@ def test_a_worker_with_another_model_is_warned_of(shocktwin_bin: Path, nats_serv
                 "runs model" in a.text() and "runs model" in b.text()
                 and sum("runs model" in line for line in c.text().splitlines()) >= 2):
             time.sleep(0.2)
-        joined = re.compile(r"joined the worker group.*worker=(worker-[0-9a-f-]+)")
+        joined = re.compile(r"joined the worker group.*worker=(\S+)")
         ids = {}
         for name, w in {"a": a, "b": b, "c": c}.items():
             m = joined.search(w.text())

@@ -420,21 +420,24 @@ fn convention_warnings(samples: &[Sample], stroke_pp_m: Option<f64>) -> Vec<Stri
         if r < SIGN_CORRELATION {
             let r1 = correlation_at(&second, &rod).unwrap_or(f64::NAN);
             let r2 = correlation_at(&second, &body).unwrap_or(f64::NAN);
-            out.push(if r2 > -SIGN_CORRELATION && r1.abs() < -SIGN_CORRELATION {
-                format!(
-                    "the accelerometers look swapped: the body-end column (a2) follows the \
+            // a constant a1 column (no spread: NaN) does not follow the stroke either
+            out.push(
+                if r2 > -SIGN_CORRELATION && (r1.is_nan() || r1.abs() < -SIGN_CORRELATION) {
+                    format!(
+                        "the accelerometers look swapped: the body-end column (a2) follows the \
                      stroke (correlation {r2:.2} with the position's second derivative), the \
                      rod-end one (a1) does not ({r1:.2}); swap `[acceleration] a1` and `a2` \
                      (--a1, --a2)"
-                )
-            } else {
-                format!(
-                    "the relative acceleration (a1 − a2) and the position's second derivative \
+                    )
+                } else {
+                    format!(
+                        "the relative acceleration (a1 − a2) and the position's second derivative \
                      disagree in sign (correlation {r:.2}): is the position's sign (`[position] \
                      positive`) or the accelerometers' flipped, or a1 and a2 swapped? SPEC §2 \
                      counts both positive in extension"
-                )
-            });
+                    )
+                },
+            );
         }
     }
     if let Some(r) = correlation_at(&vel, &force) {

@@ -126,9 +126,24 @@ async fn subscribe(
         .map_err(|e| NatsError::new(format!("consumer of {ESTIMATES_STREAM}"), e))?)
 }
 
-/// Consecutive errors of the view's subscription before it is made again
-/// (at once when its consumer or stream is not found).
-const RESUBSCRIBE_AFTER: u32 = 5;
+/// When the estimate stream was made (ns since 1970), `Some(0)` when it is
+/// gone, `None` when the server cannot say (an outage: the ordered consumer
+/// resumes by itself then).
+async fn stream_made(js: &jetstream::Context) -> Option<i128> {
+    match js.get_stream(ESTIMATES_STREAM).await {
+        Ok(mut stream) => stream
+            .info()
+            .await
+            .ok()
+            .map(|info| info.created.unix_timestamp_nanos()),
+        Err(e) => matches!(
+            e.kind(),
+            jetstream::context::GetStreamErrorKind::JetStream(ref j)
+                if j.error_code() == jetstream::ErrorCode::STREAM_NOT_FOUND
+        )
+        .then_some(0),
+    }
+}
 
 /// [`subscribe`], tried again (see [`SetUpRetries`]) until it works; `None`
 /// once the daemon stops first.
@@ -160,11 +175,12 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
     let Some(mut messages) = subscribe_patiently(&js, cfg, &ctx, &mut retries).await? else {
         return Ok(()); // stopped while waiting
     };
-    ctx.started.signal(); // connected and subscribed (a review: not before)
-                          // consecutive errors of the subscription: past a few, it is made again
-                          // (a helper's trial: after NATS came back with an empty store, the view
-                          // said "stream not found" for ever and showed no run again)
-    let mut failing = 0u32;
+    // connected and subscribed (a review: not before)
+    ctx.started.signal();
+    // when the stream read was made: one made again since is another (a
+    // helper's trial: after NATS came back with an empty store, the view
+    // said "consumer not found" and showed no run again)
+    let mut made = stream_made(&js).await;
     let mut runs: HashMap<String, RunHandle> = HashMap::new();
     let mut tick = tokio::time::interval(FLUSH_EVERY);
     // kept with each run and served by the API: no credentials (a review)
@@ -186,22 +202,28 @@ async fn view(cfg: &NatsConfig, ctx: SourceContext) -> Result<(), NatsError> {
                 None => break,
                 Some(Err(e)) => {
                     tracing::warn!("fleet view: {e}");
-                    failing += 1;
-                    // its consumer or stream gone (the ordered consumer does
-                    // not make them again), or errors in a row
-                    if failing >= RESUBSCRIBE_AFTER || e.to_string().contains("not found") {
-                        tracing::warn!("fleet view: subscribing again (the streams are set up again when missing)");
-                        let Some(again) = subscribe_patiently(&js, cfg, &ctx, &mut retries).await? else {
+                    // The ordered consumer resumes by itself after an outage;
+                    // not on a stream that is gone or made again, whose
+                    // sequences start over (a transient error is not taken
+                    // for one: re-subscribing reads from now, the review).
+                    let now = stream_made(&js).await;
+                    if made.is_some() && now.is_some() && now != made {
+                        tracing::warn!("fleet view: the estimate stream is gone or new: subscribing again (runs estimated meanwhile show from their next run)");
+                        let again = tokio::select! {
+                            () = ctx.cancel.cancelled() => break,
+                            again = subscribe_patiently(&js, cfg, &ctx, &mut retries) => again?,
+                        };
+                        let Some(again) = again else {
                             break;
                         };
                         messages = again;
-                        failing = 0;
+                        made = stream_made(&js).await;
                     } else {
                         tokio::time::sleep(Duration::from_millis(200)).await;
                     }
                 }
                 Some(Ok(msg)) => {
-                    failing = 0;
+
                     let arrived = Instant::now();
                     let mut parts = msg.subject.splitn(3, '.');
                     let (kind, token) = (parts.nth(1).unwrap_or_default(), parts.next().unwrap_or_default());

@@ -544,9 +544,22 @@ async fn client_for(
         }
     }
     // `retry_on_initial_connect` makes connect return at once; the callers
-    // wait for the first connection
+    // wait for the first connection. The servers are given one by one (the
+    // whole string is read as one URL) and without their credentials, which
+    // went into `opts` (the client logs its addresses at debug: the review)
+    let servers: Vec<String> = url
+        .split(',')
+        .map(|u| {
+            let u = u.trim();
+            let start = u.find("://").map_or(0, |s| s + 3);
+            match u[start..].rfind('@') {
+                Some(at) => format!("{}{}", &u[..start], &u[start + at + 1..]),
+                None => u.to_owned(),
+            }
+        })
+        .collect();
     let client = opts
-        .connect(url.as_str())
+        .connect(servers)
         .await
         .map_err(|e| NatsError::new(&what, e))?;
     Ok((client, what, last))

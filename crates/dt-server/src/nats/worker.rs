@@ -15,9 +15,11 @@
 //! `shocktwin.telemetry.<p>.*`, from the stream sequence after its
 //! checkpoint. Every estimate goes to `shocktwin.estimate.<asset>` and every
 //! health change to `shocktwin.health.<asset>` (stream
-//! `SHOCKTWIN_ESTIMATES`) with a message id (`e/<asset>/<run>/<t_ns>`,
-//! `h/…`): a batch processed twice (after a failover) yields the same
-//! estimates with the same ids, which `JetStream` drops as duplicates.
+//! `SHOCKTWIN_ESTIMATES`) with a message id (`e/<asset>/<run>/<seq>/<t_ns>`,
+//! `h/…`, run events `r/<asset>/<run>/<seq>/<event>`, `<seq>` the stream
+//! sequence of the run's batch 0; [`msg_id`]): a batch processed twice
+//! (after a failover) yields the same estimates with the same ids, which
+//! `JetStream` drops as duplicates, while a run sent again gets new ones.
 //!
 //! **Checkpoints.** Every second, and when a partition is given away, the
 //! worker waits for the acknowledgements of everything it published, then
@@ -85,6 +87,8 @@ pub struct NatsWorker {
     cfg: NatsConfig,
     factory: EstimatorFactory,
     id: String,
+    /// The bundle's digest (what checkpoints are tied to): the heartbeat's value.
+    model: String,
 }
 
 impl NatsWorker {
@@ -101,7 +105,13 @@ impl NatsWorker {
             std::process::id(),
             nuid_suffix()
         );
-        Self { cfg, factory, id }
+        let model = dt_core::estimator::model_digest(factory.bundle());
+        Self {
+            cfg,
+            factory,
+            id,
+            model,
+        }
     }
 }
 
@@ -249,9 +259,10 @@ impl NatsWorker {
         ctx.started.signal(); // connected and set up (a review: not before)
         let mut held: BTreeMap<u32, Held> = BTreeMap::new();
         let heartbeat = format!("worker.{}", self.id);
-        // the heartbeat's value: this worker's model, which the others compare
-        let model = dt_core::estimator::model_digest(self.factory.bundle());
+        // the heartbeat's value is this worker's model, which the others
+        // compare now and then (every listing of the bucket is a consumer)
         let mut others = BTreeMap::new();
+        let mut beats = 0u32;
         let mut tick = tokio::time::interval(RENEW_EVERY / 2);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -265,8 +276,8 @@ impl NatsWorker {
                 let gone = self
                     .renew_and_rebalance(&leases, &heartbeat, &mut held, partitions, &part, &ctx)
                     .await;
-                if !gone {
-                    check_models(&leases, &model, &mut others).await;
+                if !gone && beats % MODEL_CHECK_EVERY_BEATS == 0 {
+                    check_models(&leases, &self.model, &mut others).await;
                 }
                 gone
             };
@@ -274,6 +285,7 @@ impl NatsWorker {
                 () = ctx.cancel.cancelled() => break,
                 gone = step => gone,
             };
+            beats = beats.wrapping_add(1);
             if gone {
                 // The server lost the group's streams and buckets (restarted
                 // with an empty store): they are made again, and the
@@ -288,11 +300,13 @@ impl NatsWorker {
                 for (_, h) in std::mem::take(&mut held) {
                     h.lost.store(true, Ordering::SeqCst); // nothing to write to
                     h.stop.cancel();
-                    let _ = h.task.await;
+                    h.task.abort();
                 }
-                let Some(again) =
-                    Box::pin(self.set_up_patiently(&js, &ctx, &name, &mut retries)).await?
-                else {
+                let again = tokio::select! {
+                    () = ctx.cancel.cancelled() => break,
+                    again = Box::pin(self.set_up_patiently(&js, &ctx, &name, &mut retries)) => again?,
+                };
+                let Some(again) = again else {
                     break;
                 };
                 (partitions, leases, part) = again;
@@ -340,10 +354,10 @@ impl NatsWorker {
         ctx: &SourceContext,
     ) -> bool {
         {
-            let model = dt_core::estimator::model_digest(self.factory.bundle());
-            if let Err(e) = leases.put(heartbeat, Bytes::from(model)).await {
-                let why = e.to_string();
-                if why.contains("no stream found") || why.contains("stream not found") {
+            if let Err(e) = leases.put(heartbeat, Bytes::from(self.model.clone())).await {
+                // "no stream found" is also a moment without a leader in a
+                // cluster (the review): the bucket's stream is looked up
+                if e.to_string().contains("no stream found") && lease_stream_gone(&part.js).await {
                     return true;
                 }
                 tracing::warn!(worker = %self.id, "heartbeat: {e}");
@@ -478,6 +492,41 @@ async fn live_workers(leases: &kv::Store) -> u32 {
         }
     }
     n
+}
+
+/// Beats (half a lease renewal each) between two looks at the group's models.
+const MODEL_CHECK_EVERY_BEATS: u32 = 20;
+
+/// The message id of what a run publishes: `<kind>/<asset>/<run>/<seq>/<what>`,
+/// `<seq>` the stream sequence of the run's batch 0; without it (0: a run
+/// restored from a checkpoint written before it was kept) the ids the worker
+/// that wrote the checkpoint used, `<kind>/<asset>/<run>/<what>`, so that a
+/// rolling upgrade's replay is still taken for duplicates (the review).
+fn msg_id(
+    kind: char,
+    asset: &str,
+    run: &str,
+    start_seq: u64,
+    what: impl std::fmt::Display,
+) -> String {
+    if start_seq == 0 {
+        format!("{kind}/{asset}/{run}/{what}")
+    } else {
+        format!("{kind}/{asset}/{run}/{start_seq}/{what}")
+    }
+}
+
+/// Whether the lease bucket's stream is gone (the server lost its store),
+/// not merely without a leader for a moment.
+async fn lease_stream_gone(js: &jetstream::Context) -> bool {
+    match js.get_stream(format!("KV_{}", super::LEASE_BUCKET)).await {
+        Ok(_) => false,
+        Err(e) => matches!(
+            e.kind(),
+            jetstream::context::GetStreamErrorKind::JetStream(ref j)
+                if j.error_code() == jetstream::ErrorCode::STREAM_NOT_FOUND
+        ),
+    }
 }
 
 /// Warns when a worker of the group runs another model than `model` (read
@@ -1059,7 +1108,7 @@ impl Partition {
                 unfloored_half_bar: e.unfloored_half_bar,
             })
             .map_err(|err| Refused::Publish(NatsError::new("estimate encoding", err)))?;
-            let id = format!("e/{asset}/{}/{}/{}", open.run_id, open.start_seq, e.t_ns);
+            let id = msg_id('e', asset, &open.run_id, open.start_seq, e.t_ns);
             self.publish(
                 subject.clone(),
                 Publish::build().payload(payload.into()).message_id(id),
@@ -1075,7 +1124,7 @@ impl Partition {
                 };
                 let payload = serde_json::to_vec(&msg)
                     .map_err(|err| Refused::Publish(NatsError::new("health encoding", err)))?;
-                let id = format!("h/{asset}/{}/{}/{}", open.run_id, open.start_seq, e.t_ns);
+                let id = msg_id('h', asset, &open.run_id, open.start_seq, e.t_ns);
                 self.publish(
                     format!("shocktwin.health.{token}"),
                     Publish::build().payload(payload.into()).message_id(id),
@@ -1109,7 +1158,7 @@ impl Partition {
             road: ended.and_then(|e| e.road),
         })
         .map_err(|e| Refused::Publish(NatsError::new("run event encoding", e)))?;
-        let id = format!("r/{asset}/{run_id}/{start_seq}/{event}");
+        let id = msg_id('r', asset, run_id, start_seq, event);
         self.publish(
             format!("shocktwin.run.{token}"),
             Publish::build().payload(payload.into()).message_id(id),
