@@ -613,6 +613,11 @@ def test_a_token_server_is_reached_with_a_token_file_and_a_wrong_file_is_named(
                                server.url.replace("nats://", "nats://s3cret-nats@"), "--rename-assets", "tok-",
                                str(runs[0])], capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0 and "s3cret-nats" not in proc.stderr + proc.stdout, proc.stderr
+        # a list of servers (a dead one first): the whole string was read as one URL
+        listed = f"nats://127.0.0.1:1,{server.url.replace('nats://', 'nats://s3cret-nats@')}"
+        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", listed, "--rename-assets", "tok-",
+                               str(runs[0])], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0 and "s3cret-nats" not in proc.stderr + proc.stdout, proc.stderr
         # a mistyped scheme is refused before anything is tried, by publish and by serve
         typo = server.url.replace("nats://", "nat://")
         proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", typo, str(runs[0])],
