@@ -104,6 +104,13 @@ def ended_runs(url: str) -> dict[str, dict[str, Any]]:
     return out
 
 
+def publish_as(shocktwin_bin: Path, url: str, prefix: str, run: Path) -> None:
+    """`publish` one run at 200× real time as the asset `<prefix>0`; it must succeed."""
+    proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", url, "--speed", "200",
+                           "--rename-assets", prefix, str(run)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+
+
 def wait_ended(url: str, assets: set[str], timeout_s: float, workers: list[ServeProcess]) -> dict[str, dict[str, Any]]:
     deadline = time.monotonic() + timeout_s
     while True:
@@ -930,9 +937,7 @@ def test_a_run_sent_again_within_the_window_ends_again(
     stream sequence of the run's batch 0."""
     w = worker(shocktwin_bin, nats_server)
     try:
-        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
-                               "--rename-assets", "again-", str(runs[0])], capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
+        publish_as(shocktwin_bin, nats_server.url, "again-", runs[0])
         wait_ended(nats_server.url, {"again-0"}, 120, [w])
         batches = read_stream(nats_server.url, ["shocktwin.telemetry.*.again-0"], "SHOCKTWIN_TELEMETRY")
         assert batches and json.loads(batches[-1][1])["end"], len(batches)
@@ -1004,16 +1009,12 @@ def test_a_server_back_with_an_empty_store_is_set_up_again(
 
     w = worker(shocktwin_bin, nats_server)
     try:
-        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
-                               "--rename-assets", "before-", str(runs[0])], capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
+        publish_as(shocktwin_bin, nats_server.url, "before-", runs[0])
         wait_ended(nats_server.url, {"before-0"}, 120, [w])
         nats_server.stop()
         shutil.rmtree(nats_server.workdir / "jetstream")
         nats_server.start()
-        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
-                               "--rename-assets", "after-", str(runs[0])], capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
+        publish_as(shocktwin_bin, nats_server.url, "after-", runs[0])
         done = wait_ended(nats_server.url, {"after-0"}, 120, [w])
         assert done["after-0"]["meta"]["outcome"] == "completed", done
         assert "setting the group up again" in w.text(), w.text()[-3000:]
@@ -1022,9 +1023,7 @@ def test_a_server_back_with_an_empty_store_is_set_up_again(
         deadline = time.monotonic() + 60
         while "fleet view: subscribing again" not in w.text() and time.monotonic() < deadline:
             time.sleep(0.5)
-        proc = subprocess.run([str(shocktwin_bin), "publish", "--nats", nats_server.url, "--speed", "200",
-                               "--rename-assets", "later-", str(runs[0])], capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
+        publish_as(shocktwin_bin, nats_server.url, "later-", runs[0])
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             assets = httpx.get(f"http://{w.http}/v1/assets", timeout=10).json()["assets"]
