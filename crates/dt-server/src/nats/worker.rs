@@ -353,60 +353,58 @@ impl NatsWorker {
         part: &PartCtx,
         ctx: &SourceContext,
     ) -> bool {
-        {
-            if let Err(e) = leases.put(heartbeat, Bytes::from(self.model.clone())).await {
-                // "no stream found" is also a moment without a leader in a
-                // cluster (the review): the bucket's stream is looked up
-                if e.to_string().contains("no stream found") && lease_stream_gone(&part.js).await {
-                    return true;
-                }
-                tracing::warn!(worker = %self.id, "heartbeat: {e}");
+        if let Err(e) = leases.put(heartbeat, Bytes::from(self.model.clone())).await {
+            // "no stream found" is also a moment without a leader in a
+            // cluster (the review): the bucket's stream is looked up
+            if e.to_string().contains("no stream found") && lease_stream_gone(&part.js).await {
+                return true;
             }
-            // Renew; a lease we cannot renew is lost: drop the partition
-            // without writing (another worker may own it already).
-            let mut lost = Vec::new();
-            // one line for the leases lost together (every one after an
-            // outage longer than their lifetime: a line each before)
-            let mut lost_why: Option<String> = None;
-            for (&p, h) in held.iter_mut() {
-                if h.task.is_finished() {
-                    lost.push((p, true));
-                    continue;
-                }
-                match leases
-                    .update(lease_key(p), Bytes::from(self.id.clone()), h.revision)
-                    .await
-                {
-                    Ok(r) => h.revision = r,
-                    Err(e) => {
-                        lost_why.get_or_insert_with(|| e.to_string());
-                        lost.push((p, false));
-                    }
-                }
-            }
-            if let Some(why) = lost_why {
-                let partitions: Vec<u32> = lost.iter().filter(|l| !l.1).map(|l| l.0).collect();
-                tracing::warn!(worker = %self.id, ?partitions, "leases lost (taken again when free): {why}");
-            }
-            for (p, finished) in lost {
-                if let Some(h) = held.remove(&p) {
-                    h.lost.store(!finished, Ordering::SeqCst);
-                    h.stop.cancel();
-                    match h.task.await {
-                        Ok(Err(e)) => tracing::warn!(partition = p, "partition stopped: {e}"),
-                        Err(e) => tracing::error!(partition = p, "partition task: {e}"),
-                        Ok(Ok(())) => {}
-                    }
-                    if finished {
-                        // The task ended by itself (checkpoint refused, stream
-                        // error): give the lease back so that the partition
-                        // restarts from its last checkpoint.
-                        let _ = leases.delete(lease_key(p)).await;
-                    }
-                }
-            }
-            self.rebalance(leases, held, partitions, part, ctx).await;
+            tracing::warn!(worker = %self.id, "heartbeat: {e}");
         }
+        // Renew; a lease we cannot renew is lost: drop the partition
+        // without writing (another worker may own it already).
+        let mut lost = Vec::new();
+        // one line for the leases lost together (every one after an
+        // outage longer than their lifetime: a line each before)
+        let mut lost_why: Option<String> = None;
+        for (&p, h) in held.iter_mut() {
+            if h.task.is_finished() {
+                lost.push((p, true));
+                continue;
+            }
+            match leases
+                .update(lease_key(p), Bytes::from(self.id.clone()), h.revision)
+                .await
+            {
+                Ok(r) => h.revision = r,
+                Err(e) => {
+                    lost_why.get_or_insert_with(|| e.to_string());
+                    lost.push((p, false));
+                }
+            }
+        }
+        if let Some(why) = lost_why {
+            let partitions: Vec<u32> = lost.iter().filter(|l| !l.1).map(|l| l.0).collect();
+            tracing::warn!(worker = %self.id, ?partitions, "leases lost (taken again when free): {why}");
+        }
+        for (p, finished) in lost {
+            if let Some(h) = held.remove(&p) {
+                h.lost.store(!finished, Ordering::SeqCst);
+                h.stop.cancel();
+                match h.task.await {
+                    Ok(Err(e)) => tracing::warn!(partition = p, "partition stopped: {e}"),
+                    Err(e) => tracing::error!(partition = p, "partition task: {e}"),
+                    Ok(Ok(())) => {}
+                }
+                if finished {
+                    // The task ended by itself (checkpoint refused, stream
+                    // error): give the lease back so that the partition
+                    // restarts from its last checkpoint.
+                    let _ = leases.delete(lease_key(p)).await;
+                }
+            }
+        }
+        self.rebalance(leases, held, partitions, part, ctx).await;
         false
     }
 
