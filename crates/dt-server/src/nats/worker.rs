@@ -263,6 +263,7 @@ impl NatsWorker {
         // compare now and then (every listing of the bucket is a consumer)
         let mut others = BTreeMap::new();
         let mut beats = 0u32;
+        let mut gone_in_a_row = 0u32;
         let mut tick = tokio::time::interval(RENEW_EVERY / 2);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -286,7 +287,11 @@ impl NatsWorker {
                 gone = step => gone,
             };
             beats = beats.wrapping_add(1);
-            if gone {
+            // three beats in a row (1.5 s): a JetStream still recovering after
+            // a restart that kept its store can answer "not found" once
+            gone_in_a_row = if gone { gone_in_a_row + 1 } else { 0 };
+            if gone_in_a_row >= 3 {
+                gone_in_a_row = 0;
                 // The server lost the group's streams and buckets (restarted
                 // with an empty store): they are made again, and the
                 // partitions start afresh (a helper's trial: the workers
